@@ -1,0 +1,412 @@
+"""The component base class: what every ESIAF service is built on.
+
+A component declares audio inputs and outputs (topic + the format it wants),
+loads what it needs in :meth:`Component.setup` (which may fail cleanly), and
+handles one message at a time. The SDK owns the sockets and the loop,
+registration and heartbeats, sequence numbers and loss counting, capture
+timestamps, the callback order (audio, then SSL meta, then VAD end, then end
+of stream) and shutdown on SIGTERM/SIGINT.
+
+All handlers run on one thread, in order; the heartbeat runs on another, so a
+long computation in a handler never makes the component look dead.
+"""
+from __future__ import annotations
+
+import logging
+import signal
+import socket
+import threading
+import time
+import uuid
+from dataclasses import asdict, dataclass
+from typing import Any, ClassVar, Iterable, Sequence
+
+import json
+import numpy as np
+import zmq
+
+from esiaf.audio import Audio
+from esiaf.control import STATE_ADDRESS, ControlClient, announce_stream
+from esiaf.formats import AudioFormat, FormatError, encode
+from esiaf.proto import esiaf_pb2 as pb
+from esiaf.results import RESULT_TYPES, make_result
+from esiaf.settings import ComponentSettings
+
+log = logging.getLogger(__name__)
+
+AUDIO_HWM = 100_000  # messages queued per socket before loss (minutes of audio)
+RESULTS_HWM = 10_000
+FLUSH_LINGER_MS = 2_000  # data sockets get this long to deliver the last messages at shutdown
+
+
+class SetupError(Exception):
+    """A component could not be configured (model missing, device unknown...)."""
+
+
+@dataclass
+class InputStats:
+    received: int = 0
+    lost: int = 0  # sequence numbers skipped: messages that never arrived
+    bad: int = 0  # messages that could not be used (undecodable, wrong format, handler error)
+
+
+@dataclass
+class OutputStats:
+    published: int = 0
+    dropped: int = 0  # refused at the high-water mark
+    subscribers: int = 0
+
+
+def topic_frame(topic: str) -> bytes:
+    return topic.encode() + b"\0"
+
+
+class Component:
+    """Subclass it, set ``service`` and ``designation``, declare topics, override handlers."""
+
+    service: ClassVar[str] = "component"
+    designation: ClassVar[str] = "other"  # result type produced, or "other"
+    Settings: ClassVar[type[ComponentSettings]] = ComponentSettings
+
+    def __init__(self, settings: ComponentSettings):
+        self.settings = settings
+        self.inputs: dict[str, AudioFormat] = {}
+        self.outputs: dict[str, AudioFormat] = {}
+        self.instance_id = f"{settings.name}-{uuid.uuid4().hex[:8]}"
+        self.input_stats: dict[str, InputStats] = {}
+        self.output_stats: dict[str, OutputStats] = {}
+        self.info: dict[str, Any] = {}  # reported with every heartbeat
+        self.results_sent = 0
+        self.results_dropped = 0
+        self._stop = threading.Event()
+        self._exit_code = 0
+        self._sequences: dict[str, int] = {}
+        self._last_seen: dict[tuple[str, str], int] = {}
+        self._ended: dict[str, set[str]] = {}
+        self._result_sequence = 0
+        self._connected: set[str] = set()
+        self._results_endpoint = ""
+        self._context: zmq.Context | None = None
+        self._pub = self._sub = self._push = self._state_in = None
+        self._poller = zmq.Poller()
+        self.control: ControlClient | None = None
+
+    # -- declaration -----------------------------------------------------------------
+    def add_input(self, topic: str, fmt: AudioFormat) -> None:
+        self.inputs[topic] = fmt
+        self.input_stats[topic] = InputStats()
+
+    def add_output(self, topic: str, fmt: AudioFormat) -> None:
+        self.outputs[topic] = fmt
+        self.output_stats[topic] = OutputStats()
+
+    # -- hooks to override -----------------------------------------------------------
+    def setup(self) -> None:
+        """Load models, open devices. Raise SetupError with a clear message on failure."""
+
+    def on_audio(self, audio: Audio) -> None:
+        """Every received chunk, first."""
+
+    def on_ssl(self, audio: Audio) -> None:
+        """A chunk that carries SSL directions, after on_audio."""
+
+    def on_segment_end(self, audio: Audio) -> None:
+        """The last chunk of an utterance, after on_audio and on_ssl."""
+
+    def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
+        """Every input has ended ``stream_id``. By default, end it on every output too."""
+        for topic in self.outputs:
+            self.publish(topic, b"", audio.end_ns, audio.end_ns, stream_id=stream_id, end_of_stream=True)
+
+    def produce(self) -> None:
+        """Sources override this with their capture loop; consumers leave it alone."""
+        raise NotImplementedError
+
+    def teardown(self) -> None:
+        """Release what setup took."""
+
+    # -- actions ---------------------------------------------------------------------
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    def stop(self, exit_code: int = 0) -> None:
+        self._exit_code = self._exit_code or exit_code
+        self._stop.set()
+
+    def publish(self, topic: str, audio: bytes | np.ndarray, start_ns: int, end_ns: int, *,
+                stream_id: str | None = None, segmentation_ended: bool = False,
+                segment: tuple[int, int] | None = None, ssl_directions: Iterable[pb.SslDirection] = (),
+                end_of_stream: bool = False) -> int:
+        """Publishes a chunk on an output topic; returns its sequence number (0 if dropped)."""
+        fmt = self.outputs[topic]
+        payload = audio if isinstance(audio, (bytes, bytearray, memoryview)) else encode(audio, fmt)
+        sequence = self._sequences.get(topic, 0) + 1
+        msg = pb.AugmentedAudio(stream_id=stream_id or self.settings.stream_id, topic=topic,
+                                publisher=self.instance_id, sequence=sequence, start_ns=start_ns, end_ns=end_ns,
+                                format=fmt.to_proto(), payload=bytes(payload))
+        msg.meta.segmentation_ended = segmentation_ended
+        msg.meta.end_of_stream = end_of_stream
+        if segment is not None:
+            msg.meta.segment.start_ns, msg.meta.segment.end_ns = segment
+        msg.meta.ssl_directions.extend(ssl_directions)
+        stats = self.output_stats[topic]
+        try:
+            self._pub.send_multipart([topic_frame(topic), msg.SerializeToString()], flags=zmq.NOBLOCK)
+        except zmq.Again:
+            stats.dropped += 1
+            log.warning("audio dropped at high-water mark topic=%s sequence=%d dropped=%d",
+                        topic, sequence, stats.dropped)
+            return 0
+        self._sequences[topic] = sequence
+        stats.published += 1
+        self._service(0)
+        return sequence
+
+    def forward(self, topic: str, audio: Audio, **meta: Any) -> int:
+        """Publishes a received chunk unchanged (same capture times) on an output topic."""
+        return self.publish(topic, audio.payload, audio.start_ns, audio.end_ns, stream_id=audio.stream_id, **meta)
+
+    def emit(self, result_type: str, span: tuple[int, int], *, stream_id: str | None = None,
+             **payload: Any) -> pb.Result:
+        """Sends a result to the orchestrator. ``payload`` is one of vad=, speech=, ssl=, ..., nothing=."""
+        self._result_sequence += 1
+        result = make_result(self.settings.name, result_type, stream_id or self.settings.stream_id, span,
+                             self._result_sequence, **payload)
+        self._send_results([b"result", result.SerializeToString()])
+        return result
+
+    def announce_stream(self, start_ns: int, stream_id: str | None = None, **info: Any) -> None:
+        """Sources call this when capture starts: the orchestrator records the stream's start time."""
+        announce_stream(self.settings.orchestrator_url, stream_id or self.settings.stream_id, start_ns,
+                        self.settings.name, info)
+
+    def wait_for_subscribers(self, topic: str, count: int, timeout_s: float) -> bool:
+        """Services the sockets until ``topic`` has ``count`` subscribers, or the time is up."""
+        deadline = time.monotonic() + timeout_s
+        while self.output_stats[topic].subscribers < count:
+            if self.stopping or time.monotonic() >= deadline:
+                return False
+            self._service(50)
+        return True
+
+    def sleep_until(self, deadline_monotonic: float) -> None:
+        """Waits (servicing sockets) until a monotonic time, or until stopped."""
+        while not self.stopping:
+            remaining_ms = (deadline_monotonic - time.monotonic()) * 1000
+            if remaining_ms <= 0:
+                return
+            self._service(min(remaining_ms, 100))
+
+    # -- running ---------------------------------------------------------------------
+    def stats(self) -> dict[str, Any]:
+        return {"inputs": {t: asdict(s) for t, s in list(self.input_stats.items())},
+                "outputs": {t: asdict(s) for t, s in list(self.output_stats.items())},
+                "results_sent": self.results_sent, "results_dropped": self.results_dropped,
+                "info": dict(self.info)}
+
+    def run(self) -> int:
+        """Set up, register, process until stopped; returns the exit code."""
+        self._install_signal_handlers()
+        self.setup()
+        self._context = zmq.Context()
+        try:
+            self._open_sockets()
+            self.control = ControlClient(self._context, self.settings.orchestrator_url,
+                                         self._registration_request(), self.stats,
+                                         self.settings.register_timeout_s)
+            registration = self.control.start()
+            self._apply_state(registration.state())
+            if type(self).produce is not Component.produce:
+                self.produce()
+            else:
+                while not self.stopping:
+                    self._service(100)
+        finally:
+            self._shutdown()
+        return self._exit_code
+
+    def _install_signal_handlers(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda signum, frame: self.stop())
+
+    def _advertised_host(self) -> str:
+        if self.settings.advertise_host:
+            return self.settings.advertise_host
+        if self.settings.bind_host in ("0.0.0.0", "*", "::"):
+            return socket.gethostname()
+        return self.settings.bind_host
+
+    def _open_sockets(self) -> None:
+        ctx = self._context
+        self._state_in = ctx.socket(zmq.PAIR)
+        self._state_in.setsockopt(zmq.LINGER, 0)
+        self._state_in.bind(STATE_ADDRESS)
+        self._poller.register(self._state_in, zmq.POLLIN)
+        if self.outputs:
+            self._pub = ctx.socket(zmq.XPUB)
+            self._pub.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
+            self._pub.setsockopt(zmq.SNDHWM, AUDIO_HWM)
+            self._pub.setsockopt(zmq.XPUB_VERBOSER, 1)
+            self._pub.setsockopt(zmq.XPUB_NODROP, 1)
+            host = self.settings.bind_host
+            try:
+                if self.settings.audio_port:
+                    self._pub.bind(f"tcp://{host}:{self.settings.audio_port}")
+                else:
+                    self._pub.bind_to_random_port(f"tcp://{host}")
+            except zmq.ZMQError as exc:
+                raise SetupError(f"cannot bind audio output on {host}:{self.settings.audio_port or 'any port'}: {exc}")
+            self._poller.register(self._pub, zmq.POLLIN)
+        if self.inputs:
+            self._sub = ctx.socket(zmq.SUB)
+            self._sub.setsockopt(zmq.LINGER, 0)
+            self._sub.setsockopt(zmq.RCVHWM, AUDIO_HWM)
+            for topic in self.inputs:
+                self._sub.setsockopt(zmq.SUBSCRIBE, topic_frame(topic))
+            self._poller.register(self._sub, zmq.POLLIN)
+        self._push = ctx.socket(zmq.PUSH)
+        self._push.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
+        self._push.setsockopt(zmq.SNDHWM, RESULTS_HWM)
+
+    def _audio_endpoint(self) -> str | None:
+        if self._pub is None:
+            return None
+        port = self._pub.getsockopt(zmq.LAST_ENDPOINT).decode().rsplit(":", 1)[1]
+        return f"tcp://{self._advertised_host()}:{port}"
+
+    def _registration_request(self) -> dict[str, Any]:
+        def topics(declared: dict[str, AudioFormat]) -> list[dict[str, Any]]:
+            return [{"topic": t, "format": f.to_dict()} for t, f in declared.items()]
+        return {"name": self.settings.name, "designation": self.designation, "stream_id": self.settings.stream_id,
+                "inputs": topics(self.inputs), "outputs": topics(self.outputs),
+                "audio_endpoint": self._audio_endpoint(), "host": socket.gethostname(), "info": self.info}
+
+    def _service(self, timeout_ms: float) -> None:
+        """Handles whatever is ready on the sockets, waiting up to ``timeout_ms`` for the first."""
+        events = dict(self._poller.poll(timeout=timeout_ms))
+        while events:
+            if self._state_in in events:
+                self._apply_state(json.loads(self._state_in.recv()))
+            if self._pub is not None and self._pub in events:
+                self._on_subscription(self._pub.recv())
+            if self._sub is not None and self._sub in events:
+                self._on_message(self._sub.recv_multipart())
+            events = dict(self._poller.poll(timeout=0))
+
+    def _apply_state(self, state: dict[str, Any]) -> None:
+        if state.get("type") == "fatal":
+            log.error("stopping: %s", state.get("error"))
+            self.stop(exit_code=1)
+            return
+        wanted = {endpoint for endpoints in state.get("peers", {}).values() for endpoint in endpoints}
+        if self._sub is not None:
+            for endpoint in wanted - self._connected:
+                self._sub.connect(endpoint)
+                log.info("connected to producer endpoint=%s", endpoint)
+            for endpoint in self._connected - wanted:
+                self._sub.disconnect(endpoint)
+                log.info("disconnected from producer endpoint=%s", endpoint)
+            self._connected = wanted
+        endpoint = state.get("results_endpoint", "")
+        if endpoint and endpoint != self._results_endpoint:
+            if self._results_endpoint:
+                self._push.disconnect(self._results_endpoint)
+            self._push.connect(endpoint)
+            self._results_endpoint = endpoint
+        for topic, fmt in state.get("formats", {}).items():
+            declared = self.inputs.get(topic) or self.outputs.get(topic)
+            if declared is not None and AudioFormat.from_dict(fmt) != declared:
+                log.warning("topic=%s travels as %s but this component wants %s; conversion is not "
+                            "implemented yet, such messages are counted as bad", topic,
+                            AudioFormat.from_dict(fmt), declared)
+
+    def _on_subscription(self, frame: bytes) -> None:
+        topic = frame[1:].rstrip(b"\0").decode(errors="replace")
+        stats = self.output_stats.get(topic)
+        if stats is None:
+            return
+        stats.subscribers = max(0, stats.subscribers + (1 if frame[:1] == b"\x01" else -1))
+        log.info("subscribers topic=%s count=%d", topic, stats.subscribers)
+        if self.control is not None:
+            self.control.poke()
+
+    def _on_message(self, frames: list[bytes]) -> None:
+        topic = frames[0].rstrip(b"\0").decode(errors="replace")
+        stats = self.input_stats.get(topic)
+        if stats is None or len(frames) != 2:
+            return
+        try:
+            audio = Audio.from_message(pb.AugmentedAudio.FromString(frames[1]))
+            audio.format.frames_in(audio.payload)
+        except (ValueError, FormatError) as exc:  # DecodeError is a ValueError
+            stats.bad += 1
+            log.error("undecodable audio topic=%s bad=%d error=%s", topic, stats.bad, exc)
+            return
+        stats.received += 1
+        self._count_gap(audio, stats)
+        if audio.format != self.inputs[topic]:
+            stats.bad += 1
+            if stats.bad == 1 or stats.bad % 100 == 0:
+                log.error("audio in the wrong format topic=%s got=%s want=%s bad=%d",
+                          topic, audio.format, self.inputs[topic], stats.bad)
+            return
+        try:
+            self.on_audio(audio)
+            if audio.meta.ssl_directions:
+                self.on_ssl(audio)
+            if audio.meta.segmentation_ended:
+                self.on_segment_end(audio)
+            if audio.meta.end_of_stream:
+                self._on_input_ended(audio)
+        except Exception:  # a handler bug must not kill the component: count, log, go on
+            stats.bad += 1
+            log.exception("handler failed topic=%s sequence=%d start_ns=%d", topic, audio.sequence, audio.start_ns)
+
+    def _count_gap(self, audio: Audio, stats: InputStats) -> None:
+        key = (audio.topic, audio.publisher)
+        last = self._last_seen.get(key)
+        if last is not None and audio.sequence > last + 1:
+            missing = audio.sequence - last - 1
+            stats.lost += missing
+            log.warning("lost audio topic=%s publisher=%s missing=%d lost_total=%d",
+                        audio.topic, audio.publisher, missing, stats.lost)
+            if self.control is not None:
+                self.control.poke()
+        elif last is None and audio.sequence > 1:
+            log.info("joined topic=%s publisher=%s at sequence=%d", audio.topic, audio.publisher, audio.sequence)
+        self._last_seen[key] = audio.sequence
+
+    def _on_input_ended(self, audio: Audio) -> None:
+        ended = self._ended.setdefault(audio.stream_id, set())
+        ended.add(audio.topic)
+        if ended != set(self.inputs):
+            return
+        del self._ended[audio.stream_id]
+        self.on_end_of_stream(audio.stream_id, audio)
+        notice = {"component_id": self.control.component_id if self.control else "",
+                  "component": self.settings.name, "stream_id": audio.stream_id}
+        self._send_results([b"end_of_stream", json.dumps(notice).encode()])
+        log.info("end of stream stream_id=%s", audio.stream_id)
+
+    def _send_results(self, frames: Sequence[bytes]) -> None:
+        try:
+            self._push.send_multipart(frames, flags=zmq.NOBLOCK)
+            self.results_sent += frames[0] == b"result"
+        except zmq.Again:
+            self.results_dropped += 1
+            log.error("result dropped: orchestrator not taking results dropped=%d", self.results_dropped)
+
+    def _shutdown(self) -> None:
+        try:
+            self.teardown()
+        finally:
+            if self.control is not None:
+                self.control.stop()
+            for sock in (self._state_in, self._sub, self._pub, self._push):
+                if sock is not None:
+                    sock.close()
+            if self._context is not None:
+                self._context.term()

@@ -1,0 +1,189 @@
+"""Registration with the orchestrator and the heartbeat thread.
+
+Registration is HTTP (``POST /components``), retried with exponential back-off
+until ``register_timeout_s``. After it, a thread owns a DEALER socket whose
+identity is the component id: it sends a heartbeat every
+``heartbeat_interval_s`` (and at once when :meth:`ControlClient.poke` is
+called), and passes every state message the orchestrator pushes (peers and
+formats) to the data thread through an inproc PAIR socket. When the
+orchestrator answers ``unknown`` (it restarted, or thought us dead) the thread
+registers again. See docs/protocol.md.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import httpx
+import zmq
+
+log = logging.getLogger(__name__)
+
+STATE_ADDRESS = "inproc://esiaf-control-state"
+_BACKOFF_START_S = 0.1
+_BACKOFF_MAX_S = 2.0
+
+
+class RegistrationError(Exception):
+    """The orchestrator refused us, or could not be reached in time."""
+
+
+@dataclass
+class Registration:
+    component_id: str
+    control_endpoint: str
+    results_endpoint: str
+    heartbeat_interval_s: float
+    dead_after_s: float
+    peers: dict[str, list[str]] = field(default_factory=dict)
+    formats: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    def state(self) -> dict[str, Any]:
+        return {"type": "state", "peers": self.peers, "formats": self.formats,
+                "results_endpoint": self.results_endpoint, "component_id": self.component_id}
+
+
+def _error_text(response: httpx.Response) -> str:
+    try:
+        detail = response.json().get("detail", response.text)
+    except ValueError:
+        detail = response.text
+    if isinstance(detail, list):  # pydantic validation errors
+        detail = "; ".join(f"{'.'.join(str(p) for p in d.get('loc', []))}: {d.get('msg')}" for d in detail)
+    return str(detail)
+
+
+def register(url: str, request: dict[str, Any], timeout_s: float,
+             stopping: Callable[[], bool] = lambda: False) -> Registration:
+    """POSTs the registration, retrying while the orchestrator is unreachable."""
+    deadline = time.monotonic() + timeout_s
+    delay_s = _BACKOFF_START_S
+    attempts = 0
+    while True:
+        attempts += 1
+        try:
+            response = httpx.post(f"{url.rstrip('/')}/components", json=request, timeout=5.0)
+        except httpx.HTTPError as exc:
+            last_error = str(exc) or type(exc).__name__
+        else:
+            if response.status_code == 201:
+                data = response.json()
+                return Registration(**{k: data[k] for k in Registration.__dataclass_fields__ if k in data})
+            if 400 <= response.status_code < 500:
+                raise RegistrationError(
+                    f"orchestrator at {url} refused registration ({response.status_code}): {_error_text(response)}")
+            last_error = f"HTTP {response.status_code}: {_error_text(response)}"
+        if time.monotonic() + delay_s > deadline or stopping():
+            raise RegistrationError(
+                f"orchestrator at {url} not reachable after {timeout_s:g} s ({attempts} attempts): {last_error}")
+        if attempts == 1:
+            log.info("waiting for orchestrator url=%s error=%s", url, last_error)
+        time.sleep(delay_s)
+        delay_s = min(delay_s * 2, _BACKOFF_MAX_S)
+
+
+def unregister(url: str, component_id: str) -> None:
+    try:
+        httpx.delete(f"{url.rstrip('/')}/components/{component_id}", timeout=2.0)
+    except httpx.HTTPError as exc:
+        log.info("could not unregister component_id=%s error=%s", component_id, exc)
+
+
+def announce_stream(url: str, stream_id: str, start_ns: int, source: str, info: dict[str, Any]) -> bool:
+    """Tells the orchestrator a stream's capture started (``PUT /streams/{id}``); False if it could not."""
+    try:
+        response = httpx.put(f"{url.rstrip('/')}/streams/{stream_id}",
+                             json={"start_ns": start_ns, "source": source, "info": info}, timeout=5.0)
+        response.raise_for_status()
+    except httpx.HTTPError as exc:
+        log.warning("could not announce stream_id=%s start_ns=%d error=%s", stream_id, start_ns, exc)
+        return False
+    return True
+
+
+class ControlClient:
+    """Keeps the component registered and alive; runs in its own thread."""
+
+    def __init__(self, context: zmq.Context, url: str, request: dict[str, Any],
+                 stats: Callable[[], dict[str, Any]], register_timeout_s: float):
+        self._context = context
+        self._url = url
+        self._request = dict(request, pid=os.getpid())
+        self._stats = stats
+        self._register_timeout_s = register_timeout_s
+        self._stop = threading.Event()
+        self._poke = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.registration: Registration | None = None
+
+    @property
+    def component_id(self) -> str:
+        return self.registration.component_id if self.registration else ""
+
+    def start(self) -> Registration:
+        """Registers (blocking, with retries) and starts the heartbeat thread."""
+        self.registration = register(self._url, self._request, self._register_timeout_s, self._stop.is_set)
+        log.info("registered component_id=%s peers=%s", self.component_id, self.registration.peers)
+        self._thread = threading.Thread(target=self._run, name="esiaf-control", daemon=True)
+        self._thread.start()
+        return self.registration
+
+    def poke(self) -> None:
+        """Sends a heartbeat now (something worth reporting changed)."""
+        self._poke.set()
+
+    def stop(self, unregister_too: bool = True) -> None:
+        self._stop.set()
+        if self._thread:
+            self._thread.join(timeout=3.0)
+        if unregister_too and self.registration:
+            unregister(self._url, self.component_id)
+
+    def _dealer(self) -> zmq.Socket:
+        dealer = self._context.socket(zmq.DEALER)
+        dealer.setsockopt(zmq.LINGER, 0)
+        dealer.setsockopt(zmq.IDENTITY, self.component_id.encode())
+        dealer.connect(self.registration.control_endpoint)
+        return dealer
+
+    def _run(self) -> None:
+        state_out = self._context.socket(zmq.PAIR)
+        state_out.setsockopt(zmq.LINGER, 0)
+        state_out.connect(STATE_ADDRESS)
+        dealer = self._dealer()
+        next_beat = 0.0
+        try:
+            while not self._stop.is_set():
+                now = time.monotonic()
+                if now >= next_beat or self._poke.is_set():
+                    self._poke.clear()
+                    beat = {"type": "heartbeat", "component_id": self.component_id, "stats": self._stats()}
+                    dealer.send(json.dumps(beat).encode())
+                    next_beat = now + self.registration.heartbeat_interval_s
+                if not dealer.poll(timeout=50):
+                    continue
+                message = json.loads(dealer.recv())
+                if message.get("type") == "state":
+                    self.registration.peers = message.get("peers", {})
+                    self.registration.formats = message.get("formats", {})
+                    state_out.send(json.dumps(self.registration.state()).encode())
+                elif message.get("type") == "unknown":
+                    log.warning("orchestrator does not know component_id=%s: registering again", self.component_id)
+                    dealer.close()
+                    self.registration = register(self._url, self._request, self._register_timeout_s,
+                                                 self._stop.is_set)
+                    log.info("registered again component_id=%s", self.component_id)
+                    state_out.send(json.dumps(self.registration.state()).encode())
+                    dealer = self._dealer()
+                    next_beat = 0.0
+        except RegistrationError as exc:
+            log.error("%s", exc)
+            state_out.send(json.dumps({"type": "fatal", "error": str(exc)}).encode())
+        finally:
+            dealer.close()
+            state_out.close()

@@ -1,0 +1,249 @@
+from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class SampleType(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    SAMPLE_TYPE_UNSPECIFIED: _ClassVar[SampleType]
+    SAMPLE_TYPE_INT8: _ClassVar[SampleType]
+    SAMPLE_TYPE_UINT8: _ClassVar[SampleType]
+    SAMPLE_TYPE_INT16: _ClassVar[SampleType]
+    SAMPLE_TYPE_UINT16: _ClassVar[SampleType]
+    SAMPLE_TYPE_INT24: _ClassVar[SampleType]
+    SAMPLE_TYPE_UINT24: _ClassVar[SampleType]
+    SAMPLE_TYPE_INT32: _ClassVar[SampleType]
+    SAMPLE_TYPE_UINT32: _ClassVar[SampleType]
+    SAMPLE_TYPE_FLOAT32: _ClassVar[SampleType]
+    SAMPLE_TYPE_FLOAT64: _ClassVar[SampleType]
+
+class Endianness(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    ENDIANNESS_UNSPECIFIED: _ClassVar[Endianness]
+    ENDIANNESS_LITTLE: _ClassVar[Endianness]
+    ENDIANNESS_BIG: _ClassVar[Endianness]
+
+class ResultType(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    RESULT_TYPE_UNSPECIFIED: _ClassVar[ResultType]
+    RESULT_TYPE_VAD: _ClassVar[ResultType]
+    RESULT_TYPE_SPEECH: _ClassVar[ResultType]
+    RESULT_TYPE_SSL: _ClassVar[ResultType]
+    RESULT_TYPE_EMOTION: _ClassVar[ResultType]
+    RESULT_TYPE_GENDER: _ClassVar[ResultType]
+    RESULT_TYPE_VOICE_ID: _ClassVar[ResultType]
+
+class Completion(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    COMPLETION_UNSPECIFIED: _ClassVar[Completion]
+    COMPLETION_COMPLETE: _ClassVar[Completion]
+    COMPLETION_TIMED_OUT: _ClassVar[Completion]
+SAMPLE_TYPE_UNSPECIFIED: SampleType
+SAMPLE_TYPE_INT8: SampleType
+SAMPLE_TYPE_UINT8: SampleType
+SAMPLE_TYPE_INT16: SampleType
+SAMPLE_TYPE_UINT16: SampleType
+SAMPLE_TYPE_INT24: SampleType
+SAMPLE_TYPE_UINT24: SampleType
+SAMPLE_TYPE_INT32: SampleType
+SAMPLE_TYPE_UINT32: SampleType
+SAMPLE_TYPE_FLOAT32: SampleType
+SAMPLE_TYPE_FLOAT64: SampleType
+ENDIANNESS_UNSPECIFIED: Endianness
+ENDIANNESS_LITTLE: Endianness
+ENDIANNESS_BIG: Endianness
+RESULT_TYPE_UNSPECIFIED: ResultType
+RESULT_TYPE_VAD: ResultType
+RESULT_TYPE_SPEECH: ResultType
+RESULT_TYPE_SSL: ResultType
+RESULT_TYPE_EMOTION: ResultType
+RESULT_TYPE_GENDER: ResultType
+RESULT_TYPE_VOICE_ID: ResultType
+COMPLETION_UNSPECIFIED: Completion
+COMPLETION_COMPLETE: Completion
+COMPLETION_TIMED_OUT: Completion
+
+class AudioFormat(_message.Message):
+    __slots__ = ("sample_rate_hz", "sample_type", "endianness", "channels")
+    SAMPLE_RATE_HZ_FIELD_NUMBER: _ClassVar[int]
+    SAMPLE_TYPE_FIELD_NUMBER: _ClassVar[int]
+    ENDIANNESS_FIELD_NUMBER: _ClassVar[int]
+    CHANNELS_FIELD_NUMBER: _ClassVar[int]
+    sample_rate_hz: int
+    sample_type: SampleType
+    endianness: Endianness
+    channels: int
+    def __init__(self, sample_rate_hz: _Optional[int] = ..., sample_type: _Optional[_Union[SampleType, str]] = ..., endianness: _Optional[_Union[Endianness, str]] = ..., channels: _Optional[int] = ...) -> None: ...
+
+class Span(_message.Message):
+    __slots__ = ("start_ns", "end_ns")
+    START_NS_FIELD_NUMBER: _ClassVar[int]
+    END_NS_FIELD_NUMBER: _ClassVar[int]
+    start_ns: int
+    end_ns: int
+    def __init__(self, start_ns: _Optional[int] = ..., end_ns: _Optional[int] = ...) -> None: ...
+
+class SslDirection(_message.Message):
+    __slots__ = ("source_id", "azimuth_deg", "elevation_deg", "probability")
+    SOURCE_ID_FIELD_NUMBER: _ClassVar[int]
+    AZIMUTH_DEG_FIELD_NUMBER: _ClassVar[int]
+    ELEVATION_DEG_FIELD_NUMBER: _ClassVar[int]
+    PROBABILITY_FIELD_NUMBER: _ClassVar[int]
+    source_id: str
+    azimuth_deg: float
+    elevation_deg: float
+    probability: float
+    def __init__(self, source_id: _Optional[str] = ..., azimuth_deg: _Optional[float] = ..., elevation_deg: _Optional[float] = ..., probability: _Optional[float] = ...) -> None: ...
+
+class AudioMeta(_message.Message):
+    __slots__ = ("segmentation_ended", "segment", "ssl_directions", "end_of_stream")
+    SEGMENTATION_ENDED_FIELD_NUMBER: _ClassVar[int]
+    SEGMENT_FIELD_NUMBER: _ClassVar[int]
+    SSL_DIRECTIONS_FIELD_NUMBER: _ClassVar[int]
+    END_OF_STREAM_FIELD_NUMBER: _ClassVar[int]
+    segmentation_ended: bool
+    segment: Span
+    ssl_directions: _containers.RepeatedCompositeFieldContainer[SslDirection]
+    end_of_stream: bool
+    def __init__(self, segmentation_ended: _Optional[bool] = ..., segment: _Optional[_Union[Span, _Mapping]] = ..., ssl_directions: _Optional[_Iterable[_Union[SslDirection, _Mapping]]] = ..., end_of_stream: _Optional[bool] = ...) -> None: ...
+
+class AugmentedAudio(_message.Message):
+    __slots__ = ("stream_id", "topic", "publisher", "sequence", "start_ns", "end_ns", "format", "payload", "meta")
+    STREAM_ID_FIELD_NUMBER: _ClassVar[int]
+    TOPIC_FIELD_NUMBER: _ClassVar[int]
+    PUBLISHER_FIELD_NUMBER: _ClassVar[int]
+    SEQUENCE_FIELD_NUMBER: _ClassVar[int]
+    START_NS_FIELD_NUMBER: _ClassVar[int]
+    END_NS_FIELD_NUMBER: _ClassVar[int]
+    FORMAT_FIELD_NUMBER: _ClassVar[int]
+    PAYLOAD_FIELD_NUMBER: _ClassVar[int]
+    META_FIELD_NUMBER: _ClassVar[int]
+    stream_id: str
+    topic: str
+    publisher: str
+    sequence: int
+    start_ns: int
+    end_ns: int
+    format: AudioFormat
+    payload: bytes
+    meta: AudioMeta
+    def __init__(self, stream_id: _Optional[str] = ..., topic: _Optional[str] = ..., publisher: _Optional[str] = ..., sequence: _Optional[int] = ..., start_ns: _Optional[int] = ..., end_ns: _Optional[int] = ..., format: _Optional[_Union[AudioFormat, _Mapping]] = ..., payload: _Optional[bytes] = ..., meta: _Optional[_Union[AudioMeta, _Mapping]] = ...) -> None: ...
+
+class VadResult(_message.Message):
+    __slots__ = ("probability",)
+    PROBABILITY_FIELD_NUMBER: _ClassVar[int]
+    probability: float
+    def __init__(self, probability: _Optional[float] = ...) -> None: ...
+
+class WordTiming(_message.Message):
+    __slots__ = ("word", "start_ns", "end_ns", "probability")
+    WORD_FIELD_NUMBER: _ClassVar[int]
+    START_NS_FIELD_NUMBER: _ClassVar[int]
+    END_NS_FIELD_NUMBER: _ClassVar[int]
+    PROBABILITY_FIELD_NUMBER: _ClassVar[int]
+    word: str
+    start_ns: int
+    end_ns: int
+    probability: float
+    def __init__(self, word: _Optional[str] = ..., start_ns: _Optional[int] = ..., end_ns: _Optional[int] = ..., probability: _Optional[float] = ...) -> None: ...
+
+class Hypothesis(_message.Message):
+    __slots__ = ("text", "probability", "words")
+    TEXT_FIELD_NUMBER: _ClassVar[int]
+    PROBABILITY_FIELD_NUMBER: _ClassVar[int]
+    WORDS_FIELD_NUMBER: _ClassVar[int]
+    text: str
+    probability: float
+    words: _containers.RepeatedCompositeFieldContainer[WordTiming]
+    def __init__(self, text: _Optional[str] = ..., probability: _Optional[float] = ..., words: _Optional[_Iterable[_Union[WordTiming, _Mapping]]] = ...) -> None: ...
+
+class SpeechResult(_message.Message):
+    __slots__ = ("hypotheses",)
+    HYPOTHESES_FIELD_NUMBER: _ClassVar[int]
+    hypotheses: _containers.RepeatedCompositeFieldContainer[Hypothesis]
+    def __init__(self, hypotheses: _Optional[_Iterable[_Union[Hypothesis, _Mapping]]] = ...) -> None: ...
+
+class SslResult(_message.Message):
+    __slots__ = ("directions",)
+    DIRECTIONS_FIELD_NUMBER: _ClassVar[int]
+    directions: _containers.RepeatedCompositeFieldContainer[SslDirection]
+    def __init__(self, directions: _Optional[_Iterable[_Union[SslDirection, _Mapping]]] = ...) -> None: ...
+
+class LabelResult(_message.Message):
+    __slots__ = ("label", "probability", "class_probabilities")
+    class ClassProbabilitiesEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: float
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[float] = ...) -> None: ...
+    LABEL_FIELD_NUMBER: _ClassVar[int]
+    PROBABILITY_FIELD_NUMBER: _ClassVar[int]
+    CLASS_PROBABILITIES_FIELD_NUMBER: _ClassVar[int]
+    label: str
+    probability: float
+    class_probabilities: _containers.ScalarMap[str, float]
+    def __init__(self, label: _Optional[str] = ..., probability: _Optional[float] = ..., class_probabilities: _Optional[_Mapping[str, float]] = ...) -> None: ...
+
+class NoResult(_message.Message):
+    __slots__ = ("reason",)
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    reason: str
+    def __init__(self, reason: _Optional[str] = ...) -> None: ...
+
+class Result(_message.Message):
+    __slots__ = ("component", "type", "stream_id", "span", "produced_ns", "sequence", "vad", "speech", "ssl", "emotion", "gender", "voice_id", "nothing")
+    COMPONENT_FIELD_NUMBER: _ClassVar[int]
+    TYPE_FIELD_NUMBER: _ClassVar[int]
+    STREAM_ID_FIELD_NUMBER: _ClassVar[int]
+    SPAN_FIELD_NUMBER: _ClassVar[int]
+    PRODUCED_NS_FIELD_NUMBER: _ClassVar[int]
+    SEQUENCE_FIELD_NUMBER: _ClassVar[int]
+    VAD_FIELD_NUMBER: _ClassVar[int]
+    SPEECH_FIELD_NUMBER: _ClassVar[int]
+    SSL_FIELD_NUMBER: _ClassVar[int]
+    EMOTION_FIELD_NUMBER: _ClassVar[int]
+    GENDER_FIELD_NUMBER: _ClassVar[int]
+    VOICE_ID_FIELD_NUMBER: _ClassVar[int]
+    NOTHING_FIELD_NUMBER: _ClassVar[int]
+    component: str
+    type: ResultType
+    stream_id: str
+    span: Span
+    produced_ns: int
+    sequence: int
+    vad: VadResult
+    speech: SpeechResult
+    ssl: SslResult
+    emotion: LabelResult
+    gender: LabelResult
+    voice_id: LabelResult
+    nothing: NoResult
+    def __init__(self, component: _Optional[str] = ..., type: _Optional[_Union[ResultType, str]] = ..., stream_id: _Optional[str] = ..., span: _Optional[_Union[Span, _Mapping]] = ..., produced_ns: _Optional[int] = ..., sequence: _Optional[int] = ..., vad: _Optional[_Union[VadResult, _Mapping]] = ..., speech: _Optional[_Union[SpeechResult, _Mapping]] = ..., ssl: _Optional[_Union[SslResult, _Mapping]] = ..., emotion: _Optional[_Union[LabelResult, _Mapping]] = ..., gender: _Optional[_Union[LabelResult, _Mapping]] = ..., voice_id: _Optional[_Union[LabelResult, _Mapping]] = ..., nothing: _Optional[_Union[NoResult, _Mapping]] = ...) -> None: ...
+
+class FusedResult(_message.Message):
+    __slots__ = ("id", "revision", "fusion", "stream_id", "anchor", "results", "completion", "missing_components", "published_ns")
+    ID_FIELD_NUMBER: _ClassVar[int]
+    REVISION_FIELD_NUMBER: _ClassVar[int]
+    FUSION_FIELD_NUMBER: _ClassVar[int]
+    STREAM_ID_FIELD_NUMBER: _ClassVar[int]
+    ANCHOR_FIELD_NUMBER: _ClassVar[int]
+    RESULTS_FIELD_NUMBER: _ClassVar[int]
+    COMPLETION_FIELD_NUMBER: _ClassVar[int]
+    MISSING_COMPONENTS_FIELD_NUMBER: _ClassVar[int]
+    PUBLISHED_NS_FIELD_NUMBER: _ClassVar[int]
+    id: int
+    revision: int
+    fusion: str
+    stream_id: str
+    anchor: Result
+    results: _containers.RepeatedCompositeFieldContainer[Result]
+    completion: Completion
+    missing_components: _containers.RepeatedScalarFieldContainer[str]
+    published_ns: int
+    def __init__(self, id: _Optional[int] = ..., revision: _Optional[int] = ..., fusion: _Optional[str] = ..., stream_id: _Optional[str] = ..., anchor: _Optional[_Union[Result, _Mapping]] = ..., results: _Optional[_Iterable[_Union[Result, _Mapping]]] = ..., completion: _Optional[_Union[Completion, str]] = ..., missing_components: _Optional[_Iterable[str]] = ..., published_ns: _Optional[int] = ...) -> None: ...

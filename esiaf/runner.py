@@ -1,0 +1,63 @@
+"""Entry point shared by every service: arguments, settings, logging, exit codes.
+
+A service's ``__main__`` is one line: ``raise SystemExit(main(MyComponent))``.
+Bad settings, a failed setup or a refused registration end the process with
+exit code 2 and one line on stderr naming what is wrong; no traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from typing import Sequence
+
+from esiaf.component import Component, SetupError
+from esiaf.control import RegistrationError
+from esiaf.settings import SettingsError, load_settings
+
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s [{service}] %(message)s"
+
+
+def configure_logging(service: str, level: str) -> None:
+    logging.basicConfig(level=level.upper(), format=LOG_FORMAT.format(service=service), force=True)
+
+
+def parse_set(values: Sequence[str]) -> dict[str, str]:
+    overrides = {}
+    for item in values:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise SettingsError(f"--set takes KEY=VALUE, not {item!r}")
+        overrides[key.strip().replace("-", "_")] = value
+    return overrides
+
+
+def main(component_cls: type[Component], argv: Sequence[str] | None = None) -> int:
+    service = component_cls.service
+    parser = argparse.ArgumentParser(prog=f"python -m services.{service}",
+                                     description=(component_cls.__doc__ or "").strip().splitlines()[0])
+    parser.add_argument("--config", help="YAML settings file (also ESIAF_%s_CONFIG)" % service.upper())
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override one setting (repeatable)")
+    add_arguments = getattr(component_cls, "add_arguments", None)
+    if add_arguments:
+        add_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        overrides = parse_set(args.set)
+        cli = getattr(component_cls, "settings_from_arguments", lambda a: {})(args)
+        settings = load_settings(component_cls.Settings, service, config=args.config,
+                                 **{**overrides, **cli})
+    except SettingsError as exc:
+        print(f"{service}: {exc}", file=sys.stderr)
+        return 2
+    configure_logging(service, settings.log_level)
+    try:
+        component = component_cls(settings)
+        return component.run()
+    except (SetupError, RegistrationError) as exc:
+        logging.getLogger(service).error("%s", exc)
+        print(f"{service}: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130

@@ -1,0 +1,121 @@
+"""Settings: defaults < YAML file < environment variables.
+
+Every service describes its settings as a pydantic model. :func:`load_settings`
+builds it from the model's defaults, then an optional YAML file, then the
+environment. Unknown keys are an error, in the YAML file and in the
+environment alike, so a typo never silently falls back to a default.
+
+Environment variables are named ``ESIAF_<SERVICE>_<FIELD>`` (upper case), e.g.
+``ESIAF_VAD_DB_MIN=70``. Fields that every component has (those of
+:class:`ComponentSettings`) may also be given for all services at once as
+``ESIAF_<FIELD>``, e.g. ``ESIAF_ORCHESTRATOR_URL``; the service-specific name
+wins. Values from the environment are parsed as YAML scalars or flow
+collections, so ``ESIAF_ASR_NBEST=3`` and ``ESIAF_X_LIST=[a, b]`` work.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Mapping, TypeVar
+
+import yaml
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+ENV_PREFIX = "ESIAF_"
+
+S = TypeVar("S", bound=BaseModel)
+
+
+class SettingsError(Exception):
+    """Bad configuration: the message says which key and source are wrong."""
+
+
+class StrictModel(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class ComponentSettings(StrictModel):
+    """What every component has, whatever it does."""
+
+    name: str = ""  # the component's name; defaults to the service's name
+    orchestrator_url: str = "http://127.0.0.1:8000"
+    stream_id: str = "default"
+    bind_host: str = "127.0.0.1"  # where this component's audio output socket binds
+    advertise_host: str = ""  # how others reach it; defaults to bind_host (or the hostname if 0.0.0.0)
+    audio_port: int = 0  # 0 = any free port
+    register_timeout_s: float = 30.0  # keep retrying the orchestrator this long at start-up
+    log_level: str = "INFO"
+
+
+def _env_value(raw: str) -> Any:
+    try:
+        return yaml.safe_load(raw) if raw.strip() else raw
+    except yaml.YAMLError:
+        return raw
+
+
+def _from_env(model: type[BaseModel], service: str, env: Mapping[str, str]) -> dict[str, Any]:
+    fields = set(model.model_fields)
+    common = set(ComponentSettings.model_fields) & fields
+    service_prefix = f"{ENV_PREFIX}{service.upper()}_"
+    values: dict[str, Any] = {}
+    for key, raw in env.items():
+        if key.startswith(ENV_PREFIX) and key[len(ENV_PREFIX):].lower() in common:
+            values.setdefault(key[len(ENV_PREFIX):].lower(), _env_value(raw))
+    for key, raw in env.items():
+        if not key.startswith(service_prefix):
+            continue
+        field = key[len(service_prefix):].lower()
+        if field == "config" or key[len(ENV_PREFIX):].lower() in ComponentSettings.model_fields:
+            continue  # ESIAF_ORCHESTRATOR_URL is every component's, not the orchestrator's "url"
+        if field not in fields:
+            raise SettingsError(
+                f"unknown setting {key} for {service}; known: "
+                + ", ".join(sorted(service_prefix + f.upper() for f in fields)))
+        values[field] = _env_value(raw)
+    return values
+
+
+def _from_yaml(path: Path) -> dict[str, Any]:
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise SettingsError(f"cannot read config file {path}: {exc.strerror}") from None
+    try:
+        data = yaml.safe_load(text) or {}
+    except yaml.YAMLError as exc:
+        raise SettingsError(f"config file {path} is not valid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise SettingsError(f"config file {path} must hold a mapping of settings, not {type(data).__name__}")
+    return data
+
+
+def load_settings(model: type[S], service: str, *, config: str | Path | None = None,
+                  env: Mapping[str, str] | None = None, **overrides: Any) -> S:
+    """Builds ``model`` from defaults < YAML < environment < ``overrides``.
+
+    ``config`` (or ``ESIAF_<SERVICE>_CONFIG``) names the YAML file. ``overrides``
+    are values given on a command line; ``None`` values are ignored.
+    """
+    env = os.environ if env is None else env
+    config = config or env.get(f"{ENV_PREFIX}{service.upper()}_CONFIG")
+    values: dict[str, Any] = {}
+    sources = []
+    if config:
+        values.update(_from_yaml(Path(config)))
+        sources.append(f"config file {config}")
+    env_values = _from_env(model, service, env)
+    if env_values:
+        sources.append("environment")
+    values.update(env_values)
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    try:
+        settings = model(**values)
+    except ValidationError as exc:
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in err['loc']) or '(root)'}: {err['msg']}" for err in exc.errors())
+        where = " and ".join(sources) or "defaults"
+        raise SettingsError(f"bad {service} settings (from {where}): {problems}") from None
+    if isinstance(settings, ComponentSettings) and not settings.name:
+        settings.name = service
+    return settings

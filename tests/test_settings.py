@@ -1,0 +1,54 @@
+import pytest
+
+from esiaf.settings import ComponentSettings, SettingsError, load_settings
+
+
+class DemoSettings(ComponentSettings):
+    threshold_db: float = 65.0
+    topics: list[str] = ["a"]
+
+
+def test_defaults_then_yaml_then_environment(tmp_path):
+    config = tmp_path / "demo.yaml"
+    config.write_text("threshold_db: 70\nstream_id: from-yaml\n")
+    env = {"ESIAF_DEMO_THRESHOLD_DB": "72", "ESIAF_DEMO_TOPICS": "[x, y]"}
+    settings = load_settings(DemoSettings, "demo", config=config, env=env)
+    assert settings.threshold_db == 72.0
+    assert settings.stream_id == "from-yaml"
+    assert settings.topics == ["x", "y"]
+    assert settings.name == "demo"
+
+
+def test_common_settings_for_all_services_and_the_specific_one_wins():
+    env = {"ESIAF_ORCHESTRATOR_URL": "http://robot:8000", "ESIAF_STREAM_ID": "all",
+           "ESIAF_DEMO_STREAM_ID": "mine"}
+    settings = load_settings(DemoSettings, "demo", env=env)
+    assert settings.orchestrator_url == "http://robot:8000"
+    assert settings.stream_id == "mine"
+
+
+def test_config_file_from_environment(tmp_path):
+    config = tmp_path / "c.yaml"
+    config.write_text("threshold_db: 1\n")
+    assert load_settings(DemoSettings, "demo", env={"ESIAF_DEMO_CONFIG": str(config)}).threshold_db == 1
+
+
+@pytest.mark.parametrize("env, message", [
+    ({"ESIAF_DEMO_TRESHOLD_DB": "1"}, "unknown setting ESIAF_DEMO_TRESHOLD_DB"),
+    ({"ESIAF_DEMO_THRESHOLD_DB": "loud"}, "threshold_db"),
+])
+def test_bad_environment_is_a_clear_error(env, message):
+    with pytest.raises(SettingsError, match=message):
+        load_settings(DemoSettings, "demo", env=env)
+
+
+def test_unknown_yaml_key_and_bad_yaml_are_errors(tmp_path):
+    config = tmp_path / "c.yaml"
+    config.write_text("treshold_db: 1\n")
+    with pytest.raises(SettingsError, match="treshold_db"):
+        load_settings(DemoSettings, "demo", config=config, env={})
+    config.write_text("a: [\n")
+    with pytest.raises(SettingsError, match="not valid YAML"):
+        load_settings(DemoSettings, "demo", config=config, env={})
+    with pytest.raises(SettingsError, match="cannot read config file"):
+        load_settings(DemoSettings, "demo", config=tmp_path / "missing.yaml", env={})
