@@ -1,0 +1,1 @@
+"""The REST and websocket API: one router per resource."""

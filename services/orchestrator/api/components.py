@@ -1,0 +1,66 @@
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, HTTPException, Query, Response, status
+
+from ..core import Orchestrator
+from ..models import (ComponentInfo, ComponentList, Problem, RegisterRequest, RegisterResponse,
+                      TopicDeclaration)
+from ..registry import Component, TopicConflict
+from .deps import get_core
+
+router = APIRouter(tags=["components"])
+
+
+def _declarations(topics: dict) -> list[TopicDeclaration]:
+    return [TopicDeclaration(topic=topic, format=fmt) for topic, fmt in topics.items()]
+
+
+def component_info(component: Component) -> ComponentInfo:
+    return ComponentInfo(
+        component_id=component.component_id, name=component.name,
+        designation=component.designation, stream_id=component.stream_id,
+        status=component.status, inputs=_declarations(component.inputs),
+        outputs=_declarations(component.outputs), audio_endpoint=component.audio_endpoint,
+        host=component.host, pid=component.pid, info=component.info,
+        registered_ns=component.registered_ns, last_seen_ns=component.last_seen_ns,
+        departed_ns=component.departed_ns, heartbeats=component.heartbeats,
+        results_received=component.results_received, stats=component.stats)
+
+
+@router.post("/components", status_code=status.HTTP_201_CREATED, response_model=RegisterResponse,
+             responses={409: {"model": Problem, "description": "a topic's channel count differs"}},
+             summary="register a component (a name registered again replaces the old instance)")
+async def register(request: RegisterRequest,
+                   core: Orchestrator = Depends(get_core)) -> RegisterResponse:
+    try:
+        component = await core.register(
+            name=request.name, designation=request.designation, stream_id=request.stream_id,
+            inputs={d.topic: d.format.model_dump() for d in request.inputs},
+            outputs={d.topic: d.format.model_dump() for d in request.outputs},
+            audio_endpoint=request.audio_endpoint, host=request.host, pid=request.pid,
+            info=request.info)
+    except TopicConflict as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
+    state = component.pushed_state
+    return RegisterResponse(
+        component_id=component.component_id, control_endpoint=core.control_endpoint,
+        results_endpoint=core.results_endpoint,
+        heartbeat_interval_s=core.settings.heartbeat_interval_s,
+        dead_after_s=core.settings.dead_after_s, peers=state["peers"], formats=state["formats"])
+
+
+@router.get("/components", response_model=ComponentList,
+            summary="live components with their last heartbeat statistics")
+async def list_components(
+        include_dead: bool = Query(False, description="also the dead and replaced ones"),
+        core: Orchestrator = Depends(get_core)) -> ComponentList:
+    return ComponentList(items=[component_info(c) for c in core.registry.all(include_dead)])
+
+
+@router.delete("/components/{component_id}", status_code=status.HTTP_204_NO_CONTENT,
+               responses={404: {"model": Problem, "description": "no such live component"}},
+               summary="remove a component (its clean shutdown)")
+async def remove(component_id: str, core: Orchestrator = Depends(get_core)) -> Response:
+    if await core.remove(component_id) is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no live component {component_id!r}")
+    return Response(status_code=status.HTTP_204_NO_CONTENT)

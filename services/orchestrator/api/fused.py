@@ -1,0 +1,31 @@
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, Query, Response
+
+from ..core import Orchestrator
+from ..models import FusedPage
+from .deps import check_range, get_core
+
+router = APIRouter(tags=["fused"])
+
+
+@router.get("/fused", response_model=FusedPage,
+            summary="fused results, oldest first, whose anchor span overlaps [start_ns, end_ns]",
+            description="The latest revision of each. Live: websocket /ws/fused?stream=&fusion="
+                        "&after_id= sends the stored fused results after after_id, then each "
+                        'one as it is published, and {"type": "stream_end", "stream_id": ...} '
+                        "events.")
+async def list_fused(
+        stream: str | None = Query(None, description="stream_id"),
+        fusion: str | None = Query(None, description="fusion name"),
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+        after_id: int | None = Query(None, ge=0, description="only fused results with a larger id"),
+        limit: int = Query(100, ge=1, le=1000),
+        core: Orchestrator = Depends(get_core)) -> Response:
+    check_range(start_ns, end_ns)
+    page = core.store.query_fused(fusion=fusion, stream=stream, start_ns=start_ns,
+                                  end_ns=end_ns, after_id=after_id, limit=limit)
+    if page.next_after_id is None:
+        page = type(page)(items=[], next_after_id=after_id)
+    return Response(page.to_json(), media_type="application/json")

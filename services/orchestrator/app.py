@@ -1,0 +1,44 @@
+"""The FastAPI application factory. Nothing is built at import: state lives in the lifespan."""
+from __future__ import annotations
+
+from contextlib import asynccontextmanager
+from typing import AsyncIterator
+
+from fastapi import FastAPI
+
+from .api import components, fused, fusions, health, results, streams, topics, ws
+from .core import Orchestrator
+from .settings import OrchestratorSettings
+
+DESCRIPTION = """\
+Registers ESIAF components, heartbeats them over ZeroMQ, stores every result in SQLite,
+fuses results and serves the fused results. The wire protocols are in docs/protocol.md.
+"""
+
+
+def create_app(settings: OrchestratorSettings, *,
+               orchestrator: Orchestrator | None = None) -> FastAPI:
+    """The orchestrator's HTTP app.
+
+    Without ``orchestrator``, the app's lifespan starts one (binding its ZeroMQ
+    sockets and opening its database) and stops it at shutdown; the command line
+    starts its own first, so that a port in use is reported before serving.
+    """
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        core = orchestrator or Orchestrator(settings)
+        if orchestrator is None:
+            await core.start()
+        app.state.core = core
+        try:
+            yield
+        finally:
+            if orchestrator is None:
+                await core.stop()
+
+    app = FastAPI(title="ESIAF orchestrator", version="0.1.0", description=DESCRIPTION,
+                  lifespan=lifespan)
+    for module in (components, topics, streams, results, fused, ws, fusions, health):
+        app.include_router(module.router)
+    return app

@@ -1,0 +1,77 @@
+"""The control plane: heartbeats in, full state out (ROUTER, one JSON frame per message)."""
+from __future__ import annotations
+
+import json
+import logging
+from collections import Counter
+from typing import Any
+
+import zmq.asyncio
+
+from .registry import Component, Registry
+
+log = logging.getLogger(__name__)
+
+UNKNOWN = json.dumps({"type": "unknown"}).encode()
+
+
+class ControlPlane:
+    def __init__(self, socket: zmq.asyncio.Socket, registry: Registry) -> None:
+        self.socket = socket
+        self.registry = registry
+        self.counters: Counter[str] = Counter()
+
+    async def run(self) -> None:
+        while True:
+            frames = await self.socket.recv_multipart()
+            try:
+                await self.handle(frames)
+            except Exception:  # a bug must not stop the heartbeats of everyone else
+                self.counters["errors"] += 1
+                log.exception("event=control_failed frames=%d", len(frames))
+
+    async def handle(self, frames: list[bytes]) -> None:
+        if len(frames) != 2:
+            self.counters["bad_messages"] += 1
+            log.warning("event=bad_message plane=control frames=%d", len(frames))
+            return
+        identity, data = frames
+        component = self.registry.get(identity.decode("utf-8", errors="replace"))
+        if component is None:
+            self.counters["unknown"] += 1
+            log.debug("event=unknown_component component_id=%r", identity[:80])
+            await self.socket.send_multipart([identity, UNKNOWN])
+            return
+        component.touch()  # any message counts as life, even a malformed one
+        try:
+            message = json.loads(data)
+            kind = message["type"]
+        except (ValueError, KeyError, TypeError) as exc:
+            self.counters["bad_messages"] += 1
+            log.warning("event=bad_message plane=control component_id=%s reason=%r",
+                        component.component_id, str(exc))
+            return
+        if kind != "heartbeat":
+            self.counters["bad_messages"] += 1
+            log.warning("event=bad_message plane=control component_id=%s type=%r",
+                        component.component_id, kind)
+            return
+        component.heartbeats += 1
+        stats = message.get("stats")
+        if isinstance(stats, dict):
+            component.stats = stats
+        state = self.registry.state_of(component)
+        component.pushed_state = state
+        await self.send(component, state)
+
+    async def push_changes(self) -> None:
+        """Sends its new state to every live component whose peers or formats changed."""
+        for component, state in self.registry.changed_states():
+            log.debug("event=state_pushed component_id=%s", component.component_id)
+            await self.send(component, state)
+
+    async def send(self, component: Component, message: dict[str, Any]) -> None:
+        # ROUTER drops messages to a peer that is not (yet) connected: the next heartbeat's
+        # answer carries the full state anyway.
+        await self.socket.send_multipart([component.component_id.encode(),
+                                          json.dumps(message).encode()])

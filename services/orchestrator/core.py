@@ -1,0 +1,192 @@
+"""The orchestrator's state and background tasks, wired together; runs inside the event loop."""
+from __future__ import annotations
+
+import asyncio
+import errno
+import logging
+import sqlite3
+from typing import Any
+
+import zmq
+import zmq.asyncio
+
+from .control import ControlPlane
+from .fusion import FusionConfigError, FusionEngine
+from .hub import Hub
+from .ingest import Ingest
+from .registry import Component, Format, Registry
+from .settings import OrchestratorSettings
+from .store import Checkpointer, Store, StoreError
+
+log = logging.getLogger(__name__)
+
+LIVENESS_CHECK_S = 0.25  # how often silent components are looked for
+CHECKPOINT_INTERVAL_S = 1.0  # how often the SQLite WAL is copied into the database
+ANY_HOST = ("0.0.0.0", "*", "")
+
+
+class StartupError(Exception):
+    """The orchestrator cannot start: one line that says why and what to do."""
+
+
+def zmq_host(host: str) -> str:
+    if host in ANY_HOST:
+        return "*"
+    return f"[{host}]" if ":" in host else host
+
+
+class Orchestrator:
+    def __init__(self, settings: OrchestratorSettings, *, fresh: bool = False) -> None:
+        self.settings = settings
+        self.fresh = fresh
+        self.registry = Registry()
+        self.hub = Hub()
+        self.store: Store | None = None
+        self.control: ControlPlane | None = None
+        self.ingest: Ingest | None = None
+        self.control_endpoint = ""
+        self.results_endpoint = ""
+        self._ctx: zmq.asyncio.Context | None = None
+        self._tasks: list[asyncio.Task] = []
+
+    # lifecycle
+    async def start(self) -> None:
+        """Checks the fusions, binds the ZeroMQ sockets, opens the database, starts the tasks;
+        raises StartupError (after cleaning up) if any of it fails."""
+        try:
+            self._start()
+        except BaseException:
+            await self.stop()
+            raise
+        self._tasks = [asyncio.create_task(self.control.run(), name="control"),
+                       asyncio.create_task(self.ingest.run(), name="ingest"),
+                       asyncio.create_task(self._watch_liveness(), name="liveness"),
+                       asyncio.create_task(self._checkpoint(), name="checkpoint")]
+        for task in self._tasks:
+            task.add_done_callback(self._task_done)
+        log.info("event=orchestrator_ready control=%s results=%s db=%s fusions=%s",
+                 self.control_endpoint, self.results_endpoint, self.store.path,
+                 ",".join(f.name for f in self.settings.fusions) or "-")
+
+    def _start(self) -> None:
+        settings = self.settings
+        try:
+            engine = FusionEngine(settings.fusions,
+                                  allocate_id=lambda: self.store.allocate_fused_id())
+        except FusionConfigError as exc:
+            raise StartupError(str(exc)) from None
+        self._ctx = zmq.asyncio.Context()
+        control_socket, self.control_endpoint = self._bind(zmq.ROUTER, settings.control_port,
+                                                           "control", "control_port")
+        control_socket.setsockopt(zmq.ROUTER_HANDOVER, 1)
+        results_socket, self.results_endpoint = self._bind(zmq.PULL, settings.results_port,
+                                                           "results", "results_port")
+        try:
+            self.store = Store(settings.db_path, fresh=self.fresh)
+        except StoreError as exc:
+            raise StartupError(str(exc)) from None
+        self.control = ControlPlane(control_socket, self.registry)
+        self.ingest = Ingest(results_socket, self.store, engine, self.hub, self.registry)
+
+    def _bind(self, kind: int, port: int, what: str,
+              setting: str) -> tuple[zmq.asyncio.Socket, str]:
+        host = zmq_host(self.settings.host)
+        socket = self._ctx.socket(kind)
+        socket.setsockopt(zmq.LINGER, 0)
+        if host.startswith("["):
+            socket.setsockopt(zmq.IPV6, 1)
+        address = f"tcp://{host}:{port or '*'}"
+        try:
+            socket.bind(address)
+        except zmq.ZMQError as exc:
+            socket.close(linger=0)
+            hint = ""
+            if exc.errno == errno.EADDRINUSE:
+                hint = (f" (is another orchestrator running? set {setting} in the config file "
+                        f"or ESIAF_ORCHESTRATOR_{setting.upper()})")
+            raise StartupError(f"cannot bind the {what} socket to {address}: "
+                               f"{exc.strerror.lower()}{hint}") from None
+        bound_port = socket.getsockopt_string(zmq.LAST_ENDPOINT).rsplit(":", 1)[1]
+        advertised = self.settings.advertised_host()
+        if ":" in advertised:
+            advertised = f"[{advertised}]"
+        return socket, f"tcp://{advertised}:{bound_port}"
+
+    async def stop(self) -> None:
+        """Stops the tasks, closes the sockets (linger 0) and the database. Safe to repeat."""
+        tasks, self._tasks = self._tasks, []
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        if self._ctx is not None:
+            self._ctx.destroy(linger=0)
+            self._ctx = None
+        if self.store is not None:
+            self.store.close()
+            self.store = None
+            log.info("event=orchestrator_stopped")
+
+    def _task_done(self, task: asyncio.Task) -> None:
+        if not task.cancelled() and task.exception() is not None:
+            log.critical("event=task_failed task=%s", task.get_name(), exc_info=task.exception())
+
+    # what the REST API does
+    async def register(self, *, name: str, designation: str, stream_id: str,
+                       inputs: dict[str, Format], outputs: dict[str, Format],
+                       audio_endpoint: str | None, host: str, pid: int | None,
+                       info: dict[str, Any]) -> Component:
+        """Registers a component (raises registry.TopicConflict) and tells the others."""
+        component, replaced = self.registry.register(
+            name=name, designation=designation, stream_id=stream_id, inputs=inputs,
+            outputs=outputs, audio_endpoint=audio_endpoint, host=host, pid=pid, info=info)
+        if replaced is not None:
+            log.info("event=component_replaced component_id=%s name=%s by=%s",
+                     replaced.component_id, name, component.component_id)
+        log.info("event=component_registered component_id=%s name=%s designation=%s stream_id=%s "
+                 "inputs=%s outputs=%s audio_endpoint=%s host=%s pid=%s",
+                 component.component_id, name, designation, stream_id,
+                 ",".join(inputs) or "-", ",".join(outputs) or "-", audio_endpoint or "-",
+                 host or "-", pid if pid is not None else "-")
+        await self._after_change([])  # the name lives on: nothing stops waiting for it
+        return component
+
+    async def remove(self, component_id: str) -> Component | None:
+        component = self.registry.remove(component_id)
+        if component is not None:
+            log.info("event=component_removed component_id=%s name=%s",
+                     component_id, component.name)
+            await self._after_change([component])
+        return component
+
+    async def _after_change(self, gone: list[Component]) -> None:
+        """Pushes changed states, and lets fusions and stream ends stop waiting for ``gone``."""
+        await self.control.push_changes()
+        if gone:
+            self.ingest.components_gone([component.name for component in gone])
+
+    async def _watch_liveness(self) -> None:
+        while True:
+            await asyncio.sleep(LIVENESS_CHECK_S)
+            dead = self.registry.expire(self.settings.dead_after_s)
+            for component in dead:
+                log.warning("event=component_dead component_id=%s name=%s silent_s=%.2f",
+                            component.component_id, component.name,
+                            (component.departed_ns - component.last_seen_ns) / 1e9)
+            if dead:
+                await self._after_change(dead)
+
+    async def _checkpoint(self) -> None:
+        checkpointer = Checkpointer(self.store.path)
+        job: asyncio.Future | None = None
+        try:
+            while True:
+                await asyncio.sleep(CHECKPOINT_INTERVAL_S)
+                job = asyncio.ensure_future(asyncio.to_thread(checkpointer.run))
+                try:
+                    await asyncio.shield(job)
+                except sqlite3.Error as exc:
+                    log.warning("event=checkpoint_failed reason=%r", str(exc))
+        finally:
+            if job is not None and not job.done():
+                await asyncio.wait([job])  # never close the connection under the thread
+            checkpointer.close()

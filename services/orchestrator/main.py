@@ -1,0 +1,42 @@
+"""Command line: python -m services.orchestrator [--config FILE] [--host H] [--port P]
+[--db PATH] [--fresh]. Exit codes: 0 after SIGINT/SIGTERM, 2 for bad settings or a port
+in use (one line on stderr), 1 if the server failed otherwise."""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import sys
+
+from esiaf.settings import SettingsError
+
+from .core import StartupError
+from .server import serve
+from .settings import load
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m services.orchestrator",
+                                     description="ESIAF orchestrator")
+    parser.add_argument("--config", help="YAML settings file (or ESIAF_ORCHESTRATOR_CONFIG)")
+    parser.add_argument("--host", help="where to listen (HTTP, control and results sockets)")
+    parser.add_argument("--port", type=int, help="HTTP port")
+    parser.add_argument("--db", help="SQLite database file")
+    parser.add_argument("--fresh", action="store_true", help="delete the database first")
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    try:
+        settings = load(args.config, host=args.host, port=args.port, db_path=args.db)
+    except SettingsError as exc:
+        print(f"orchestrator: {exc}", file=sys.stderr)
+        return 2
+    logging.basicConfig(level=settings.log_level, stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s %(message)s")
+    try:
+        return asyncio.run(serve(settings, fresh=args.fresh))
+    except StartupError as exc:
+        print(f"orchestrator: {exc}", file=sys.stderr)
+        return 2

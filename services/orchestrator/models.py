@@ -1,0 +1,231 @@
+"""Request and response models of the REST API (they make the OpenAPI schema at /docs)."""
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from .settings import FusionSettings
+
+SampleType = Literal["int8", "uint8", "int16", "uint16", "int24", "uint24", "int32", "uint32",
+                     "float32", "float64"]
+Designation = Literal["vad", "speech", "ssl", "emotion", "gender", "voice_id", "other"]
+NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]*$"
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class AudioFormat(Strict):
+    sample_rate_hz: int = Field(gt=0, examples=[16000])
+    sample_type: SampleType
+    endianness: Literal["little", "big"] = "little"
+    channels: int = Field(ge=1, description="samples are interleaved")
+
+
+class TopicDeclaration(Strict):
+    topic: str = Field(min_length=1, examples=["audio/raw"])
+    format: AudioFormat = Field(description="the format this component wants (external format)")
+
+
+_EXAMPLE_FORMAT = {"sample_rate_hz": 16000, "sample_type": "int16", "endianness": "little",
+                   "channels": 1}
+
+
+class RegisterRequest(Strict):
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
+        "name": "vad", "designation": "vad", "stream_id": "default",
+        "inputs": [{"topic": "audio/raw", "format": _EXAMPLE_FORMAT}],
+        "outputs": [{"topic": "vad/speech", "format": _EXAMPLE_FORMAT}],
+        "audio_endpoint": "tcp://127.0.0.1:40123", "host": "robot-1", "pid": 4242, "info": {}}]})
+
+    name: str = Field(min_length=1, max_length=64, pattern=NAME_PATTERN,
+                      description="the component's name; registering a name again replaces "
+                                  "the old instance")
+    designation: Designation = Field(description="the result type it produces; other: none")
+    stream_id: str = Field(default="default", min_length=1)
+    inputs: list[TopicDeclaration] = Field(default_factory=list)
+    outputs: list[TopicDeclaration] = Field(default_factory=list)
+    audio_endpoint: str | None = Field(
+        default=None, pattern=r"^[a-z]+://\S+$", examples=["tcp://127.0.0.1:40123"],
+        description="where its XPUB socket is reached; null without outputs")
+    host: str = ""
+    pid: int | None = None
+    info: dict[str, Any] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "RegisterRequest":
+        for side in ("inputs", "outputs"):
+            topics = [d.topic for d in getattr(self, side)]
+            repeated = sorted({t for t in topics if topics.count(t) > 1})
+            if repeated:
+                raise ValueError(f"{side} name a topic more than once: {', '.join(repeated)}")
+        if self.outputs and not self.audio_endpoint:
+            raise ValueError("audio_endpoint is required for a component with outputs")
+        return self
+
+
+class RegisterResponse(BaseModel):
+    component_id: str = Field(examples=["vad-5f3a9c"])
+    control_endpoint: str = Field(examples=["tcp://127.0.0.1:5560"])
+    results_endpoint: str = Field(examples=["tcp://127.0.0.1:5561"])
+    heartbeat_interval_s: float
+    dead_after_s: float
+    peers: dict[str, list[str]] = Field(
+        description="each input topic: the audio endpoints of its live producers")
+    formats: dict[str, AudioFormat] = Field(
+        description="each input and output topic: the format assigned to it (on the wire)")
+
+
+class ComponentInfo(BaseModel):
+    component_id: str
+    name: str
+    designation: Designation
+    stream_id: str
+    status: Literal["alive", "dead", "replaced"]
+    inputs: list[TopicDeclaration]
+    outputs: list[TopicDeclaration]
+    audio_endpoint: str | None
+    host: str
+    pid: int | None
+    info: dict[str, Any]
+    registered_ns: int
+    last_seen_ns: int = Field(description="wall clock of its last message")
+    departed_ns: int | None = Field(description="when it was declared dead or replaced")
+    heartbeats: int
+    results_received: int
+    stats: dict[str, Any] | None = Field(description="the stats of its last heartbeat")
+
+
+class ComponentList(BaseModel):
+    items: list[ComponentInfo]
+
+
+class TopicProducer(BaseModel):
+    component_id: str
+    name: str
+    audio_endpoint: str | None
+    subscribers: int | None = Field(description="as the producer last reported; null if unknown")
+
+
+class TopicConsumer(BaseModel):
+    component_id: str
+    name: str
+
+
+class TopicInfo(BaseModel):
+    topic: str
+    format: AudioFormat = Field(description="assigned: its first producer's, else first consumer's")
+    producers: list[TopicProducer]
+    consumers: list[TopicConsumer]
+
+
+class TopicList(BaseModel):
+    items: list[TopicInfo]
+
+
+# results, as stored and sent (docs/protocol.md); exactly one payload key is present
+class Span(BaseModel):
+    start_ns: int
+    end_ns: int
+
+
+class VadPayload(BaseModel):
+    probability: float
+
+
+class WordTiming(BaseModel):
+    word: str
+    start_ns: int
+    end_ns: int
+    probability: float
+
+
+class Hypothesis(BaseModel):
+    text: str
+    probability: float
+    words: list[WordTiming]
+
+
+class SpeechPayload(BaseModel):
+    hypotheses: list[Hypothesis] = Field(description="n-best, best first")
+
+
+class SslDirection(BaseModel):
+    source_id: str
+    azimuth_deg: float
+    elevation_deg: float
+    probability: float
+
+
+class SslPayload(BaseModel):
+    directions: list[SslDirection]
+
+
+class LabelPayload(BaseModel):
+    label: str
+    probability: float
+    class_probabilities: dict[str, float]
+
+
+class NoResultPayload(BaseModel):
+    reason: str
+
+
+class Result(BaseModel):
+    id: int
+    component: str
+    type: Literal["vad", "speech", "ssl", "emotion", "gender", "voice_id"]
+    stream_id: str
+    span: Span = Field(description="capture time of the audio the result was computed on")
+    produced_ns: int
+    received_ns: int
+    latency_ms: float = Field(description="(received_ns - span.end_ns) / 1e6")
+    sequence: int
+    vad: VadPayload | None = None
+    speech: SpeechPayload | None = None
+    ssl: SslPayload | None = None
+    emotion: LabelPayload | None = None
+    gender: LabelPayload | None = None
+    voice_id: LabelPayload | None = None
+    nothing: NoResultPayload | None = Field(default=None, description="covered, no result")
+
+
+class FusedResult(BaseModel):
+    type: Literal["fused_result"]
+    id: int = Field(description="stable across revisions")
+    revision: int = Field(description="1 for the first publication")
+    fusion: str
+    stream_id: str
+    anchor: Result
+    results: dict[str, list[Result]] = Field(description="fused results by type")
+    completion: Literal["complete", "timed_out"]
+    missing_components: list[str]
+    published_ns: int
+
+
+NEXT_AFTER_ID = ("pass as after_id for the next page: the last item's id, or the after_id given "
+                 "when the page is empty")
+
+
+class ResultPage(BaseModel):
+    items: list[Result]
+    next_after_id: int | None = Field(description=NEXT_AFTER_ID)
+
+
+class FusedPage(BaseModel):
+    items: list[FusedResult]
+    next_after_id: int | None = Field(description=NEXT_AFTER_ID)
+
+
+class FusionList(BaseModel):
+    items: list[FusionSettings]
+
+
+class Health(BaseModel):
+    status: Literal["ok"]
+
+
+class Problem(BaseModel):
+    detail: str

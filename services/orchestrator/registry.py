@@ -1,0 +1,187 @@
+"""Who is registered, which format each topic carries, and what each component must know.
+
+Pure bookkeeping, no sockets: the control plane asks :meth:`Registry.changed_states`
+after every change and pushes what it returns.
+"""
+from __future__ import annotations
+
+import secrets
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any
+
+Format = dict[str, Any]  # {"sample_rate_hz", "sample_type", "endianness", "channels"}
+
+KEEP_DEPARTED = 1000  # dead / replaced components kept for GET /components?include_dead=true
+
+
+class TopicConflict(Exception):
+    """A declared format whose channel count differs from its topic's (HTTP 409)."""
+
+
+@dataclass
+class Component:
+    component_id: str
+    name: str
+    designation: str
+    stream_id: str
+    inputs: dict[str, Format]
+    outputs: dict[str, Format]
+    audio_endpoint: str | None
+    host: str
+    pid: int | None
+    info: dict[str, Any]
+    registered_ns: int = field(default_factory=time.time_ns)
+    last_seen_ns: int = field(default_factory=time.time_ns)
+    last_seen_mono: float = field(default_factory=time.monotonic)
+    heartbeats: int = 0
+    results_received: int = 0
+    stats: dict[str, Any] | None = None
+    status: str = "alive"  # alive, dead (silent too long), replaced (its name re-registered)
+    departed_ns: int | None = None
+    pushed_state: dict[str, Any] | None = None  # the state this component last got from us
+
+    def touch(self) -> None:
+        self.last_seen_mono = time.monotonic()
+        self.last_seen_ns = time.time_ns()
+
+
+def describe(fmt: Format) -> str:
+    return (f"{fmt['sample_rate_hz']} Hz {fmt['sample_type']} {fmt['endianness']}-endian "
+            f"{fmt['channels']} ch")
+
+
+class Registry:
+    def __init__(self) -> None:
+        self.live: dict[str, Component] = {}  # by component_id, in registration order
+        self.departed: OrderedDict[str, Component] = OrderedDict()
+
+    # changes
+    def register(self, *, name: str, designation: str, stream_id: str,
+                 inputs: dict[str, Format], outputs: dict[str, Format],
+                 audio_endpoint: str | None, host: str, pid: int | None,
+                 info: dict[str, Any]) -> tuple[Component, Component | None]:
+        """Adds a component; returns it and the instance of the same name it replaces."""
+        previous = self.by_name(name)
+        self._check_channels(name, inputs, outputs, exclude=previous)
+        if previous is not None:
+            self._depart(previous, "replaced")
+        component_id = self._new_id(name)
+        component = Component(component_id=component_id, name=name, designation=designation,
+                              stream_id=stream_id, inputs=inputs, outputs=outputs,
+                              audio_endpoint=audio_endpoint, host=host, pid=pid, info=info)
+        self.live[component_id] = component
+        component.pushed_state = self.state_of(component)
+        return component, previous
+
+    def remove(self, component_id: str) -> Component | None:
+        """Drops a component that shut down cleanly (it is not kept as departed)."""
+        return self.live.pop(component_id, None)
+
+    def expire(self, dead_after_s: float, now_mono: float | None = None) -> list[Component]:
+        """Drops and returns the components silent for more than ``dead_after_s``."""
+        now_mono = time.monotonic() if now_mono is None else now_mono
+        dead = [c for c in self.live.values() if now_mono - c.last_seen_mono > dead_after_s]
+        for component in dead:
+            self._depart(component, "dead")
+        return dead
+
+    def _depart(self, component: Component, status: str) -> None:
+        self.live.pop(component.component_id, None)
+        component.status = status
+        component.departed_ns = time.time_ns()
+        self.departed[component.component_id] = component
+        while len(self.departed) > KEEP_DEPARTED:
+            self.departed.popitem(last=False)
+
+    def _new_id(self, name: str) -> str:
+        while True:
+            component_id = f"{name}-{secrets.token_hex(3)}"
+            if component_id not in self.live and component_id not in self.departed:
+                return component_id
+
+    def _check_channels(self, name: str, inputs: dict[str, Format], outputs: dict[str, Format],
+                        exclude: Component | None) -> None:
+        declared = self._declared(exclude)
+        for topic, fmt in [*outputs.items(), *inputs.items()]:
+            if topic not in declared:
+                declared[topic] = (fmt, name)
+                continue
+            other, other_name = declared[topic]
+            if other["channels"] != fmt["channels"]:
+                raise TopicConflict(
+                    f"topic {topic!r}: {name!r} declares {describe(fmt)}, but {other_name!r} "
+                    f"already declared {describe(other)} on it; channel counts are never "
+                    "converted (put a channel splitter in between)")
+
+    def _declared(self, exclude: Component | None) -> dict[str, tuple[Format, str]]:
+        """A format already declared on each topic by a live component, with its name."""
+        declared: dict[str, tuple[Format, str]] = {}
+        for component in self.live.values():
+            if component is exclude:
+                continue
+            for topic, fmt in [*component.outputs.items(), *component.inputs.items()]:
+                declared.setdefault(topic, (fmt, component.name))
+        return declared
+
+    # queries
+    def get(self, component_id: str) -> Component | None:
+        return self.live.get(component_id)
+
+    def by_name(self, name: str) -> Component | None:
+        return next((c for c in self.live.values() if c.name == name), None)
+
+    def formats(self) -> dict[str, Format]:
+        """The format assigned to each topic: its first producer's, else its first consumer's."""
+        assigned: dict[str, Format] = {}
+        for component in self.live.values():
+            for topic, fmt in component.outputs.items():
+                assigned.setdefault(topic, fmt)
+        for component in self.live.values():
+            for topic, fmt in component.inputs.items():
+                assigned.setdefault(topic, fmt)
+        return assigned
+
+    def producers(self, topic: str) -> list[Component]:
+        return [c for c in self.live.values() if topic in c.outputs]
+
+    def consumers(self, topic: str) -> list[Component]:
+        return [c for c in self.live.values() if topic in c.inputs]
+
+    def state_of(self, component: Component,
+                 formats: dict[str, Format] | None = None) -> dict[str, Any]:
+        """The full state a component is told: its peers and the formats of its topics."""
+        formats = self.formats() if formats is None else formats
+        peers = {topic: [p.audio_endpoint for p in self.producers(topic)
+                         if p is not component and p.audio_endpoint]
+                 for topic in component.inputs}
+        topics = [*component.inputs, *(t for t in component.outputs if t not in component.inputs)]
+        return {"type": "state", "peers": peers, "formats": {t: formats[t] for t in topics}}
+
+    def changed_states(self) -> list[tuple[Component, dict[str, Any]]]:
+        """Live components whose state differs from what they last got, with the new state."""
+        formats = self.formats()
+        changed = []
+        for component in self.live.values():
+            state = self.state_of(component, formats)
+            if state != component.pushed_state:
+                component.pushed_state = state
+                changed.append((component, state))
+        return changed
+
+    def all(self, include_departed: bool = False) -> list[Component]:
+        components = list(self.live.values())
+        if include_departed:
+            components += list(self.departed.values())
+        return components
+
+    def topic_names(self) -> list[str]:
+        names: dict[str, None] = {}
+        for component in self.live.values():
+            names.update(dict.fromkeys(component.outputs))
+            names.update(dict.fromkeys(component.inputs))
+        return sorted(names)
+
+    def with_inputs(self) -> list[Component]:
+        return [c for c in self.live.values() if c.inputs]

@@ -1,0 +1,90 @@
+"""Serving the app: the listening socket bound first, uvicorn, signals."""
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import errno
+import logging
+import signal
+import socket
+from typing import Iterator
+
+import uvicorn
+
+from .app import create_app
+from .core import Orchestrator, StartupError
+from .settings import OrchestratorSettings
+
+log = logging.getLogger(__name__)
+
+
+def listen_socket(host: str, port: int) -> socket.socket:
+    """Binds and listens on the HTTP port, or raises StartupError with one clear line."""
+    where = f"{host}:{port}"
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(
+            host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)[0]
+    except socket.gaierror as exc:
+        raise StartupError(f"cannot listen on {where}: {exc.strerror} (check --host or "
+                           "ESIAF_ORCHESTRATOR_HOST)") from None
+    sock = socket.socket(family, kind, proto)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+        sock.listen(2048)
+    except OSError as exc:
+        sock.close()
+        reason = (exc.strerror or str(exc)).lower()
+        hint = ""
+        if exc.errno == errno.EADDRINUSE:
+            hint = (" (is another orchestrator running? set --port or ESIAF_ORCHESTRATOR_PORT)")
+        elif exc.errno == errno.EACCES:
+            hint = " (ports below 1024 need privileges; set --port or ESIAF_ORCHESTRATOR_PORT)"
+        raise StartupError(f"cannot listen on {where}: {reason}{hint}") from None
+    return sock
+
+
+class _Server(uvicorn.Server):
+    """uvicorn's server without its signal handling: serve() installs ours, which exit 0
+    instead of re-raising the signal after shutdown."""
+
+    @contextlib.contextmanager
+    def capture_signals(self) -> Iterator[None]:
+        yield
+
+
+async def serve(settings: OrchestratorSettings, *, fresh: bool = False) -> int:
+    """Binds every port, then serves until SIGINT or SIGTERM; returns the exit code."""
+    sock = listen_socket(settings.host, settings.port)
+    core = Orchestrator(settings, fresh=fresh)
+    try:
+        await core.start()
+    except BaseException:
+        sock.close()
+        raise
+    config = uvicorn.Config(create_app(settings, orchestrator=core), log_config=None,
+                            log_level=settings.log_level.lower(),
+                            access_log=settings.log_level == "DEBUG", lifespan="on",
+                            timeout_graceful_shutdown=3)
+    server = _Server(config)
+
+    def on_signal(signum: int) -> None:
+        log.info("event=signal signal=%s", signal.Signals(signum).name)
+        if server.should_exit:
+            server.force_exit = True
+        server.should_exit = True
+
+    loop = asyncio.get_running_loop()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(signum, on_signal, signum)
+    http_host, http_port = sock.getsockname()[:2]
+    log.info("event=listening http=http://%s:%d control=%s results=%s",
+             http_host, http_port, core.control_endpoint, core.results_endpoint)
+    try:
+        await server.serve(sockets=[sock])
+    finally:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(signum)
+        await core.stop()
+        sock.close()
+    return 0 if server.started else 1

@@ -1,0 +1,74 @@
+"""The orchestrator's settings (defaults < YAML file < ESIAF_ORCHESTRATOR_* < command line)."""
+from __future__ import annotations
+
+import socket
+from pathlib import Path
+from typing import Any, Literal, Mapping
+
+from pydantic import Field, field_validator, model_validator
+
+from esiaf.settings import StrictModel, load_settings
+
+SERVICE = "orchestrator"
+
+# Result types a component can produce (its designation), "other" produces none.
+RESULT_TYPES = ("vad", "speech", "ssl", "emotion", "gender", "voice_id")
+ResultTypeName = Literal["vad", "speech", "ssl", "emotion", "gender", "voice_id"]
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+
+
+class FusionSettings(StrictModel):
+    """One configured fusion: results of ``fuse`` types gathered around each ``anchor`` result."""
+
+    name: str = Field(min_length=1, description="name of the fusion, as in fused results")
+    anchor: ResultTypeName = Field(description="result type whose results anchor a fused result")
+    fuse: list[ResultTypeName] = Field(default_factory=list,
+                                       description="result types fused with each anchor result")
+    stream: str | None = Field(default=None, description="only anchor results of this stream")
+
+
+class OrchestratorSettings(StrictModel):
+    host: str = "127.0.0.1"  # where the HTTP, control and results sockets bind
+    port: int = Field(default=8000, ge=0, le=65535)  # HTTP (REST and websocket)
+    advertise_host: str = ""  # how components reach us; defaults to host (hostname if 0.0.0.0)
+    control_port: int = Field(default=5560, ge=0, le=65535)  # 0 = any free port
+    results_port: int = Field(default=5561, ge=0, le=65535)  # 0 = any free port
+    db_path: str = "esiaf.db"
+    heartbeat_interval_s: float = Field(default=0.5, gt=0)
+    dead_after_s: float = Field(default=2.5, gt=0)
+    fusions: list[FusionSettings] = Field(
+        default_factory=lambda: [FusionSettings(name="speech", anchor="speech")])
+    log_level: str = "INFO"
+
+    @field_validator("log_level")
+    @classmethod
+    def _known_level(cls, value: str) -> str:
+        level = value.upper()
+        if level not in LOG_LEVELS:
+            raise ValueError(f"must be one of {', '.join(LOG_LEVELS)}, not {value!r}")
+        return level
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "OrchestratorSettings":
+        names = [f.name for f in self.fusions]
+        duplicates = sorted({n for n in names if names.count(n) > 1})
+        if duplicates:
+            raise ValueError(f"fusion names must be unique; repeated: {', '.join(duplicates)}")
+        if self.dead_after_s <= self.heartbeat_interval_s:
+            raise ValueError(f"dead_after_s ({self.dead_after_s}) must be longer than "
+                             f"heartbeat_interval_s ({self.heartbeat_interval_s})")
+        return self
+
+    def advertised_host(self) -> str:
+        """The host name components use to reach the orchestrator's ZeroMQ sockets."""
+        if self.advertise_host:
+            return self.advertise_host
+        if self.host in ("0.0.0.0", "::", "*", ""):
+            return socket.gethostname()
+        return self.host
+
+
+def load(config: str | Path | None = None, env: Mapping[str, str] | None = None,
+         **overrides: Any) -> OrchestratorSettings:
+    """Builds the settings; raises :class:`esiaf.settings.SettingsError` with one clear line."""
+    return load_settings(OrchestratorSettings, SERVICE, config=config, env=env, **overrides)

@@ -1,0 +1,239 @@
+"""SQLite store of every result and every fused result.
+
+One connection, owned by the event loop thread; writes are batched into one
+transaction per batch of received messages. The schema is versioned with
+``PRAGMA user_version``: ``MIGRATIONS[i]`` brings a database from version i to i + 1.
+JSON is stored ready to send, so queries hand out stored text without re-encoding it.
+"""
+from __future__ import annotations
+
+import logging
+import sqlite3
+from dataclasses import dataclass, field
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+MIGRATIONS: list[str] = [
+    # 1: results and fused results
+    """
+    CREATE TABLE results (
+        id INTEGER PRIMARY KEY,
+        component TEXT NOT NULL,
+        type TEXT NOT NULL,
+        stream_id TEXT NOT NULL,
+        start_ns INTEGER NOT NULL,
+        end_ns INTEGER NOT NULL,
+        produced_ns INTEGER NOT NULL,
+        received_ns INTEGER NOT NULL,
+        proto BLOB NOT NULL,
+        json TEXT NOT NULL
+    );
+    CREATE INDEX results_stream_start ON results (stream_id, start_ns);
+    CREATE INDEX results_type ON results (type, id);
+    CREATE INDEX results_component ON results (component, id);
+    CREATE TABLE fused (
+        id INTEGER NOT NULL,
+        revision INTEGER NOT NULL,
+        fusion TEXT NOT NULL,
+        stream_id TEXT NOT NULL,
+        start_ns INTEGER NOT NULL,
+        end_ns INTEGER NOT NULL,
+        published_ns INTEGER NOT NULL,
+        json TEXT NOT NULL,
+        PRIMARY KEY (id, revision)
+    );
+    CREATE INDEX fused_stream ON fused (stream_id, id);
+    CREATE INDEX fused_fusion ON fused (fusion, id);
+    """,
+    # 2: streams (capture sessions) as their sources announce them
+    """
+    CREATE TABLE streams (
+        stream_id TEXT PRIMARY KEY,
+        start_ns INTEGER NOT NULL,
+        source TEXT NOT NULL,
+        announced_ns INTEGER NOT NULL,
+        info TEXT NOT NULL
+    );
+    """,
+]
+
+
+class StoreError(Exception):
+    """The database cannot be opened or migrated: the message says why."""
+
+
+@dataclass(frozen=True)
+class Page:
+    """Stored JSON texts, oldest first, and the id to pass as ``after_id`` for the next page."""
+
+    items: list[str]
+    next_after_id: int | None
+    revisions: dict[int, int] = field(default_factory=dict)  # fused results: id -> revision
+
+    def to_json(self) -> str:
+        after = "null" if self.next_after_id is None else str(self.next_after_id)
+        return '{"items":[' + ",".join(self.items) + '],"next_after_id":' + after + "}"
+
+
+def _remove_db_files(path: Path) -> None:
+    for suffix in ("", "-wal", "-shm"):
+        Path(f"{path}{suffix}").unlink(missing_ok=True)
+
+
+class Store:
+    def __init__(self, path: str | Path, *, fresh: bool = False) -> None:
+        path = Path(path)
+        try:
+            if fresh:
+                _remove_db_files(path)
+            self._db = sqlite3.connect(path, isolation_level=None)
+        except (OSError, sqlite3.Error) as exc:
+            raise StoreError(f"cannot open database {path}: {exc}") from None
+        try:
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=NORMAL")
+            # No checkpoint inside a commit (its fsync takes milliseconds): Checkpointer
+            # does it off the event loop.
+            self._db.execute("PRAGMA wal_autocheckpoint=0")
+            self._migrate(path)
+            self.next_result_id = self._db.execute(
+                "SELECT COALESCE(MAX(id), 0) + 1 FROM results").fetchone()[0]
+            self.next_fused_id = self._db.execute(
+                "SELECT COALESCE(MAX(id), 0) + 1 FROM fused").fetchone()[0]
+        except sqlite3.Error as exc:
+            self._db.close()
+            raise StoreError(f"cannot use database {path}: {exc}") from None
+        self.path = path
+
+    def _migrate(self, path: Path) -> None:
+        version = self._db.execute("PRAGMA user_version").fetchone()[0]
+        if version > len(MIGRATIONS):
+            raise StoreError(f"database {path} has schema version {version}, newer than this "
+                             f"orchestrator knows ({len(MIGRATIONS)}); use a newer orchestrator "
+                             "or another --db")
+        for target in range(version + 1, len(MIGRATIONS) + 1):
+            # user_version is not a bound parameter; target is our own integer.
+            self._db.executescript(
+                f"BEGIN; {MIGRATIONS[target - 1]} PRAGMA user_version = {int(target)}; COMMIT;")
+            log.info("event=db_migrated path=%s schema_version=%d", path, target)
+
+    def close(self) -> None:
+        self._db.close()
+
+    # writes: call begin(), the add_* methods, then commit()
+    def begin(self) -> None:
+        self._db.execute("BEGIN")
+
+    def commit(self) -> None:
+        self._db.execute("COMMIT")
+
+    def rollback(self) -> None:
+        if self._db.in_transaction:
+            self._db.execute("ROLLBACK")
+
+    def allocate_result_id(self) -> int:
+        result_id, self.next_result_id = self.next_result_id, self.next_result_id + 1
+        return result_id
+
+    def allocate_fused_id(self) -> int:
+        fused_id, self.next_fused_id = self.next_fused_id, self.next_fused_id + 1
+        return fused_id
+
+    def add_result(self, *, result_id: int, component: str, type_name: str, stream_id: str,
+                   start_ns: int, end_ns: int, produced_ns: int, received_ns: int,
+                   proto: bytes, json_text: str) -> None:
+        self._db.execute(
+            "INSERT INTO results (id, component, type, stream_id, start_ns, end_ns, produced_ns,"
+            " received_ns, proto, json) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            (result_id, component, type_name, stream_id, start_ns, end_ns, produced_ns,
+             received_ns, proto, json_text))
+
+    def add_fused(self, *, fused_id: int, revision: int, fusion: str, stream_id: str,
+                  start_ns: int, end_ns: int, published_ns: int, json_text: str) -> None:
+        self._db.execute(
+            "INSERT INTO fused (id, revision, fusion, stream_id, start_ns, end_ns, published_ns,"
+            " json) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+            (fused_id, revision, fusion, stream_id, start_ns, end_ns, published_ns, json_text))
+
+    def put_stream(self, *, stream_id: str, start_ns: int, source: str, announced_ns: int,
+                   info_json: str) -> None:
+        """Records (or re-records) a stream; autocommits, so call it outside begin()/commit()."""
+        self._db.execute(
+            "INSERT INTO streams (stream_id, start_ns, source, announced_ns, info) VALUES (?, ?, ?, ?, ?)"
+            " ON CONFLICT (stream_id) DO UPDATE SET start_ns = excluded.start_ns, source = excluded.source,"
+            " announced_ns = excluded.announced_ns, info = excluded.info",
+            (stream_id, start_ns, source, announced_ns, info_json))
+
+    def streams(self, stream_id: str | None = None) -> list[tuple[str, int, str, int, str]]:
+        """(stream_id, start_ns, source, announced_ns, info JSON), oldest announcement first."""
+        sql = "SELECT stream_id, start_ns, source, announced_ns, info FROM streams"
+        if stream_id is None:
+            return self._db.execute(sql + " ORDER BY announced_ns").fetchall()
+        return self._db.execute(sql + " WHERE stream_id = ?", (stream_id,)).fetchall()
+
+    # reads
+    def query_results(self, *, type_name: str | None = None, component: str | None = None,
+                      stream: str | None = None, start_ns: int | None = None,
+                      end_ns: int | None = None, after_id: int | None = None,
+                      limit: int = 100) -> Page:
+        where, args = _common_filters(stream, start_ns, end_ns, after_id)
+        if type_name is not None:
+            where.append("type = ?")
+            args.append(type_name)
+        if component is not None:
+            where.append("component = ?")
+            args.append(component)
+        return self._page("SELECT id, 1, json FROM results", where, args, limit)
+
+    def query_fused(self, *, fusion: str | None = None, stream: str | None = None,
+                    start_ns: int | None = None, end_ns: int | None = None,
+                    after_id: int | None = None, limit: int = 100) -> Page:
+        """The latest revision of each fused result whose anchor span overlaps the range."""
+        where, args = _common_filters(stream, start_ns, end_ns, after_id)
+        where.append("revision = (SELECT MAX(f2.revision) FROM fused AS f2 WHERE f2.id = fused.id)")
+        if fusion is not None:
+            where.append("fusion = ?")
+            args.append(fusion)
+        return self._page("SELECT id, revision, json FROM fused", where, args, limit)
+
+    def _page(self, select: str, where: list[str], args: list, limit: int) -> Page:
+        sql = select + (" WHERE " + " AND ".join(where) if where else "") + " ORDER BY id LIMIT ?"
+        rows = self._db.execute(sql, [*args, limit]).fetchall()
+        return Page(items=[text for _, _, text in rows],
+                    next_after_id=rows[-1][0] if rows else None,
+                    revisions={row_id: revision for row_id, revision, _ in rows})
+
+
+class Checkpointer:
+    """Copies the write-ahead log into the database from a worker thread, so that no commit
+    in the event loop waits for a checkpoint's fsync. It reads and writes no rows itself."""
+
+    def __init__(self, path: str | Path) -> None:
+        self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+
+    def run(self) -> None:
+        """One passive checkpoint (never blocks the writer); call from one thread at a time."""
+        self._db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
+
+    def close(self) -> None:
+        self._db.close()
+
+
+def _common_filters(stream: str | None, start_ns: int | None, end_ns: int | None,
+                    after_id: int | None) -> tuple[list[str], list]:
+    where: list[str] = []
+    args: list = []
+    if stream is not None:
+        where.append("stream_id = ?")
+        args.append(stream)
+    if start_ns is not None:  # span overlaps [start_ns, end_ns]
+        where.append("end_ns >= ?")
+        args.append(start_ns)
+    if end_ns is not None:
+        where.append("start_ns <= ?")
+        args.append(end_ns)
+    if after_id is not None:
+        where.append("id > ?")
+        args.append(after_id)
+    return where, args

@@ -1,0 +1,121 @@
+"""Registration over HTTP: register, list, delete, conflicts, bad bodies, takeover, topics."""
+from __future__ import annotations
+
+import pytest
+
+from services.orchestrator.tests.helpers import FMT16, component_body
+
+FMT16_STEREO = {**FMT16, "channels": 2}
+FMT48_FLOAT = {"sample_rate_hz": 48000, "sample_type": "float32", "endianness": "little",
+               "channels": 1}
+
+
+def test_health(http):
+    assert http.get("/health").json() == {"status": "ok"}
+
+
+def test_register_list_delete(orch, http):
+    grabber = http.post("/components", json=component_body(
+        "grabber", outputs=["audio/raw"], endpoint="tcp://127.0.0.1:40100"))
+    assert grabber.status_code == 201, grabber.text
+    vad = http.post("/components", json=component_body(
+        "vad", designation="vad", inputs=["audio/raw"], outputs=["vad/speech"],
+        endpoint="tcp://127.0.0.1:40123"))
+    assert vad.status_code == 201, vad.text
+    body = vad.json()
+    assert body["component_id"].startswith("vad-")
+    assert body["control_endpoint"] == orch.core.control_endpoint
+    assert body["results_endpoint"] == orch.core.results_endpoint
+    assert body["heartbeat_interval_s"] == 0.5 and body["dead_after_s"] == 2.5
+    assert body["peers"] == {"audio/raw": ["tcp://127.0.0.1:40100"]}
+    assert body["formats"] == {"audio/raw": FMT16, "vad/speech": FMT16}
+
+    listed = http.get("/components").json()["items"]
+    assert [(c["name"], c["status"]) for c in listed] == [("grabber", "alive"), ("vad", "alive")]
+    assert listed[1]["inputs"] == [{"topic": "audio/raw", "format": FMT16}]
+
+    assert http.delete(f"/components/{body['component_id']}").status_code == 204
+    assert [c["name"] for c in http.get("/components").json()["items"]] == ["grabber"]
+    again = http.delete(f"/components/{body['component_id']}")
+    assert again.status_code == 404 and body["component_id"] in again.json()["detail"]
+    # a clean removal is not a death: it is not listed as dead either
+    everyone = http.get("/components", params={"include_dead": "true"}).json()["items"]
+    assert [c["name"] for c in everyone] == ["grabber"]
+
+
+def test_format_is_first_producers_else_first_consumers(http):
+    asr = http.post("/components", json=component_body(
+        "asr", designation="speech", inputs=["vad/speech"], fmt=FMT16)).json()
+    assert asr["formats"] == {"vad/speech": FMT16} and asr["peers"] == {"vad/speech": []}
+    http.post("/components", json=component_body(
+        "vad", designation="vad", outputs=["vad/speech"], fmt=FMT48_FLOAT,
+        endpoint="tcp://127.0.0.1:40200"))
+    topics = {t["topic"]: t for t in http.get("/topics").json()["items"]}
+    assert topics["vad/speech"]["format"] == FMT48_FLOAT
+    assert [p["name"] for p in topics["vad/speech"]["producers"]] == ["vad"]
+    assert [c["name"] for c in topics["vad/speech"]["consumers"]] == ["asr"]
+    assert topics["vad/speech"]["producers"][0]["subscribers"] is None  # nothing reported yet
+
+
+def test_channel_mismatch_is_409_naming_topic_and_formats(http):
+    assert http.post("/components", json=component_body(
+        "grabber", outputs=["audio/raw"], fmt=FMT16_STEREO)).status_code == 201
+    response = http.post("/components", json=component_body(
+        "vad", designation="vad", inputs=["audio/raw"], fmt=FMT16))
+    assert response.status_code == 409
+    detail = response.json()["detail"]
+    assert "'audio/raw'" in detail
+    assert "16000 Hz int16 little-endian 1 ch" in detail
+    assert "16000 Hz int16 little-endian 2 ch" in detail
+    assert [c["name"] for c in http.get("/components").json()["items"]] == ["grabber"]
+
+
+@pytest.mark.parametrize("change, complaint", [
+    ({"name": ""}, "name"),
+    ({"designation": "asr"}, "designation"),
+    ({"inputs": [{"topic": "a", "format": {**FMT16, "sample_type": "int12"}}]}, "sample_type"),
+    ({"inputs": [{"topic": "a", "format": {**FMT16, "channels": 0}}]}, "channels"),
+    ({"inputs": [{"topic": "a", "format": FMT16}, {"topic": "a", "format": FMT16}]},
+     "more than once"),
+    ({"outputs": [{"topic": "b", "format": FMT16}], "audio_endpoint": None}, "audio_endpoint"),
+    ({"surprise": 1}, "surprise"),
+])
+def test_bad_body_is_422(http, change, complaint):
+    body = {**component_body("vad", designation="vad", inputs=["audio/raw"]), **change}
+    response = http.post("/components", json=body)
+    assert response.status_code == 422
+    assert complaint in response.text
+
+
+def test_bad_queries_are_422(http):
+    assert http.get("/results", params={"type": "speach"}).status_code == 422
+    response = http.get("/fused", params={"start_ns": 5, "end_ns": 1})
+    assert response.status_code == 422 and "start_ns" in response.json()["detail"]
+    assert http.get("/fused", params={"limit": 0}).status_code == 422
+
+
+def test_name_takeover_replaces_old_instance(component, http):
+    old = component("asr", designation="speech", inputs=["vad/speech"])
+    new = component("asr", designation="speech", inputs=["vad/speech"])
+    assert new.id != old.id
+    live = http.get("/components").json()["items"]
+    assert [c["component_id"] for c in live] == [new.id]
+    everyone = http.get("/components", params={"include_dead": True}).json()["items"]
+    assert {c["component_id"]: c["status"] for c in everyone} == {new.id: "alive",
+                                                                   old.id: "replaced"}
+    old.heartbeat()
+    assert old.recv() == {"type": "unknown"}
+
+
+def test_fusions_listed(http):
+    assert http.get("/fusions").json() == {
+        "items": [{"name": "speech", "anchor": "speech", "fuse": [], "stream": None}]}
+
+
+def test_openapi_documents_the_api(http):
+    schema = http.get("/openapi.json").json()
+    assert {"/components", "/components/{component_id}", "/topics", "/fused", "/results",
+            "/fusions", "/health"} <= set(schema["paths"])
+    fused_page = schema["paths"]["/fused"]["get"]["responses"]["200"]["content"]
+    assert fused_page["application/json"]["schema"]["$ref"].endswith("/FusedPage")
+    assert "RegisterRequest" in schema["components"]["schemas"]
