@@ -1,0 +1,208 @@
+"""The ``esiaf`` command: ``esiaf run`` starts the whole pipeline as local processes.
+
+    esiaf run --input FILE [--fast] [--grammar FILE|robocup] [--serve]
+    esiaf run --mic DEVICE
+
+It starts the orchestrator, the recogniser, the VAD and the grabber, prints
+each fused result as one line as it arrives, and with ``--input`` exits once
+the file has been played and its last fused result printed.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import socket
+import sys
+import time
+from datetime import datetime
+from pathlib import Path
+from typing import Any, Sequence
+
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+
+from esiaf.launcher import LaunchError, OrchestratorClient, Supervisor, wait_until
+
+log = logging.getLogger("esiaf")
+
+PIPELINE_RATE_HZ = 16000  # what vad and asr take until format conversion arrives
+START_TIMEOUT_S = 60.0
+DRAIN_TIMEOUT_S = 30.0  # after the grabber has finished: wait this long at most for the last results
+
+
+def format_line(fused: dict[str, Any], origin_ns: int) -> str:
+    """'[12.31–14.05 s] 'go forward ten meters' (p=0.93)'"""
+    anchor = fused["anchor"]
+    span = anchor["span"]
+    start_s, end_s = (span["start_ns"] - origin_ns) / 1e9, (span["end_ns"] - origin_ns) / 1e9
+    what = ""
+    if "speech" in anchor and anchor["speech"].get("hypotheses"):
+        best = anchor["speech"]["hypotheses"][0]
+        what = f"'{best['text']}' (p={best['probability']:.2f})"
+    else:
+        payload = next((k for k in ("vad", "ssl", "emotion", "gender", "voice_id") if k in anchor), "")
+        what = f"{payload} {json.dumps(anchor.get(payload, {}))}"
+    extra = []
+    for kind, results in sorted(fused.get("results", {}).items()):
+        extra.append(f"{kind}×{len(results)}")
+    if fused.get("completion") not in (None, "complete"):
+        extra.append(f"{fused['completion']}, missing {', '.join(fused.get('missing_components', []))}")
+    revision = f" rev {fused['revision']}" if fused.get("revision", 1) > 1 else ""
+    return f"[{start_s:.2f}–{end_s:.2f} s] {what}{' ' + '; '.join(extra) if extra else ''}{revision}"
+
+
+def check_input(path: Path) -> None:
+    if not path.exists():
+        raise LaunchError(f"input file {path} does not exist")
+    if not path.is_file():
+        raise LaunchError(f"input {path} is not a file")
+    try:
+        path.open("rb").close()
+    except OSError as exc:
+        raise LaunchError(f"cannot read input file {path}: {exc.strerror}") from None
+    if path.suffix.lower() in (".raw", ".pcm"):
+        return  # headerless: read as 16 kHz int16 mono
+    import soundfile
+    try:
+        info = soundfile.info(str(path))
+    except Exception as exc:  # libsndfile's own error types vary by version
+        raise LaunchError(f"cannot read input file {path}: {exc}") from None
+    if info.samplerate != PIPELINE_RATE_HZ or info.channels != 1:
+        raise LaunchError(f"input file {path} is {info.samplerate} Hz with {info.channels} channel(s); this "
+                          f"pipeline takes {PIPELINE_RATE_HZ} Hz mono (convert it first, e.g. "
+                          f"sox IN -r 16000 -c 1 -b 16 OUT.wav)")
+
+
+def check_port_free(host: str, port: int) -> None:
+    with socket.socket() as probe:
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            raise LaunchError(f"cannot listen on {host}:{port}: {exc.strerror} (another orchestrator running? "
+                              f"use --port)") from None
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="esiaf", description="ESIAF speech-analysis pipeline")
+    sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="run every service as a local process")
+    source = run.add_mutually_exclusive_group(required=True)
+    source.add_argument("--input", type=Path, help="sound file to play (16 kHz mono WAV, or .raw s16le)")
+    source.add_argument("--mic", metavar="DEVICE", help="ALSA capture device (see arecord -L)")
+    run.add_argument("--fast", action="store_true", help="play the file as fast as possible")
+    run.add_argument("--grammar", help="JSGF grammar file for the recogniser, or 'robocup'")
+    run.add_argument("--serve", action="store_true", help="keep the services up after the file has played")
+    run.add_argument("--host", default="127.0.0.1", help="orchestrator address (default 127.0.0.1)")
+    run.add_argument("--port", type=int, default=8000, help="orchestrator HTTP port (default 8000)")
+    run.add_argument("--workdir", type=Path, default=Path(".esiaf"), help="logs and database (default .esiaf)")
+    run.add_argument("--stream-id", help="name of this capture session (default: input name + time)")
+    run.add_argument("--chunk-ms", type=float, default=20.0, help="grabber chunk length (default 20 ms)")
+    run.add_argument("--json", action="store_true", help="print each fused result as JSON")
+    run.add_argument("-v", "--verbose", action="store_true", help="log what the launcher does")
+    return parser.parse_args(argv)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.input:
+        check_input(args.input)
+    if args.grammar and args.grammar != "robocup" and not Path(args.grammar).is_file():
+        raise LaunchError(f"grammar file {args.grammar} does not exist")
+    check_port_free(args.host, args.port)
+    stream_id = args.stream_id = args.stream_id or "{}-{}".format(
+        args.input.stem if args.input else "mic", datetime.now().strftime("%Y%m%d-%H%M%S"))
+    url = f"http://{args.host}:{args.port}"
+    workdir = args.workdir.resolve()
+    supervisor = Supervisor(workdir, env={"ESIAF_ORCHESTRATOR_URL": url, "ESIAF_STREAM_ID": stream_id})
+    client = OrchestratorClient(url)
+    try:
+        orchestrator = supervisor.start("orchestrator", ["--host", args.host, "--port", str(args.port),
+                                                         "--db", str(workdir / "esiaf.db")],
+                                        env={"ESIAF_ORCHESTRATOR_CONTROL_PORT": "0",
+                                             "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"})
+        wait_until(client.healthy, supervisor, "the orchestrator to answer", START_TIMEOUT_S, orchestrator)
+        asr = supervisor.start("asr", ["--grammar", args.grammar] if args.grammar else [])
+        wait_until(lambda: client.component("asr"), supervisor, "the asr service to register", START_TIMEOUT_S, asr)
+        vad = supervisor.start("vad")
+        wait_until(lambda: client.component("vad"), supervisor, "the vad service to register", START_TIMEOUT_S, vad)
+        wait_until(lambda: topic_ready(client, "vad/speech", 1), supervisor, "asr to subscribe to vad/speech",
+                   START_TIMEOUT_S, asr)
+        with connect(f"ws://{args.host}:{args.port}/ws/fused?stream={stream_id}", open_timeout=10) as ws:
+            source = ["--input", str(args.input.resolve())] if args.input else ["--device", args.mic]
+            grabber = supervisor.start("grabber", source + (["--fast"] if args.fast else []),
+                                       env={"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1",
+                                            "ESIAF_GRABBER_CHUNK_MS": str(args.chunk_ms)})
+            print(f"esiaf: playing {args.input or args.mic} as stream {stream_id}; "
+                  f"orchestrator at {url} (API docs: {url}/docs); logs in {workdir / 'logs'}",
+                  file=sys.stderr, flush=True)
+            return follow(ws, supervisor, client, grabber, args)
+    finally:
+        client.close()
+        supervisor.stop()
+
+
+def topic_ready(client: OrchestratorClient, topic: str, consumers: int) -> bool:
+    for entry in client.topics():
+        if entry.get("topic") == topic:
+            return sum(p.get("subscribers") or 0 for p in entry.get("producers", [])) >= consumers
+    return False
+
+
+def follow(ws, supervisor: Supervisor, client: OrchestratorClient, grabber, args: argparse.Namespace) -> int:
+    """Prints fused results until the stream has ended (file) or forever (mic, --serve)."""
+    def stream_start_ns() -> int | None:
+        stream = client.stream(args.stream_id)
+        return stream and stream["start_ns"]
+
+    origin_ns = wait_until(stream_start_ns, supervisor, "the grabber to start playing", START_TIMEOUT_S, grabber)
+    if args.json:
+        print(json.dumps({"type": "stream_start", "stream_id": args.stream_id, "start_ns": origin_ns}), flush=True)
+    grabber_done_at = None
+    ended = False
+    printed = 0
+    while True:
+        for child in supervisor.exited():
+            if child is grabber and child.process.returncode == 0:
+                grabber_done_at = grabber_done_at or time.monotonic()
+                continue
+            raise LaunchError(supervisor.failure(child))
+        if grabber_done_at and not ended and time.monotonic() - grabber_done_at > DRAIN_TIMEOUT_S:
+            print(f"esiaf: no end of stream {DRAIN_TIMEOUT_S:g} s after the file was played; stopping",
+                  file=sys.stderr)
+            return 1
+        try:
+            message = json.loads(ws.recv(timeout=0.2))
+        except TimeoutError:
+            continue
+        except ConnectionClosed as exc:
+            raise LaunchError(f"the orchestrator closed the websocket: {exc}") from None
+        if message.get("type") == "stream_end":
+            ended = True
+            if args.json:
+                print(json.dumps(message), flush=True)
+            print(f"esiaf: stream ended, {printed} fused result(s)", file=sys.stderr, flush=True)
+            if args.serve or args.mic:
+                continue
+            return 0
+        if message.get("type") != "fused_result":
+            continue
+        printed += 1
+        print(json.dumps(message) if args.json else format_line(message, origin_ns), flush=True)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(asctime)s %(levelname)s %(name)s %(message)s")
+    try:
+        return run(args)
+    except LaunchError as exc:
+        print(f"esiaf: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("esiaf: stopped", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

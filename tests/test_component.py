@@ -1,0 +1,188 @@
+"""The SDK over real ZeroMQ sockets against the real orchestrator."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from conftest import REPO, poll
+from esiaf import Audio, AudioFormat, Component, SampleClock, ssl_direction
+
+FMT = AudioFormat(16000, "int16")
+
+
+class Source(Component):
+    service = "source"
+
+    def __init__(self, settings):
+        super().__init__(settings)
+        self.add_output("source/audio", FMT)
+        self.script = []  # callables run by produce(), in order
+
+    def produce(self):
+        for step in self.script:
+            step(self)
+        while not self.stopping:
+            self.sleep_until(time.monotonic() + 0.1)
+
+
+class Sink(Component):
+    service = "sink"
+    designation = "vad"
+
+    def __init__(self, settings):
+        super().__init__(settings)
+        self.add_input("source/audio", FMT)
+        self.events = []
+        self.received = threading.Event()
+
+    def on_audio(self, audio: Audio):
+        self.events.append(("audio", audio.sequence, audio.start_ns, audio.end_ns))
+        self.received.set()
+
+    def on_ssl(self, audio: Audio):
+        self.events.append(("ssl", audio.sequence, audio.ssl_directions[0].azimuth_deg))
+
+    def on_segment_end(self, audio: Audio):
+        self.events.append(("segment_end", audio.sequence))
+        self.emit("vad", (audio.meta.segment.start_ns, audio.meta.segment.end_ns), stream_id=audio.stream_id,
+                  vad={"probability": 0.5})
+
+    def on_end_of_stream(self, stream_id, audio):
+        self.events.append(("end_of_stream", stream_id))
+
+
+def start(component_cls, url, **settings):
+    component = component_cls(component_cls.Settings(name=component_cls.service, orchestrator_url=url, **settings))
+    thread = threading.Thread(target=component.run, daemon=True)
+    thread.start()
+    return component, thread
+
+
+@pytest.fixture
+def pair(orchestrator):
+    sink, sink_thread = start(Sink, orchestrator.url)
+    poll(lambda: orchestrator.component("sink"), timeout_s=10)
+    source, source_thread = start(Source, orchestrator.url)
+    yield source, sink
+    for component, thread in ((source, source_thread), (sink, sink_thread)):
+        component.stop()
+        thread.join(timeout=10)
+
+
+def run_on(source, step):
+    """Runs ``step`` on the source's own thread (sockets belong to one thread)."""
+    done = threading.Event()
+    source.script.append(lambda c: (step(c), done.set()))
+    return done
+
+
+def test_audio_arrives_with_capture_times_and_contiguous_sequence_numbers(pair, orchestrator):
+    source, sink = pair
+    clock = SampleClock(1_700_000_000_000_000_000, 16000)
+
+    def send(c):
+        assert c.wait_for_subscribers("source/audio", 1, timeout_s=10)
+        for _ in range(50):
+            c.publish("source/audio", np.zeros(320, dtype=np.int16), *clock.advance(320))
+
+    run_on(source, send)
+    poll(lambda: len(sink.events) >= 50, timeout_s=10)
+    assert [e[1] for e in sink.events] == list(range(1, 51))
+    assert sink.events[0][2:] == (1_700_000_000_000_000_000, 1_700_000_000_020_000_000)
+    assert all(a[3] == b[2] for a, b in zip(sink.events, sink.events[1:]))
+    assert sink.input_stats["source/audio"].lost == 0
+
+
+def test_callback_order_and_results_carry_the_capture_span(pair, orchestrator):
+    source, sink = pair
+
+    def send(c):
+        assert c.wait_for_subscribers("source/audio", 1, timeout_s=10)
+        c.publish("source/audio", np.zeros(160, dtype=np.int16), 1000, 10_001_000, segmentation_ended=True,
+                  segment=(500, 9_000_000), ssl_directions=[ssl_direction(92.0)])
+        c.publish("source/audio", b"", 10_001_000, 10_001_000, end_of_stream=True)
+
+    run_on(source, send)
+    poll(lambda: len(sink.events) >= 5, timeout_s=10)
+    assert [e[0] for e in sink.events] == ["audio", "ssl", "segment_end", "audio", "end_of_stream"]
+    assert sink.events[1][2] == 92.0
+    results = poll(lambda: orchestrator.http.get("/results", params={"type": "vad"}).json()["items"], timeout_s=10)
+    assert results[0]["span"] == {"start_ns": 500, "end_ns": 9_000_000}
+    assert results[0]["component"] == "sink"
+
+
+def test_loss_is_counted_and_visible_in_the_orchestrator(pair, orchestrator):
+    source, sink = pair
+
+    def send_with_gap(c):
+        assert c.wait_for_subscribers("source/audio", 1, timeout_s=10)
+        c.publish("source/audio", np.zeros(160, dtype=np.int16), 0, 10_000_000)
+        c._sequences["source/audio"] += 3  # three messages "lost on the way"
+        c.publish("source/audio", np.zeros(160, dtype=np.int16), 40_000_000, 50_000_000)
+
+    run_on(source, send_with_gap)
+    poll(lambda: len(sink.events) >= 2, timeout_s=10)
+    assert sink.input_stats["source/audio"].lost == 3
+    poll(lambda: orchestrator.component("sink")["stats"]["inputs"]["source/audio"]["lost"] == 3, timeout_s=5)
+
+
+def test_wrong_format_is_counted_as_bad_not_passed_on(pair, orchestrator):
+    source, sink = pair
+    source.outputs["source/audio"] = AudioFormat(48000, "int16")  # lies about what it sends
+
+    def send(c):
+        assert c.wait_for_subscribers("source/audio", 1, timeout_s=10)
+        c.publish("source/audio", np.zeros(480, dtype=np.int16), 0, 10_000_000)
+
+    run_on(source, send)
+    poll(lambda: sink.input_stats["source/audio"].bad == 1, timeout_s=10)
+    assert sink.events == []
+
+
+def test_a_slow_handler_does_not_make_the_component_look_dead(orchestrator):
+    class Slow(Sink):
+        def on_audio(self, audio):
+            time.sleep(4.0)  # longer than dead_after_s: a long decode
+            super().on_audio(audio)
+
+    Slow.service = "sink"
+    sink, sink_thread = start(Slow, orchestrator.url)
+    source, source_thread = start(Source, orchestrator.url)
+    run_on(source, lambda c: (c.wait_for_subscribers("source/audio", 1, 10),
+                              c.publish("source/audio", np.zeros(160, dtype=np.int16), 0, 10_000_000)))
+    assert sink.received.wait(timeout=15)
+    assert orchestrator.component("sink")["status"] == "alive"
+    for component, thread in ((source, source_thread), (sink, sink_thread)):
+        component.stop()
+        thread.join(timeout=10)
+
+
+def test_sigterm_stops_a_service_cleanly_and_unregisters_it(orchestrator):
+    env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_URL": orchestrator.url}
+    vad = subprocess.Popen([sys.executable, "-m", "services.vad"], cwd=REPO, env=env,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    poll(lambda: orchestrator.component("vad"), timeout_s=30)
+    vad.send_signal(signal.SIGTERM)
+    assert vad.wait(timeout=10) == 0, vad.stderr.read()
+    poll(lambda: orchestrator.component("vad") is None or orchestrator.component("vad")["status"] != "alive",
+         timeout_s=5)
+
+
+def test_a_killed_component_is_dead_within_3_s(orchestrator):
+    env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_URL": orchestrator.url}
+    vad = subprocess.Popen([sys.executable, "-m", "services.vad"], cwd=REPO, env=env,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    poll(lambda: orchestrator.component("vad"), timeout_s=30)
+    vad.kill()
+    vad.wait()
+    killed = time.monotonic()
+    poll(lambda: (orchestrator.component("vad") or {"status": "dead"})["status"] != "alive", timeout_s=5,
+         interval_s=0.02)
+    assert time.monotonic() - killed <= 3.0
