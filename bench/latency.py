@@ -11,7 +11,12 @@ Latency = arrival − (capture time of the utterance's last speech sample + the 
 i.e. from the earliest moment any segmenter could know the utterance ended. It prints
 ``name=value`` lines at the end; CPU is per component, per minute of audio (psutil).
 
-    python bench/latency.py [--input FILE] [--grammar robocup|FILE|''] [--port 8123]
+    python bench/latency.py [--questions 20 | --input FILE] [--grammar robocup|FILE|''] [--port 8123]
+
+By default it synthesises 20 RoboCup questions with flite (2.5 s of silence between them) from
+../shared/data/robocup/questions.tsv; without flite or the data it plays examples/robocup_questions.wav.
+CPU figures are measured while the audio plays (start-up, i.e. imports and model loading, is
+reported apart as ``startup_cpu_s_<service>``).
 """
 from __future__ import annotations
 
@@ -93,12 +98,15 @@ def pipeline(path: Path, grammar: str, port: int) -> tuple[list[float], list[str
                                 env={**os.environ, "PYTHONPATH": str(REPO)})
     latencies, texts = [], []
     ended = threading.Event()
+    cpu_at_start: dict[str, float] = {}
     stderr_lines: list[str] = []
 
     def read_stdout() -> None:
         for line in launcher.stdout:
             arrived_ns = time.time_ns()
             fused = json.loads(line)
+            if fused.get("type") == "stream_start":
+                cpu_at_start.update(children_cpu(launcher.pid))
             if fused.get("type") != "fused_result":
                 continue
             anchor = fused["anchor"]
@@ -119,28 +127,55 @@ def pipeline(path: Path, grammar: str, port: int) -> tuple[list[float], list[str
     if not ended.wait(timeout=info.duration + 120) or launcher.poll() is not None:
         launcher.kill()
         raise SystemExit("pipeline did not finish:\n" + "".join(stderr_lines))
+    cpu_at_end = children_cpu(launcher.pid)
+    launcher.send_signal(signal.SIGINT)
+    launcher.wait(timeout=30)
+    return latencies, texts, {name: cpu_at_end[name] - cpu_at_start.get(name, 0.0) for name in cpu_at_end}, \
+        cpu_at_start
+
+
+def children_cpu(pid: int) -> dict[str, float]:
+    """CPU seconds (user + system) so far of each service the launcher started."""
     cpu = {}
-    for child in psutil.Process(launcher.pid).children():
+    for child in psutil.Process(pid).children():
         name = next((a.split(".", 1)[1] for a in child.cmdline() if a.startswith("services.")), str(child.pid))
         times = child.cpu_times()
         cpu[name] = times.user + times.system
-    launcher.send_signal(signal.SIGINT)
-    launcher.wait(timeout=30)
-    return latencies, texts, cpu
+    return cpu
+
+
+def synthesised_input(count: int) -> Path | None:
+    """``count`` RoboCup questions spoken by flite, or None without flite or the shared data."""
+    sys.path.insert(0, str(REPO / "scripts"))
+    from synth_questions import DEFAULT_QUESTIONS, SynthesisError, read_questions, synthesise_to_wav
+    if not DEFAULT_QUESTIONS.exists():
+        return None
+    questions = read_questions(DEFAULT_QUESTIONS)
+    chosen = [(i, questions[i]) for i in sorted(questions)[:count]]
+    path = Path(tempfile.mkdtemp(prefix="esiaf-bench-")) / "questions.wav"
+    try:
+        synthesise_to_wav(chosen, path)
+    except SynthesisError as exc:
+        print(f"cannot synthesise the input ({exc}); using the example file", file=sys.stderr)
+        return None
+    return path
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
-    parser.add_argument("--input", type=Path, default=REPO / "examples" / "robocup_questions.wav")
+    parser.add_argument("--input", type=Path, help="a 16 kHz mono file instead of synthesised questions")
+    parser.add_argument("--questions", type=int, default=20, help="how many questions to synthesise (20)")
     parser.add_argument("--grammar", default="robocup", help="robocup (default), a JSGF file, or '' for the LM")
     parser.add_argument("--port", type=int, default=8123)
     args = parser.parse_args()
+    if args.input is None:
+        args.input = synthesised_input(args.questions) or REPO / "examples" / "robocup_questions.wav"
     minutes = soundfile.info(str(args.input)).duration / 60
 
     print(f"baseline: playing {args.input} in real time ...", file=sys.stderr, flush=True)
     base_ms, base_texts, base_cpu = baseline(args.input, args.grammar)
     print(f"pipeline: playing {args.input} in real time ...", file=sys.stderr, flush=True)
-    pipe_ms, pipe_texts, pipe_cpu = pipeline(args.input, args.grammar, args.port)
+    pipe_ms, pipe_texts, pipe_cpu, startup_cpu = pipeline(args.input, args.grammar, args.port)
 
     for name, texts in (("baseline", base_texts), ("pipeline", pipe_texts)):
         print(f"{name} texts: {texts}", file=sys.stderr)
@@ -157,6 +192,8 @@ def main() -> None:
     for name, seconds in sorted(pipe_cpu.items()):
         figures[f"cpu_s_per_min_{name}"] = seconds / minutes
     figures["pipeline_cpu_s_per_min_total"] = sum(pipe_cpu.values()) / minutes
+    for name, seconds in sorted(startup_cpu.items()):
+        figures[f"startup_cpu_s_{name}"] = seconds
     for name, value in figures.items():
         print(f"{name}={value:.3f}" if isinstance(value, float) else f"{name}={value}")
 
