@@ -1,6 +1,7 @@
 """Registration over HTTP: register, list, delete, conflicts, bad bodies, takeover, topics."""
 from __future__ import annotations
 
+import httpx
 import pytest
 
 from services.orchestrator.tests.helpers import FMT16, component_body
@@ -119,3 +120,22 @@ def test_openapi_documents_the_api(http):
     fused_page = schema["paths"]["/fused"]["get"]["responses"]["200"]["content"]
     assert fused_page["application/json"]["schema"]["$ref"].endswith("/FusedPage")
     assert "RegisterRequest" in schema["components"]["schemas"]
+
+
+def test_streams_are_announced_listed_and_kept_across_restarts(make_orchestrator, tmp_path):
+    db = str(tmp_path / "streams.db")
+    first = make_orchestrator(db_path=db)
+    with httpx.Client(base_url=first.url, timeout=5.0) as http:
+        assert http.get("/streams/robot-1").status_code == 404
+        put = http.put("/streams/robot-1", json={"start_ns": 1_700_000_000_000_000_000, "source": "grabber",
+                                                 "info": {"input": "a.wav"}})
+        assert put.status_code == 200, put.text
+        assert put.json()["start_ns"] == 1_700_000_000_000_000_000
+        again = http.put("/streams/robot-1", json={"start_ns": 1_700_000_000_500_000_000})
+        assert again.json()["start_ns"] == 1_700_000_000_500_000_000 and again.json()["source"] == ""
+        assert [s["stream_id"] for s in http.get("/streams").json()["items"]] == ["robot-1"]
+        assert http.put("/streams/robot-2", json={"start_ns": -5}).status_code == 422
+        assert http.put("/streams/robot-2", json={"start_ns": 5, "colour": "red"}).status_code == 422
+    first.stop()
+    with httpx.Client(base_url=make_orchestrator(db_path=db).url, timeout=5.0) as http:  # same database
+        assert http.get("/streams/robot-1").json()["start_ns"] == 1_700_000_000_500_000_000
