@@ -85,6 +85,8 @@ class Component:
         self._ended: dict[str, set[str]] = {}
         self._result_sequence = 0
         self._connected: set[str] = set()
+        self._handling = False  # inside a handler: audio input waits, so handlers never nest
+        self._assigned: dict[str, AudioFormat] = {}
         self._results_endpoint = ""
         self._context: zmq.Context | None = None
         self._pub = self._sub = self._push = self._state_in = None
@@ -285,16 +287,22 @@ class Component:
                 "audio_endpoint": self._audio_endpoint(), "host": socket.gethostname(), "info": self.info}
 
     def _service(self, timeout_ms: float) -> None:
-        """Handles whatever is ready on the sockets, waiting up to ``timeout_ms`` for the first."""
+        """Handles whatever is ready on the sockets, waiting up to ``timeout_ms`` for the first.
+
+        Called from inside a handler (publish() does), it takes no audio input: the next chunk
+        waits until the current handler has returned, so callbacks never nest or reorder.
+        """
         events = dict(self._poller.poll(timeout=timeout_ms))
         while events:
             if self._state_in in events:
                 self._apply_state(json.loads(self._state_in.recv()))
             if self._pub is not None and self._pub in events:
                 self._on_subscription(self._pub.recv())
-            if self._sub is not None and self._sub in events:
+            if self._sub is not None and self._sub in events and not self._handling:
                 self._on_message(self._sub.recv_multipart())
             events = dict(self._poller.poll(timeout=0))
+            if self._handling:
+                events.pop(self._sub, None)
 
     def _apply_state(self, state: dict[str, Any]) -> None:
         if state.get("type") == "fatal":
@@ -318,10 +326,13 @@ class Component:
             self._results_endpoint = endpoint
         for topic, fmt in state.get("formats", {}).items():
             declared = self.inputs.get(topic) or self.outputs.get(topic)
-            if declared is not None and AudioFormat.from_dict(fmt) != declared:
+            assigned = AudioFormat.from_dict(fmt)
+            if self._assigned.get(topic) == assigned:
+                continue
+            self._assigned[topic] = assigned
+            if declared is not None and assigned != declared:
                 log.warning("topic=%s travels as %s but this component wants %s; conversion is not "
-                            "implemented yet, such messages are counted as bad", topic,
-                            AudioFormat.from_dict(fmt), declared)
+                            "implemented yet, such messages are counted as bad", topic, assigned, declared)
 
     def _on_subscription(self, frame: bytes) -> None:
         topic = frame[1:].rstrip(b"\0").decode(errors="replace")
@@ -353,6 +364,7 @@ class Component:
                 log.error("audio in the wrong format topic=%s got=%s want=%s bad=%d",
                           topic, audio.format, self.inputs[topic], stats.bad)
             return
+        self._handling = True
         try:
             self.on_audio(audio)
             if audio.meta.ssl_directions:
@@ -364,6 +376,8 @@ class Component:
         except Exception:  # a handler bug must not kill the component: count, log, go on
             stats.bad += 1
             log.exception("handler failed topic=%s sequence=%d start_ns=%d", topic, audio.sequence, audio.start_ns)
+        finally:
+            self._handling = False
 
     def _count_gap(self, audio: Audio, stats: InputStats) -> None:
         key = (audio.topic, audio.publisher)

@@ -186,3 +186,52 @@ def test_a_killed_component_is_dead_within_3_s(orchestrator):
     poll(lambda: (orchestrator.component("vad") or {"status": "dead"})["status"] != "alive", timeout_s=5,
          interval_s=0.02)
     assert time.monotonic() - killed <= 3.0
+
+
+class Splitter(Component):
+    """Publishes every received chunk as two halves: two publishes inside one handler."""
+    service = "splitter"
+
+    def __init__(self, settings):
+        super().__init__(settings)
+        self.add_input("source/audio", FMT)
+        self.add_output("splitter/audio", FMT)
+
+    def on_audio(self, audio: Audio):
+        middle_ns = (audio.start_ns + audio.end_ns) // 2
+        half = len(audio.payload) // 2
+        self.publish("splitter/audio", audio.payload[:half], audio.start_ns, middle_ns, stream_id=audio.stream_id)
+        self.publish("splitter/audio", audio.payload[half:], middle_ns, audio.end_ns, stream_id=audio.stream_id)
+
+
+class SplitSink(Sink):
+    service = "splitsink"
+
+    def __init__(self, settings):
+        Component.__init__(self, settings)
+        self.add_input("splitter/audio", FMT)
+        self.events = []
+        self.received = threading.Event()
+
+
+def test_handlers_never_nest_so_a_burst_comes_out_in_order(orchestrator):
+    sink, sink_thread = start(SplitSink, orchestrator.url)
+    poll(lambda: orchestrator.component("splitsink"), timeout_s=10)
+    splitter, splitter_thread = start(Splitter, orchestrator.url)
+    poll(lambda: orchestrator.component("splitter"), timeout_s=10)
+    source, source_thread = start(Source, orchestrator.url)
+    clock = SampleClock(0, 16000)
+
+    def burst(c):
+        assert c.wait_for_subscribers("source/audio", 1, timeout_s=10)
+        for _ in range(500):
+            c.publish("source/audio", np.zeros(320, dtype=np.int16), *clock.advance(320))
+
+    poll(lambda: splitter.output_stats["splitter/audio"].subscribers >= 1, timeout_s=10)
+    run_on(source, burst)
+    poll(lambda: len(sink.events) >= 1000, timeout_s=20)
+    starts = [e[2] for e in sink.events]
+    assert starts == sorted(starts) and len(set(starts)) == 1000
+    for component, thread in ((source, source_thread), (splitter, splitter_thread), (sink, sink_thread)):
+        component.stop()
+        thread.join(timeout=10)
