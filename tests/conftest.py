@@ -1,97 +1,14 @@
-"""Shared test helpers: the shared data folder, free ports, the launcher as a process."""
+"""Fixtures shared by the tests in this folder; the helpers themselves are in esiaf.testing."""
 from __future__ import annotations
-
-import json
-import os
-import re
-import shutil
-import signal
-import socket
-import subprocess
-import sys
-import threading
-import time
-from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parent.parent
-SHARED_DATA = REPO.parent / "shared" / "data"
-
-
-def shared_data(relative: str) -> Path:
-    """A file of ../shared/data, or a skip that says it is missing."""
-    path = SHARED_DATA / relative
-    if not path.exists():
-        pytest.skip(f"test data {path} is absent (the shared data folder belongs beside the repository)")
-    return path
-
-
-def need_flite() -> None:
-    if not shutil.which("flite"):
-        pytest.skip("Debian's flite is not installed (setup.sh installs it)")
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-def normalise(text: str) -> str:
-    return " ".join(re.sub(r"[^a-z0-9' ]+", " ", text.lower()).split())
-
-
-class Launcher:
-    """``esiaf run`` as a child process, its stdout JSON lines collected as they come."""
-
-    def __init__(self, args: list[str], workdir: Path, env: dict[str, str] | None = None):
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        cmd = [sys.executable, "-m", "esiaf.cli", "run", "--port", str(self.port), "--workdir", str(workdir), *args]
-        self.process = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                        env={**os.environ, "PYTHONPATH": str(REPO), **(env or {})})
-        self.lines: list[dict] = []
-        self.stderr: list[str] = []
-        self._new_line = threading.Condition()
-        threading.Thread(target=self._read_stdout, daemon=True).start()
-        threading.Thread(target=self._read_stderr, daemon=True).start()
-
-    def _read_stdout(self) -> None:
-        for line in self.process.stdout:
-            with self._new_line:
-                self.lines.append(json.loads(line) if line.startswith("{") else {"text": line.rstrip("\n")})
-                self._new_line.notify_all()
-
-    def _read_stderr(self) -> None:
-        for line in self.process.stderr:
-            self.stderr.append(line)
-
-    def wait_for_line(self, predicate, timeout_s: float) -> dict:
-        deadline = time.monotonic() + timeout_s
-        with self._new_line:
-            while True:
-                for line in self.lines:
-                    if predicate(line):
-                        return line
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or self.process.poll() is not None:
-                    raise AssertionError(f"no such line after {timeout_s} s; stdout={self.lines} "
-                                         f"stderr={''.join(self.stderr)}")
-                self._new_line.wait(min(remaining, 0.2))
-
-    def stop(self) -> int:
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGINT)
-        try:
-            return self.process.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            return self.process.wait()
+from esiaf.testing import Launcher, Orchestrator
 
 
 @pytest.fixture
 def launch(tmp_path):
+    """Starts ``esiaf run`` with the given arguments; every launcher is stopped at the end."""
     launchers: list[Launcher] = []
 
     def start(*args: str, env: dict[str, str] | None = None) -> Launcher:
@@ -102,47 +19,6 @@ def launch(tmp_path):
     yield start
     for launcher in launchers:
         launcher.stop()
-
-
-def poll(condition, timeout_s: float, interval_s: float = 0.05):
-    """Calls ``condition`` until it returns something truthy, or fails after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    last_error = None
-    while time.monotonic() < deadline:
-        try:
-            value = condition()
-            if value:
-                return value
-        except Exception as exc:  # not up yet
-            last_error = exc
-        threading.Event().wait(interval_s)
-    raise AssertionError(f"condition not met within {timeout_s} s (last error: {last_error})")
-
-
-class Orchestrator:
-    """The real orchestrator as a process on random loopback ports, with a real SQLite file."""
-
-    def __init__(self, tmp_path: Path):
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.log = (tmp_path / "orchestrator.log").open("wb")
-        env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_CONTROL_PORT": "0",
-               "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"}
-        self.process = subprocess.Popen(
-            [sys.executable, "-m", "services.orchestrator", "--port", str(self.port), "--db", str(tmp_path / "o.db")],
-            cwd=REPO, env=env, stdout=self.log, stderr=subprocess.STDOUT)
-        import httpx
-        self.http = httpx.Client(base_url=self.url, timeout=5)
-        poll(lambda: self.http.get("/health").status_code == 200, timeout_s=30)
-
-    def component(self, name: str) -> dict | None:
-        return next((c for c in self.http.get("/components").json()["items"] if c["name"] == name), None)
-
-    def close(self) -> None:
-        self.http.close()
-        self.process.terminate()
-        self.process.wait(timeout=10)
-        self.log.close()
 
 
 @pytest.fixture

@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from conftest import shared_data
+from esiaf.testing import shared_data
 
 pytestmark = pytest.mark.e2e
 RATE_HZ = 16000

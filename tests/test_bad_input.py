@@ -9,7 +9,7 @@ import sys
 import httpx
 import pytest
 
-from conftest import REPO, free_port
+from esiaf.testing import REPO, free_port, poll
 
 ENV = {**os.environ, "PYTHONPATH": str(REPO)}
 
@@ -99,7 +99,6 @@ def test_a_failing_service_does_not_take_others_down(tmp_path):
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         from esiaf.launcher import OrchestratorClient
         client = OrchestratorClient(url)
-        from conftest import poll
         poll(lambda: client.component("vad"), timeout_s=60)
         grabber = subprocess.run([sys.executable, "-m", "services.grabber", "--input", str(tmp_path / "gone.wav")],
                                  cwd=REPO, env=env, capture_output=True, text=True, timeout=60)

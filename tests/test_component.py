@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import REPO, poll
+from esiaf.testing import REPO, poll
 from esiaf import Audio, AudioFormat, Component, SampleClock, ssl_direction
 
 FMT = AudioFormat(16000, "int16")

@@ -9,7 +9,7 @@ import threading
 
 import numpy as np
 
-from conftest import REPO, poll
+from esiaf.testing import REPO, poll
 from esiaf import AudioFormat, Component
 
 
