@@ -7,7 +7,9 @@ identity is the component id: it sends a heartbeat every
 called), and passes every state message the orchestrator pushes (peers and
 formats) to the data thread through an inproc PAIR socket. When the
 orchestrator answers ``unknown`` (it restarted, or thought us dead) the thread
-registers again. See docs/protocol.md.
+registers again; so it does when the orchestrator has been silent for longer
+than ``dead_after_s`` (it died, or came back on other ports), and it keeps
+trying for as long as the component runs. See docs/protocol.md.
 """
 from __future__ import annotations
 
@@ -30,7 +32,11 @@ _BACKOFF_MAX_S = 2.0
 
 
 class RegistrationError(Exception):
-    """The orchestrator refused us, or could not be reached in time."""
+    """The orchestrator refused us (``refused``), or could not be reached in time."""
+
+    def __init__(self, message: str, refused: bool = False):
+        super().__init__(message)
+        self.refused = refused
 
 
 @dataclass
@@ -76,7 +82,8 @@ def register(url: str, request: dict[str, Any], timeout_s: float,
                 return Registration(**{k: data[k] for k in Registration.__dataclass_fields__ if k in data})
             if 400 <= response.status_code < 500:
                 raise RegistrationError(
-                    f"orchestrator at {url} refused registration ({response.status_code}): {_error_text(response)}")
+                    f"orchestrator at {url} refused registration ({response.status_code}): {_error_text(response)}",
+                    refused=True)
             last_error = f"HTTP {response.status_code}: {_error_text(response)}"
         if time.monotonic() + delay_s > deadline or stopping():
             raise RegistrationError(
@@ -157,9 +164,17 @@ class ControlClient:
         state_out.connect(STATE_ADDRESS)
         dealer = self._dealer()
         next_beat = 0.0
+        last_heard = time.monotonic()
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
+                if now - last_heard > self.registration.dead_after_s:
+                    log.warning("orchestrator silent for %.1f s: registering again", now - last_heard)
+                    dealer.close()
+                    self._register_again(state_out)
+                    dealer = self._dealer()
+                    last_heard = next_beat = time.monotonic()
+                    continue
                 if now >= next_beat or self._poke.is_set():
                     self._poke.clear()
                     beat = {"type": "heartbeat", "component_id": self.component_id, "stats": self._stats()}
@@ -168,6 +183,7 @@ class ControlClient:
                 if not dealer.poll(timeout=50):
                     continue
                 message = json.loads(dealer.recv())
+                last_heard = time.monotonic()
                 if message.get("type") == "state":
                     self.registration.peers = message.get("peers", {})
                     self.registration.formats = message.get("formats", {})
@@ -175,15 +191,26 @@ class ControlClient:
                 elif message.get("type") == "unknown":
                     log.warning("orchestrator does not know component_id=%s: registering again", self.component_id)
                     dealer.close()
-                    self.registration = register(self._url, self._request, self._register_timeout_s,
-                                                 self._stop.is_set)
-                    log.info("registered again component_id=%s", self.component_id)
-                    state_out.send(json.dumps(self.registration.state()).encode())
+                    self._register_again(state_out)
                     dealer = self._dealer()
-                    next_beat = 0.0
-        except RegistrationError as exc:
+                    last_heard = next_beat = time.monotonic()
+        except RegistrationError as exc:  # refused: the orchestrator will not have us any more
             log.error("%s", exc)
             state_out.send(json.dumps({"type": "fatal", "error": str(exc)}).encode())
         finally:
             dealer.close()
             state_out.close()
+
+    def _register_again(self, state_out: zmq.Socket) -> None:
+        """Registers until it works (the component goes on meanwhile); raises only if refused."""
+        while not self._stop.is_set():
+            try:
+                self.registration = register(self._url, self._request, self._register_timeout_s, self._stop.is_set)
+            except RegistrationError as exc:
+                if exc.refused:
+                    raise
+                log.error("%s; still trying", exc)
+                continue
+            log.info("registered again component_id=%s", self.component_id)
+            state_out.send(json.dumps(self.registration.state()).encode())
+            return

@@ -117,23 +117,34 @@ class Orchestrator:
     """The real orchestrator as a process on random loopback ports, with a real SQLite file."""
 
     def __init__(self, tmp_path: Path):
+        import httpx
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
-        self.log = (tmp_path / "orchestrator.log").open("wb")
+        self.db_path = tmp_path / "o.db"
+        self.log = (tmp_path / "orchestrator.log").open("ab")
+        self.http = httpx.Client(base_url=self.url, timeout=5)
+        self.process: subprocess.Popen | None = None
+        self.start()
+
+    def start(self) -> None:
+        """Starts it (again: same HTTP port and database, new random ZeroMQ ports)."""
         env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_CONTROL_PORT": "0",
                "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"}
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "services.orchestrator", "--port", str(self.port), "--db", str(tmp_path / "o.db")],
+            [sys.executable, "-m", "services.orchestrator", "--port", str(self.port), "--db", str(self.db_path)],
             cwd=REPO, env=env, stdout=self.log, stderr=subprocess.STDOUT)
-        import httpx
-        self.http = httpx.Client(base_url=self.url, timeout=5)
         poll(lambda: self.http.get("/health").status_code == 200, timeout_s=30)
+
+    def kill(self) -> None:
+        self.process.kill()
+        self.process.wait()
 
     def component(self, name: str) -> dict | None:
         return next((c for c in self.http.get("/components").json()["items"] if c["name"] == name), None)
 
     def close(self) -> None:
         self.http.close()
-        self.process.terminate()
-        self.process.wait(timeout=10)
+        if self.process.poll() is None:
+            self.process.terminate()
+            self.process.wait(timeout=10)
         self.log.close()

@@ -23,13 +23,13 @@ class Source(Component):
     def __init__(self, settings):
         super().__init__(settings)
         self.add_output("source/audio", FMT)
-        self.script = []  # callables run by produce(), in order
+        self.script = []  # callables run by produce(), in order, whenever they are added
 
     def produce(self):
-        for step in self.script:
-            step(self)
         while not self.stopping:
-            self.sleep_until(time.monotonic() + 0.1)
+            while self.script:
+                self.script.pop(0)(self)
+            self.sleep_until(time.monotonic() + 0.05)
 
 
 class Sink(Component):
@@ -233,5 +233,27 @@ def test_handlers_never_nest_so_a_burst_comes_out_in_order(orchestrator):
     starts = [e[2] for e in sink.events]
     assert starts == sorted(starts) and len(set(starts)) == 1000
     for component, thread in ((source, source_thread), (splitter, splitter_thread), (sink, sink_thread)):
+        component.stop()
+        thread.join(timeout=10)
+
+
+def test_components_register_again_after_the_orchestrator_restarts(orchestrator):
+    """The new orchestrator knows nothing and listens on other ZeroMQ ports: silence makes them re-register."""
+    sink, sink_thread = start(Sink, orchestrator.url)
+    poll(lambda: orchestrator.component("sink"), timeout_s=10)
+    source, source_thread = start(Source, orchestrator.url)
+    poll(lambda: orchestrator.component("source"), timeout_s=10)
+    orchestrator.kill()
+    orchestrator.start()
+    poll(lambda: orchestrator.component("sink") and orchestrator.component("source"), timeout_s=15)
+    # and audio flows again through the peers the new orchestrator hands out
+    sent = run_on(source, lambda c: (c.wait_for_subscribers("source/audio", 1, 10),
+                                     c.publish("source/audio", np.zeros(160, dtype=np.int16), 0, 10_000_000,
+                                               segmentation_ended=True, segment=(0, 10_000_000))))
+    assert sent.wait(timeout=10)
+    results = poll(lambda: orchestrator.http.get("/results", params={"component": "sink"}).json()["items"],
+                   timeout_s=10)
+    assert results[0]["span"] == {"start_ns": 0, "end_ns": 10_000_000}
+    for component, thread in ((source, source_thread), (sink, sink_thread)):
         component.stop()
         thread.join(timeout=10)
