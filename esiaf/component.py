@@ -198,7 +198,10 @@ class Component:
             remaining_ms = (deadline_monotonic - time.monotonic()) * 1000
             if remaining_ms <= 0:
                 return
-            self._service(min(remaining_ms, 100))
+            if remaining_ms < 1:  # zmq polls in whole milliseconds: 0 would spin
+                time.sleep(remaining_ms / 1000)
+                return
+            self._service(min(int(remaining_ms), 100))
 
     # -- running ---------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:
