@@ -60,6 +60,8 @@ class FusionEngine:
     def on_result(self, result: StoredResult) -> list[FusedResult]:
         """Fused results that ``result`` completes, to store and publish in this order."""
         fused = []
+        if "nothing" in result.json:  # "covered, no result" (nothing recognised): coverage, not an answer
+            return fused
         for fusion in self.fusions:
             if fusion.anchor != result.type:
                 continue

@@ -81,6 +81,13 @@ def test_anchor_only_fusions_publish_each_matching_anchor_at_once():
     assert engine.on_result(stored(type_="gender")) == []
 
 
+def test_a_covered_nothing_result_anchors_no_fusion():
+    engine = FusionEngine([FusionSettings(name="speech", anchor="speech")], allocate_id=lambda: 1)
+    nothing = StoredResult(id=1, component="asr", type="speech", stream_id="s", start_ns=10, end_ns=20,
+                           json={"id": 1, "nothing": {"reason": "no words recognised"}})
+    assert engine.on_result(nothing) == []
+
+
 def test_fusing_other_types_is_refused_not_faked():
     with pytest.raises(FusionConfigError, match="not implemented yet.*fusion-engine"):
         FusionEngine([FusionSettings(name="u", anchor="speech", fuse=["vad"])], lambda: 1)
