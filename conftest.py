@@ -1,4 +1,4 @@
-"""Fixtures shared by the tests in this folder; the helpers themselves are in esiaf.testing."""
+"""Fixtures shared by every test folder (tests/, services/*/tests/); the helpers are in esiaf.testing."""
 from __future__ import annotations
 
 import pytest
