@@ -19,6 +19,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, Sequence
 
+import httpx
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
@@ -29,6 +30,8 @@ log = logging.getLogger("esiaf")
 PIPELINE_RATE_HZ = 16000  # what vad and asr take until format conversion arrives
 START_TIMEOUT_S = 60.0
 DRAIN_TIMEOUT_S = 30.0  # after the grabber has finished: wait this long at most for the last results
+PROGRESS_EVERY_S = 10.0  # how often to say how much of a long file has been played
+LONG_FILE_S = 60.0
 
 
 def format_line(fused: dict[str, Any], origin_ns: int) -> str:
@@ -160,7 +163,11 @@ def follow(ws, supervisor: Supervisor, client: OrchestratorClient, grabber, args
     grabber_done_at = None
     ended = False
     printed = 0
+    next_progress = time.monotonic() + PROGRESS_EVERY_S
     while True:
+        if args.input and grabber_done_at is None and time.monotonic() >= next_progress:
+            next_progress += PROGRESS_EVERY_S
+            show_progress(client)
         for child in supervisor.exited():
             if child is grabber and child.process.returncode == 0:
                 grabber_done_at = grabber_done_at or time.monotonic()
@@ -188,6 +195,18 @@ def follow(ws, supervisor: Supervisor, client: OrchestratorClient, grabber, args
             continue
         printed += 1
         print(json.dumps(message) if args.json else format_line(message, origin_ns), flush=True)
+
+
+def show_progress(client: OrchestratorClient) -> None:
+    """'esiaf: played 40 of 300 s (13 %)' on stderr, for files longer than LONG_FILE_S."""
+    try:
+        info = ((client.component("grabber") or {}).get("stats") or {}).get("info", {})
+    except httpx.HTTPError:
+        return
+    played_s, duration_s = info.get("played_s"), info.get("duration_s")
+    if played_s is not None and duration_s and duration_s > LONG_FILE_S:
+        print(f"esiaf: played {played_s:.0f} of {duration_s:.0f} s ({100 * played_s / duration_s:.0f} %)",
+              file=sys.stderr, flush=True)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -82,7 +82,8 @@ class Grabber(Component):
         origin_ns = time.time_ns() - (chunk_ns if live else 0)
         started = time.monotonic()
         clock = SampleClock(origin_ns, fmt.sample_rate_hz)
-        self.info.update(stream_start_ns=origin_ns, input=s.input or s.device)
+        self.info.update(stream_start_ns=origin_ns, input=s.input or s.device, played_s=0.0,
+                         duration_s=getattr(self.source, "total_frames", 0) / fmt.sample_rate_hz or None)
         self.announce_stream(origin_ns, input=s.input or s.device, format=fmt.to_dict(), chunk_ms=s.chunk_ms)
         log.info("playing source=%s format=%s chunk_ms=%g realtime=%s", s.input or s.device, fmt, s.chunk_ms,
                  not (s.fast or live))
@@ -100,10 +101,10 @@ class Grabber(Component):
                 break
             ended = total_frames is not None and clock.frames >= total_frames
             self.publish(s.topic, samples, start_ns, end_ns, end_of_stream=ended)
+            self.info["played_s"] = clock.frames / fmt.sample_rate_hz  # reported with heartbeats: progress
         if not ended:  # stopped, or the source ran dry early: tell consumers the stream is over
             now_ns = clock.time_at(clock.frames)
             self.publish(s.topic, b"", now_ns, now_ns, end_of_stream=True)
-        self.info["played_s"] = clock.frames / fmt.sample_rate_hz
         log.info("played source=%s seconds=%.2f", s.input or s.device, clock.frames / fmt.sample_rate_hz)
 
     def teardown(self) -> None:
