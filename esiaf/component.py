@@ -12,6 +12,7 @@ long computation in a handler never makes the component look dead.
 """
 from __future__ import annotations
 
+import json
 import logging
 import signal
 import socket
@@ -21,22 +22,18 @@ import uuid
 from dataclasses import asdict, dataclass
 from typing import Any, ClassVar, Iterable, Sequence
 
-import json
 import numpy as np
 import zmq
 
 from esiaf.audio import Audio
-from esiaf.control import STATE_ADDRESS, ControlClient, announce_stream
+from esiaf.control import ControlClient, announce_stream
 from esiaf.formats import AudioFormat, FormatError, encode
 from esiaf.proto import esiaf_pb2 as pb
-from esiaf.results import RESULT_TYPES, make_result
+from esiaf.results import make_result
 from esiaf.settings import ComponentSettings
+from esiaf.transport import Transport, TransportError, topic_name
 
 log = logging.getLogger(__name__)
-
-AUDIO_HWM = 100_000  # messages queued per socket before loss (minutes of audio)
-RESULTS_HWM = 10_000
-FLUSH_LINGER_MS = 2_000  # data sockets get this long to deliver the last messages at shutdown
 
 
 class SetupError(Exception):
@@ -55,10 +52,6 @@ class OutputStats:
     published: int = 0
     dropped: int = 0  # refused at the high-water mark
     subscribers: int = 0
-
-
-def topic_frame(topic: str) -> bytes:
-    return topic.encode() + b"\0"
 
 
 class Component:
@@ -84,13 +77,10 @@ class Component:
         self._last_seen: dict[tuple[str, str], int] = {}
         self._ended: dict[str, set[str]] = {}
         self._result_sequence = 0
-        self._connected: set[str] = set()
         self._handling = False  # inside a handler: audio input waits, so handlers never nest
         self._assigned: dict[str, AudioFormat] = {}
-        self._results_endpoint = ""
         self._context: zmq.Context | None = None
-        self._pub = self._sub = self._push = self._state_in = None
-        self._poller = zmq.Poller()
+        self._transport: Transport | None = None
         self.control: ControlClient | None = None
 
     # -- declaration -----------------------------------------------------------------
@@ -153,9 +143,7 @@ class Component:
             msg.meta.segment.start_ns, msg.meta.segment.end_ns = segment
         msg.meta.ssl_directions.extend(ssl_directions)
         stats = self.output_stats[topic]
-        try:
-            self._pub.send_multipart([topic_frame(topic), msg.SerializeToString()], flags=zmq.NOBLOCK)
-        except zmq.Again:
+        if not self._transport.send_audio(topic, msg.SerializeToString()):
             stats.dropped += 1
             log.warning("audio dropped at high-water mark topic=%s sequence=%d dropped=%d",
                         topic, sequence, stats.dropped)
@@ -216,7 +204,12 @@ class Component:
         self.setup()
         self._context = zmq.Context()
         try:
-            self._open_sockets()
+            try:
+                self._transport = Transport(self._context, inputs=self.inputs, has_outputs=bool(self.outputs),
+                                            bind_host=self.settings.bind_host, audio_port=self.settings.audio_port,
+                                            advertise_host=self.settings.advertise_host)
+            except TransportError as exc:
+                raise SetupError(str(exc)) from None
             self.control = ControlClient(self._context, self.settings.orchestrator_url,
                                          self._registration_request(), self.stats,
                                          self.settings.register_timeout_s)
@@ -237,57 +230,12 @@ class Component:
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda signum, frame: self.stop())
 
-    def _advertised_host(self) -> str:
-        if self.settings.advertise_host:
-            return self.settings.advertise_host
-        if self.settings.bind_host in ("0.0.0.0", "*", "::"):
-            return socket.gethostname()
-        return self.settings.bind_host
-
-    def _open_sockets(self) -> None:
-        ctx = self._context
-        self._state_in = ctx.socket(zmq.PAIR)
-        self._state_in.setsockopt(zmq.LINGER, 0)
-        self._state_in.bind(STATE_ADDRESS)
-        self._poller.register(self._state_in, zmq.POLLIN)
-        if self.outputs:
-            self._pub = ctx.socket(zmq.XPUB)
-            self._pub.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
-            self._pub.setsockopt(zmq.SNDHWM, AUDIO_HWM)
-            self._pub.setsockopt(zmq.XPUB_VERBOSER, 1)
-            self._pub.setsockopt(zmq.XPUB_NODROP, 1)
-            host = self.settings.bind_host
-            try:
-                if self.settings.audio_port:
-                    self._pub.bind(f"tcp://{host}:{self.settings.audio_port}")
-                else:
-                    self._pub.bind_to_random_port(f"tcp://{host}")
-            except zmq.ZMQError as exc:
-                raise SetupError(f"cannot bind audio output on {host}:{self.settings.audio_port or 'any port'}: {exc}")
-            self._poller.register(self._pub, zmq.POLLIN)
-        if self.inputs:
-            self._sub = ctx.socket(zmq.SUB)
-            self._sub.setsockopt(zmq.LINGER, 0)
-            self._sub.setsockopt(zmq.RCVHWM, AUDIO_HWM)
-            for topic in self.inputs:
-                self._sub.setsockopt(zmq.SUBSCRIBE, topic_frame(topic))
-            self._poller.register(self._sub, zmq.POLLIN)
-        self._push = ctx.socket(zmq.PUSH)
-        self._push.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
-        self._push.setsockopt(zmq.SNDHWM, RESULTS_HWM)
-
-    def _audio_endpoint(self) -> str | None:
-        if self._pub is None:
-            return None
-        port = self._pub.getsockopt(zmq.LAST_ENDPOINT).decode().rsplit(":", 1)[1]
-        return f"tcp://{self._advertised_host()}:{port}"
-
     def _registration_request(self) -> dict[str, Any]:
         def topics(declared: dict[str, AudioFormat]) -> list[dict[str, Any]]:
             return [{"topic": t, "format": f.to_dict()} for t, f in declared.items()]
         return {"name": self.settings.name, "designation": self.designation, "stream_id": self.settings.stream_id,
                 "inputs": topics(self.inputs), "outputs": topics(self.outputs),
-                "audio_endpoint": self._audio_endpoint(), "host": socket.gethostname(), "info": self.info}
+                "audio_endpoint": self._transport.audio_endpoint, "host": socket.gethostname(), "info": self.info}
 
     def _service(self, timeout_ms: float) -> None:
         """Handles whatever is ready on the sockets, waiting up to ``timeout_ms`` for the first.
@@ -295,38 +243,21 @@ class Component:
         Called from inside a handler (publish() does), it takes no audio input: the next chunk
         waits until the current handler has returned, so callbacks never nest or reorder.
         """
-        events = dict(self._poller.poll(timeout=timeout_ms))
-        while events:
-            if self._state_in in events:
-                self._apply_state(json.loads(self._state_in.recv()))
-            if self._pub is not None and self._pub in events:
-                self._on_subscription(self._pub.recv())
-            if self._sub is not None and self._sub in events and not self._handling:
-                self._on_message(self._sub.recv_multipart())
-            events = dict(self._poller.poll(timeout=0))
-            if self._handling:
-                events.pop(self._sub, None)
+        for kind, event in self._transport.events(timeout_ms, take_audio=not self._handling):
+            if kind == "state":
+                self._apply_state(event)
+            elif kind == "subscription":
+                self._on_subscription(*event)
+            else:
+                self._on_message(event)
 
     def _apply_state(self, state: dict[str, Any]) -> None:
         if state.get("type") == "fatal":
             log.error("stopping: %s", state.get("error"))
             self.stop(exit_code=1)
             return
-        wanted = {endpoint for endpoints in state.get("peers", {}).values() for endpoint in endpoints}
-        if self._sub is not None:
-            for endpoint in wanted - self._connected:
-                self._sub.connect(endpoint)
-                log.info("connected to producer endpoint=%s", endpoint)
-            for endpoint in self._connected - wanted:
-                self._sub.disconnect(endpoint)
-                log.info("disconnected from producer endpoint=%s", endpoint)
-            self._connected = wanted
-        endpoint = state.get("results_endpoint", "")
-        if endpoint and endpoint != self._results_endpoint:
-            if self._results_endpoint:
-                self._push.disconnect(self._results_endpoint)
-            self._push.connect(endpoint)
-            self._results_endpoint = endpoint
+        self._transport.connect_peers({e for endpoints in state.get("peers", {}).values() for e in endpoints})
+        self._transport.connect_results(state.get("results_endpoint", ""))
         for topic, fmt in state.get("formats", {}).items():
             declared = self.inputs.get(topic) or self.outputs.get(topic)
             assigned = AudioFormat.from_dict(fmt)
@@ -337,18 +268,17 @@ class Component:
                 log.warning("topic=%s travels as %s but this component wants %s; conversion is not "
                             "implemented yet, such messages are counted as bad", topic, assigned, declared)
 
-    def _on_subscription(self, frame: bytes) -> None:
-        topic = frame[1:].rstrip(b"\0").decode(errors="replace")
+    def _on_subscription(self, topic: str, change: int) -> None:
         stats = self.output_stats.get(topic)
         if stats is None:
             return
-        stats.subscribers = max(0, stats.subscribers + (1 if frame[:1] == b"\x01" else -1))
+        stats.subscribers = max(0, stats.subscribers + change)
         log.info("subscribers topic=%s count=%d", topic, stats.subscribers)
         if self.control is not None:
             self.control.poke()
 
     def _on_message(self, frames: list[bytes]) -> None:
-        topic = frames[0].rstrip(b"\0").decode(errors="replace")
+        topic = topic_name(frames[0])
         stats = self.input_stats.get(topic)
         if stats is None or len(frames) != 2:
             return
@@ -409,10 +339,9 @@ class Component:
         log.info("end of stream stream_id=%s", audio.stream_id)
 
     def _send_results(self, frames: Sequence[bytes]) -> None:
-        try:
-            self._push.send_multipart(frames, flags=zmq.NOBLOCK)
+        if self._transport.send_results(frames):
             self.results_sent += frames[0] == b"result"
-        except zmq.Again:
+        else:
             self.results_dropped += 1
             log.error("result dropped: orchestrator not taking results dropped=%d", self.results_dropped)
 
@@ -422,8 +351,7 @@ class Component:
         finally:
             if self.control is not None:
                 self.control.stop()
-            for sock in (self._state_in, self._sub, self._pub, self._push):
-                if sock is not None:
-                    sock.close()
+            if self._transport is not None:
+                self._transport.close()
             if self._context is not None:
                 self._context.term()

@@ -24,9 +24,10 @@ from typing import Any, Callable
 import httpx
 import zmq
 
+from esiaf.transport import STATE_ADDRESS
+
 log = logging.getLogger(__name__)
 
-STATE_ADDRESS = "inproc://esiaf-control-state"
 _BACKOFF_START_S = 0.1
 _BACKOFF_MAX_S = 2.0
 

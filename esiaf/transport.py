@@ -1,0 +1,143 @@
+"""The ZeroMQ sockets of one component (see docs/protocol.md).
+
+- an XPUB bound for all output topics, so the component can count its subscribers; it refuses
+  (rather than silently drops) at the high-water mark, so loss is counted;
+- a SUB connected to the producers of the input topics, as the orchestrator names them;
+- a PUSH to the orchestrator's results socket;
+- an inproc PAIR on which the control thread hands over the orchestrator's state.
+
+One thread uses a Transport: the component's data thread.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import socket
+from typing import Any, Iterable, Iterator, Sequence
+
+import zmq
+
+log = logging.getLogger(__name__)
+
+STATE_ADDRESS = "inproc://esiaf-control-state"
+AUDIO_HWM = 100_000  # messages queued per socket before loss (minutes of audio)
+RESULTS_HWM = 10_000
+FLUSH_LINGER_MS = 2_000  # data sockets get this long to deliver the last messages at shutdown
+ANY_HOST = ("0.0.0.0", "*", "::")
+
+
+class TransportError(Exception):
+    """A socket could not be bound: the message says which address."""
+
+
+def topic_frame(topic: str) -> bytes:
+    """Topics travel NUL-terminated, so subscribing to "vad" does not also match "vad2"."""
+    return topic.encode() + b"\0"
+
+
+def topic_name(frame: bytes) -> str:
+    return frame.rstrip(b"\0").decode(errors="replace")
+
+
+class Transport:
+    def __init__(self, context: zmq.Context, *, inputs: Iterable[str], has_outputs: bool,
+                 bind_host: str, audio_port: int = 0, advertise_host: str = ""):
+        self._poller = zmq.Poller()
+        self._connected: set[str] = set()
+        self._results_endpoint = ""
+        self.state = context.socket(zmq.PAIR)
+        self.state.setsockopt(zmq.LINGER, 0)
+        self.state.bind(STATE_ADDRESS)
+        self._poller.register(self.state, zmq.POLLIN)
+        self.pub = self.sub = None
+        if has_outputs:
+            self.pub = context.socket(zmq.XPUB)
+            self.pub.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
+            self.pub.setsockopt(zmq.SNDHWM, AUDIO_HWM)
+            self.pub.setsockopt(zmq.XPUB_VERBOSER, 1)
+            self.pub.setsockopt(zmq.XPUB_NODROP, 1)
+            try:
+                if audio_port:
+                    self.pub.bind(f"tcp://{bind_host}:{audio_port}")
+                else:
+                    self.pub.bind_to_random_port(f"tcp://{bind_host}")
+            except zmq.ZMQError as exc:
+                self.close()
+                raise TransportError(f"cannot bind audio output on {bind_host}:{audio_port or 'any port'}: {exc}")
+            self._poller.register(self.pub, zmq.POLLIN)
+        topics = list(inputs)
+        if topics:
+            self.sub = context.socket(zmq.SUB)
+            self.sub.setsockopt(zmq.LINGER, 0)
+            self.sub.setsockopt(zmq.RCVHWM, AUDIO_HWM)
+            for topic in topics:
+                self.sub.setsockopt(zmq.SUBSCRIBE, topic_frame(topic))
+            self._poller.register(self.sub, zmq.POLLIN)
+        self.push = context.socket(zmq.PUSH)
+        self.push.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
+        self.push.setsockopt(zmq.SNDHWM, RESULTS_HWM)
+        self._advertised_host = advertise_host or (socket.gethostname() if bind_host in ANY_HOST else bind_host)
+
+    @property
+    def audio_endpoint(self) -> str | None:
+        """Where consumers reach this component's outputs (None without outputs)."""
+        if self.pub is None:
+            return None
+        port = self.pub.getsockopt(zmq.LAST_ENDPOINT).decode().rsplit(":", 1)[1]
+        return f"tcp://{self._advertised_host}:{port}"
+
+    def events(self, timeout_ms: float, take_audio: bool = True) -> Iterator[tuple[str, Any]]:
+        """What is ready, waiting up to ``timeout_ms`` for the first: ("state", dict),
+        ("subscription", (topic, +1 | -1)) and, if ``take_audio``, ("audio", frames)."""
+        ready = dict(self._poller.poll(timeout=timeout_ms))
+        while ready:
+            if self.state in ready:
+                yield "state", json.loads(self.state.recv())
+            if self.pub is not None and self.pub in ready:
+                frame = self.pub.recv()
+                yield "subscription", (topic_name(frame[1:]), 1 if frame[:1] == b"\x01" else -1)
+            if self.sub is not None and self.sub in ready and take_audio:
+                yield "audio", self.sub.recv_multipart()
+            ready = dict(self._poller.poll(timeout=0))
+            if not take_audio:
+                ready.pop(self.sub, None)
+
+    def send_audio(self, topic: str, message: bytes) -> bool:
+        """False if refused at the high-water mark."""
+        try:
+            self.pub.send_multipart([topic_frame(topic), message], flags=zmq.NOBLOCK)
+        except zmq.Again:
+            return False
+        return True
+
+    def send_results(self, frames: Sequence[bytes]) -> bool:
+        """False if the orchestrator is not taking results (queue full)."""
+        try:
+            self.push.send_multipart(frames, flags=zmq.NOBLOCK)
+        except zmq.Again:
+            return False
+        return True
+
+    def connect_peers(self, wanted: set[str]) -> None:
+        """Connects the input socket to exactly these producer endpoints."""
+        if self.sub is None:
+            return
+        for endpoint in wanted - self._connected:
+            self.sub.connect(endpoint)
+            log.info("connected to producer endpoint=%s", endpoint)
+        for endpoint in self._connected - wanted:
+            self.sub.disconnect(endpoint)
+            log.info("disconnected from producer endpoint=%s", endpoint)
+        self._connected = set(wanted)
+
+    def connect_results(self, endpoint: str) -> None:
+        if endpoint and endpoint != self._results_endpoint:
+            if self._results_endpoint:
+                self.push.disconnect(self._results_endpoint)
+            self.push.connect(endpoint)
+            self._results_endpoint = endpoint
+
+    def close(self) -> None:
+        for sock in (self.state, self.sub, self.pub, self.push):
+            if sock is not None and not sock.closed:
+                sock.close()
