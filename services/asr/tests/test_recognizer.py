@@ -172,30 +172,21 @@ def test_silence_gives_no_hypothesis(grammar_recogniser: PocketsphinxRecognizer)
     assert grammar_recogniser.recognise(b"") == []
 
 
-def test_malformed_grammar_is_refused(tmp_path: Path) -> None:
-    grammar = tmp_path / "broken.gram"
-    grammar.write_text("#JSGF V1.0;\ngrammar broken;\npublic <q> = hello | ( world ;\n")
-    with pytest.raises(RecognizerError, match=r"broken\.gram.*syntax error"):
-        PocketsphinxRecognizer(grammar=grammar)
-
-
-def test_grammar_without_header_is_refused(tmp_path: Path) -> None:
-    grammar = tmp_path / "plain.gram"
-    grammar.write_text("hello world\n")
-    with pytest.raises(RecognizerError, match=r"plain\.gram"):
+@pytest.mark.parametrize("name, text, complaint", [
+    ("broken", "#JSGF V1.0;\ngrammar broken;\npublic <q> = hello | ( world ;\n", r"broken\.gram.*syntax error"),
+    ("plain", "hello world\n", r"plain\.gram"),
+    ("unknown", "#JSGF V1.0;\ngrammar unknown;\npublic <q> = hello xyzzyq ;\n", r"unknown\.gram.*xyzzyq"),
+], ids=["malformed", "no header", "word not in dictionary"])
+def test_bad_grammar_is_refused_naming_the_file(tmp_path: Path, name: str, text: str, complaint: str) -> None:
+    grammar = tmp_path / f"{name}.gram"
+    grammar.write_text(text)
+    with pytest.raises(RecognizerError, match=complaint):
         PocketsphinxRecognizer(grammar=grammar)
 
 
 def test_missing_grammar_is_refused(tmp_path: Path) -> None:
     with pytest.raises(RecognizerError, match=re.escape(str(tmp_path / "absent.gram"))):
         PocketsphinxRecognizer(grammar=tmp_path / "absent.gram")
-
-
-def test_grammar_word_missing_from_dictionary_is_refused(tmp_path: Path) -> None:
-    grammar = tmp_path / "unknown.gram"
-    grammar.write_text("#JSGF V1.0;\ngrammar unknown;\npublic <q> = hello xyzzyq ;\n")
-    with pytest.raises(RecognizerError, match=r"unknown\.gram.*xyzzyq"):
-        PocketsphinxRecognizer(grammar=grammar)
 
 
 def test_bad_dictionary_word_is_refused(tmp_path: Path) -> None:
