@@ -5,6 +5,7 @@ from contextlib import asynccontextmanager
 from typing import AsyncIterator
 
 from fastapi import FastAPI
+from fastapi_offline import FastAPIOffline  # /docs without a CDN: robots are often offline
 
 from .api import components, fused, fusions, health, results, streams, topics, ws
 from .core import Orchestrator
@@ -37,8 +38,8 @@ def create_app(settings: OrchestratorSettings, *,
             if orchestrator is None:
                 await core.stop()
 
-    app = FastAPI(title="ESIAF orchestrator", version="0.1.0", description=DESCRIPTION,
-                  lifespan=lifespan)
+    app = FastAPIOffline(title="ESIAF orchestrator", version="0.1.0", description=DESCRIPTION,
+                         lifespan=lifespan)
     for module in (components, topics, streams, results, fused, ws, fusions, health):
         app.include_router(module.router)
     return app

@@ -122,6 +122,19 @@ def test_openapi_documents_the_api(http):
     assert "RegisterRequest" in schema["components"]["schemas"]
 
 
+def test_the_docs_page_needs_no_internet(http):
+    """/docs and /redoc load their scripts and styles from the orchestrator itself, not a CDN."""
+    import re
+    for page in ("/docs", "/redoc"):
+        html = http.get(page).text
+        assets = re.findall(r"""(?:src|href)=["']([^"']+)["']|url: ["']([^"']+)["']""", html)
+        urls = [a or b for a, b in assets]
+        assert urls, html
+        for url in urls:
+            assert not url.startswith(("http://", "https://", "//")), f"{page} loads {url} from outside"
+            assert http.get(url).status_code == 200, url
+
+
 def test_streams_are_announced_listed_and_kept_across_restarts(make_orchestrator, tmp_path):
     db = str(tmp_path / "streams.db")
     first = make_orchestrator(db_path=db)
