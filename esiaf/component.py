@@ -60,6 +60,7 @@ class Component:
     service: ClassVar[str] = "component"
     designation: ClassVar[str] = "other"  # result type produced, or "other"
     Settings: ClassVar[type[ComponentSettings]] = ComponentSettings
+    options: ClassVar[dict[str, str]] = {}  # settings that get a command-line flag: name -> help
 
     def __init__(self, settings: ComponentSettings):
         self.settings = settings

@@ -39,13 +39,16 @@ def main(component_cls: type[Component], argv: Sequence[str] | None = None) -> i
     parser.add_argument("--config", help="YAML settings file (also ESIAF_%s_CONFIG)" % service.upper())
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one setting (repeatable)")
-    add_arguments = getattr(component_cls, "add_arguments", None)
-    if add_arguments:
-        add_arguments(parser)
+    for name, help_text in component_cls.options.items():
+        flag = "--" + name.replace("_", "-")
+        if component_cls.Settings.model_fields[name].annotation is bool:
+            parser.add_argument(flag, dest=name, action="store_true", default=None, help=help_text)
+        else:
+            parser.add_argument(flag, dest=name, help=help_text)
     args = parser.parse_args(argv)
     try:
         overrides = parse_set(args.set)
-        cli = getattr(component_cls, "settings_from_arguments", lambda a: {})(args)
+        cli = {name: getattr(args, name) for name in component_cls.options}
         settings = load_settings(component_cls.Settings, service, config=args.config,
                                  **{**overrides, **cli})
     except SettingsError as exc:

@@ -35,13 +35,7 @@ class Asr(Component):
     designation = "speech"
     Settings = AsrSettings
 
-    @staticmethod
-    def add_arguments(parser) -> None:
-        parser.add_argument("--grammar", help="JSGF grammar file, or a bundled grammar name (robocup)")
-
-    @staticmethod
-    def settings_from_arguments(args) -> dict:
-        return {"grammar": args.grammar}
+    options = {"grammar": "JSGF grammar file, or a bundled grammar name (robocup)"}
 
     def __init__(self, settings: AsrSettings):
         super().__init__(settings)

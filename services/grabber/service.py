@@ -38,15 +38,9 @@ class Grabber(Component):
     designation = "other"
     Settings = GrabberSettings
 
-    @staticmethod
-    def add_arguments(parser) -> None:
-        parser.add_argument("--input", help="sound file to play (WAV, FLAC, ... or headerless .raw)")
-        parser.add_argument("--device", help="ALSA capture device (see arecord -L)")
-        parser.add_argument("--fast", action="store_true", default=None, help="play as fast as possible")
-
-    @staticmethod
-    def settings_from_arguments(args) -> dict:
-        return {"input": args.input, "device": args.device, "fast": args.fast}
+    options = {"input": "sound file to play (WAV, FLAC, ... or headerless .raw)",
+               "device": "ALSA capture device (see arecord -L)",
+               "fast": "play as fast as possible"}
 
     def __init__(self, settings: GrabberSettings):
         super().__init__(settings)
