@@ -76,7 +76,8 @@ def _from_env(model: type[BaseModel], service: str, env: Mapping[str, str]) -> d
     return values
 
 
-def _from_yaml(path: Path) -> dict[str, Any]:
+def read_yaml_file(path: Path) -> dict[str, Any]:
+    """A YAML file holding a mapping; SettingsError (one clear line) otherwise."""
     try:
         text = path.read_text()
     except OSError as exc:
@@ -102,7 +103,7 @@ def load_settings(model: type[S], service: str, *, config: str | Path | None = N
     values: dict[str, Any] = {}
     sources = []
     if config:
-        values.update(_from_yaml(Path(config)))
+        values.update(read_yaml_file(Path(config)))
         sources.append(f"config file {config}")
     env_values = _from_env(model, service, env)
     if env_values:

@@ -88,16 +88,20 @@ class Span(_message.Message):
     def __init__(self, start_ns: _Optional[int] = ..., end_ns: _Optional[int] = ...) -> None: ...
 
 class SslDirection(_message.Message):
-    __slots__ = ("source_id", "azimuth_deg", "elevation_deg", "probability")
+    __slots__ = ("source_id", "azimuth_deg", "elevation_deg", "probability", "elevation_known", "track_azimuth_deg")
     SOURCE_ID_FIELD_NUMBER: _ClassVar[int]
     AZIMUTH_DEG_FIELD_NUMBER: _ClassVar[int]
     ELEVATION_DEG_FIELD_NUMBER: _ClassVar[int]
     PROBABILITY_FIELD_NUMBER: _ClassVar[int]
+    ELEVATION_KNOWN_FIELD_NUMBER: _ClassVar[int]
+    TRACK_AZIMUTH_DEG_FIELD_NUMBER: _ClassVar[int]
     source_id: str
     azimuth_deg: float
     elevation_deg: float
     probability: float
-    def __init__(self, source_id: _Optional[str] = ..., azimuth_deg: _Optional[float] = ..., elevation_deg: _Optional[float] = ..., probability: _Optional[float] = ...) -> None: ...
+    elevation_known: bool
+    track_azimuth_deg: float
+    def __init__(self, source_id: _Optional[str] = ..., azimuth_deg: _Optional[float] = ..., elevation_deg: _Optional[float] = ..., probability: _Optional[float] = ..., elevation_known: _Optional[bool] = ..., track_azimuth_deg: _Optional[float] = ...) -> None: ...
 
 class AudioMeta(_message.Message):
     __slots__ = ("segmentation_ended", "segment", "ssl_directions", "end_of_stream")
@@ -168,10 +172,14 @@ class SpeechResult(_message.Message):
     def __init__(self, hypotheses: _Optional[_Iterable[_Union[Hypothesis, _Mapping]]] = ...) -> None: ...
 
 class SslResult(_message.Message):
-    __slots__ = ("directions",)
+    __slots__ = ("directions", "algorithm", "level_db")
     DIRECTIONS_FIELD_NUMBER: _ClassVar[int]
+    ALGORITHM_FIELD_NUMBER: _ClassVar[int]
+    LEVEL_DB_FIELD_NUMBER: _ClassVar[int]
     directions: _containers.RepeatedCompositeFieldContainer[SslDirection]
-    def __init__(self, directions: _Optional[_Iterable[_Union[SslDirection, _Mapping]]] = ...) -> None: ...
+    algorithm: str
+    level_db: float
+    def __init__(self, directions: _Optional[_Iterable[_Union[SslDirection, _Mapping]]] = ..., algorithm: _Optional[str] = ..., level_db: _Optional[float] = ...) -> None: ...
 
 class LabelResult(_message.Message):
     __slots__ = ("label", "probability", "class_probabilities")
