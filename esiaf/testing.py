@@ -21,7 +21,8 @@ from pathlib import Path
 
 
 REPO = Path(__file__).resolve().parent.parent  # the repository (tests run from a checkout)
-SHARED_DATA = REPO.parent / "shared" / "data"
+# ../shared/data beside the repository; ESIAF_SHARED_DATA points elsewhere (e.g. from a git worktree)
+SHARED_DATA = Path(os.environ.get("ESIAF_SHARED_DATA") or REPO.parent / "shared" / "data")
 
 
 def shared_data(relative: str) -> Path:

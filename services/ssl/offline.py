@@ -7,7 +7,7 @@ scene's truth.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -28,8 +28,12 @@ class Frame:
     source_id: str = ""
 
 
-def localise(signals: np.ndarray, sample_rate_hz: int, chunk_ms: float = 20.0, **settings: Any) -> list[Frame]:
-    """SSL frames of float (samples, mics) audio, times in seconds from its start."""
+def localise(signals: np.ndarray, sample_rate_hz: int, chunk_ms: float = 20.0,
+             on_forward: Callable[..., Any] | None = None, **settings: Any) -> list[Frame]:
+    """SSL frames of float (samples, mics) audio, times in seconds from its start.
+
+    ``on_forward(topic, audio, **meta)`` sees every chunk the component forwards.
+    """
     ssl = Ssl(SslSettings(sample_rate_hz=sample_rate_hz, **settings))
     ssl.setup()
     frames: list[Frame] = []
@@ -43,7 +47,7 @@ def localise(signals: np.ndarray, sample_rate_hz: int, chunk_ms: float = 20.0, *
             frames.append(Frame(start_s, end_s, best.azimuth_deg, best.probability, best.source_id))
 
     ssl.emit = emit
-    ssl.forward = lambda *args, **kwargs: 0
+    ssl.forward = on_forward or (lambda *args, **kwargs: 0)
     fmt = AudioFormat(sample_rate_hz, "int16", channels=signals.shape[1])
     ints = np.round(np.clip(signals, -1, 1 - 1 / 32768) * 32768).astype(np.int16)
     step = max(1, round(sample_rate_hz * chunk_ms / 1000))
