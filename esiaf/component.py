@@ -4,8 +4,9 @@ A component declares audio inputs and outputs (topic + the format it wants),
 loads what it needs in :meth:`Component.setup` (which may fail cleanly), and
 handles one message at a time. The SDK owns the sockets and the loop,
 registration and heartbeats, sequence numbers and loss counting, capture
-timestamps, the callback order (audio, then SSL meta, then VAD end, then end
-of stream) and shutdown on SIGTERM/SIGINT.
+timestamps, format conversion between the declared formats and the ones the
+orchestrator assigns to the topics (esiaf/links.py), the callback order (audio,
+then SSL meta, then VAD end, then end of stream) and shutdown on SIGTERM/SIGINT.
 
 All handlers run on one thread, in order; the heartbeat runs on another, so a
 long computation in a handler never makes the component look dead.
@@ -171,7 +172,8 @@ class Component:
         return sequence
 
     def forward(self, topic: str, audio: Audio, **meta: Any) -> int:
-        """Publishes a received chunk unchanged (same capture times) on an output topic."""
+        """Publishes a received chunk (same capture times) on an output topic; its payload, in the
+        input's declared format, must be in the output's declared format too."""
         return self.publish(topic, audio.payload, audio.start_ns, audio.end_ns, stream_id=audio.stream_id, **meta)
 
     def emit(self, result_type: str, span: tuple[int, int], *, stream_id: str | None = None,
