@@ -4,8 +4,9 @@ A component declares audio inputs and outputs (topic + the format it wants),
 loads what it needs in :meth:`Component.setup` (which may fail cleanly), and
 handles one message at a time. The SDK owns the sockets and the loop,
 registration and heartbeats, sequence numbers and loss counting, capture
-timestamps, the callback order (audio, then SSL meta, then VAD end, then end
-of stream) and shutdown on SIGTERM/SIGINT.
+timestamps, format conversion between the declared formats and the ones the
+orchestrator assigns to the topics (esiaf/links.py), the callback order (audio,
+then SSL meta, then VAD end, then end of stream) and shutdown on SIGTERM/SIGINT.
 
 All handlers run on one thread, in order; the heartbeat runs on another, so a
 long computation in a handler never makes the component look dead.
@@ -28,6 +29,7 @@ import zmq
 from esiaf.audio import Audio
 from esiaf.control import ControlClient, announce_stream
 from esiaf.formats import AudioFormat, FormatError, encode
+from esiaf.links import InputLink, OutputLink
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf.results import make_result
 from esiaf.settings import ComponentSettings
@@ -80,6 +82,8 @@ class Component:
         self._result_sequence = 0
         self._handling = False  # inside a handler: audio input waits, so handlers never nest
         self._assigned: dict[str, AudioFormat] = {}
+        self._output_links: dict[str, OutputLink] = {}  # made in run(): setup() may still declare topics
+        self._input_links: dict[tuple[str, str], InputLink] = {}  # per topic and publisher
         self._context: zmq.Context | None = None
         self._transport: Transport | None = None
         self.control: ControlClient | None = None
@@ -131,18 +135,31 @@ class Component:
                 stream_id: str | None = None, segmentation_ended: bool = False,
                 segment: tuple[int, int] | None = None, ssl_directions: Iterable[pb.SslDirection] = (),
                 end_of_stream: bool = False) -> int:
-        """Publishes a chunk on an output topic; returns its sequence number (0 if dropped)."""
-        fmt = self.outputs[topic]
-        payload = audio if isinstance(audio, (bytes, bytearray, memoryview)) else encode(audio, fmt)
+        """Publishes a chunk on an output topic; returns its sequence number (0 if dropped).
+
+        ``audio`` is in the format declared with :meth:`add_output`; the SDK converts it to the
+        topic's assigned format. A chunk marked ``segmentation_ended`` or ``end_of_stream`` also
+        carries what the resampler held back, so consumers have all audio before the mark.
+        """
+        link = self._output_links[topic]
+        payload = audio if isinstance(audio, (bytes, bytearray, memoryview)) else encode(audio, link.declared)
+        stream_id = stream_id or self.settings.stream_id
+        sequence = 0
+        for out in link.messages(payload, start_ns, end_ns, stream_id, last=segmentation_ended or end_of_stream):
+            msg = pb.AugmentedAudio(stream_id=out.stream_id, topic=topic, format=out.format.to_proto(),
+                                    start_ns=out.chunk.start_ns, end_ns=out.chunk.end_ns, payload=out.chunk.payload)
+            if out.main:
+                msg.meta.segmentation_ended = segmentation_ended
+                msg.meta.end_of_stream = end_of_stream
+                if segment is not None:
+                    msg.meta.segment.start_ns, msg.meta.segment.end_ns = segment
+                msg.meta.ssl_directions.extend(ssl_directions)
+            sequence = self._send_audio(topic, msg)
+        return sequence
+
+    def _send_audio(self, topic: str, msg: pb.AugmentedAudio) -> int:
         sequence = self._sequences.get(topic, 0) + 1
-        msg = pb.AugmentedAudio(stream_id=stream_id or self.settings.stream_id, topic=topic,
-                                publisher=self.instance_id, sequence=sequence, start_ns=start_ns, end_ns=end_ns,
-                                format=fmt.to_proto(), payload=bytes(payload))
-        msg.meta.segmentation_ended = segmentation_ended
-        msg.meta.end_of_stream = end_of_stream
-        if segment is not None:
-            msg.meta.segment.start_ns, msg.meta.segment.end_ns = segment
-        msg.meta.ssl_directions.extend(ssl_directions)
+        msg.publisher, msg.sequence = self.instance_id, sequence
         stats = self.output_stats[topic]
         if not self._transport.send_audio(topic, msg.SerializeToString()):
             stats.dropped += 1
@@ -155,7 +172,8 @@ class Component:
         return sequence
 
     def forward(self, topic: str, audio: Audio, **meta: Any) -> int:
-        """Publishes a received chunk unchanged (same capture times) on an output topic."""
+        """Publishes a received chunk (same capture times) on an output topic; its payload, in the
+        input's declared format, must be in the output's declared format too."""
         return self.publish(topic, audio.payload, audio.start_ns, audio.end_ns, stream_id=audio.stream_id, **meta)
 
     def emit(self, result_type: str, span: tuple[int, int], *, stream_id: str | None = None,
@@ -214,6 +232,7 @@ class Component:
             self.control = ControlClient(self._context, self.settings.orchestrator_url,
                                          self._registration_request(), self.stats,
                                          self.settings.register_timeout_s)
+            self._output_links = {t: OutputLink(t, f) for t, f in self.outputs.items()}
             registration = self.control.start()
             self._apply_state(registration.state())
             if type(self).produce is not Component.produce:
@@ -260,14 +279,15 @@ class Component:
         self._transport.connect_peers({e for endpoints in state.get("peers", {}).values() for e in endpoints})
         self._transport.connect_results(state.get("results_endpoint", ""))
         for topic, fmt in state.get("formats", {}).items():
-            declared = self.inputs.get(topic) or self.outputs.get(topic)
             assigned = AudioFormat.from_dict(fmt)
             if self._assigned.get(topic) == assigned:
                 continue
             self._assigned[topic] = assigned
-            if declared is not None and assigned != declared:
-                log.warning("topic=%s travels as %s but this component wants %s; conversion is not "
-                            "implemented yet, such messages are counted as bad", topic, assigned, declared)
+            declared = self.outputs.get(topic) or self.inputs.get(topic)
+            log.info("format assigned topic=%s wire=%s declared=%s%s", topic, assigned, declared,
+                     "" if assigned == declared else " (converted here)")
+            if topic in self._output_links:
+                self._output_links[topic].assigned = assigned  # the switch happens at the next chunk
 
     def _on_subscription(self, topic: str, change: int) -> None:
         stats = self.output_stats.get(topic)
@@ -292,26 +312,32 @@ class Component:
             return
         stats.received += 1
         self._count_gap(audio, stats)
-        if audio.format != self.inputs[topic]:
+        link = self._input_links.setdefault((topic, audio.publisher), InputLink(self.inputs[topic]))
+        try:
+            chunks = link.receive(audio)
+        except FormatError as exc:  # a channel count this component does not take
             stats.bad += 1
             if stats.bad == 1 or stats.bad % 100 == 0:
-                log.error("audio in the wrong format topic=%s got=%s want=%s bad=%d",
-                          topic, audio.format, self.inputs[topic], stats.bad)
+                log.error("audio in an unusable format topic=%s bad=%d error=%s", topic, stats.bad, exc)
             return
         self._handling = True
         try:
-            self.on_audio(audio)
-            if audio.meta.ssl_directions:
-                self.on_ssl(audio)
-            if audio.meta.segmentation_ended:
-                self.on_segment_end(audio)
-            if audio.meta.end_of_stream:
-                self._on_input_ended(audio)
+            for chunk in chunks:
+                self._dispatch(chunk)
         except Exception:  # a handler bug must not kill the component: count, log, go on
             stats.bad += 1
             log.exception("handler failed topic=%s sequence=%d start_ns=%d", topic, audio.sequence, audio.start_ns)
         finally:
             self._handling = False
+
+    def _dispatch(self, audio: Audio) -> None:
+        self.on_audio(audio)
+        if audio.meta.ssl_directions:
+            self.on_ssl(audio)
+        if audio.meta.segmentation_ended:
+            self.on_segment_end(audio)
+        if audio.meta.end_of_stream:
+            self._on_input_ended(audio)
 
     def _count_gap(self, audio: Audio, stats: InputStats) -> None:
         key = (audio.topic, audio.publisher)

@@ -114,6 +114,25 @@ def announce_stream(url: str, stream_id: str, start_ns: int, source: str, info: 
     return True
 
 
+def declared_format(url: str, topic: str, timeout_s: float,
+                    stopping: Callable[[], bool] = lambda: False) -> dict[str, Any] | None:
+    """The format a producer of ``topic`` declared (``GET /topics``), waiting up to ``timeout_s`` for
+    one to register; None if none did. For components that take whatever a topic carries."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            items = httpx.get(f"{url.rstrip('/')}/topics", timeout=5.0).json()["items"]
+        except (httpx.HTTPError, ValueError, KeyError) as exc:
+            log.info("waiting for orchestrator url=%s error=%s", url, exc)
+        else:
+            producers = next((t["producers"] for t in items if t["topic"] == topic), [])
+            if producers:
+                return producers[0]["format"]
+        if time.monotonic() >= deadline or stopping():
+            return None
+        time.sleep(0.2)
+
+
 class ControlClient:
     """Keeps the component registered and alive; runs in its own thread."""
 

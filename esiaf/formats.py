@@ -3,8 +3,7 @@
 A format is a sample rate, a sample type, an endianness and a channel count;
 samples are interleaved. ``decode`` turns a payload into an array of shape
 (frames, channels) in the sample type's natural numpy dtype (int24 as int32);
-``encode`` does the reverse. Conversion between formats comes later: for now
-a consumer must ask for the format its producer sends.
+``encode`` does the reverse. Conversion between formats is in esiaf/convert.py.
 """
 from __future__ import annotations
 

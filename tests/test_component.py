@@ -13,6 +13,7 @@ import pytest
 
 from esiaf.testing import REPO, poll
 from esiaf import Audio, AudioFormat, Component, SampleClock, ssl_direction
+from esiaf.links import OutputLink
 
 FMT = AudioFormat(16000, "int16")
 
@@ -40,10 +41,12 @@ class Sink(Component):
         super().__init__(settings)
         self.add_input("source/audio", FMT)
         self.events = []
+        self.frames = []
         self.received = threading.Event()
 
     def on_audio(self, audio: Audio):
         self.events.append(("audio", audio.sequence, audio.start_ns, audio.end_ns))
+        self.frames.append(audio.frames)
         self.received.set()
 
     def on_ssl(self, audio: Audio):
@@ -133,17 +136,21 @@ def test_loss_is_counted_and_visible_in_the_orchestrator(pair, orchestrator):
     poll(lambda: orchestrator.component("sink")["stats"]["inputs"]["source/audio"]["lost"] == 3, timeout_s=5)
 
 
-def test_wrong_format_is_counted_as_bad_not_passed_on(pair, orchestrator):
+def test_another_rate_is_converted_another_channel_count_is_bad(pair, orchestrator):
     source, sink = pair
-    source.outputs["source/audio"] = AudioFormat(48000, "int16")  # lies about what it sends
 
     def send(c):
         assert c.wait_for_subscribers("source/audio", 1, timeout_s=10)
-        c.publish("source/audio", np.zeros(480, dtype=np.int16), 0, 10_000_000)
+        # sends what the topic was not assigned, as an older or foreign producer might
+        c._output_links["source/audio"] = OutputLink("source/audio", AudioFormat(48000, "int16"))
+        c.publish("source/audio", np.zeros(480, dtype=np.int16), 0, 10_000_000, end_of_stream=True)
+        c._output_links["source/audio"] = OutputLink("source/audio", AudioFormat(16000, "int16", channels=2))
+        c.publish("source/audio", np.zeros((160, 2), dtype=np.int16), 10_000_000, 20_000_000)
 
     run_on(source, send)
     poll(lambda: sink.input_stats["source/audio"].bad == 1, timeout_s=10)
-    assert sink.events == []
+    assert sink.events[0] == ("audio", 1, 0, 10_000_000)  # 48 kHz in, 16 kHz out, the same span
+    assert sink.frames == [160] and sink.input_stats["source/audio"].received == 2
 
 
 def test_a_slow_handler_does_not_make_the_component_look_dead(orchestrator):
@@ -211,6 +218,7 @@ class SplitSink(Sink):
         Component.__init__(self, settings)
         self.add_input("splitter/audio", FMT)
         self.events = []
+        self.frames = []
         self.received = threading.Event()
 
 

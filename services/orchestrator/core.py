@@ -14,7 +14,8 @@ from .control import ControlPlane
 from .fusion import FusionConfigError, FusionEngine
 from .hub import Hub
 from .ingest import Ingest
-from .registry import Component, Format, Registry
+from .negotiation import Format
+from .registry import Component, Registry
 from .settings import OrchestratorSettings
 from .store import Checkpointer, Store, StoreError
 
@@ -39,7 +40,7 @@ class Orchestrator:
     def __init__(self, settings: OrchestratorSettings, *, fresh: bool = False) -> None:
         self.settings = settings
         self.fresh = fresh
-        self.registry = Registry()
+        self.registry = Registry(settings.format_strategy)
         self.hub = Hub()
         self.store: Store | None = None
         self.control: ControlPlane | None = None

@@ -102,21 +102,25 @@ class ComponentList(BaseModel):
     items: list[ComponentInfo]
 
 
-class TopicProducer(BaseModel):
+class TopicConsumer(BaseModel):
     component_id: str
     name: str
+    format: AudioFormat = Field(description="the format it declared (external format)")
+    converts: bool = Field(description="its declared format differs from the assigned one: its SDK "
+                                       "converts (one conversion)")
+
+
+class TopicProducer(TopicConsumer):
     audio_endpoint: str | None
     subscribers: int | None = Field(description="as the producer last reported; null if unknown")
 
 
-class TopicConsumer(BaseModel):
-    component_id: str
-    name: str
-
-
 class TopicInfo(BaseModel):
     topic: str
-    format: AudioFormat = Field(description="assigned: its first producer's, else first consumer's")
+    format: AudioFormat = Field(description="assigned (internal) format: what travels on the wire")
+    strategy: Literal["min_conversions", "min_bandwidth"] = Field(description="how it was chosen")
+    bytes_per_second: int = Field(description="of one producer's audio in the assigned format")
+    conversions: int = Field(description="how many producers and consumers convert to or from it")
     producers: list[TopicProducer]
     consumers: list[TopicConsumer]
 

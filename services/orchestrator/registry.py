@@ -1,17 +1,21 @@
 """Who is registered, which format each topic carries, and what each component must know.
 
-Pure bookkeeping, no sockets: the control plane asks :meth:`Registry.changed_states`
+Pure bookkeeping, no sockets: every registration, removal and death recomputes the
+topics' formats (negotiation.py); the control plane asks :meth:`Registry.changed_states`
 after every change and pushes what it returns.
 """
 from __future__ import annotations
 
+import logging
 import secrets
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
 
-Format = dict[str, Any]  # {"sample_rate_hz", "sample_type", "endianness", "channels"}
+from .negotiation import Declaration, Format, Strategy, choose
+
+log = logging.getLogger(__name__)
 
 KEEP_DEPARTED = 1000  # dead / replaced components kept for GET /components?include_dead=true
 
@@ -53,9 +57,11 @@ def describe(fmt: Format) -> str:
 
 
 class Registry:
-    def __init__(self) -> None:
+    def __init__(self, strategy: Strategy = "min_conversions") -> None:
+        self.strategy = strategy
         self.live: dict[str, Component] = {}  # by component_id, in registration order
         self.departed: OrderedDict[str, Component] = OrderedDict()
+        self.assigned: dict[str, Format] = {}  # each topic's internal format
 
     # changes
     def register(self, *, name: str, designation: str, stream_id: str,
@@ -72,12 +78,16 @@ class Registry:
                               stream_id=stream_id, inputs=inputs, outputs=outputs,
                               audio_endpoint=audio_endpoint, host=host, pid=pid, info=info)
         self.live[component_id] = component
+        self.recompute()
         component.pushed_state = self.state_of(component)
         return component, previous
 
     def remove(self, component_id: str) -> Component | None:
         """Drops a component that shut down cleanly (it is not kept as departed)."""
-        return self.live.pop(component_id, None)
+        component = self.live.pop(component_id, None)
+        if component is not None:
+            self.recompute()
+        return component
 
     def expire(self, dead_after_s: float, now_mono: float | None = None) -> list[Component]:
         """Drops and returns the components silent for more than ``dead_after_s``."""
@@ -85,7 +95,22 @@ class Registry:
         dead = [c for c in self.live.values() if now_mono - c.last_seen_mono > dead_after_s]
         for component in dead:
             self._depart(component, "dead")
+        if dead:
+            self.recompute()
         return dead
+
+    def recompute(self) -> dict[str, Format]:
+        """Chooses every topic's format again; returns the topics whose format changed."""
+        assigned, changed = {}, {}
+        for topic in self.topic_names():
+            current = self.assigned.get(topic)
+            assigned[topic] = choose(self.declarations(topic), self.strategy, current)
+            if assigned[topic] != current:
+                changed[topic] = assigned[topic]
+                log.info("event=format_assigned topic=%s format=%s previous=%s strategy=%s", topic,
+                         describe(assigned[topic]), describe(current) if current else "-", self.strategy)
+        self.assigned = assigned
+        return changed
 
     def _depart(self, component: Component, status: str) -> None:
         self.live.pop(component.component_id, None)
@@ -133,15 +158,18 @@ class Registry:
         return next((c for c in self.live.values() if c.name == name), None)
 
     def formats(self) -> dict[str, Format]:
-        """The format assigned to each topic: its first producer's, else its first consumer's."""
-        assigned: dict[str, Format] = {}
+        """The format assigned to each topic (as of the last registration, removal or death)."""
+        return dict(self.assigned)
+
+    def declarations(self, topic: str) -> list[Declaration]:
+        """Every live component's format on ``topic``, in registration order."""
+        declared = []
         for component in self.live.values():
-            for topic, fmt in component.outputs.items():
-                assigned.setdefault(topic, fmt)
-        for component in self.live.values():
-            for topic, fmt in component.inputs.items():
-                assigned.setdefault(topic, fmt)
-        return assigned
+            if topic in component.outputs:
+                declared.append(Declaration(component.name, "producer", component.outputs[topic]))
+            if topic in component.inputs:
+                declared.append(Declaration(component.name, "consumer", component.inputs[topic]))
+        return declared
 
     def producers(self, topic: str) -> list[Component]:
         return [c for c in self.live.values() if topic in c.outputs]

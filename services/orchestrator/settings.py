@@ -9,6 +9,8 @@ from pydantic import Field, field_validator, model_validator
 
 from esiaf.settings import StrictModel, load_settings
 
+from .negotiation import Strategy
+
 SERVICE = "orchestrator"
 
 # Result types a component can produce (its designation), "other" produces none.
@@ -36,6 +38,7 @@ class OrchestratorSettings(StrictModel):
     db_path: str = "esiaf.db"
     heartbeat_interval_s: float = Field(default=0.5, gt=0)
     dead_after_s: float = Field(default=2.5, gt=0)
+    format_strategy: Strategy = "min_conversions"  # how each topic's wire format is chosen
     fusions: list[FusionSettings] = Field(
         default_factory=lambda: [FusionSettings(name="speech", anchor="speech")])
     log_level: str = "INFO"

@@ -68,3 +68,19 @@ def test_real_time_pacing_publishes_each_chunk_when_its_last_sample_is_captured(
     assert len(late_ms) == 50
     assert min(late_ms) >= -1.0, "a chunk was published before its audio was 'captured'"
     assert np.median(late_ms) < 5.0, late_ms
+
+
+def test_a_44k1_file_reaches_a_16k_consumer_converted_and_whole(orchestrator, tmp_path):
+    path = tmp_path / "cd.wav"
+    seconds = 1.5
+    t = np.arange(round(44100 * seconds)) / 44100
+    soundfile.write(str(path), (0.5 * np.sin(2 * np.pi * 440 * t) * 32767).astype(np.int16), 44100)
+    recorder = record(orchestrator, path, AudioFormat(16000, "int16"), "--fast")
+    chunks = [c for c, _ in recorder.chunks]
+    assert all(c.format == AudioFormat(16000, "int16") for c in chunks)
+    assert sum(c.frames for c in chunks) == 16000 * seconds  # flushed at the end of the stream
+    assert all(a.end_ns == b.start_ns for a, b in zip(chunks, chunks[1:]))
+    assert abs(chunks[-1].end_ns - chunks[0].start_ns - seconds * 1e9) <= 1e9 / 16000
+    heard = np.concatenate([c.samples[:, 0] for c in chunks]) / 32768
+    expected = 0.5 * np.sin(2 * np.pi * 440 * np.arange(len(heard)) / 16000)
+    assert np.median(np.abs(heard - expected)) < 1e-3

@@ -44,18 +44,22 @@ def test_register_list_delete(orch, http):
     assert [c["name"] for c in everyone] == ["grabber"]
 
 
-def test_format_is_first_producers_else_first_consumers(http):
+def test_topics_list_declared_and_assigned_formats_bytes_per_second_and_conversions(http):
     asr = http.post("/components", json=component_body(
         "asr", designation="speech", inputs=["vad/speech"], fmt=FMT16)).json()
     assert asr["formats"] == {"vad/speech": FMT16} and asr["peers"] == {"vad/speech": []}
     http.post("/components", json=component_body(
         "vad", designation="vad", outputs=["vad/speech"], fmt=FMT48_FLOAT,
         endpoint="tcp://127.0.0.1:40200"))
-    topics = {t["topic"]: t for t in http.get("/topics").json()["items"]}
-    assert topics["vad/speech"]["format"] == FMT48_FLOAT
-    assert [p["name"] for p in topics["vad/speech"]["producers"]] == ["vad"]
-    assert [c["name"] for c in topics["vad/speech"]["consumers"]] == ["asr"]
-    assert topics["vad/speech"]["producers"][0]["subscribers"] is None  # nothing reported yet
+    topic = {t["topic"]: t for t in http.get("/topics").json()["items"]}["vad/speech"]
+    # one conversion either way: min_conversions breaks the tie by bandwidth
+    assert topic["format"] == FMT16 and topic["strategy"] == "min_conversions"
+    assert topic["bytes_per_second"] == 32000 and topic["conversions"] == 1
+    assert [(p["name"], p["format"], p["converts"]) for p in topic["producers"]] == [
+        ("vad", FMT48_FLOAT, True)]
+    assert [(c["name"], c["format"], c["converts"]) for c in topic["consumers"]] == [
+        ("asr", FMT16, False)]
+    assert topic["producers"][0]["subscribers"] is None  # nothing reported yet
 
 
 def test_channel_mismatch_is_409_naming_topic_and_formats(http):

@@ -119,7 +119,7 @@ def test_registry_pushes_only_changed_states():
     changed = registry.changed_states()
     assert [c.name for c, _ in changed] == ["vad"]  # asr's peers and formats did not change
     assert changed[0][1]["peers"] == {"raw": ["tcp://grabber:1"]}
-    assert changed[0][1]["formats"]["raw"]["sample_rate_hz"] == 48000  # first producer's
+    assert changed[0][1]["formats"]["raw"]["sample_rate_hz"] == 16000  # a tie: the cheaper
     registry.remove(grabber.component_id)
     assert registry.changed_states() == [(vad, {"type": "state", "peers": {"raw": []},
                                                 "formats": {"raw": FMT}})]
