@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import socket
+import time
 from typing import Any, Iterable, Iterator, Sequence
 
 import zmq
@@ -24,6 +25,7 @@ AUDIO_HWM = 100_000  # messages queued per socket before loss (minutes of audio)
 RESULTS_HWM = 10_000
 FLUSH_LINGER_MS = 2_000  # data sockets get this long to deliver the last messages at shutdown
 ANY_HOST = ("0.0.0.0", "*", "::")
+LEAVE_GRACE_S = 1.0  # a departed producer's messages still arriving are taken this long at least
 
 
 class TransportError(Exception):
@@ -44,6 +46,7 @@ class Transport:
                  bind_host: str, audio_port: int = 0, advertise_host: str = ""):
         self._poller = zmq.Poller()
         self._connected: set[str] = set()
+        self._leaving: dict[str, float] = {}  # producers gone, still to be drained: endpoint -> since (monotonic)
         self._results_endpoint = ""
         self.state = context.socket(zmq.PAIR)
         self.state.setsockopt(zmq.LINGER, 0)
@@ -89,6 +92,8 @@ class Transport:
     def events(self, timeout_ms: float, take_audio: bool = True) -> Iterator[tuple[str, Any]]:
         """What is ready, waiting up to ``timeout_ms`` for the first: ("state", dict),
         ("subscription", (topic, +1 | -1)) and, if ``take_audio``, ("audio", frames)."""
+        if self._leaving and take_audio:
+            self._drop_departed()
         ready = dict(self._poller.poll(timeout=timeout_ms))
         while ready:
             if self.state in ready:
@@ -119,16 +124,33 @@ class Transport:
         return True
 
     def connect_peers(self, wanted: set[str]) -> None:
-        """Connects the input socket to exactly these producer endpoints."""
+        """Connects the input socket to exactly these producer endpoints.
+
+        A producer that has gone is disconnected only once its queued messages have been taken
+        (no input pending, LEAVE_GRACE_S after it went): a slow consumer keeps the end of a stream,
+        and libzmq never tears down a pipe that still holds a message.
+        """
         if self.sub is None:
             return
         for endpoint in wanted - self._connected:
+            self._leaving.pop(endpoint, None)
             self.sub.connect(endpoint)
             log.info("connected to producer endpoint=%s", endpoint)
         for endpoint in self._connected - wanted:
-            self.sub.disconnect(endpoint)
-            log.info("disconnected from producer endpoint=%s", endpoint)
-        self._connected = set(wanted)
+            self._leaving.setdefault(endpoint, time.monotonic())
+        self._connected = set(wanted) | set(self._leaving)
+        self._drop_departed()
+
+    def _drop_departed(self) -> None:
+        if not self._leaving or self.sub.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+            return
+        now = time.monotonic()
+        for endpoint, since in list(self._leaving.items()):
+            if now - since >= LEAVE_GRACE_S:
+                del self._leaving[endpoint]
+                self._connected.discard(endpoint)
+                self.sub.disconnect(endpoint)
+                log.info("disconnected from producer endpoint=%s", endpoint)
 
     def connect_results(self, endpoint: str) -> None:
         if endpoint and endpoint != self._results_endpoint:
