@@ -1,9 +1,10 @@
 """The ``esiaf`` command: ``esiaf run`` starts the whole pipeline as local processes.
 
-    esiaf run --input FILE [--fast] [--grammar FILE|robocup] [--serve]
-    esiaf run --mic DEVICE
+    esiaf run --input FILE [--array SPEC] [--fast] [--grammar FILE|robocup] [--serve]
+    esiaf run --mic DEVICE [--array SPEC]
 
-It starts the orchestrator, the recogniser, the VAD and the grabber, prints
+It starts the orchestrator, the recogniser, the VAD and the grabber (with a microphone array
+also the ssl service and the channel splitter, the VAD hearing the first microphone), prints
 each fused result as one line as it arrives, and with ``--input`` exits once
 the file has been played and its last fused result printed.
 """
@@ -35,7 +36,7 @@ LONG_FILE_S = 60.0
 
 
 def format_line(fused: dict[str, Any], origin_ns: int) -> str:
-    """'[12.31–14.05 s] 'go forward ten meters' (p=0.93)'"""
+    """'[12.31–14.05 s] 'go forward ten meters' (p=0.93)', with ' from 92°' where SSL was fused."""
     anchor = fused["anchor"]
     span = anchor["span"]
     start_s, end_s = (span["start_ns"] - origin_ns) / 1e9, (span["end_ns"] - origin_ns) / 1e9
@@ -46,16 +47,21 @@ def format_line(fused: dict[str, Any], origin_ns: int) -> str:
     else:
         payload = next((k for k in ("vad", "ssl", "emotion", "gender", "voice_id") if k in anchor), "")
         what = f"{payload} {json.dumps(anchor.get(payload, {}))}"
+    direction = (fused.get("aggregates") or {}).get("ssl")
+    if direction:  # where the utterance came from: the fused SSL directions' circular mean
+        what += f" from {direction['azimuth_deg']:.0f}°"
     extra = []
     for kind, results in sorted(fused.get("results", {}).items()):
-        extra.append(f"{kind}×{len(results)}")
+        if not (kind == "ssl" and direction):
+            extra.append(f"{kind}×{len(results)}")
     if fused.get("completion") not in (None, "complete"):
         extra.append(f"{fused['completion']}, missing {', '.join(fused.get('missing_components', []))}")
     revision = f" rev {fused['revision']}" if fused.get("revision", 1) > 1 else ""
     return f"[{start_s:.2f}–{end_s:.2f} s] {what}{' ' + '; '.join(extra) if extra else ''}{revision}"
 
 
-def check_input(path: Path) -> None:
+def check_input(path: Path) -> int:
+    """Checks the input file; returns its channel count."""
     if not path.exists():
         raise LaunchError(f"input file {path} does not exist")
     if not path.is_file():
@@ -65,16 +71,33 @@ def check_input(path: Path) -> None:
     except OSError as exc:
         raise LaunchError(f"cannot read input file {path}: {exc.strerror}") from None
     if path.suffix.lower() in (".raw", ".pcm"):
-        return  # headerless: read as 16 kHz int16 mono
+        return 1  # headerless: read as 16 kHz int16 mono
     import soundfile
     try:
         info = soundfile.info(str(path))
     except Exception as exc:  # libsndfile's own error types vary by version
         raise LaunchError(f"cannot read input file {path}: {exc}") from None
-    if info.samplerate != PIPELINE_RATE_HZ or info.channels != 1:
-        raise LaunchError(f"input file {path} is {info.samplerate} Hz with {info.channels} channel(s); this "
-                          f"pipeline takes {PIPELINE_RATE_HZ} Hz mono (convert it first, e.g. "
-                          f"sox IN -r 16000 -c 1 -b 16 OUT.wav)")
+    if info.samplerate != PIPELINE_RATE_HZ:
+        raise LaunchError(f"input file {path} is {info.samplerate} Hz; this pipeline takes {PIPELINE_RATE_HZ} Hz "
+                          f"(convert it first, e.g. sox IN -r 16000 -b 16 OUT.wav)")
+    return info.channels
+
+
+def check_array(spec: str | None, channels: int, what: str):
+    """The array geometry for multi-channel audio (None for mono without --array)."""
+    from esiaf.arrays import ArrayError, load_array
+    if spec is None:
+        if channels > 1:
+            raise LaunchError(f"{what} has {channels} channels: name the microphone array with --array "
+                              f"(pepper4, respeaker4, circular:MICS:RADIUS_M or a YAML file of positions)")
+        return None
+    try:
+        array = load_array(spec)
+        if channels:
+            array.check_channels(channels)
+    except ArrayError as exc:
+        raise LaunchError(str(exc)) from None
+    return array
 
 
 def check_port_free(host: str, port: int) -> None:
@@ -91,8 +114,11 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="run every service as a local process")
     source = run.add_mutually_exclusive_group(required=True)
-    source.add_argument("--input", type=Path, help="sound file to play (16 kHz mono WAV, or .raw s16le)")
+    source.add_argument("--input", type=Path, help="sound file to play (16 kHz WAV/FLAC, or .raw s16le mono)")
     source.add_argument("--mic", metavar="DEVICE", help="ALSA capture device (see arecord -L)")
+    run.add_argument("--array", help="microphone array of a multi-channel input or --mic: pepper4, respeaker4, "
+                     "circular:MICS:RADIUS_M or a YAML file; starts sound source localisation")
+    run.add_argument("--ssl-algorithm", help="DOA algorithm of the ssl service (default NormMUSIC)")
     run.add_argument("--fast", action="store_true", help="play the file as fast as possible")
     run.add_argument("--grammar", help="JSGF grammar file for the recogniser, or 'robocup'")
     run.add_argument("--serve", action="store_true", help="keep the services up after the file has played")
@@ -107,8 +133,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.input:
-        check_input(args.input)
+    channels = check_input(args.input) if args.input else 0
+    array = check_array(args.array, channels, f"input file {args.input}")
     if args.grammar and args.grammar != "robocup" and not Path(args.grammar).is_file():
         raise LaunchError(f"grammar file {args.grammar} does not exist")
     check_port_free(args.host, args.port)
@@ -119,22 +145,32 @@ def run(args: argparse.Namespace) -> int:
     supervisor = Supervisor(workdir, env={"ESIAF_ORCHESTRATOR_URL": url, "ESIAF_STREAM_ID": stream_id})
     client = OrchestratorClient(url)
     try:
+        orchestrator_env = {"ESIAF_ORCHESTRATOR_CONTROL_PORT": "0", "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"}
+        if array is not None:  # each utterance fused with the directions heard while it was spoken
+            orchestrator_env["ESIAF_ORCHESTRATOR_FUSIONS"] = "[{name: speech, anchor: speech, fuse: [ssl]}]"
         orchestrator = supervisor.start("orchestrator", ["--host", args.host, "--port", str(args.port),
-                                                         "--db", str(workdir / "esiaf.db")],
-                                        env={"ESIAF_ORCHESTRATOR_CONTROL_PORT": "0",
-                                             "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"})
+                                                         "--db", str(workdir / "esiaf.db")], env=orchestrator_env)
         wait_until(client.healthy, supervisor, "the orchestrator to answer", START_TIMEOUT_S, orchestrator)
-        asr = supervisor.start("asr", ["--grammar", args.grammar] if args.grammar else [])
-        wait_until(lambda: client.component("asr"), supervisor, "the asr service to register", START_TIMEOUT_S, asr)
-        vad = supervisor.start("vad")
-        wait_until(lambda: client.component("vad"), supervisor, "the vad service to register", START_TIMEOUT_S, vad)
+        start_service(supervisor, client, "asr", ["--grammar", args.grammar] if args.grammar else [])
+        grabber_env = {"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1", "ESIAF_GRABBER_CHUNK_MS": str(args.chunk_ms)}
+        if array is None:
+            vad = start_service(supervisor, client, "vad")
+        else:  # the recogniser hears the first microphone; ssl hears them all
+            vad = start_service(supervisor, client, "vad", env={"ESIAF_VAD_INPUT_TOPIC": "splitter/ch0"})
+            start_service(supervisor, client, "splitter", env={
+                "ESIAF_SPLITTER_INPUT_CHANNELS": str(array.mics), "ESIAF_SPLITTER_CHANNELS": "[0]"})
+            ssl_env = {"ESIAF_SSL_ARRAY": args.array}
+            if args.ssl_algorithm:
+                ssl_env["ESIAF_SSL_ALGORITHM"] = args.ssl_algorithm
+            start_service(supervisor, client, "ssl", env=ssl_env)
+            wait_until(lambda: topic_ready(client, "splitter/ch0", 1), supervisor,
+                       "vad to subscribe to splitter/ch0", START_TIMEOUT_S, vad)
+            grabber_env.update(ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS="2", ESIAF_GRABBER_CHANNELS=str(array.mics))
         wait_until(lambda: topic_ready(client, "vad/speech", 1), supervisor, "asr to subscribe to vad/speech",
-                   START_TIMEOUT_S, asr)
+                   START_TIMEOUT_S, vad)
         with connect(f"ws://{args.host}:{args.port}/ws/fused?stream={stream_id}", open_timeout=10) as ws:
             source = ["--input", str(args.input.resolve())] if args.input else ["--device", args.mic]
-            grabber = supervisor.start("grabber", source + (["--fast"] if args.fast else []),
-                                       env={"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1",
-                                            "ESIAF_GRABBER_CHUNK_MS": str(args.chunk_ms)})
+            grabber = supervisor.start("grabber", source + (["--fast"] if args.fast else []), env=grabber_env)
             print(f"esiaf: playing {args.input or args.mic} as stream {stream_id}; "
                   f"orchestrator at {url} (API docs: {url}/docs); logs in {workdir / 'logs'}",
                   file=sys.stderr, flush=True)
@@ -142,6 +178,15 @@ def run(args: argparse.Namespace) -> int:
     finally:
         client.close()
         supervisor.stop()
+
+
+def start_service(supervisor: Supervisor, client: OrchestratorClient, name: str, args: list[str] = (),
+                  env: dict[str, str] | None = None):
+    """Starts a service and waits until it has registered."""
+    child = supervisor.start(name, list(args), env=env)
+    wait_until(lambda: client.component(name), supervisor, f"the {name} service to register", START_TIMEOUT_S,
+               child)
+    return child
 
 
 def topic_ready(client: OrchestratorClient, topic: str, consumers: int) -> bool:
