@@ -78,8 +78,8 @@ def check_input(path: Path) -> int:
     except Exception as exc:  # libsndfile's own error types vary by version
         raise LaunchError(f"cannot read input file {path}: {exc}") from None
     if info.samplerate != PIPELINE_RATE_HZ:
-        raise LaunchError(f"input file {path} is {info.samplerate} Hz; this pipeline takes {PIPELINE_RATE_HZ} Hz "
-                          f"(convert it first, e.g. sox IN -r 16000 -b 16 OUT.wav)")
+        raise LaunchError(f"input file {path} is {info.samplerate} Hz with {info.channels} channel(s); this "
+                          f"pipeline takes {PIPELINE_RATE_HZ} Hz (convert it first, e.g. sox IN -r 16000 -b 16 OUT.wav)")
     return info.channels
 
 

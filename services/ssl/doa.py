@@ -74,6 +74,7 @@ class Localiser:
         if algorithm == "FRIDA":
             self._check_frida(positions)
         self.window = np.hanning(nfft)
+        self._frida_bins: np.ndarray | None = None
         self._doa = pra.doa.algorithms[algorithm](positions, sample_rate_hz, nfft, c=SPEED_OF_SOUND_M_S,
                                                   num_src=max_sources, dim=self.dim)
 
@@ -133,6 +134,9 @@ class Localiser:
             bins = bins[floor.update(power)[bins]]
             if len(bins) < floor.min_bins:
                 return []
+        if self.algorithm == "FRIDA" and not np.array_equal(bins, self._frida_bins):
+            self._doa.G = None  # FRIDA keeps its mapping for the bins it saw first: rebuild it for these
+            self._frida_bins = bins
         with warnings.catch_warnings():  # pyroomacoustics warns on ill-conditioned bins; the result says enough
             warnings.simplefilter("ignore")
             self._doa.locate_sources(spectra, num_src=self.max_sources, freq_bins=bins)

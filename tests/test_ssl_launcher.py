@@ -1,0 +1,79 @@
+"""Multi-channel input: array checks at start-up, and the 4-channel pipeline end to end
+(grabber → ssl + splitter → vad → asr, speech fused with ssl)."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import soundfile
+
+from esiaf.testing import REPO, normalise, shared_data
+from services.ssl.tracker import angle_difference_deg
+from tests.test_bad_input import assert_clear, esiaf_run
+
+SCENE = REPO / "examples" / "robocup_scene.flac"
+
+
+@pytest.fixture
+def four_channels(tmp_path):
+    path = tmp_path / "four.wav"
+    soundfile.write(str(path), np.zeros((1600, 4), dtype="int16"), 16000)
+    return path
+
+
+@pytest.mark.parametrize("array, phrases", [
+    (None, ["has 4 channels", "--array"]),
+    ("circular:6:0.05", ["6 microphones but the audio has 4 channel(s)"]),
+    ("pepper5", ["unknown array 'pepper5'"]),
+])
+def test_the_array_must_fit_the_input(four_channels, tmp_path, array, phrases):
+    args = ["--input", str(four_channels), "--workdir", str(tmp_path)] + (["--array", array] if array else [])
+    result = esiaf_run(*args)
+    assert result.returncode == 2
+    assert_clear(result, *phrases)
+
+
+def test_a_grabber_with_more_channels_than_the_ssl_array_is_refused_at_start(orchestrator, four_channels):
+    env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_URL": orchestrator.url}
+    ssl = subprocess.Popen([sys.executable, "-m", "services.ssl", "--array", "circular:6:0.05"], cwd=REPO, env=env,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        from esiaf.testing import poll
+        poll(lambda: orchestrator.component("ssl"), timeout_s=30)
+        grabber = subprocess.run([sys.executable, "-m", "services.grabber", "--input", str(four_channels), "--fast"],
+                                 cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
+    finally:
+        ssl.terminate()
+        ssl.wait(timeout=20)
+    assert grabber.returncode == 2
+    assert "grabber/audio" in grabber.stderr and "channel" in grabber.stderr, grabber.stderr
+    assert "Traceback" not in grabber.stderr
+
+
+@pytest.mark.e2e
+def test_the_respeaker_recording_runs_through_the_whole_pipeline(launch):
+    mix = shared_data("multichannel/odas2_respeaker4/mix.wav")
+    run = launch("--input", str(mix), "--array", "respeaker4", "--fast", "--json")
+    assert run.process.wait(timeout=180) == 0, "".join(run.stderr)
+    assert run.lines[-1]["type"] == "stream_end"
+    for fused in (line for line in run.lines if line.get("type") == "fused_result"):
+        assert "ssl" in fused["results"]
+
+
+@pytest.mark.e2e
+def test_each_question_of_the_demo_scene_comes_with_its_text_and_direction(launch):
+    truth = json.loads(SCENE.with_suffix(".json").read_text())["utterances"]
+    run = launch("--input", str(SCENE), "--array", "respeaker4", "--grammar", "robocup", "--fast", "--json")
+    assert run.process.wait(timeout=180) == 0, "".join(run.stderr)
+    start_ns = next(line for line in run.lines if line.get("type") == "stream_start")["start_ns"]
+    fused = [line for line in run.lines if line.get("type") == "fused_result"]
+    assert len(fused) == len(truth), fused
+    for f, t in zip(fused, truth):
+        assert normalise(f["anchor"]["speech"]["hypotheses"][0]["text"]) == normalise(t["text"])
+        assert abs((f["anchor"]["span"]["start_ns"] - start_ns) / 1e9 - t["start_s"]) < 0.3, (f["anchor"], t)
+        azimuth = f["aggregates"]["ssl"]["azimuth_deg"]
+        assert angle_difference_deg(azimuth, t["azimuth_deg"]) <= 15, (azimuth, t)
