@@ -56,6 +56,24 @@ MIGRATIONS: list[str] = [
         info TEXT NOT NULL
     );
     """,
+    # 3: fusions waiting to be published, and each component's running mean latency
+    """
+    CREATE TABLE pending_fusions (
+        fused_id INTEGER PRIMARY KEY,
+        anchor_id INTEGER NOT NULL,
+        settings TEXT NOT NULL,
+        waiting TEXT NOT NULL,
+        opened_ns INTEGER NOT NULL
+    );
+    CREATE TABLE latency (
+        component TEXT PRIMARY KEY,
+        count INTEGER NOT NULL,
+        mean_ns REAL NOT NULL,
+        updated_ns INTEGER NOT NULL
+    );
+    CREATE INDEX fused_stream_end ON fused (stream_id, end_ns);
+    CREATE INDEX results_stream_end ON results (stream_id, end_ns);
+    """,
 ]
 
 
@@ -156,6 +174,22 @@ class Store:
             " json) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
             (fused_id, revision, fusion, stream_id, start_ns, end_ns, published_ns, json_text))
 
+    def add_pending(self, *, fused_id: int, anchor_id: int, settings_json: str,
+                    waiting_json: str, opened_ns: int) -> None:
+        self._db.execute(
+            "INSERT INTO pending_fusions (fused_id, anchor_id, settings, waiting, opened_ns)"
+            " VALUES (?, ?, ?, ?, ?)", (fused_id, anchor_id, settings_json, waiting_json, opened_ns))
+
+    def remove_pending(self, fused_id: int) -> None:
+        self._db.execute("DELETE FROM pending_fusions WHERE fused_id = ?", (fused_id,))
+
+    def put_latency(self, *, component: str, count: int, mean_ns: float, updated_ns: int) -> None:
+        self._db.execute(
+            "INSERT INTO latency (component, count, mean_ns, updated_ns) VALUES (?, ?, ?, ?)"
+            " ON CONFLICT (component) DO UPDATE SET count = excluded.count,"
+            " mean_ns = excluded.mean_ns, updated_ns = excluded.updated_ns",
+            (component, count, mean_ns, updated_ns))
+
     def put_stream(self, *, stream_id: str, start_ns: int, source: str, announced_ns: int,
                    info_json: str) -> None:
         """Records (or re-records) a stream; autocommits, so call it outside begin()/commit()."""
@@ -173,6 +207,40 @@ class Store:
         return self._db.execute(sql + " WHERE stream_id = ?", (stream_id,)).fetchall()
 
     # reads
+    def latencies(self) -> list[tuple[str, int, float]]:
+        """(component, count, mean_ns) of every component that ever sent a result."""
+        return self._db.execute(
+            "SELECT component, count, mean_ns FROM latency ORDER BY component").fetchall()
+
+    def recent_latencies_ns(self, component: str, limit: int) -> list[int]:
+        """Latencies of the component's last ``limit`` results."""
+        return [row[0] for row in self._db.execute(
+            "SELECT received_ns - end_ns FROM results WHERE component = ? ORDER BY id DESC"
+            " LIMIT ?", (component, limit))]
+
+    def pending(self) -> list[tuple[int, str, str, str]]:
+        """(fused_id, anchor JSON, settings JSON, waiting JSON) of fusions not yet published."""
+        return self._db.execute(
+            "SELECT p.fused_id, r.json, p.settings, p.waiting FROM pending_fusions AS p"
+            " JOIN results AS r ON r.id = p.anchor_id ORDER BY p.fused_id").fetchall()
+
+    def recent(self, memory_ns: int) -> tuple[list[str], list[str]]:
+        """JSON of the results and of the latest fused revisions of each stream whose span
+        ends within ``memory_ns`` of the stream's newest result: what fusion keeps in memory."""
+        results: list[str] = []
+        fused: list[str] = []
+        for stream_id, newest in self._db.execute(
+                "SELECT stream_id, MAX(end_ns) FROM results GROUP BY stream_id").fetchall():
+            horizon = newest - memory_ns
+            results += [row[0] for row in self._db.execute(
+                "SELECT json FROM results WHERE stream_id = ? AND end_ns >= ? ORDER BY id",
+                (stream_id, horizon))]
+            fused += [row[0] for row in self._db.execute(
+                "SELECT json FROM fused WHERE stream_id = ? AND end_ns >= ? AND revision ="
+                " (SELECT MAX(f2.revision) FROM fused AS f2 WHERE f2.id = fused.id) ORDER BY id",
+                (stream_id, horizon))]
+        return results, fused
+
     def query_results(self, *, type_name: str | None = None, component: str | None = None,
                       stream: str | None = None, start_ns: int | None = None,
                       end_ns: int | None = None, after_id: int | None = None,
