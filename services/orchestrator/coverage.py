@@ -53,19 +53,14 @@ class Coverage:
         ends[lo:hi] = [end_ns]
 
     def covers(self, start_ns: int, end_ns: int) -> bool:
-        """Covered contiguously up to ``end_ns``, from ``start_ns`` or from the first audio this
-        component ever reported on (it cannot cover audio from before it started)."""
-        if not self.starts:
-            return False
-        start_ns = max(start_ns, self.starts[0])
+        """Reported on contiguously (gaps under GAP_TOLERANCE_NS) from ``start_ns`` to ``end_ns``."""
         i = bisect.bisect_right(self.starts, start_ns + GAP_TOLERANCE_NS) - 1
         return i >= 0 and self.ends[i] + GAP_TOLERANCE_NS >= end_ns and self.ends[i] >= start_ns
 
     def forget_before(self, horizon_ns: int) -> None:
-        """Drops intervals that end before ``horizon_ns`` (keeps the first start's meaning:
-        the earliest remaining interval then counts as where the component started)."""
+        """Drops intervals that end before ``horizon_ns``."""
         cut = bisect.bisect_left(self.ends, horizon_ns)
-        if cut and cut < len(self.ends):
+        if cut:
             del self.starts[:cut], self.ends[:cut]
 
 

@@ -117,8 +117,9 @@ class Store:
             self._migrate(path)
             self.next_result_id = self._db.execute(
                 "SELECT COALESCE(MAX(id), 0) + 1 FROM results").fetchone()[0]
-            self.next_fused_id = self._db.execute(
-                "SELECT COALESCE(MAX(id), 0) + 1 FROM fused").fetchone()[0]
+            self.next_fused_id = self._db.execute(  # pending fusions hold their ids already
+                "SELECT MAX((SELECT COALESCE(MAX(id), 0) FROM fused),"
+                " (SELECT COALESCE(MAX(fused_id), 0) FROM pending_fusions)) + 1").fetchone()[0]
         except sqlite3.Error as exc:
             self._db.close()
             raise StoreError(f"cannot use database {path}: {exc}") from None
