@@ -195,15 +195,17 @@ class Ingest:
         return [self._store_fused(fused) for fused in self.engine.on_result(stored, received_ns)]
 
     def _store_fused(self, fused: FusedResult) -> Outgoing:
+        seq = fused.json["seq"] = self.store.allocate_seq()
         text = _dumps(fused.json)
         self.store.add_fused(fused_id=fused.id, revision=fused.revision, fusion=fused.fusion,
                              stream_id=fused.stream_id, start_ns=fused.start_ns,
-                             end_ns=fused.end_ns, published_ns=fused.published_ns, json_text=text)
+                             end_ns=fused.end_ns, published_ns=fused.published_ns, json_text=text,
+                             seq=seq)
         self.counters["fused"] += 1
         self.counters[f"completion_{fused.json['completion']}" if fused.revision == 1
                       else "revisions"] += 1
         message = Outgoing(text=text, stream_id=fused.stream_id, fusion=fused.fusion,
-                           fused_id=fused.id, revision=fused.revision)
+                           fused_id=fused.id, revision=fused.revision, seq=seq)
         if fused.trigger_received_ns is not None and fused.revision == 1:
             self._triggers[message] = fused.trigger_received_ns
         return message

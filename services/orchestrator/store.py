@@ -72,6 +72,9 @@ MIGRATIONS: list[str] = [
         updated_ns INTEGER NOT NULL
     );
     CREATE INDEX fused_stream_end ON fused (stream_id, end_ns);
+    ALTER TABLE fused ADD COLUMN seq INTEGER;
+    UPDATE fused SET seq = rowid;
+    CREATE UNIQUE INDEX fused_seq ON fused (seq);
     CREATE INDEX results_stream_end ON results (stream_id, end_ns);
     """,
 ]
@@ -117,6 +120,8 @@ class Store:
             self._migrate(path)
             self.next_result_id = self._db.execute(
                 "SELECT COALESCE(MAX(id), 0) + 1 FROM results").fetchone()[0]
+            self.next_seq = self._db.execute(
+                "SELECT COALESCE(MAX(seq), 0) + 1 FROM fused").fetchone()[0]
             self.next_fused_id = self._db.execute(  # pending fusions hold their ids already
                 "SELECT MAX((SELECT COALESCE(MAX(id), 0) FROM fused),"
                 " (SELECT COALESCE(MAX(fused_id), 0) FROM pending_fusions)) + 1").fetchone()[0]
@@ -168,12 +173,19 @@ class Store:
             (result_id, component, type_name, stream_id, start_ns, end_ns, produced_ns,
              received_ns, proto, json_text))
 
+    def allocate_seq(self) -> int:
+        """The next publication number (every revision of every fused result gets one)."""
+        seq, self.next_seq = self.next_seq, self.next_seq + 1
+        return seq
+
     def add_fused(self, *, fused_id: int, revision: int, fusion: str, stream_id: str,
-                  start_ns: int, end_ns: int, published_ns: int, json_text: str) -> None:
+                  start_ns: int, end_ns: int, published_ns: int, json_text: str,
+                  seq: int | None = None) -> None:
         self._db.execute(
             "INSERT INTO fused (id, revision, fusion, stream_id, start_ns, end_ns, published_ns,"
-            " json) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-            (fused_id, revision, fusion, stream_id, start_ns, end_ns, published_ns, json_text))
+            " json, seq) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            (fused_id, revision, fusion, stream_id, start_ns, end_ns, published_ns, json_text,
+             self.allocate_seq() if seq is None else seq))
 
     def add_pending(self, *, fused_id: int, anchor_id: int, settings_json: str,
                     waiting_json: str, opened_ns: int) -> None:
@@ -265,6 +277,18 @@ class Store:
             where.append("fusion = ?")
             args.append(fusion)
         return self._page("SELECT id, revision, json FROM fused", where, args, limit)
+
+    def publications(self, *, after_seq: int, fusion: str | None = None,
+                     stream: str | None = None, limit: int = 100) -> list[tuple[int, str]]:
+        """(seq, JSON) of every publication (each revision) after ``after_seq``, in order."""
+        where, args = _common_filters(stream, None, None, None)
+        where.append("seq > ?")
+        args.append(after_seq)
+        if fusion is not None:
+            where.append("fusion = ?")
+            args.append(fusion)
+        return self._db.execute("SELECT seq, json FROM fused WHERE " + " AND ".join(where) +
+                                " ORDER BY seq LIMIT ?", [*args, limit]).fetchall()
 
     def _page(self, select: str, where: list[str], args: list, limit: int) -> Page:
         sql = select + (" WHERE " + " AND ".join(where) if where else "") + " ORDER BY id LIMIT ?"

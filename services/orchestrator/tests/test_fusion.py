@@ -257,6 +257,11 @@ def test_a_late_result_publishes_revision_2_on_the_websocket(start, fake):
     assert second["missing"] == [] and second["completion"] == "timed_out"  # how rev 1 was decided
     assert spans(second, "emotion") == spans(first, "emotion")
     assert orchestrator.http.get("/fused").json()["items"] == [second]
+    assert second["seq"] > first["seq"]
+    # a consumer that had revision 1 resumes without missing revision 2 (after_id cannot:
+    # the id did not change)
+    with connect(f"{orchestrator.ws_url}/ws/fused?after_seq={first['seq']}") as ws:
+        assert recv(ws) == second and nothing_more(ws)
 
 
 def test_restart_on_the_same_database_keeps_timeouts_warm_and_loses_nothing(start, zctx):
