@@ -229,6 +229,8 @@ class FusedResult(BaseModel):
     missing_components: list[str] = Field(description="components that had not covered the window")
     missing: list[Missing]
     published_ns: int
+    seq: int = Field(description="publication number: every revision has its own, increasing; "
+                                 "resume the websocket with after_seq")
 
 
 NEXT_AFTER_ID = ("pass as after_id for the next page: the last item's id, or the after_id given "
