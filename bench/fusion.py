@@ -9,6 +9,8 @@ result the fusion needs: it completes the fusion.
   to the websocket clients; the orchestrator measures it (``GET /fusions/stats``);
 - end to end (upper bound, includes ZeroMQ and websocket hops and this process's own GIL):
   just before the completing result is sent → its fused result received on the websocket;
+- timer lateness: fusions whose emotion component never answers (timeout 0.2 s): deadline →
+  fused result handed to the websocket clients (a timer wakes at the deadline; nothing polls);
 - ingest rate: results sent as fast as one PUSH socket can, until the orchestrator has stored
   them all (committed in SQLite, fused where they complete something).
 
@@ -134,6 +136,37 @@ def overhead_run(streams: int, utterances: int) -> dict[str, float]:
             "complete": stats["counters"].get("completion_complete", 0)}
 
 
+def timeout_run(fusions: int) -> dict[str, float]:
+    """Fusions whose emotion component never answers: how late after its deadline (window end
+    + timeout) each is handed to the websocket clients."""
+    with tempfile.TemporaryDirectory() as tmp:
+        orchestrator = Orchestrator(Path(tmp), {**CONFIG, "timeouts": {"initial_s": 0.2}})
+        try:
+            endpoint = register(orchestrator, 1)
+            ctx = zmq.Context()
+            push = ctx.socket(zmq.PUSH)
+            push.setsockopt(zmq.LINGER, 0)
+            push.connect(endpoint)
+            window_ns = 20_000_000  # windows 20 ms apart never overlap: no revisions
+            for n in range(fusions):
+                end = time.time_ns()
+                for name, type_name, payload in (
+                        ("ssl-0", "ssl", {"ssl": {"directions": [ssl_direction(90.0)]}}),
+                        ("asr-0", "speech", {"speech": {"hypotheses": []}})):
+                    push.send_multipart([b"result", make_result(
+                        name, type_name, "s0", (end - window_ns, end), n + 1, **payload
+                    ).SerializeToString()])
+                time.sleep(window_ns / 1e9)
+            stats = poll(lambda: (s := orchestrator.http.get("/fusions/stats").json())
+                         ["timed_out_samples"] >= fusions and s, timeout_s=30)
+            push.close(linger=0)
+            ctx.term()
+        finally:
+            orchestrator.close()
+    return {"fusions": fusions, "timer_lateness_p50_ms": stats["timer_lateness_p50_ms"],
+            "timer_lateness_p99_ms": stats["timer_lateness_p99_ms"]}
+
+
 def ingest_run(count: int, streams: int = 100) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as tmp:
         orchestrator = Orchestrator(Path(tmp), CONFIG)
@@ -174,6 +207,9 @@ def main() -> None:
         for name, value in figures.items():
             print(f"streams_{streams}_{name}={value:.3f}" if isinstance(value, float)
                   else f"streams_{streams}_{name}={value}", flush=True)
+    for name, value in timeout_run(100).items():
+        print(f"timed_out_{name}={value:.3f}" if isinstance(value, float)
+              else f"timed_out_{name}={value}", flush=True)
     if args.ingest:
         for name, value in ingest_run(args.ingest).items():
             print(f"ingest_{name}={value:.1f}", flush=True)

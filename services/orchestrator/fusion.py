@@ -48,6 +48,7 @@ class FusedResult:
     published_ns: int
     json: dict[str, Any]
     trigger_received_ns: int | None = None  # the result that completed it, if one did
+    due_ns: int | None = None  # the deadline it was published at, if its timer published it
 
 
 @dataclass
@@ -178,7 +179,7 @@ class FusionEngine:
             for component, (type_name, _) in fusion.waiting.items():
                 fusion.missing[component] = (type_name, TIMED_OUT)
             fusion.waiting.clear()
-            fused.append(self._publish(fusion, None))
+            fused.append(self._publish(fusion, None, due_ns=deadline))
         return fused
 
     def next_deadline_ns(self) -> int | None:
@@ -293,7 +294,8 @@ class FusionEngine:
             fusion.scheduled_ns = deadline
             heapq.heappush(self._heap, (deadline, fusion.id))
 
-    def _publish(self, fusion: Fusion, trigger_received_ns: int | None) -> FusedResult:
+    def _publish(self, fusion: Fusion, trigger_received_ns: int | None,
+                 due_ns: int | None = None) -> FusedResult:
         memory = self._memory(fusion.anchor.stream_id)
         if fusion.revision == 0:
             if self.open.pop(fusion.id, None) is not None:
@@ -316,7 +318,7 @@ class FusionEngine:
         return FusedResult(
             id=fusion.id, revision=fusion.revision, fusion=fusion.settings.name,
             stream_id=fusion.anchor.stream_id, start_ns=window[0], end_ns=window[1],
-            published_ns=published_ns, trigger_received_ns=trigger_received_ns,
+            published_ns=published_ns, trigger_received_ns=trigger_received_ns, due_ns=due_ns,
             json={"type": "fused_result", "id": fusion.id, "revision": fusion.revision,
                   "fusion": fusion.settings.name, "stream_id": fusion.anchor.stream_id,
                   "anchor": fusion.anchor.json, "results": results,

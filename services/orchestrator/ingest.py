@@ -49,7 +49,9 @@ class Ingest:
         # fusion overhead: the completing result's reception -> its fused result handed to
         # the websocket clients (revision 1 only), the last OVERHEAD_SAMPLES of them
         self.overhead_ns: deque[int] = deque(maxlen=OVERHEAD_SAMPLES)
-        self._triggers: dict[Outgoing, int] = {}
+        # timed-out fusions: their deadline -> fused result handed to the websocket clients
+        self.timer_lateness_ns: deque[int] = deque(maxlen=OVERHEAD_SAMPLES)
+        self._triggers: dict[Outgoing, tuple[deque[int], int]] = {}
 
     def restore(self) -> None:
         """Warm start from the database: latencies (so timeouts), the recent results and fused
@@ -152,9 +154,9 @@ class Ingest:
         if outgoing:
             now_ns = self._clock_ns()
             for message in outgoing:
-                trigger_ns = self._triggers.pop(message, None)
-                if trigger_ns is not None:
-                    self.overhead_ns.append(now_ns - trigger_ns)
+                samples, since_ns = self._triggers.pop(message, (None, 0))
+                if samples is not None:
+                    samples.append(now_ns - since_ns)
 
     def _handle(self, frames: list[bytes]) -> list[Outgoing]:
         kind = frames[0] if frames else b""
@@ -206,8 +208,10 @@ class Ingest:
                       else "revisions"] += 1
         message = Outgoing(text=text, stream_id=fused.stream_id, fusion=fused.fusion,
                            fused_id=fused.id, revision=fused.revision, seq=seq)
-        if fused.trigger_received_ns is not None and fused.revision == 1:
-            self._triggers[message] = fused.trigger_received_ns
+        if fused.revision == 1 and fused.trigger_received_ns is not None:
+            self._triggers[message] = (self.overhead_ns, fused.trigger_received_ns)
+        elif fused.revision == 1 and fused.due_ns is not None:
+            self._triggers[message] = (self.timer_lateness_ns, fused.due_ns)
         return message
 
     def _on_end_of_stream(self, data: bytes) -> list[Outgoing]:

@@ -258,6 +258,10 @@ class FusionStats(BaseModel):
     overhead_p50_ms: float | None = Field(
         description="completing result received -> fused result handed to websocket clients")
     overhead_p99_ms: float | None
+    timed_out_samples: int
+    timer_lateness_p50_ms: float | None = Field(
+        description="timed-out fusions: deadline -> fused result handed to websocket clients")
+    timer_lateness_p99_ms: float | None
 
 
 class LatencyInfo(BaseModel):

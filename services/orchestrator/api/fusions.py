@@ -34,7 +34,10 @@ async def replace_fusions(body: FusionList, core: Orchestrator = Depends(get_cor
 async def fusion_stats(core: Orchestrator = Depends(get_core)) -> FusionStats:
     ingest = core.ingest
     overhead_ms = [value / 1e6 for value in ingest.overhead_ns]
+    lateness_ms = [value / 1e6 for value in ingest.timer_lateness_ns]
     return FusionStats(
         counters=dict(ingest.counters), open_fusions=len(ingest.engine.open),
         overhead_samples=len(overhead_ms), overhead_p50_ms=percentile(overhead_ms, 0.5),
-        overhead_p99_ms=percentile(overhead_ms, 0.99))
+        overhead_p99_ms=percentile(overhead_ms, 0.99), timed_out_samples=len(lateness_ms),
+        timer_lateness_p50_ms=percentile(lateness_ms, 0.5),
+        timer_lateness_p99_ms=percentile(lateness_ms, 0.99))
