@@ -157,8 +157,10 @@ class Ssl(Component):
         else:
             found = [d for d in self.localiser.locate(frame, state.floor) if d.confidence >= s.min_confidence]
             if not found:
-                reason = (f"fewer than {state.floor.min_bins} frequency bins {s.bin_snr_db:g} dB above the "
-                          f"background, or no direction with confidence >= {s.min_confidence:g}")
+                reason = f"no direction with confidence >= {s.min_confidence:g}"
+                if state.floor is not None:
+                    reason = (f"fewer than {state.floor.min_bins} frequency bins {s.bin_snr_db:g} dB above the "
+                              f"background, or {reason}")
         if reason:
             self.counts["nothing"] += 1
             self.info["frames"] = dict(self.counts)

@@ -38,3 +38,12 @@ def test_frames_cover_the_stream_and_silence_is_covered_with_nothing():
     burst_meta = [meta["ssl_directions"] for _, c, meta in forwarded if 1.2 <= c.start_ns / 1e9 < 1.9]
     assert burst_meta and all(d and d[0].source_id == "s1" and not d[0].elevation_known for d in burst_meta)
     assert all(not meta["ssl_directions"] for _, c, meta in forwarded if c.end_ns / 1e9 <= 1.0)
+
+
+def test_without_background_selection_every_loud_frame_gets_a_direction_or_a_reason():
+    array = load_array("pepper4")
+    signals = plane_wave(array, 300.0, seconds=0.6)
+    frames = localise(signals, RATE, array="pepper4", bin_snr_db=0, min_confidence=0.999)
+    assert frames and all(f.azimuth_deg is None for f in frames)  # no frame is that sure
+    frames = localise(signals, RATE, array="pepper4", bin_snr_db=0, algorithm="SRP")
+    assert all(angle_difference_deg(f.azimuth_deg, 300.0) <= 5 for f in frames[:-1]), frames
