@@ -89,6 +89,7 @@ class StreamMemory:
     coverage: dict[str, Coverage] = field(default_factory=dict)  # by component
     index: dict[str, SpanIndex] = field(default_factory=dict)  # real results, by type
     seen: set[str] = field(default_factory=set)  # components that sent results for it
+    ended: set[str] = field(default_factory=set)  # components that said end_of_stream since
     open: list[Fusion] = field(default_factory=list)
     published: list[Fusion] = field(default_factory=list)
     newest_end_ns: int = 0
@@ -167,6 +168,20 @@ class FusionEngine:
                     self._schedule(fusion)
         return fused
 
+    def on_end_of_stream(self, stream_id: str, component: str) -> list[FusedResult]:
+        """``component`` has sent every result it will for the stream: no fusion of the stream
+        waits for it (until it sends for the stream again)."""
+        memory = self._memory(stream_id)
+        memory.ended.add(component)
+        fused = []
+        for fusion in list(memory.open):
+            if fusion.waiting.pop(component, None) is not None:
+                if not fusion.waiting:
+                    fused.append(self._publish(fusion, None))
+                else:
+                    self._schedule(fusion)
+        return fused
+
     def on_timer(self, now_ns: int | None = None) -> list[FusedResult]:
         """Publishes every fusion whose deadline has passed."""
         now_ns = self._clock_ns() if now_ns is None else now_ns
@@ -233,6 +248,7 @@ class FusionEngine:
             coverage = memory.coverage[result.component] = Coverage()
         coverage.add(result.start_ns, result.end_ns)
         memory.seen.add(result.component)
+        memory.ended.discard(result.component)
         if not result.is_nothing:
             index = memory.index.get(result.type)
             if index is None:
@@ -277,6 +293,7 @@ class FusionEngine:
             for component in self._live():
                 if component.designation in types and component.name not in fusion.waiting and \
                         (component.stream_id == anchor.stream_id or component.name in memory.seen) \
+                        and component.name not in memory.ended \
                         and not self._covered(memory, component.name, fusion):
                     deadline = anchor.end_ns + self.latencies.timeout_ns(component.name)
                     fusion.waiting[component.name] = (component.designation, deadline)
