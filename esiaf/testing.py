@@ -116,11 +116,19 @@ def poll(condition, timeout_s: float, interval_s: float = 0.05):
 class Orchestrator:
     """The real orchestrator as a process on random loopback ports, with a real SQLite file."""
 
-    def __init__(self, tmp_path: Path):
+    def __init__(self, tmp_path: Path, config: dict | None = None):
+        """``config``: orchestrator settings written to a YAML file (fusions, timeouts, ...)."""
         import httpx
+        import yaml
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
+        self.ws_url = f"ws://127.0.0.1:{self.port}"
         self.db_path = tmp_path / "o.db"
+        self.config_args: list[str] = []
+        if config is not None:
+            config_path = tmp_path / "orchestrator.yaml"
+            config_path.write_text(yaml.safe_dump(config))
+            self.config_args = ["--config", str(config_path)]
         self.log = (tmp_path / "orchestrator.log").open("ab")
         self.http = httpx.Client(base_url=self.url, timeout=5)
         self.process: subprocess.Popen | None = None
@@ -131,7 +139,8 @@ class Orchestrator:
         env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_CONTROL_PORT": "0",
                "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"}
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "services.orchestrator", "--port", str(self.port), "--db", str(self.db_path)],
+            [sys.executable, "-m", "services.orchestrator", "--port", str(self.port), "--db", str(self.db_path),
+             *self.config_args],
             cwd=REPO, env=env, stdout=self.log, stderr=subprocess.STDOUT)
         poll(lambda: self.http.get("/health").status_code == 200, timeout_s=30)
 

@@ -42,6 +42,13 @@ class Completion(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     COMPLETION_UNSPECIFIED: _ClassVar[Completion]
     COMPLETION_COMPLETE: _ClassVar[Completion]
     COMPLETION_TIMED_OUT: _ClassVar[Completion]
+    COMPLETION_COMPONENTS_GONE: _ClassVar[Completion]
+
+class MissingReason(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    MISSING_REASON_UNSPECIFIED: _ClassVar[MissingReason]
+    MISSING_REASON_TIMED_OUT: _ClassVar[MissingReason]
+    MISSING_REASON_GONE: _ClassVar[MissingReason]
 SAMPLE_TYPE_UNSPECIFIED: SampleType
 SAMPLE_TYPE_INT8: SampleType
 SAMPLE_TYPE_UINT8: SampleType
@@ -66,6 +73,10 @@ RESULT_TYPE_VOICE_ID: ResultType
 COMPLETION_UNSPECIFIED: Completion
 COMPLETION_COMPLETE: Completion
 COMPLETION_TIMED_OUT: Completion
+COMPLETION_COMPONENTS_GONE: Completion
+MISSING_REASON_UNSPECIFIED: MissingReason
+MISSING_REASON_TIMED_OUT: MissingReason
+MISSING_REASON_GONE: MissingReason
 
 class AudioFormat(_message.Message):
     __slots__ = ("sample_rate_hz", "sample_type", "endianness", "channels")
@@ -226,8 +237,63 @@ class Result(_message.Message):
     nothing: NoResult
     def __init__(self, component: _Optional[str] = ..., type: _Optional[_Union[ResultType, str]] = ..., stream_id: _Optional[str] = ..., span: _Optional[_Union[Span, _Mapping]] = ..., produced_ns: _Optional[int] = ..., sequence: _Optional[int] = ..., vad: _Optional[_Union[VadResult, _Mapping]] = ..., speech: _Optional[_Union[SpeechResult, _Mapping]] = ..., ssl: _Optional[_Union[SslResult, _Mapping]] = ..., emotion: _Optional[_Union[LabelResult, _Mapping]] = ..., gender: _Optional[_Union[LabelResult, _Mapping]] = ..., voice_id: _Optional[_Union[LabelResult, _Mapping]] = ..., nothing: _Optional[_Union[NoResult, _Mapping]] = ...) -> None: ...
 
+class MissingComponent(_message.Message):
+    __slots__ = ("component", "type", "reason")
+    COMPONENT_FIELD_NUMBER: _ClassVar[int]
+    TYPE_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    component: str
+    type: ResultType
+    reason: MissingReason
+    def __init__(self, component: _Optional[str] = ..., type: _Optional[_Union[ResultType, str]] = ..., reason: _Optional[_Union[MissingReason, str]] = ...) -> None: ...
+
+class SslAggregate(_message.Message):
+    __slots__ = ("azimuth_deg", "elevation_deg", "concentration", "overlap_s", "directions")
+    AZIMUTH_DEG_FIELD_NUMBER: _ClassVar[int]
+    ELEVATION_DEG_FIELD_NUMBER: _ClassVar[int]
+    CONCENTRATION_FIELD_NUMBER: _ClassVar[int]
+    OVERLAP_S_FIELD_NUMBER: _ClassVar[int]
+    DIRECTIONS_FIELD_NUMBER: _ClassVar[int]
+    azimuth_deg: float
+    elevation_deg: float
+    concentration: float
+    overlap_s: float
+    directions: int
+    def __init__(self, azimuth_deg: _Optional[float] = ..., elevation_deg: _Optional[float] = ..., concentration: _Optional[float] = ..., overlap_s: _Optional[float] = ..., directions: _Optional[int] = ...) -> None: ...
+
+class LabelAggregate(_message.Message):
+    __slots__ = ("label", "probability", "distribution", "overlap_s")
+    class DistributionEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: float
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[float] = ...) -> None: ...
+    LABEL_FIELD_NUMBER: _ClassVar[int]
+    PROBABILITY_FIELD_NUMBER: _ClassVar[int]
+    DISTRIBUTION_FIELD_NUMBER: _ClassVar[int]
+    OVERLAP_S_FIELD_NUMBER: _ClassVar[int]
+    label: str
+    probability: float
+    distribution: _containers.ScalarMap[str, float]
+    overlap_s: float
+    def __init__(self, label: _Optional[str] = ..., probability: _Optional[float] = ..., distribution: _Optional[_Mapping[str, float]] = ..., overlap_s: _Optional[float] = ...) -> None: ...
+
+class Aggregates(_message.Message):
+    __slots__ = ("ssl", "emotion", "gender", "voice_id")
+    SSL_FIELD_NUMBER: _ClassVar[int]
+    EMOTION_FIELD_NUMBER: _ClassVar[int]
+    GENDER_FIELD_NUMBER: _ClassVar[int]
+    VOICE_ID_FIELD_NUMBER: _ClassVar[int]
+    ssl: SslAggregate
+    emotion: LabelAggregate
+    gender: LabelAggregate
+    voice_id: LabelAggregate
+    def __init__(self, ssl: _Optional[_Union[SslAggregate, _Mapping]] = ..., emotion: _Optional[_Union[LabelAggregate, _Mapping]] = ..., gender: _Optional[_Union[LabelAggregate, _Mapping]] = ..., voice_id: _Optional[_Union[LabelAggregate, _Mapping]] = ...) -> None: ...
+
 class FusedResult(_message.Message):
-    __slots__ = ("id", "revision", "fusion", "stream_id", "anchor", "results", "completion", "missing_components", "published_ns")
+    __slots__ = ("id", "revision", "fusion", "stream_id", "anchor", "results", "completion", "missing_components", "published_ns", "missing", "aggregates", "seq")
     ID_FIELD_NUMBER: _ClassVar[int]
     REVISION_FIELD_NUMBER: _ClassVar[int]
     FUSION_FIELD_NUMBER: _ClassVar[int]
@@ -237,6 +303,9 @@ class FusedResult(_message.Message):
     COMPLETION_FIELD_NUMBER: _ClassVar[int]
     MISSING_COMPONENTS_FIELD_NUMBER: _ClassVar[int]
     PUBLISHED_NS_FIELD_NUMBER: _ClassVar[int]
+    MISSING_FIELD_NUMBER: _ClassVar[int]
+    AGGREGATES_FIELD_NUMBER: _ClassVar[int]
+    SEQ_FIELD_NUMBER: _ClassVar[int]
     id: int
     revision: int
     fusion: str
@@ -246,4 +315,7 @@ class FusedResult(_message.Message):
     completion: Completion
     missing_components: _containers.RepeatedScalarFieldContainer[str]
     published_ns: int
-    def __init__(self, id: _Optional[int] = ..., revision: _Optional[int] = ..., fusion: _Optional[str] = ..., stream_id: _Optional[str] = ..., anchor: _Optional[_Union[Result, _Mapping]] = ..., results: _Optional[_Iterable[_Union[Result, _Mapping]]] = ..., completion: _Optional[_Union[Completion, str]] = ..., missing_components: _Optional[_Iterable[str]] = ..., published_ns: _Optional[int] = ...) -> None: ...
+    missing: _containers.RepeatedCompositeFieldContainer[MissingComponent]
+    aggregates: Aggregates
+    seq: int
+    def __init__(self, id: _Optional[int] = ..., revision: _Optional[int] = ..., fusion: _Optional[str] = ..., stream_id: _Optional[str] = ..., anchor: _Optional[_Union[Result, _Mapping]] = ..., results: _Optional[_Iterable[_Union[Result, _Mapping]]] = ..., completion: _Optional[_Union[Completion, str]] = ..., missing_components: _Optional[_Iterable[str]] = ..., published_ns: _Optional[int] = ..., missing: _Optional[_Iterable[_Union[MissingComponent, _Mapping]]] = ..., aggregates: _Optional[_Union[Aggregates, _Mapping]] = ..., seq: _Optional[int] = ...) -> None: ...

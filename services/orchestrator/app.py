@@ -7,7 +7,7 @@ from typing import AsyncIterator
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline  # /docs without a CDN: robots are often offline
 
-from .api import components, fused, fusions, health, results, streams, topics, ws
+from .api import components, fused, fusions, health, latency, results, streams, topics, ws
 from .core import Orchestrator
 from .settings import OrchestratorSettings
 
@@ -40,6 +40,6 @@ def create_app(settings: OrchestratorSettings, *,
 
     app = FastAPIOffline(title="ESIAF orchestrator", version="0.1.0", description=DESCRIPTION,
                          lifespan=lifespan)
-    for module in (components, topics, streams, results, fused, ws, fusions, health):
+    for module in (components, topics, streams, results, latency, fused, ws, fusions, health):
         app.include_router(module.router)
     return app

@@ -11,7 +11,7 @@ import zmq
 import zmq.asyncio
 
 from .control import ControlPlane
-from .fusion import FusionConfigError, FusionEngine
+from .fusion import FusionEngine
 from .hub import Hub
 from .ingest import Ingest
 from .negotiation import Format
@@ -71,11 +71,9 @@ class Orchestrator:
 
     def _start(self) -> None:
         settings = self.settings
-        try:
-            engine = FusionEngine(settings.fusions,
-                                  allocate_id=lambda: self.store.allocate_fused_id())
-        except FusionConfigError as exc:
-            raise StartupError(str(exc)) from None
+        engine = FusionEngine(settings.fusions, allocate_id=lambda: self.store.allocate_fused_id(),
+                              live_components=self.registry.live.values,
+                              timeouts=settings.timeouts)
         self._ctx = zmq.asyncio.Context()
         control_socket, self.control_endpoint = self._bind(zmq.ROUTER, settings.control_port,
                                                            "control", "control_port")
@@ -88,6 +86,11 @@ class Orchestrator:
             raise StartupError(str(exc)) from None
         self.control = ControlPlane(control_socket, self.registry)
         self.ingest = Ingest(results_socket, self.store, engine, self.hub, self.registry)
+        try:
+            self.ingest.restore()
+        except (sqlite3.Error, ValueError, KeyError) as exc:
+            raise StartupError(f"cannot restore fusion state from {settings.db_path}: {exc} "
+                               "(start with --fresh to begin a new database)") from None
 
     def _bind(self, kind: int, port: int, what: str,
               setting: str) -> tuple[zmq.asyncio.Socket, str]:

@@ -1,35 +1,40 @@
-"""Fusion: turns stored results into fused results.
+"""Fusion: gathers the results of other types around each anchor result, by capture time.
 
-This first engine publishes every anchor result at once, alone (``fuse: []``).
-Gathering results of other types around an anchor, waiting for them and timing
-out is the fusion-engine work; a configured fusion that asks for it is refused
-at start-up rather than faked. A fuller engine replaces :class:`FusionEngine`
-with the same three methods.
+Each anchor result (of a fusion's ``anchor`` type, payload not ``nothing``) opens a fusion
+whose window is the anchor's span. Every result of a ``fuse`` type whose span overlaps the
+window at all belongs to it, whether it came before or after the anchor. The fusion is
+published (revision 1) as soon as every expected component has covered the window — with
+results or ``nothing`` results, contiguously up to the window's end — or when the slowest
+pending component's own timeout has passed (its deadline: window end + its timeout, see
+latency.py). Components that die or leave are no longer waited for. A result that arrives
+after publication and belongs to the window publishes the next revision.
+
+Pure bookkeeping, no sockets, no clock of its own beyond ``clock_ns``: ingest.py stores what
+this returns, publishes it, and wakes :meth:`FusionEngine.on_timer` at
+:meth:`FusionEngine.next_deadline_ns`.
 """
 from __future__ import annotations
 
+import heapq
 import time
-from dataclasses import dataclass
-from typing import Any, Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable, Protocol
 
-from .settings import FusionSettings
+from .aggregate import aggregates, overlaps
+from .coverage import Coverage, SpanIndex, StoredResult
+from .latency import Latencies
+from .settings import FusionSettings, TimeoutSettings
+
+__all__ = ["FusedResult", "Fusion", "FusionEngine", "StoredResult"]
+
+PRUNE_EVERY = 64  # results per stream between two prunings of its memory
+COMPLETE, TIMED_OUT, COMPONENTS_GONE = "complete", "timed_out", "components_gone"
 
 
-class FusionConfigError(Exception):
-    """A configured fusion this engine cannot run: the message says which and why."""
-
-
-@dataclass(frozen=True)
-class StoredResult:
-    """A result as stored: its id, what fusion selects on, and its JSON."""
-
-    id: int
-    component: str
-    type: str
+class LiveComponent(Protocol):
+    name: str
+    designation: str
     stream_id: str
-    start_ns: int
-    end_ns: int
-    json: dict[str, Any]
 
 
 @dataclass(frozen=True)
@@ -42,45 +47,306 @@ class FusedResult:
     end_ns: int
     published_ns: int
     json: dict[str, Any]
+    trigger_received_ns: int | None = None  # the result that completed it, if one did
+    due_ns: int | None = None  # the deadline it was published at, if its timer published it
+
+
+@dataclass
+class Fusion:
+    """One anchor's fusion, open (revision 0) or published."""
+
+    settings: FusionSettings
+    id: int
+    anchor: StoredResult
+    results: dict[str, dict[int, StoredResult]]
+    waiting: dict[str, tuple[str, int]]  # component -> (type, deadline_ns)
+    missing: dict[str, tuple[str, str]] = field(default_factory=dict)  # -> (type, reason)
+    revision: int = 0
+    completion: str = ""
+    scheduled_ns: int | None = None  # the deadline of its one valid timer-heap entry
+
+    @property
+    def window(self) -> tuple[int, int]:
+        return self.anchor.start_ns, self.anchor.end_ns
+
+    @property
+    def start_ns(self) -> int:  # start_ns, end_ns, id: published fusions live in a SpanIndex
+        return self.anchor.start_ns
+
+    @property
+    def end_ns(self) -> int:
+        return self.anchor.end_ns
+
+    def deadline_ns(self) -> int:
+        """When it must be published: the latest deadline of a pending component (0: now)."""
+        return max((deadline for _, deadline in self.waiting.values()), default=0)
+
+    def add(self, result: StoredResult) -> bool:
+        """Includes ``result`` if it belongs to the window and is new; says whether it did."""
+        by_id = self.results.get(result.type)
+        if by_id is None or result.id in by_id or result.is_nothing:
+            return False
+        if not overlaps(result.start_ns, result.end_ns, *self.window):
+            return False
+        by_id[result.id] = result
+        return True
+
+
+@dataclass
+class StreamMemory:
+    coverage: dict[str, Coverage] = field(default_factory=dict)  # by component
+    index: dict[str, SpanIndex] = field(default_factory=dict)  # real results, by type
+    seen: set[str] = field(default_factory=set)  # components that sent results for it
+    ended: set[str] = field(default_factory=set)  # components that said end_of_stream since
+    open: list[Fusion] = field(default_factory=list)
+    published: SpanIndex = field(default_factory=SpanIndex)  # by window, for late results
+    newest_end_ns: int = 0
+    since_prune: int = 0
+
+
+@dataclass
+class Changes:
+    """What the store must record besides the fused results (ingest drains it per commit)."""
+
+    opened: list[tuple[Fusion, int]] = field(default_factory=list)  # (fusion, received_ns)
+    closed: list[int] = field(default_factory=list)  # fused ids no longer pending
 
 
 class FusionEngine:
     def __init__(self, fusions: Iterable[FusionSettings], allocate_id: Callable[[], int],
+                 live_components: Callable[[], Iterable[LiveComponent]] = lambda: (),
+                 timeouts: TimeoutSettings | None = None,
                  clock_ns: Callable[[], int] = time.time_ns) -> None:
-        self.fusions = list(fusions)
-        for fusion in self.fusions:
-            if fusion.fuse:
-                raise FusionConfigError(
-                    f"fusion {fusion.name!r}: fusing other result types with the {fusion.anchor} "
-                    f"anchor (fuse: {', '.join(fusion.fuse)}) is not implemented yet; it comes "
-                    "with the fusion-engine work. Configure fuse: [] for now.")
         self._allocate_id = allocate_id
+        self._live = live_components
         self._clock_ns = clock_ns
+        self.timeouts = timeouts or TimeoutSettings()
+        self.memory_ns = int(self.timeouts.memory_s * 1e9)
+        self.latencies = Latencies(self.timeouts)
+        self.streams: dict[str, StreamMemory] = {}
+        self.open: dict[int, Fusion] = {}  # by fused id
+        self.changes = Changes()
+        self._heap: list[tuple[int, int]] = []  # (deadline_ns, fused id)
+        self.fusions: list[FusionSettings] = []
+        self.replace_fusions(fusions)
 
-    def on_result(self, result: StoredResult) -> list[FusedResult]:
-        """Fused results that ``result`` completes, to store and publish in this order."""
-        fused = []
-        if "nothing" in result.json:  # "covered, no result" (nothing recognised): coverage, not an answer
-            return fused
+    def replace_fusions(self, fusions: Iterable[FusionSettings]) -> None:
+        """New configuration for anchors from now on; open fusions finish under their own."""
+        self.fusions = list(fusions)
+        self._by_anchor: dict[str, list[FusionSettings]] = {}
         for fusion in self.fusions:
-            if fusion.anchor != result.type:
-                continue
-            if fusion.stream is not None and fusion.stream != result.stream_id:
-                continue
-            fused.append(self._publish_alone(fusion, result))
+            self._by_anchor.setdefault(fusion.anchor, []).append(fusion)
+
+    # events
+    def on_result(self, result: StoredResult, received_ns: int) -> list[FusedResult]:
+        """Fused results that ``result`` completes or revises, to store and publish in order."""
+        self.latencies.add(result.component, received_ns - result.end_ns)
+        memory = self._remember(result)
+        fused: list[FusedResult] = []
+        if not result.is_nothing:
+            for fusion in list(memory.published.overlapping(result.start_ns, result.end_ns)):
+                if fusion.add(result):  # late: a new revision
+                    fused.append(self._publish(fusion, received_ns))
+            for fusion in memory.open:
+                fusion.add(result)
+        for fusion in list(memory.open):
+            if result.component in fusion.waiting and \
+                    memory.coverage[result.component].covers(*fusion.window):
+                del fusion.waiting[result.component]
+                if not fusion.waiting:
+                    fused.append(self._publish(fusion, received_ns))
+                else:
+                    self._schedule(fusion)
+        if not result.is_nothing:
+            for settings in self._by_anchor.get(result.type, ()):
+                if settings.stream is None or settings.stream == result.stream_id:
+                    fused.extend(self._open(settings, result, memory, received_ns))
         return fused
 
     def on_component_gone(self, component: str) -> list[FusedResult]:
-        """A component died or left: fusions stop waiting for it. Nothing waits here yet."""
+        """A component died or left: no fusion waits for it any longer."""
+        fused = []
+        for fusion in list(self.open.values()):
+            if component in fusion.waiting:
+                type_name, _ = fusion.waiting.pop(component)
+                fusion.missing[component] = (type_name, "gone")
+                if not fusion.waiting:
+                    fused.append(self._publish(fusion, None))
+                else:
+                    self._schedule(fusion)
+        return fused
+
+    def on_end_of_stream(self, stream_id: str, component: str) -> list[FusedResult]:
+        """``component`` has sent every result it will for the stream: no fusion of the stream
+        waits for it (until it sends for the stream again)."""
+        memory = self._memory(stream_id)
+        memory.ended.add(component)
+        fused = []
+        for fusion in list(memory.open):
+            if fusion.waiting.pop(component, None) is not None:
+                if not fusion.waiting:
+                    fused.append(self._publish(fusion, None))
+                else:
+                    self._schedule(fusion)
+        return fused
+
+    def on_timer(self, now_ns: int | None = None) -> list[FusedResult]:
+        """Publishes every fusion whose deadline has passed."""
+        now_ns = self._clock_ns() if now_ns is None else now_ns
+        fused = []
+        while self._heap and self._heap[0][0] <= now_ns:
+            deadline, fused_id = heapq.heappop(self._heap)
+            fusion = self.open.get(fused_id)
+            if fusion is None or fusion.scheduled_ns != deadline:
+                continue  # published already, or rescheduled
+            for component, (type_name, _) in fusion.waiting.items():
+                fusion.missing[component] = (type_name, TIMED_OUT)
+            fusion.waiting.clear()
+            fused.append(self._publish(fusion, None, due_ns=deadline))
+        return fused
+
+    def next_deadline_ns(self) -> int | None:
+        while self._heap:
+            deadline, fused_id = self._heap[0]
+            fusion = self.open.get(fused_id)
+            if fusion is not None and fusion.scheduled_ns == deadline:
+                return deadline
+            heapq.heappop(self._heap)
+        return None
+
+    # restoring after a restart (results first, then fused results, then open fusions)
+    def restore_result(self, result: StoredResult) -> None:
+        self._remember(result)
+
+    def restore_published(self, fused: dict[str, Any]) -> None:
+        anchor = StoredResult.from_json(fused["anchor"])
+        settings = FusionSettings(name=fused["fusion"], anchor=anchor.type,
+                                  fuse=list(fused["results"]))
+        results = {t: {r["id"]: StoredResult.from_json(r) for r in items}
+                   for t, items in fused["results"].items()}
+        fusion = Fusion(settings=settings, id=fused["id"], anchor=anchor, results=results,
+                        waiting={}, revision=fused["revision"], completion=fused["completion"],
+                        missing={m["component"]: (m["type"], m["reason"])
+                                 for m in fused.get("missing", [])})
+        self._memory(anchor.stream_id).published.add(fusion)
+
+    def restore_open(self, fused_id: int, settings: FusionSettings, anchor: StoredResult,
+                     waiting: dict[str, tuple[str, int]]) -> None:
+        """An anchor's fusion that was pending when the orchestrator stopped: it waits for the
+        same components until the same deadlines (published by the next on_timer if due)."""
+        memory = self._memory(anchor.stream_id)
+        fusion = self._new_fusion(settings, fused_id, anchor, memory)
+        fusion.waiting = {c: w for c, w in waiting.items()
+                          if not self._covered(memory, c, fusion)}
+        memory.open.append(fusion)
+        self.open[fused_id] = fusion
+        self._schedule(fusion)
+
+    # internals
+    def _memory(self, stream_id: str) -> StreamMemory:
+        memory = self.streams.get(stream_id)
+        if memory is None:
+            memory = self.streams[stream_id] = StreamMemory()
+        return memory
+
+    def _remember(self, result: StoredResult) -> StreamMemory:
+        memory = self._memory(result.stream_id)
+        coverage = memory.coverage.get(result.component)
+        if coverage is None:
+            coverage = memory.coverage[result.component] = Coverage()
+        coverage.add(result.start_ns, result.end_ns)
+        memory.seen.add(result.component)
+        memory.ended.discard(result.component)
+        if not result.is_nothing:
+            index = memory.index.get(result.type)
+            if index is None:
+                index = memory.index[result.type] = SpanIndex()
+            index.add(result)
+        memory.newest_end_ns = max(memory.newest_end_ns, result.end_ns)
+        memory.since_prune += 1
+        if memory.since_prune >= PRUNE_EVERY:
+            self._prune(memory)
+        return memory
+
+    def _prune(self, memory: StreamMemory) -> None:
+        memory.since_prune = 0
+        horizon = memory.newest_end_ns - self.memory_ns
+        for index in memory.index.values():
+            index.forget_before(horizon)
+        for coverage in memory.coverage.values():
+            coverage.forget_before(horizon)
+        memory.published.forget_before(horizon)
+
+    @staticmethod
+    def _covered(memory: StreamMemory, component: str, fusion: Fusion) -> bool:
+        coverage = memory.coverage.get(component)
+        return coverage is not None and coverage.covers(*fusion.window)
+
+    def _new_fusion(self, settings: FusionSettings, fused_id: int, anchor: StoredResult,
+                    memory: StreamMemory) -> Fusion:
+        fusion = Fusion(settings=settings, id=fused_id, anchor=anchor,
+                        results={t: {} for t in settings.fuse}, waiting={})
+        for type_name in settings.fuse:
+            index = memory.index.get(type_name)
+            if index is not None:
+                for result in index.overlapping(*fusion.window):
+                    fusion.results[type_name][result.id] = result
+        return fusion
+
+    def _open(self, settings: FusionSettings, anchor: StoredResult, memory: StreamMemory,
+              received_ns: int) -> list[FusedResult]:
+        fusion = self._new_fusion(settings, self._allocate_id(), anchor, memory)
+        if settings.fuse:
+            types = set(settings.fuse)
+            for component in self._live():
+                if component.designation in types and component.name not in fusion.waiting and \
+                        (component.stream_id == anchor.stream_id or component.name in memory.seen) \
+                        and component.name not in memory.ended \
+                        and not self._covered(memory, component.name, fusion):
+                    deadline = anchor.end_ns + self.latencies.timeout_ns(component.name)
+                    fusion.waiting[component.name] = (component.designation, deadline)
+        if not fusion.waiting:
+            return [self._publish(fusion, received_ns)]
+        memory.open.append(fusion)
+        self.open[fusion.id] = fusion
+        self.changes.opened.append((fusion, received_ns))
+        self._schedule(fusion)
         return []
 
-    def _publish_alone(self, fusion: FusionSettings, anchor: StoredResult) -> FusedResult:
-        fused_id = self._allocate_id()
+    def _schedule(self, fusion: Fusion) -> None:
+        deadline = fusion.deadline_ns()
+        if deadline != fusion.scheduled_ns:
+            fusion.scheduled_ns = deadline
+            heapq.heappush(self._heap, (deadline, fusion.id))
+
+    def _publish(self, fusion: Fusion, trigger_received_ns: int | None,
+                 due_ns: int | None = None) -> FusedResult:
+        memory = self._memory(fusion.anchor.stream_id)
+        if fusion.revision == 0:
+            if self.open.pop(fusion.id, None) is not None:
+                memory.open.remove(fusion)
+                self.changes.closed.append(fusion.id)
+            memory.published.add(fusion)
+            reasons = {reason for _, reason in fusion.missing.values()}
+            fusion.completion = (TIMED_OUT if TIMED_OUT in reasons else
+                                 COMPONENTS_GONE if reasons else COMPLETE)
+        else:  # a revision: components that have covered the window since are not missing
+            fusion.missing = {c: m for c, m in fusion.missing.items()
+                              if not self._covered(memory, c, fusion)}
+        fusion.revision += 1
         published_ns = self._clock_ns()
+        window = fusion.window
+        results = {t: [r.json for r in sorted(by_id.values(), key=lambda r: (r.start_ns, r.id))]
+                   for t, by_id in fusion.results.items()}
+        missing = [{"component": c, "type": t, "reason": reason}
+                   for c, (t, reason) in sorted(fusion.missing.items())]
         return FusedResult(
-            id=fused_id, revision=1, fusion=fusion.name, stream_id=anchor.stream_id,
-            start_ns=anchor.start_ns, end_ns=anchor.end_ns, published_ns=published_ns,
-            json={"type": "fused_result", "id": fused_id, "revision": 1, "fusion": fusion.name,
-                  "stream_id": anchor.stream_id, "anchor": anchor.json, "results": {},
-                  "completion": "complete", "missing_components": [],
+            id=fusion.id, revision=fusion.revision, fusion=fusion.settings.name,
+            stream_id=fusion.anchor.stream_id, start_ns=window[0], end_ns=window[1],
+            published_ns=published_ns, trigger_received_ns=trigger_received_ns, due_ns=due_ns,
+            json={"type": "fused_result", "id": fusion.id, "revision": fusion.revision,
+                  "fusion": fusion.settings.name, "stream_id": fusion.anchor.stream_id,
+                  "anchor": fusion.anchor.json, "results": results,
+                  "aggregates": aggregates(results, window), "completion": fusion.completion,
+                  "missing_components": [m["component"] for m in missing], "missing": missing,
                   "published_ns": published_ns})

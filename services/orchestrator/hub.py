@@ -26,6 +26,7 @@ class Outgoing:
     fusion: str | None = None  # None: a stream event, sent whatever the client's fusion filter
     fused_id: int | None = None
     revision: int = 0
+    seq: int = 0  # publication number of a fused result (every revision has its own)
 
 
 class Subscriber:

@@ -5,10 +5,11 @@ everything is stored (and committed) before anything of the batch is published.
 """
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import time
-from collections import Counter
+from collections import Counter, deque
 from typing import Any, Callable
 
 import zmq
@@ -18,12 +19,14 @@ from .codec import BadResult, parse_result, result_to_json, type_name
 from .fusion import FusedResult, FusionEngine, StoredResult
 from .hub import Hub, Outgoing
 from .registry import Registry
+from .settings import FusionSettings
 from .store import Store
 from .streams import StreamEnds
 
 log = logging.getLogger(__name__)
 
 MAX_BATCH = 64  # messages handled per transaction
+OVERHEAD_SAMPLES = 10_000
 
 
 def _dumps(value: Any) -> str:
@@ -41,8 +44,36 @@ class Ingest:
         self.streams = StreamEnds()
         self.counters: Counter[str] = Counter()
         self._clock_ns = clock_ns
+        self._timer: asyncio.TimerHandle | None = None
+        self._timer_ns: int | None = None
+        # fusion overhead: the completing result's reception -> its fused result handed to
+        # the websocket clients (revision 1 only), the last OVERHEAD_SAMPLES of them
+        self.overhead_ns: deque[int] = deque(maxlen=OVERHEAD_SAMPLES)
+        # timed-out fusions: their deadline -> fused result handed to the websocket clients
+        self.timer_lateness_ns: deque[int] = deque(maxlen=OVERHEAD_SAMPLES)
+        self._triggers: dict[Outgoing, tuple[deque[int], int]] = {}
+
+    def restore(self) -> None:
+        """Warm start from the database: latencies (so timeouts), the recent results and fused
+        results of each stream (for late results), and the fusions that were still waiting."""
+        engine = self.engine
+        for component, count, mean_ns in self.store.latencies():
+            engine.latencies.restore(component, count, mean_ns)
+        results, fused = self.store.recent(engine.memory_ns)
+        for text in results:
+            engine.restore_result(StoredResult.from_json(json.loads(text)))
+        for text in fused:
+            engine.restore_published(json.loads(text))
+        pending = self.store.pending()
+        for fused_id, anchor, settings, waiting in pending:
+            engine.restore_open(fused_id, FusionSettings.model_validate_json(settings),
+                                StoredResult.from_json(json.loads(anchor)),
+                                {c: tuple(w) for c, w in json.loads(waiting).items()})
+        log.info("event=fusion_restored latencies=%d results=%d fused=%d pending=%d",
+                 len(engine.latencies.by_component), len(results), len(fused), len(pending))
 
     async def run(self) -> None:
+        self._arm_timer()  # fusions restored from the database may be due
         while True:
             batch = [await self.socket.recv_multipart()]
             while len(batch) < MAX_BATCH and self.socket.get(zmq.EVENTS) & zmq.POLLIN:
@@ -50,36 +81,82 @@ class Ingest:
             self.handle_batch(batch)
 
     def handle_batch(self, batch: list[list[bytes]]) -> None:
-        outgoing: list[Outgoing] = []
-        try:
-            self.store.begin()
-            for frames in batch:
-                outgoing.extend(self._handle(frames))
-            self.store.commit()
-        except Exception:
-            self.store.rollback()
-            self.counters["lost_in_db_error"] += len(batch)
-            log.exception("event=store_failed messages=%d", len(batch))
-            return
-        self._publish(outgoing)
+        def work() -> list[Outgoing]:
+            return [message for frames in batch for message in self._handle(frames)]
+        self._transaction(work, lost=len(batch), after="batch")
 
     def components_gone(self, names: list[str]) -> None:
         """Fusions and stream ends stop waiting for components that died or left."""
-        outgoing: list[Outgoing] = []
+        def work() -> list[Outgoing]:
+            return [self._store_fused(f) for name in names
+                    for f in self.engine.on_component_gone(name)]
+        self._transaction(work, after="components_gone")
+        self._publish(self.stream_ends())
+
+    def on_timer(self) -> None:
+        """The earliest fusion deadline has come: publish what is due."""
+        self._timer = None
+        self._transaction(lambda: [self._store_fused(f) for f in self.engine.on_timer()],
+                          after="timer")
+
+    def _transaction(self, work: Callable[[], list[Outgoing]], *, lost: int = 0,
+                     after: str) -> None:
+        """Runs ``work`` in one transaction with what fusion must record, then publishes what
+        it returned (nothing is published before it is committed); re-arms the timer."""
         try:
             self.store.begin()
-            for name in names:
-                outgoing.extend(self._store_fused(f) for f in self.engine.on_component_gone(name))
+            outgoing = work()
+            self._record_fusion_changes()
             self.store.commit()
         except Exception:
             self.store.rollback()
+            self._triggers.clear()
+            self.counters["lost_in_db_error"] += lost
+            log.exception("event=store_failed after=%s messages=%d", after, lost)
             outgoing = []
-            log.exception("event=store_failed after=components_gone")
-        self._publish(outgoing + self.stream_ends())
+        self._publish(outgoing)
+        self._arm_timer()
+
+    def _record_fusion_changes(self) -> None:
+        changes = self.engine.changes
+        now_ns = self._clock_ns()
+        for fusion, received_ns in changes.opened:
+            if fusion.id in self.engine.open:
+                self.store.add_pending(
+                    fused_id=fusion.id, anchor_id=fusion.anchor.id,
+                    settings_json=fusion.settings.model_dump_json(),
+                    waiting_json=_dumps(fusion.waiting), opened_ns=received_ns)
+        opened = {fusion.id for fusion, _ in changes.opened}
+        for fused_id in changes.closed:
+            if fused_id not in opened:  # opened and closed in one transaction: never written
+                self.store.remove_pending(fused_id)
+        changes.opened.clear()
+        changes.closed.clear()
+        for component, latency in self.engine.latencies.take_changed():
+            self.store.put_latency(component=component, count=latency.count,
+                                   mean_ns=latency.mean_ns, updated_ns=now_ns)
+
+    def _arm_timer(self) -> None:
+        deadline_ns = self.engine.next_deadline_ns()
+        if deadline_ns == self._timer_ns and self._timer is not None:
+            return
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        self._timer_ns = deadline_ns
+        if deadline_ns is not None:
+            delay_s = max(0.0, (deadline_ns - self._clock_ns()) / 1e9)
+            self._timer = asyncio.get_running_loop().call_later(delay_s, self.on_timer)
 
     def _publish(self, outgoing: list[Outgoing]) -> None:
         for message in outgoing:
             self.hub.publish(message)
+        if outgoing:
+            now_ns = self._clock_ns()
+            for message in outgoing:
+                samples, since_ns = self._triggers.pop(message, (None, 0))
+                if samples is not None:
+                    samples.append(now_ns - since_ns)
 
     def _handle(self, frames: list[bytes]) -> list[Outgoing]:
         kind = frames[0] if frames else b""
@@ -117,16 +194,25 @@ class Ingest:
         stored = StoredResult(id=result_id, component=result.component, type=kind,
                               stream_id=result.stream_id, start_ns=result.span.start_ns,
                               end_ns=result.span.end_ns, json=as_json)
-        return [self._store_fused(fused) for fused in self.engine.on_result(stored)]
+        return [self._store_fused(fused) for fused in self.engine.on_result(stored, received_ns)]
 
     def _store_fused(self, fused: FusedResult) -> Outgoing:
+        seq = fused.json["seq"] = self.store.allocate_seq()
         text = _dumps(fused.json)
         self.store.add_fused(fused_id=fused.id, revision=fused.revision, fusion=fused.fusion,
                              stream_id=fused.stream_id, start_ns=fused.start_ns,
-                             end_ns=fused.end_ns, published_ns=fused.published_ns, json_text=text)
+                             end_ns=fused.end_ns, published_ns=fused.published_ns, json_text=text,
+                             seq=seq)
         self.counters["fused"] += 1
-        return Outgoing(text=text, stream_id=fused.stream_id, fusion=fused.fusion,
-                        fused_id=fused.id, revision=fused.revision)
+        self.counters[f"completion_{fused.json['completion']}" if fused.revision == 1
+                      else "revisions"] += 1
+        message = Outgoing(text=text, stream_id=fused.stream_id, fusion=fused.fusion,
+                           fused_id=fused.id, revision=fused.revision, seq=seq)
+        if fused.revision == 1 and fused.trigger_received_ns is not None:
+            self._triggers[message] = (self.overhead_ns, fused.trigger_received_ns)
+        elif fused.revision == 1 and fused.due_ns is not None:
+            self._triggers[message] = (self.timer_lateness_ns, fused.due_ns)
+        return message
 
     def _on_end_of_stream(self, data: bytes) -> list[Outgoing]:
         try:
@@ -139,11 +225,14 @@ class Ingest:
             log.warning("event=bad_end_of_stream reason=%r data=%r", str(exc), data[:200])
             return []
         component = self.registry.get(component_id)
+        fused: list[Outgoing] = []
         if component is not None:
             component.touch()
+            fused = [self._store_fused(f)
+                     for f in self.engine.on_end_of_stream(stream_id, component.name)]
         log.info("event=end_of_stream component_id=%s stream_id=%s", component_id, stream_id)
         self.streams.on_end_of_stream(stream_id, component_id)
-        return self.stream_ends()
+        return fused + self.stream_ends()  # the stream's last fused results before its end
 
     def stream_ends(self) -> list[Outgoing]:
         """``stream_end`` events of the streams that have now ended (call after any change)."""

@@ -196,17 +196,45 @@ class Result(BaseModel):
     nothing: NoResultPayload | None = Field(default=None, description="covered, no result")
 
 
+class SslAggregate(BaseModel):
+    azimuth_deg: float = Field(description="circular mean, weighted by overlap x probability")
+    elevation_deg: float
+    concentration: float = Field(description="mean resultant length: 1 all agree, 0 cancel out")
+    overlap_s: float = Field(description="capture time of the window the results cover")
+    directions: int
+
+
+class LabelAggregate(BaseModel):
+    label: str = Field(description="the top label")
+    probability: float = Field(description="its share of the distribution")
+    distribution: dict[str, float] = Field(description="overlap-weighted, sums to 1, top first")
+    overlap_s: float
+
+
+class Missing(BaseModel):
+    component: str
+    type: str
+    reason: Literal["timed_out", "gone"]
+
+
 class FusedResult(BaseModel):
     type: Literal["fused_result"]
     id: int = Field(description="stable across revisions")
     revision: int = Field(description="1 for the first publication")
     fusion: str
     stream_id: str
-    anchor: Result
-    results: dict[str, list[Result]] = Field(description="fused results by type")
-    completion: Literal["complete", "timed_out"]
-    missing_components: list[str]
+    anchor: Result = Field(description="its span is the window")
+    results: dict[str, list[Result]] = Field(
+        description="every fused type: its results overlapping the window, by start")
+    aggregates: dict[str, SslAggregate | LabelAggregate | None] = Field(
+        description="ssl and label types: null when they have no results")
+    completion: Literal["complete", "timed_out", "components_gone"] = Field(
+        description="how revision 1 was decided; kept in later revisions")
+    missing_components: list[str] = Field(description="components that had not covered the window")
+    missing: list[Missing]
     published_ns: int
+    seq: int = Field(description="publication number: every revision has its own, increasing; "
+                                 "resume the websocket with after_seq")
 
 
 NEXT_AFTER_ID = ("pass as after_id for the next page: the last item's id, or the after_id given "
@@ -225,6 +253,32 @@ class FusedPage(BaseModel):
 
 class FusionList(BaseModel):
     items: list[FusionSettings]
+
+
+class FusionStats(BaseModel):
+    counters: dict[str, int] = Field(description="results, fused, completion_*, revisions, bad_*")
+    open_fusions: int = Field(description="fusions waiting for components now")
+    overhead_samples: int
+    overhead_p50_ms: float | None = Field(
+        description="completing result received -> fused result handed to websocket clients")
+    overhead_p99_ms: float | None
+    timed_out_samples: int
+    timer_lateness_p50_ms: float | None = Field(
+        description="timed-out fusions: deadline -> fused result handed to websocket clients")
+    timer_lateness_p99_ms: float | None
+
+
+class LatencyInfo(BaseModel):
+    component: str
+    count: int = Field(description="results received from it, ever")
+    mean_ms: float = Field(description="running mean, as timeouts use it")
+    p50_ms: float | None
+    p95_ms: float | None
+    timeout_ms: float = Field(description="how long a fusion waits for it after a window ends")
+
+
+class LatencyList(BaseModel):
+    items: list[LatencyInfo]
 
 
 class Health(BaseModel):

@@ -28,6 +28,40 @@ class FusionSettings(StrictModel):
                                        description="result types fused with each anchor result")
     stream: str | None = Field(default=None, description="only anchor results of this stream")
 
+    @model_validator(mode="after")
+    def _consistent(self) -> "FusionSettings":
+        if self.anchor in self.fuse:
+            raise ValueError(f"fusion {self.name!r}: the anchor type {self.anchor} cannot also be "
+                             "fused with itself (each anchor has its own window)")
+        repeated = sorted({t for t in self.fuse if self.fuse.count(t) > 1})
+        if repeated:
+            raise ValueError(f"fusion {self.name!r}: fuse names a type more than once: "
+                             f"{', '.join(repeated)}")
+        return self
+
+
+class TimeoutSettings(StrictModel):
+    """How long a fusion waits for a component: factor x its running mean latency, clamped."""
+
+    factor: float = Field(default=1.5, gt=0, description="x the component's mean latency")
+    factors: dict[str, float] = Field(default_factory=dict,
+                                      description="per component name: its own factor")
+    initial_s: float = Field(default=2.0, gt=0, description="before a latency is known")
+    min_s: float = Field(default=0.05, ge=0)
+    max_s: float = Field(default=10.0, gt=0)
+    memory_s: float = Field(default=120.0, gt=0,
+                            description="capture time kept in memory per stream, for late "
+                                        "results and anchors that come after their results")
+
+    @model_validator(mode="after")
+    def _bounds(self) -> "TimeoutSettings":
+        if self.min_s > self.max_s:
+            raise ValueError(f"min_s ({self.min_s}) must not exceed max_s ({self.max_s})")
+        bad = sorted(name for name, factor in self.factors.items() if factor <= 0)
+        if bad:
+            raise ValueError(f"factors must be positive; not for {', '.join(bad)}")
+        return self
+
 
 class OrchestratorSettings(StrictModel):
     host: str = "127.0.0.1"  # where the HTTP, control and results sockets bind
@@ -41,6 +75,7 @@ class OrchestratorSettings(StrictModel):
     format_strategy: Strategy = "min_conversions"  # how each topic's wire format is chosen
     fusions: list[FusionSettings] = Field(
         default_factory=lambda: [FusionSettings(name="speech", anchor="speech")])
+    timeouts: TimeoutSettings = Field(default_factory=TimeoutSettings)
     log_level: str = "INFO"
 
     @field_validator("log_level")

@@ -56,6 +56,27 @@ MIGRATIONS: list[str] = [
         info TEXT NOT NULL
     );
     """,
+    # 3: fusions waiting to be published, and each component's running mean latency
+    """
+    CREATE TABLE pending_fusions (
+        fused_id INTEGER PRIMARY KEY,
+        anchor_id INTEGER NOT NULL,
+        settings TEXT NOT NULL,
+        waiting TEXT NOT NULL,
+        opened_ns INTEGER NOT NULL
+    );
+    CREATE TABLE latency (
+        component TEXT PRIMARY KEY,
+        count INTEGER NOT NULL,
+        mean_ns REAL NOT NULL,
+        updated_ns INTEGER NOT NULL
+    );
+    CREATE INDEX fused_stream_end ON fused (stream_id, end_ns);
+    ALTER TABLE fused ADD COLUMN seq INTEGER;
+    UPDATE fused SET seq = rowid;
+    CREATE UNIQUE INDEX fused_seq ON fused (seq);
+    CREATE INDEX results_stream_end ON results (stream_id, end_ns);
+    """,
 ]
 
 
@@ -99,8 +120,11 @@ class Store:
             self._migrate(path)
             self.next_result_id = self._db.execute(
                 "SELECT COALESCE(MAX(id), 0) + 1 FROM results").fetchone()[0]
-            self.next_fused_id = self._db.execute(
-                "SELECT COALESCE(MAX(id), 0) + 1 FROM fused").fetchone()[0]
+            self.next_seq = self._db.execute(
+                "SELECT COALESCE(MAX(seq), 0) + 1 FROM fused").fetchone()[0]
+            self.next_fused_id = self._db.execute(  # pending fusions hold their ids already
+                "SELECT MAX((SELECT COALESCE(MAX(id), 0) FROM fused),"
+                " (SELECT COALESCE(MAX(fused_id), 0) FROM pending_fusions)) + 1").fetchone()[0]
         except sqlite3.Error as exc:
             self._db.close()
             raise StoreError(f"cannot use database {path}: {exc}") from None
@@ -149,12 +173,35 @@ class Store:
             (result_id, component, type_name, stream_id, start_ns, end_ns, produced_ns,
              received_ns, proto, json_text))
 
+    def allocate_seq(self) -> int:
+        """The next publication number (every revision of every fused result gets one)."""
+        seq, self.next_seq = self.next_seq, self.next_seq + 1
+        return seq
+
     def add_fused(self, *, fused_id: int, revision: int, fusion: str, stream_id: str,
-                  start_ns: int, end_ns: int, published_ns: int, json_text: str) -> None:
+                  start_ns: int, end_ns: int, published_ns: int, json_text: str,
+                  seq: int | None = None) -> None:
         self._db.execute(
             "INSERT INTO fused (id, revision, fusion, stream_id, start_ns, end_ns, published_ns,"
-            " json) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-            (fused_id, revision, fusion, stream_id, start_ns, end_ns, published_ns, json_text))
+            " json, seq) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            (fused_id, revision, fusion, stream_id, start_ns, end_ns, published_ns, json_text,
+             self.allocate_seq() if seq is None else seq))
+
+    def add_pending(self, *, fused_id: int, anchor_id: int, settings_json: str,
+                    waiting_json: str, opened_ns: int) -> None:
+        self._db.execute(
+            "INSERT INTO pending_fusions (fused_id, anchor_id, settings, waiting, opened_ns)"
+            " VALUES (?, ?, ?, ?, ?)", (fused_id, anchor_id, settings_json, waiting_json, opened_ns))
+
+    def remove_pending(self, fused_id: int) -> None:
+        self._db.execute("DELETE FROM pending_fusions WHERE fused_id = ?", (fused_id,))
+
+    def put_latency(self, *, component: str, count: int, mean_ns: float, updated_ns: int) -> None:
+        self._db.execute(
+            "INSERT INTO latency (component, count, mean_ns, updated_ns) VALUES (?, ?, ?, ?)"
+            " ON CONFLICT (component) DO UPDATE SET count = excluded.count,"
+            " mean_ns = excluded.mean_ns, updated_ns = excluded.updated_ns",
+            (component, count, mean_ns, updated_ns))
 
     def put_stream(self, *, stream_id: str, start_ns: int, source: str, announced_ns: int,
                    info_json: str) -> None:
@@ -173,6 +220,40 @@ class Store:
         return self._db.execute(sql + " WHERE stream_id = ?", (stream_id,)).fetchall()
 
     # reads
+    def latencies(self) -> list[tuple[str, int, float]]:
+        """(component, count, mean_ns) of every component that ever sent a result."""
+        return self._db.execute(
+            "SELECT component, count, mean_ns FROM latency ORDER BY component").fetchall()
+
+    def recent_latencies_ns(self, component: str, limit: int) -> list[int]:
+        """Latencies of the component's last ``limit`` results."""
+        return [row[0] for row in self._db.execute(
+            "SELECT received_ns - end_ns FROM results WHERE component = ? ORDER BY id DESC"
+            " LIMIT ?", (component, limit))]
+
+    def pending(self) -> list[tuple[int, str, str, str]]:
+        """(fused_id, anchor JSON, settings JSON, waiting JSON) of fusions not yet published."""
+        return self._db.execute(
+            "SELECT p.fused_id, r.json, p.settings, p.waiting FROM pending_fusions AS p"
+            " JOIN results AS r ON r.id = p.anchor_id ORDER BY p.fused_id").fetchall()
+
+    def recent(self, memory_ns: int) -> tuple[list[str], list[str]]:
+        """JSON of the results and of the latest fused revisions of each stream whose span
+        ends within ``memory_ns`` of the stream's newest result: what fusion keeps in memory."""
+        results: list[str] = []
+        fused: list[str] = []
+        for stream_id, newest in self._db.execute(
+                "SELECT stream_id, MAX(end_ns) FROM results GROUP BY stream_id").fetchall():
+            horizon = newest - memory_ns
+            results += [row[0] for row in self._db.execute(
+                "SELECT json FROM results WHERE stream_id = ? AND end_ns >= ? ORDER BY id",
+                (stream_id, horizon))]
+            fused += [row[0] for row in self._db.execute(
+                "SELECT json FROM fused WHERE stream_id = ? AND end_ns >= ? AND revision ="
+                " (SELECT MAX(f2.revision) FROM fused AS f2 WHERE f2.id = fused.id) ORDER BY id",
+                (stream_id, horizon))]
+        return results, fused
+
     def query_results(self, *, type_name: str | None = None, component: str | None = None,
                       stream: str | None = None, start_ns: int | None = None,
                       end_ns: int | None = None, after_id: int | None = None,
@@ -196,6 +277,18 @@ class Store:
             where.append("fusion = ?")
             args.append(fusion)
         return self._page("SELECT id, revision, json FROM fused", where, args, limit)
+
+    def publications(self, *, after_seq: int, fusion: str | None = None,
+                     stream: str | None = None, limit: int = 100) -> list[tuple[int, str]]:
+        """(seq, JSON) of every publication (each revision) after ``after_seq``, in order."""
+        where, args = _common_filters(stream, None, None, None)
+        where.append("seq > ?")
+        args.append(after_seq)
+        if fusion is not None:
+            where.append("fusion = ?")
+            args.append(fusion)
+        return self._db.execute("SELECT seq, json FROM fused WHERE " + " AND ".join(where) +
+                                " ORDER BY seq LIMIT ?", [*args, limit]).fetchall()
 
     def _page(self, select: str, where: list[str], args: list, limit: int) -> Page:
         sql = select + (" WHERE " + " AND ".join(where) if where else "") + " ORDER BY id LIMIT ?"

@@ -21,7 +21,14 @@ CLOSE_TIMEOUT_S = 1.0
 async def ws_fused(websocket: WebSocket,
                    stream: str | None = Query(None, description="stream_id"),
                    fusion: str | None = Query(None, description="fusion name"),
-                   after_id: int | None = Query(None, ge=0)) -> None:
+                   after_id: int | None = Query(
+                       None, ge=0, description="first the latest revision of each stored fused "
+                                               "result with a larger id"),
+                   after_seq: int | None = Query(
+                       None, ge=0, description="first every publication (each revision) with a "
+                                               "larger seq: resume without missing revisions "
+                                               "(after_id is then ignored)")
+                   ) -> None:
     core: Orchestrator = websocket.app.state.core
     client = f"{websocket.client.host}:{websocket.client.port}" if websocket.client else "-"
     # Subscribe before the client can see the connection open, and before reading the
@@ -32,7 +39,7 @@ async def ws_fused(websocket: WebSocket,
         await websocket.accept()
         log.info("event=ws_connected client=%s stream=%s fusion=%s after_id=%s",
                  client, stream or "-", fusion or "-", "-" if after_id is None else after_id)
-        tasks = {asyncio.create_task(_send(websocket, core, subscriber, after_id)),
+        tasks = {asyncio.create_task(_send(websocket, core, subscriber, after_id, after_seq)),
                  asyncio.create_task(_until_disconnect(websocket)),
                  asyncio.create_task(subscriber.dropped.wait())}
         await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
@@ -59,9 +66,18 @@ async def _until_disconnect(websocket: WebSocket) -> None:
 
 
 async def _send(websocket: WebSocket, core: Orchestrator, subscriber: Subscriber,
-                after_id: int | None) -> None:
+                after_id: int | None, after_seq: int | None) -> None:
     sent: dict[int, int] = {}  # fused id -> revision sent from the backlog
-    cursor = after_id
+    last_seq = after_seq or 0
+    while after_seq is not None:
+        rows = core.store.publications(after_seq=last_seq, fusion=subscriber.fusion,
+                                       stream=subscriber.stream, limit=BACKLOG_PAGE)
+        for seq, text in rows:
+            await websocket.send_text(text)
+            last_seq = seq
+        if len(rows) < BACKLOG_PAGE:
+            break
+    cursor = after_id if after_seq is None else None  # after_seq, if given, has sent it all
     while cursor is not None:
         page = core.store.query_fused(fusion=subscriber.fusion, stream=subscriber.stream,
                                       after_id=cursor, limit=BACKLOG_PAGE)
@@ -71,6 +87,7 @@ async def _send(websocket: WebSocket, core: Orchestrator, subscriber: Subscriber
         cursor = page.next_after_id if len(page.items) == BACKLOG_PAGE else None
     while True:
         message = await subscriber.queue.get()
-        if message.fused_id is not None and sent.get(message.fused_id, 0) >= message.revision:
+        if message.fused_id is not None and (sent.get(message.fused_id, 0) >= message.revision
+                                             or message.seq <= last_seq):
             continue  # already sent from the backlog
         await websocket.send_text(message.text)

@@ -15,6 +15,7 @@ import uvicorn
 import zmq
 
 from esiaf.proto import esiaf_pb2 as pb
+from esiaf.results import make_result
 from services.orchestrator.app import create_app
 from services.orchestrator.settings import OrchestratorSettings
 
@@ -154,6 +155,14 @@ class FakeComponent:
         self.push.send_multipart([b"result", result.SerializeToString()])
         return result
 
+    def emit(self, type_name: str, span: tuple[int, int], stream_id: str = "default",
+             **payload: Any) -> pb.Result:
+        """Sends one result of any type (payload as for esiaf.results.make_result)."""
+        self.sequence += 1
+        result = make_result(self.name, type_name, stream_id, span, self.sequence, **payload)
+        self.push.send_multipart([b"result", result.SerializeToString()])
+        return result
+
     def end_of_stream(self, stream_id: str = "default") -> None:
         self.push.send_multipart([b"end_of_stream", json.dumps(
             {"component_id": self.id, "component": self.name, "stream_id": stream_id}).encode()])
@@ -161,3 +170,26 @@ class FakeComponent:
     def close(self) -> None:
         self.dealer.close(linger=0)
         self.push.close(linger=0)
+
+
+class Heartbeater:
+    """Heartbeats some fake components from a thread of its own (which then owns their
+    DEALER sockets) until stopped, so that they stay alive while a test waits."""
+
+    def __init__(self, components: list[FakeComponent], every_s: float = 0.2) -> None:
+        self._components = components
+        self._every_s = every_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._every_s):
+            for component in self._components:
+                component.heartbeat()
+                while component.recv(0) is not None:
+                    pass
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(5)

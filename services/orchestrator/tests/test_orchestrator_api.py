@@ -4,7 +4,8 @@ from __future__ import annotations
 import httpx
 import pytest
 
-from services.orchestrator.tests.helpers import FMT16, component_body
+from esiaf.proto import esiaf_pb2 as pb
+from services.orchestrator.tests.helpers import FMT16, component_body, wait_until
 
 FMT16_STEREO = {**FMT16, "channels": 2}
 FMT48_FLOAT = {"sample_rate_hz": 48000, "sample_type": "float32", "endianness": "little",
@@ -115,6 +116,26 @@ def test_name_takeover_replaces_old_instance(component, http):
 def test_fusions_listed(http):
     assert http.get("/fusions").json() == {
         "items": [{"name": "speech", "anchor": "speech", "fuse": [], "stream": None}]}
+
+
+def test_fusions_are_replaced_over_rest_and_bad_ones_refused(component, http):
+    new = {"items": [{"name": "u", "anchor": "speech", "fuse": ["ssl"], "stream": None},
+                     {"name": "v", "anchor": "vad", "fuse": [], "stream": "r1"}]}
+    assert http.put("/fusions", json=new).json() == new
+    assert http.get("/fusions").json() == new
+    for items, complaint in (([new["items"][0]] * 2, "unique"),
+                             ([{"name": "w", "anchor": "ssl", "fuse": ["ssl"]}], "cannot also be fused"),
+                             ([{"name": "w", "anchor": "speach"}], "anchor")):
+        response = http.put("/fusions", json={"items": items})
+        assert response.status_code == 422 and complaint in response.text
+    assert http.get("/fusions").json() == new
+    vad = component("vad", designation="vad", inputs=["audio/raw"], outputs=["vad/speech"])
+    vad.send_result(stream_id="r1", type_=pb.RESULT_TYPE_VAD)
+    wait_until(lambda: http.get("/fused").json()["items"], what="a fused result of fusion v")
+    assert http.get("/fused").json()["items"][0]["fusion"] == "v"
+    stats = http.get("/fusions/stats").json()
+    assert stats["counters"]["results"] == 1 and stats["counters"]["completion_complete"] == 1
+    assert stats["overhead_samples"] == 1 and stats["overhead_p50_ms"] >= 0
 
 
 def test_openapi_documents_the_api(http):

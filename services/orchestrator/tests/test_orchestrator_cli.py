@@ -79,13 +79,13 @@ def test_bad_setting_is_one_line_and_exit_2(tmp_path):
     assert_one_clear_line(proc, "ESIAF_ORCHESTRATOR_CONTRL_PORT")
 
 
-def test_fusing_other_types_is_refused_at_start_up(tmp_path):
+def test_a_fusion_fusing_its_anchor_type_is_one_line_and_exit_2(tmp_path):
     config = tmp_path / "orchestrator.yaml"
-    config.write_text("fusions:\n  - {name: utterance, anchor: speech, fuse: [vad, emotion]}\n")
+    config.write_text("fusions:\n  - {name: utterance, anchor: speech, fuse: [vad, speech]}\n")
     proc = run_orchestrator(["--config", str(config), "--port", "0", "--db",
                              str(tmp_path / "x.db")],
                             orchestrator_env(control_port="0", results_port="0"))
-    assert_one_clear_line(proc, "'utterance'", "not implemented yet", "fusion-engine")
+    assert_one_clear_line(proc, "'utterance'", "anchor type speech cannot also be fused")
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])

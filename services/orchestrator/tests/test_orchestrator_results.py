@@ -45,8 +45,8 @@ def test_speech_result_is_stored_and_published_fused(orch, component, http):
                    "probability": 0.99}]}]}
     assert {k: v for k, v in fused.items() if k not in ("anchor", "published_ns")} == {
         "type": "fused_result", "id": 1, "revision": 1, "fusion": "speech",
-        "stream_id": "default", "results": {}, "completion": "complete",
-        "missing_components": []}
+        "stream_id": "default", "results": {}, "aggregates": {}, "completion": "complete",
+        "missing_components": [], "missing": [], "seq": 1}
     assert isinstance(fused["published_ns"], int)
     assert fused["published_ns"] >= anchor["received_ns"]
 

@@ -10,7 +10,7 @@ import pytest
 
 from esiaf.proto import esiaf_pb2 as pb
 from services.orchestrator.codec import BadResult, parse_result, result_to_json
-from services.orchestrator.fusion import FusionConfigError, FusionEngine, StoredResult
+from services.orchestrator.fusion import FusionEngine, StoredResult
 from services.orchestrator.hub import Hub, Outgoing
 from services.orchestrator.registry import Registry, TopicConflict
 from services.orchestrator.settings import FusionSettings, OrchestratorSettings
@@ -70,27 +70,22 @@ def test_anchor_only_fusions_publish_each_matching_anchor_at_once():
                            FusionSettings(name="robot1", anchor="speech", stream="r1"),
                            FusionSettings(name="vad", anchor="vad")],
                           allocate_id=lambda: next(ids), clock_ns=lambda: 99)
-    fused = engine.on_result(stored(stream="r1"))
+    fused = engine.on_result(stored(stream="r1"), 30)
     assert [(f.fusion, f.id, f.revision) for f in fused] == [("speech", 1, 1), ("robot1", 2, 1)]
     assert fused[0].json == {"type": "fused_result", "id": 1, "revision": 1, "fusion": "speech",
                              "stream_id": "r1", "anchor": {"id": 1}, "results": {},
-                             "completion": "complete", "missing_components": [],
-                             "published_ns": 99}
-    assert [f.fusion for f in engine.on_result(stored(stream="r2"))] == ["speech"]
-    assert [f.fusion for f in engine.on_result(stored(type_="vad"))] == ["vad"]
-    assert engine.on_result(stored(type_="gender")) == []
+                             "aggregates": {}, "completion": "complete",
+                             "missing_components": [], "missing": [], "published_ns": 99}
+    assert [f.fusion for f in engine.on_result(stored(stream="r2", result_id=2), 30)] == ["speech"]
+    assert [f.fusion for f in engine.on_result(stored(type_="vad", result_id=3), 30)] == ["vad"]
+    assert engine.on_result(stored(type_="gender", result_id=4), 30) == []
 
 
 def test_a_covered_nothing_result_anchors_no_fusion():
     engine = FusionEngine([FusionSettings(name="speech", anchor="speech")], allocate_id=lambda: 1)
     nothing = StoredResult(id=1, component="asr", type="speech", stream_id="s", start_ns=10, end_ns=20,
                            json={"id": 1, "nothing": {"reason": "no words recognised"}})
-    assert engine.on_result(nothing) == []
-
-
-def test_fusing_other_types_is_refused_not_faked():
-    with pytest.raises(FusionConfigError, match="not implemented yet.*fusion-engine"):
-        FusionEngine([FusionSettings(name="u", anchor="speech", fuse=["vad"])], lambda: 1)
+    assert engine.on_result(nothing, 30) == []
 
 
 def test_settings_refuse_unknown_result_types_and_duplicate_fusions():

@@ -1,0 +1,99 @@
+"""Aggregates of a fused result's results, weighted by how much of the window each covers.
+
+- SSL: the circular mean of every direction's azimuth (never an arithmetic mean of angles,
+  which would put 350° and 10° at 180°), each weighted by its result's overlap with the
+  window times the direction's probability (0, i.e. unset, counts as 1);
+- labels (emotion, gender, voice_id): the overlap-weighted distribution over labels (a
+  result's ``class_probabilities``, or its ``label`` alone if it has none) and its top label.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Iterable
+
+LABEL_TYPES = ("emotion", "gender", "voice_id")
+
+
+def overlap_ns(start_ns: int, end_ns: int, w_start_ns: int, w_end_ns: int) -> int:
+    return max(0, min(end_ns, w_end_ns) - max(start_ns, w_start_ns))
+
+
+def overlaps(start_ns: int, end_ns: int, w_start_ns: int, w_end_ns: int) -> bool:
+    """Spans overlap at all; a zero-length span overlaps what contains it (ends included)."""
+    if start_ns == end_ns or w_start_ns == w_end_ns:
+        return start_ns <= w_end_ns and w_start_ns <= end_ns
+    return start_ns < w_end_ns and w_start_ns < end_ns
+
+
+def _weight(result: dict[str, Any], window: tuple[int, int]) -> float:
+    span = result["span"]
+    if window[0] == window[1]:
+        return 1.0
+    return overlap_ns(span["start_ns"], span["end_ns"], *window) / 1e9
+
+
+def ssl_aggregate(results: Iterable[dict[str, Any]],
+                  window: tuple[int, int]) -> dict[str, Any] | None:
+    """``{"azimuth_deg", "elevation_deg", "concentration", "overlap_s", "directions"}`` or None
+    without directions. ``concentration`` is the mean resultant length: 1 when every
+    direction agrees, near 0 when they cancel out."""
+    sin_sum = cos_sum = elevation_sum = total = overlap_total = 0.0
+    count = 0
+    for result in results:
+        weight = _weight(result, window)
+        directions = result.get("ssl", {}).get("directions", [])
+        if directions:
+            overlap_total += weight
+        for direction in directions:
+            w = weight * (direction["probability"] or 1.0)
+            azimuth = math.radians(direction["azimuth_deg"])
+            sin_sum += w * math.sin(azimuth)
+            cos_sum += w * math.cos(azimuth)
+            elevation_sum += w * direction["elevation_deg"]
+            total += w
+            count += 1
+    if count == 0 or total <= 0:
+        return None
+    return {"azimuth_deg": round(math.degrees(math.atan2(sin_sum, cos_sum)) % 360.0, 6),
+            "elevation_deg": round(elevation_sum / total, 6),
+            "concentration": round(math.hypot(sin_sum, cos_sum) / total, 6),
+            "overlap_s": round(overlap_total, 9), "directions": count}
+
+
+def label_aggregate(results: Iterable[dict[str, Any]], type_name: str,
+                    window: tuple[int, int]) -> dict[str, Any] | None:
+    """``{"label", "probability", "distribution", "overlap_s"}`` or None without labels."""
+    mass: dict[str, float] = {}
+    overlap_total = 0.0
+    for result in results:
+        payload = result.get(type_name)
+        if not payload:
+            continue
+        weight = _weight(result, window)
+        classes = payload.get("class_probabilities") or {payload["label"]: 1.0}
+        norm = sum(classes.values())
+        if norm <= 0:
+            continue
+        overlap_total += weight
+        for label, probability in classes.items():
+            mass[label] = mass.get(label, 0.0) + weight * probability / norm
+    total = sum(mass.values())
+    if total <= 0:
+        return None
+    distribution = {label: round(value / total, 6)
+                    for label, value in sorted(mass.items(), key=lambda kv: (-kv[1], kv[0]))}
+    top = next(iter(distribution))
+    return {"label": top, "probability": distribution[top], "distribution": distribution,
+            "overlap_s": round(overlap_total, 9)}
+
+
+def aggregates(results: dict[str, list[dict[str, Any]]],
+               window: tuple[int, int]) -> dict[str, Any]:
+    """One aggregate per fused type that has one (ssl and the label types), None if empty."""
+    out: dict[str, Any] = {}
+    for type_name, items in results.items():
+        if type_name == "ssl":
+            out[type_name] = ssl_aggregate(items, window)
+        elif type_name in LABEL_TYPES:
+            out[type_name] = label_aggregate(items, type_name, window)
+    return out

@@ -1,0 +1,160 @@
+"""Fusion engine units, no sockets: coverage, aggregates, timeouts and deadlines, revisions."""
+from __future__ import annotations
+
+import itertools
+from types import SimpleNamespace
+
+import pytest
+
+from services.orchestrator.aggregate import label_aggregate, overlaps, ssl_aggregate
+from services.orchestrator.coverage import GAP_TOLERANCE_NS, Coverage, StoredResult
+from services.orchestrator.fusion import FusionEngine
+from services.orchestrator.latency import Latencies
+from services.orchestrator.settings import FusionSettings, TimeoutSettings
+
+MS = 1_000_000
+S = 1000 * MS
+
+
+def result(id_: int, component: str, type_: str, start: int, end: int, **payload) -> StoredResult:
+    json = {"id": id_, "component": component, "type": type_, "stream_id": "s",
+            "span": {"start_ns": start, "end_ns": end}, **payload}
+    return StoredResult.from_json(json)
+
+
+def direction(azimuth_deg: float, probability: float = 0.0) -> dict:
+    return {"source_id": "", "azimuth_deg": azimuth_deg, "elevation_deg": 0.0,
+            "probability": probability}
+
+
+def test_coverage_is_contiguous_from_start_to_end_in_any_order():
+    coverage = Coverage()
+    coverage.add(2 * S, 3 * S)
+    assert not coverage.covers(0, 3 * S)  # reaches the end, but from 2 s only
+    coverage.add(0, S)
+    assert not coverage.covers(0, 3 * S)  # a gap from 1 s to 2 s
+    coverage.add(S + GAP_TOLERANCE_NS // 2, 2 * S)  # rounding of stamps is no gap
+    assert coverage.covers(0, 3 * S) and coverage.starts == [0] and coverage.ends == [3 * S]
+    assert not coverage.covers(0, 4 * S)
+    coverage.forget_before(5 * S)
+    assert coverage.starts == []
+
+
+@pytest.mark.parametrize("span, inside", [((0, 10), True), ((20, 30), False), ((0, 5), False), ((12, 15), True),
+                                          ((-5, 30), True), ((20, 20), True), ((30, 40), False)])
+def test_overlap_means_sharing_time_and_touching_is_not_enough(span, inside):
+    assert overlaps(*span, 5, 20) is inside
+
+
+def test_ssl_aggregate_is_a_circular_mean_weighted_by_overlap():
+    window = (0, 4 * S)
+    results = [{"span": {"start_ns": 0, "end_ns": S}, "ssl": {"directions": [direction(350)]}},
+               {"span": {"start_ns": S, "end_ns": 2 * S}, "ssl": {"directions": [direction(10)]}}]
+    mean = ssl_aggregate(results, window)
+    assert min(mean["azimuth_deg"], 360 - mean["azimuth_deg"]) < 1e-6  # not 180
+    assert mean["concentration"] == pytest.approx(0.98481, abs=1e-4) and mean["overlap_s"] == 2.0
+    # three times the overlap at 90°: pulled towards it
+    results.append({"span": {"start_ns": S, "end_ns": 4 * S}, "ssl": {"directions": [direction(90)]}})
+    assert ssl_aggregate(results, window)["azimuth_deg"] == pytest.approx(56.7136, abs=1e-3)
+    # a direction's probability weighs too; outside the window weighs nothing
+    weighted = ssl_aggregate([
+        {"span": {"start_ns": 0, "end_ns": S}, "ssl": {"directions": [direction(0, 0.9), direction(90, 0.1)]}},
+        {"span": {"start_ns": 5 * S, "end_ns": 6 * S}, "ssl": {"directions": [direction(180)]}}], (0, S))
+    assert weighted["azimuth_deg"] == pytest.approx(6.3402, abs=1e-3)
+    assert ssl_aggregate([{"span": {"start_ns": 0, "end_ns": S}, "ssl": {"directions": []}}], window) is None
+
+
+def test_label_aggregate_is_an_overlap_weighted_distribution():
+    results = [{"span": {"start_ns": 0, "end_ns": 3 * S},
+                "emotion": {"label": "sad", "probability": 0.6,
+                            "class_probabilities": {"sad": 0.6, "happy": 0.4}}},
+               {"span": {"start_ns": 3 * S, "end_ns": 4 * S},
+                "emotion": {"label": "happy", "probability": 0.9, "class_probabilities": {}}}]
+    aggregate = label_aggregate(results, "emotion", (0, 4 * S))
+    assert aggregate["distribution"] == {"happy": pytest.approx(0.55), "sad": pytest.approx(0.45)}
+    assert aggregate["label"] == "happy" and list(aggregate["distribution"]) == ["happy", "sad"]
+
+
+def test_timeouts_are_factor_times_running_mean_clamped_with_an_initial_value():
+    latencies = Latencies(TimeoutSettings(factor=1.5, factors={"slow": 3.0}, initial_s=2.0,
+                                          min_s=0.1, max_s=1.0))
+    assert latencies.timeout_ns("ssl") == 2 * S
+    for value in (100 * MS, 300 * MS):
+        latencies.add("ssl", value)
+        latencies.add("slow", value)
+    assert latencies.timeout_ns("ssl") == 300 * MS  # 1.5 x 200 ms
+    assert latencies.timeout_ns("slow") == 600 * MS
+    latencies.add("fast", 1 * MS)
+    latencies.add("late", 5 * S)
+    assert latencies.timeout_ns("fast") == 100 * MS and latencies.timeout_ns("late") == S
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 0
+
+    def __call__(self) -> int:
+        return self.now
+
+
+def engine_with(*components: tuple[str, str], **timeouts) -> tuple[FusionEngine, Clock]:
+    ids = itertools.count(1)
+    live = [SimpleNamespace(name=n, designation=d, stream_id="s") for n, d in components]
+    clock = Clock()
+    engine = FusionEngine([FusionSettings(name="u", anchor="speech", fuse=["ssl", "emotion"])],
+                          allocate_id=lambda: next(ids), live_components=lambda: live,
+                          timeouts=TimeoutSettings(**timeouts), clock_ns=clock)
+    return engine, clock
+
+
+def test_deadline_is_the_slowest_pending_components_own_and_dead_ones_are_not_waited_for():
+    engine, clock = engine_with(("ssl", "ssl"), ("emo", "emotion"), ("emo2", "emotion"))
+    engine.latencies.add("ssl", 100 * MS)   # timeout 150 ms
+    engine.latencies.add("emo", 400 * MS)   # timeout 600 ms
+    # emo2 unknown: initial 2 s
+    assert engine.on_result(result(1, "asr", "speech", 0, S), S) == []
+    assert engine.next_deadline_ns() == S + 2 * S
+    assert engine.on_component_gone("emo2") == []
+    assert engine.next_deadline_ns() == S + 600 * MS  # now the slowest is emo
+    assert engine.on_result(result(2, "emo", "emotion", 0, S, nothing={"reason": "silence"}),
+                            S + 10 * MS) == []
+    assert engine.next_deadline_ns() == S + 150 * MS
+    assert engine.on_timer(S + 149 * MS) == []
+    clock.now = S + 150 * MS
+    [fused] = engine.on_timer()
+    assert fused.json["completion"] == "timed_out" and fused.revision == 1
+    assert fused.json["missing"] == [{"component": "emo2", "type": "emotion", "reason": "gone"},
+                                     {"component": "ssl", "type": "ssl", "reason": "timed_out"}]
+    assert engine.next_deadline_ns() is None and not engine.open
+    # late: revision 2, ssl no longer missing; a late `nothing` revises nothing
+    [revised] = engine.on_result(result(3, "ssl", "ssl", 0, S, ssl={"directions": [direction(45)]}), 2 * S)
+    assert revised.id == fused.id and revised.revision == 2
+    assert [m["component"] for m in revised.json["missing"]] == ["emo2"]
+    assert revised.json["aggregates"]["ssl"]["azimuth_deg"] == pytest.approx(45)
+    assert engine.on_result(result(4, "emo2", "emotion", 0, S, nothing={"reason": "x"}), 2 * S) == []
+
+
+def test_restored_pending_fusion_waits_for_the_same_deadline_or_publishes_when_covered():
+    engine, clock = engine_with()
+    engine.restore_result(result(1, "asr", "speech", 0, S, speech={"hypotheses": []}))
+    engine.restore_result(result(2, "ssl", "ssl", 0, S, ssl={"directions": [direction(10)]}))
+    settings = FusionSettings(name="u", anchor="speech", fuse=["ssl", "emotion"])
+    anchor = result(1, "asr", "speech", 0, S, speech={"hypotheses": []})
+    engine.restore_open(7, settings, anchor, {"ssl": ("ssl", 5 * S), "emo": ("emotion", 3 * S)})
+    assert engine.next_deadline_ns() == 3 * S  # ssl covered before the restart
+    clock.now = 3 * S
+    [fused] = engine.on_timer()
+    assert fused.id == 7 and fused.json["missing_components"] == ["emo"]
+    assert [r["id"] for r in fused.json["results"]["ssl"]] == [2]
+
+
+def test_a_component_that_ended_the_stream_is_not_waited_for_until_it_sends_again():
+    engine, _ = engine_with(("ssl", "ssl"), ("emo", "emotion"))
+    engine.on_result(result(1, "emo", "emotion", 0, 3 * S, nothing={"reason": "silence"}), S)
+    assert engine.on_result(result(2, "asr", "speech", 0, S), S) == []  # waits for ssl
+    [fused] = engine.on_end_of_stream("s", "ssl")
+    assert fused.json["completion"] == "complete" and fused.json["missing"] == []
+    [fused] = engine.on_result(result(3, "asr", "speech", S, 2 * S), 2 * S)  # not waited for
+    assert fused.json["completion"] == "complete"
+    engine.on_result(result(4, "ssl", "ssl", 0, S // 2, nothing={"reason": "none"}), 2 * S)
+    assert engine.on_result(result(5, "asr", "speech", 2 * S, 3 * S), 3 * S) == []  # again
