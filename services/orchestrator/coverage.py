@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import bisect
 from dataclasses import dataclass
-from typing import Any, Iterator
+from typing import Any, Iterator, Protocol
 
 from .aggregate import overlaps
 
@@ -64,22 +64,29 @@ class Coverage:
             del self.starts[:cut], self.ends[:cut]
 
 
+class Spanned(Protocol):
+    id: int
+    start_ns: int
+    end_ns: int
+
+
 class SpanIndex:
-    """Results of one type in one stream, sorted by start, for overlap lookups."""
+    """Things with a span in one stream (results of one type, published fusions), sorted by
+    start, for overlap lookups."""
 
     def __init__(self) -> None:
         self._keys: list[tuple[int, int]] = []  # (start_ns, id)
-        self._results: list[StoredResult] = []
+        self._results: list[Any] = []
         self._longest_ns = 0
 
-    def add(self, result: StoredResult) -> None:
+    def add(self, result: Spanned) -> None:
         key = (result.start_ns, result.id)
         i = bisect.bisect_right(self._keys, key)
         self._keys.insert(i, key)
         self._results.insert(i, result)
         self._longest_ns = max(self._longest_ns, result.end_ns - result.start_ns)
 
-    def overlapping(self, start_ns: int, end_ns: int) -> Iterator[StoredResult]:
+    def overlapping(self, start_ns: int, end_ns: int) -> Iterator[Any]:
         lo = bisect.bisect_left(self._keys, (start_ns - self._longest_ns, -1))
         hi = bisect.bisect_right(self._keys, (end_ns, float("inf")))
         for result in self._results[lo:hi]:
@@ -87,7 +94,7 @@ class SpanIndex:
                 yield result
 
     def forget_before(self, horizon_ns: int) -> None:
-        """Drops results that start before ``horizon_ns - longest`` (they end before it)."""
+        """Drops what starts before ``horizon_ns - longest`` (it ends before the horizon)."""
         cut = bisect.bisect_left(self._keys, (horizon_ns - self._longest_ns, -1))
         if cut:
             del self._keys[:cut], self._results[:cut]

@@ -69,6 +69,14 @@ class Fusion:
     def window(self) -> tuple[int, int]:
         return self.anchor.start_ns, self.anchor.end_ns
 
+    @property
+    def start_ns(self) -> int:  # start_ns, end_ns, id: published fusions live in a SpanIndex
+        return self.anchor.start_ns
+
+    @property
+    def end_ns(self) -> int:
+        return self.anchor.end_ns
+
     def deadline_ns(self) -> int:
         """When it must be published: the latest deadline of a pending component (0: now)."""
         return max((deadline for _, deadline in self.waiting.values()), default=0)
@@ -89,8 +97,9 @@ class StreamMemory:
     coverage: dict[str, Coverage] = field(default_factory=dict)  # by component
     index: dict[str, SpanIndex] = field(default_factory=dict)  # real results, by type
     seen: set[str] = field(default_factory=set)  # components that sent results for it
+    ended: set[str] = field(default_factory=set)  # components that said end_of_stream since
     open: list[Fusion] = field(default_factory=list)
-    published: list[Fusion] = field(default_factory=list)
+    published: SpanIndex = field(default_factory=SpanIndex)  # by window, for late results
     newest_end_ns: int = 0
     since_prune: int = 0
 
@@ -135,8 +144,8 @@ class FusionEngine:
         memory = self._remember(result)
         fused: list[FusedResult] = []
         if not result.is_nothing:
-            for fusion in memory.published:  # late: a new revision
-                if fusion.add(result):
+            for fusion in list(memory.published.overlapping(result.start_ns, result.end_ns)):
+                if fusion.add(result):  # late: a new revision
                     fused.append(self._publish(fusion, received_ns))
             for fusion in memory.open:
                 fusion.add(result)
@@ -161,6 +170,20 @@ class FusionEngine:
             if component in fusion.waiting:
                 type_name, _ = fusion.waiting.pop(component)
                 fusion.missing[component] = (type_name, "gone")
+                if not fusion.waiting:
+                    fused.append(self._publish(fusion, None))
+                else:
+                    self._schedule(fusion)
+        return fused
+
+    def on_end_of_stream(self, stream_id: str, component: str) -> list[FusedResult]:
+        """``component`` has sent every result it will for the stream: no fusion of the stream
+        waits for it (until it sends for the stream again)."""
+        memory = self._memory(stream_id)
+        memory.ended.add(component)
+        fused = []
+        for fusion in list(memory.open):
+            if fusion.waiting.pop(component, None) is not None:
                 if not fusion.waiting:
                     fused.append(self._publish(fusion, None))
                 else:
@@ -205,7 +228,7 @@ class FusionEngine:
                         waiting={}, revision=fused["revision"], completion=fused["completion"],
                         missing={m["component"]: (m["type"], m["reason"])
                                  for m in fused.get("missing", [])})
-        self._memory(anchor.stream_id).published.append(fusion)
+        self._memory(anchor.stream_id).published.add(fusion)
 
     def restore_open(self, fused_id: int, settings: FusionSettings, anchor: StoredResult,
                      waiting: dict[str, tuple[str, int]]) -> None:
@@ -233,6 +256,7 @@ class FusionEngine:
             coverage = memory.coverage[result.component] = Coverage()
         coverage.add(result.start_ns, result.end_ns)
         memory.seen.add(result.component)
+        memory.ended.discard(result.component)
         if not result.is_nothing:
             index = memory.index.get(result.type)
             if index is None:
@@ -251,7 +275,7 @@ class FusionEngine:
             index.forget_before(horizon)
         for coverage in memory.coverage.values():
             coverage.forget_before(horizon)
-        memory.published = [f for f in memory.published if f.anchor.end_ns >= horizon]
+        memory.published.forget_before(horizon)
 
     @staticmethod
     def _covered(memory: StreamMemory, component: str, fusion: Fusion) -> bool:
@@ -277,6 +301,7 @@ class FusionEngine:
             for component in self._live():
                 if component.designation in types and component.name not in fusion.waiting and \
                         (component.stream_id == anchor.stream_id or component.name in memory.seen) \
+                        and component.name not in memory.ended \
                         and not self._covered(memory, component.name, fusion):
                     deadline = anchor.end_ns + self.latencies.timeout_ns(component.name)
                     fusion.waiting[component.name] = (component.designation, deadline)
@@ -301,7 +326,7 @@ class FusionEngine:
             if self.open.pop(fusion.id, None) is not None:
                 memory.open.remove(fusion)
                 self.changes.closed.append(fusion.id)
-            memory.published.append(fusion)
+            memory.published.add(fusion)
             reasons = {reason for _, reason in fusion.missing.values()}
             fusion.completion = (TIMED_OUT if TIMED_OUT in reasons else
                                  COMPONENTS_GONE if reasons else COMPLETE)

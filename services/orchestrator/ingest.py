@@ -225,11 +225,14 @@ class Ingest:
             log.warning("event=bad_end_of_stream reason=%r data=%r", str(exc), data[:200])
             return []
         component = self.registry.get(component_id)
+        fused: list[Outgoing] = []
         if component is not None:
             component.touch()
+            fused = [self._store_fused(f)
+                     for f in self.engine.on_end_of_stream(stream_id, component.name)]
         log.info("event=end_of_stream component_id=%s stream_id=%s", component_id, stream_id)
         self.streams.on_end_of_stream(stream_id, component_id)
-        return self.stream_ends()
+        return fused + self.stream_ends()  # the stream's last fused results before its end
 
     def stream_ends(self) -> list[Outgoing]:
         """``stream_end`` events of the streams that have now ended (call after any change)."""

@@ -26,7 +26,8 @@ async def ws_fused(websocket: WebSocket,
                                                "result with a larger id"),
                    after_seq: int | None = Query(
                        None, ge=0, description="first every publication (each revision) with a "
-                                               "larger seq: resume without missing revisions")
+                                               "larger seq: resume without missing revisions "
+                                               "(after_id is then ignored)")
                    ) -> None:
     core: Orchestrator = websocket.app.state.core
     client = f"{websocket.client.host}:{websocket.client.port}" if websocket.client else "-"
@@ -76,7 +77,7 @@ async def _send(websocket: WebSocket, core: Orchestrator, subscriber: Subscriber
             last_seq = seq
         if len(rows) < BACKLOG_PAGE:
             break
-    cursor = after_id
+    cursor = after_id if after_seq is None else None  # after_seq, if given, has sent it all
     while cursor is not None:
         page = core.store.query_fused(fusion=subscriber.fusion, stream=subscriber.stream,
                                       after_id=cursor, limit=BACKLOG_PAGE)

@@ -209,7 +209,7 @@ def test_a_component_that_never_answers_times_out_at_factor_times_its_mean_laten
         fused = recv(ws, timeout_s=5.0)
     [emotion_latency] = orchestrator.http.get("/latency", params={"component": "emotion"}).json()["items"]
     assert emotion_latency["count"] == 3
-    assert 400 <= emotion_latency["mean_ms"] < 450
+    assert 400 <= emotion_latency["mean_ms"] < 700  # 400 ms + transit on a loaded machine
     assert emotion_latency["timeout_ms"] == pytest.approx(1.5 * emotion_latency["mean_ms"], abs=0.01)
     waited_ms = (fused["published_ns"] - t1) / 1e6
     assert emotion_latency["timeout_ms"] - 5 <= waited_ms <= emotion_latency["timeout_ms"] + 300

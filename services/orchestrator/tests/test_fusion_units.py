@@ -146,3 +146,15 @@ def test_restored_pending_fusion_waits_for_the_same_deadline_or_publishes_when_c
     [fused] = engine.on_timer()
     assert fused.id == 7 and fused.json["missing_components"] == ["emo"]
     assert [r["id"] for r in fused.json["results"]["ssl"]] == [2]
+
+
+def test_a_component_that_ended_the_stream_is_not_waited_for_until_it_sends_again():
+    engine, _ = engine_with(("ssl", "ssl"), ("emo", "emotion"))
+    engine.on_result(result(1, "emo", "emotion", 0, 3 * S, nothing={"reason": "silence"}), S)
+    assert engine.on_result(result(2, "asr", "speech", 0, S), S) == []  # waits for ssl
+    [fused] = engine.on_end_of_stream("s", "ssl")
+    assert fused.json["completion"] == "complete" and fused.json["missing"] == []
+    [fused] = engine.on_result(result(3, "asr", "speech", S, 2 * S), 2 * S)  # not waited for
+    assert fused.json["completion"] == "complete"
+    engine.on_result(result(4, "ssl", "ssl", 0, S // 2, nothing={"reason": "none"}), 2 * S)
+    assert engine.on_result(result(5, "asr", "speech", 2 * S, 3 * S), 3 * S) == []  # again
