@@ -70,7 +70,28 @@ class ArrayGeometry:
     def check_channels(self, channels: int) -> None:
         if channels != self.mics:
             raise ArrayError(f"array {self.name} has {self.mics} microphones but the audio has {channels} "
-                             f"channel(s); the channel count must equal the number of microphones")
+                             f"channel(s); the channel count must equal the number of microphones "
+                             f"(or name the microphones' channels)")
+
+    def select_channels(self, channels: int, mic_channels: list[int]) -> list[int]:
+        """The audio's channels that are the microphones, in array order (all of them by default).
+
+        ``channels`` is the audio's channel count (0: not known yet); ``mic_channels`` names the
+        microphones' channels where the audio has others too (e.g. the ReSpeaker's 6-channel firmware:
+        processed audio on 0, the microphones on 1-4, playback on 5).
+        """
+        if not mic_channels:
+            if channels:
+                self.check_channels(channels)
+            return list(range(self.mics))
+        if len(mic_channels) != self.mics or len(set(mic_channels)) != len(mic_channels):
+            raise ArrayError(f"array {self.name} has {self.mics} microphones: name {self.mics} distinct channels "
+                             f"for them, not {list(mic_channels)}")
+        wrong = [c for c in mic_channels if c < 0 or (channels and c >= channels)]
+        if wrong:
+            have = f"audio of {channels} channel(s) (0 to {channels - 1})" if channels else "the audio"
+            raise ArrayError(f"microphone channels {wrong} do not exist in {have}")
+        return list(mic_channels)
 
     def describe(self) -> str:
         return (f"{self.name} ({self.mics} mics, aperture {self.aperture_m * 100:.1f} cm, "

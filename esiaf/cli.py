@@ -83,21 +83,35 @@ def check_input(path: Path) -> int:
     return info.channels
 
 
-def check_array(spec: str | None, channels: int, what: str):
-    """The array geometry for multi-channel audio (None for mono without --array)."""
+def check_array(args: argparse.Namespace, channels: int):
+    """The array geometry and the audio's channel count (None, channels for mono without --array)."""
     from esiaf.arrays import ArrayError, load_array
-    if spec is None:
+    mic_channels = parse_channels(args.mic_channels)
+    if args.array is None:
+        if mic_channels or args.channels:
+            raise LaunchError("--mic-channels and --channels describe a microphone array: give --array too")
         if channels > 1:
-            raise LaunchError(f"{what} has {channels} channels: name the microphone array with --array "
-                              f"(pepper4, respeaker4, circular:MICS:RADIUS_M or a YAML file of positions)")
-        return None
+            raise LaunchError(f"input file {args.input} has {channels} channels: name the microphone array with "
+                              f"--array (pepper4, respeaker4, circular:MICS:RADIUS_M or a YAML file of positions)")
+        return None, channels
     try:
-        array = load_array(spec)
-        if channels:
-            array.check_channels(channels)
+        array = load_array(args.array)
+        if not channels:  # live capture: as many channels as asked, or as the microphones need
+            channels = args.channels or (max(mic_channels) + 1 if mic_channels else array.mics)
+        array.select_channels(channels, mic_channels)
     except ArrayError as exc:
         raise LaunchError(str(exc)) from None
-    return array
+    return array, channels
+
+
+def parse_channels(text: str | None) -> list[int]:
+    if not text:
+        return []
+    try:
+        return [int(part) for part in text.split(",")]
+    except ValueError:
+        raise LaunchError(f"--mic-channels takes channel numbers separated by commas (e.g. 1,2,3,4), "
+                          f"not {text!r}") from None
 
 
 def check_port_free(host: str, port: int) -> None:
@@ -118,6 +132,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     source.add_argument("--mic", metavar="DEVICE", help="ALSA capture device (see arecord -L)")
     run.add_argument("--array", help="microphone array of a multi-channel input or --mic: pepper4, respeaker4, "
                      "circular:MICS:RADIUS_M or a YAML file; starts sound source localisation")
+    run.add_argument("--mic-channels", help="with --array: the channels that are the microphones, in the array's "
+                     "order, where the audio has others too (ReSpeaker 6-channel firmware: 1,2,3,4)")
+    run.add_argument("--channels", type=int, help="with --mic and --array: channels to capture "
+                     "(default: as the microphones need)")
     run.add_argument("--ssl-algorithm", help="DOA algorithm of the ssl service (default NormMUSIC)")
     run.add_argument("--fast", action="store_true", help="play the file as fast as possible")
     run.add_argument("--grammar", help="JSGF grammar file for the recogniser, or 'robocup'")
@@ -133,8 +151,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 
 
 def run(args: argparse.Namespace) -> int:
-    channels = check_input(args.input) if args.input else 0
-    array = check_array(args.array, channels, f"input file {args.input}")
+    array, channels = check_array(args, check_input(args.input) if args.input else 0)
     if args.grammar and args.grammar != "robocup" and not Path(args.grammar).is_file():
         raise LaunchError(f"grammar file {args.grammar} does not exist")
     check_port_free(args.host, args.port)
@@ -158,14 +175,16 @@ def run(args: argparse.Namespace) -> int:
         else:  # the recogniser hears the first microphone; ssl hears them all
             vad = start_service(supervisor, client, "vad", env={"ESIAF_VAD_INPUT_TOPIC": "splitter/ch0"})
             start_service(supervisor, client, "splitter", env={
-                "ESIAF_SPLITTER_INPUT_CHANNELS": str(array.mics), "ESIAF_SPLITTER_CHANNELS": "[0]"})
-            ssl_env = {"ESIAF_SSL_ARRAY": args.array}
+                "ESIAF_SPLITTER_INPUT_CHANNELS": str(channels), "ESIAF_SPLITTER_CHANNELS": "[0]"})
+            ssl_env = {"ESIAF_SSL_ARRAY": args.array, "ESIAF_SSL_CHANNELS": str(channels)}
+            if args.mic_channels:
+                ssl_env["ESIAF_SSL_MIC_CHANNELS"] = f"[{args.mic_channels}]"
             if args.ssl_algorithm:
                 ssl_env["ESIAF_SSL_ALGORITHM"] = args.ssl_algorithm
             start_service(supervisor, client, "ssl", env=ssl_env)
             wait_until(lambda: topic_ready(client, "splitter/ch0", 1), supervisor,
                        "vad to subscribe to splitter/ch0", START_TIMEOUT_S, vad)
-            grabber_env.update(ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS="2", ESIAF_GRABBER_CHANNELS=str(array.mics))
+            grabber_env.update(ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS="2", ESIAF_GRABBER_CHANNELS=str(channels))
         wait_until(lambda: topic_ready(client, "vad/speech", 1), supervisor, "asr to subscribe to vad/speech",
                    START_TIMEOUT_S, vad)
         with connect(f"ws://{args.host}:{args.port}/ws/fused?stream={stream_id}", open_timeout=10) as ws:

@@ -25,13 +25,16 @@ def four_channels(tmp_path):
     return path
 
 
-@pytest.mark.parametrize("array, phrases", [
-    (None, ["has 4 channels", "--array"]),
-    ("circular:6:0.05", ["6 microphones but the audio has 4 channel(s)"]),
-    ("pepper5", ["unknown array 'pepper5'"]),
+@pytest.mark.parametrize("extra, phrases", [
+    ([], ["has 4 channels", "--array"]),
+    (["--array", "circular:6:0.05"], ["6 microphones but the audio has 4 channel(s)"]),
+    (["--array", "pepper5"], ["unknown array 'pepper5'"]),
+    (["--array", "respeaker4", "--mic-channels", "1,2,3,4"], ["channels [4] do not exist in audio of 4"]),
+    (["--array", "respeaker4", "--mic-channels", "1-4"], ["--mic-channels takes channel numbers"]),
+    (["--mic-channels", "0,1,2,3"], ["give --array too"]),
 ])
-def test_the_array_must_fit_the_input(four_channels, tmp_path, array, phrases):
-    args = ["--input", str(four_channels), "--workdir", str(tmp_path)] + (["--array", array] if array else [])
+def test_the_array_must_fit_the_input(four_channels, tmp_path, extra, phrases):
+    args = ["--input", str(four_channels), "--workdir", str(tmp_path), *extra]
     result = esiaf_run(*args)
     assert result.returncode == 2
     assert_clear(result, *phrases)
@@ -62,6 +65,23 @@ def test_the_respeaker_recording_runs_through_the_whole_pipeline(launch):
     assert run.lines[-1]["type"] == "stream_end"
     for fused in (line for line in run.lines if line.get("type") == "fused_result"):
         assert "ssl" in fused["results"]
+
+
+@pytest.mark.e2e
+def test_a_six_channel_recording_with_the_microphones_on_channels_1_to_4(launch, tmp_path):
+    """The ReSpeaker's 6-channel firmware layout: processed audio on 0 (here: mic 0), mics on 1-4, playback on 5."""
+    truth = json.loads(SCENE.with_suffix(".json").read_text())["utterances"][:2]
+    mics, rate = soundfile.read(str(SCENE), dtype="int16", frames=int((truth[-1]["end_s"] + 1.0) * 16000))
+    six = tmp_path / "six.wav"
+    soundfile.write(str(six), np.concatenate([mics[:, :1], mics, np.zeros_like(mics[:, :1])], axis=1), rate)
+    run = launch("--input", str(six), "--array", "respeaker4", "--mic-channels", "1,2,3,4", "--grammar", "robocup",
+                 "--fast", "--json")
+    assert run.process.wait(timeout=180) == 0, "".join(run.stderr)
+    fused = [line for line in run.lines if line.get("type") == "fused_result"]
+    assert [normalise(f["anchor"]["speech"]["hypotheses"][0]["text"]) for f in fused] == \
+        [normalise(t["text"]) for t in truth]
+    for f, t in zip(fused, truth):
+        assert angle_difference_deg(f["aggregates"]["ssl"]["azimuth_deg"], t["azimuth_deg"]) <= 15
 
 
 @pytest.mark.e2e

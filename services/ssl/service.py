@@ -35,7 +35,8 @@ class SslSettings(ComponentSettings):
     array: str = "respeaker4"  # pepper4, respeaker4, circular:MICS:RADIUS_M, or a YAML file of positions
     sample_rate_hz: int = 16000
     sample_type: str = "int16"
-    channels: int = 0  # 0 = the array's number of microphones; anything else must equal it
+    channels: int = 0  # of the input; 0 = as many as mic_channels names, or the array's microphones
+    mic_channels: list[int] = []  # input channels that are the array's microphones, in array order; [] = all
     algorithm: str = "NormMUSIC"  # MUSIC, NormMUSIC, SRP, TOPS, CSSM, WAVES, FRIDA
     nfft: int = 256
     freq_min_hz: float = 300.0
@@ -73,9 +74,9 @@ class Ssl(Component):
         super().__init__(settings)
         try:
             self.array: ArrayGeometry = load_array(settings.array)
-            if settings.channels:
-                self.array.check_channels(settings.channels)
-            self.format = AudioFormat(settings.sample_rate_hz, settings.sample_type, channels=self.array.mics)
+            self.mic_channels = self.array.select_channels(settings.channels, settings.mic_channels)
+            channels = settings.channels or (max(self.mic_channels) + 1 if settings.mic_channels else self.array.mics)
+            self.format = AudioFormat(settings.sample_rate_hz, settings.sample_type, channels=channels)
         except ValueError as exc:
             raise SetupError(f"bad SSL settings: {exc}") from None
         if settings.frame_ms <= 0:
@@ -109,7 +110,7 @@ class Ssl(Component):
             state = self.streams[audio.stream_id] = self._new_stream()
         if audio.frames:
             state.chunks.append(audio)
-            state.samples.append(audio.as_float())
+            state.samples.append(audio.as_float()[:, self.mic_channels])
             state.buffered += audio.frames
         while state.buffered >= self.frame_frames:
             self._localise(state, self.frame_frames)

@@ -131,3 +131,20 @@ def test_a_track_follows_its_source_smoothly():
     for step, azimuth in enumerate([350.0, 0.0, 10.0, 20.0]):
         track, = tracker.update(step, [azimuth])
     assert track.source_id == "s1" and angle_difference_deg(track.azimuth_deg, 11.25) < 0.5
+
+
+def test_the_microphones_may_be_some_of_the_channels():
+    respeaker = load_array("respeaker4")
+    assert respeaker.select_channels(4, []) == [0, 1, 2, 3]
+    assert respeaker.select_channels(6, [1, 2, 3, 4]) == [1, 2, 3, 4]
+    assert respeaker.select_channels(0, [4, 3, 2, 1]) == [4, 3, 2, 1]
+    for channels, mics, message in [(6, [], "has 4 microphones but the audio has 6"),
+                                    (6, [1, 2, 3], "name 4 distinct channels"),
+                                    (6, [1, 1, 2, 3], "name 4 distinct channels"),
+                                    (5, [1, 2, 3, 5], r"channels \[5\] do not exist in audio of 5 channel")]:
+        with pytest.raises(ArrayError, match=message):
+            respeaker.select_channels(channels, mics)
+    ssl = Ssl(SslSettings(array="respeaker4", channels=6, mic_channels=[1, 2, 3, 4]))
+    assert ssl.format.channels == 6 and ssl.mic_channels == [1, 2, 3, 4]
+    with pytest.raises(SetupError, match="do not exist in audio of 4 channel"):
+        Ssl(SslSettings(array="respeaker4", channels=4, mic_channels=[1, 2, 3, 4]))

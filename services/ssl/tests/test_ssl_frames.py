@@ -47,3 +47,12 @@ def test_without_background_selection_every_loud_frame_gets_a_direction_or_a_rea
     assert frames and all(f.azimuth_deg is None for f in frames)  # no frame is that sure
     frames = localise(signals, RATE, array="pepper4", bin_snr_db=0, algorithm="SRP")
     assert all(angle_difference_deg(f.azimuth_deg, 300.0) <= 5 for f in frames[:-1]), frames
+
+
+def test_only_the_microphone_channels_are_localised():
+    array = load_array("respeaker4")
+    mics = plane_wave(array, 250.0, seconds=0.5)
+    decoy = plane_wave(array, 30.0, seconds=0.5, seed=7)[:, :1] * 3  # a loud extra channel
+    six = np.concatenate([decoy, mics, np.zeros((len(mics), 1))], axis=1)  # ReSpeaker 6-channel firmware layout
+    frames = localise(six, RATE, array="respeaker4", channels=6, mic_channels=[1, 2, 3, 4], bin_snr_db=0)
+    assert frames and all(angle_difference_deg(f.azimuth_deg, 250.0) <= 5 for f in frames), frames
