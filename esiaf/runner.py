@@ -9,11 +9,11 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from typing import Sequence
+from typing import Any, Sequence
 
 from esiaf.component import Component, SetupError
 from esiaf.control import RegistrationError
-from esiaf.settings import SettingsError, load_settings
+from esiaf.settings import SettingsError, load_settings, parse_value
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s [{service}] %(message)s"
 
@@ -22,13 +22,13 @@ def configure_logging(service: str, level: str) -> None:
     logging.basicConfig(level=level.upper(), format=LOG_FORMAT.format(service=service), force=True)
 
 
-def parse_set(values: Sequence[str]) -> dict[str, str]:
+def parse_set(values: Sequence[str]) -> dict[str, Any]:
     overrides = {}
     for item in values:
         key, sep, value = item.partition("=")
         if not sep or not key:
             raise SettingsError(f"--set takes KEY=VALUE, not {item!r}")
-        overrides[key.strip().replace("-", "_")] = value
+        overrides[key.strip().replace("-", "_")] = parse_value(value)  # as environment values: 3, [1, 2], ...
     return overrides
 
 
@@ -38,7 +38,7 @@ def main(component_cls: type[Component], argv: Sequence[str] | None = None) -> i
                                      description=(component_cls.__doc__ or "").strip().splitlines()[0])
     parser.add_argument("--config", help="YAML settings file (also ESIAF_%s_CONFIG)" % service.upper())
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override one setting (repeatable)")
+                        help="override one setting (repeatable; the value is read as YAML, e.g. 3 or [1, 2])")
     for name, help_text in component_cls.options.items():
         flag = "--" + name.replace("_", "-")
         if component_cls.Settings.model_fields[name].annotation is bool:

@@ -47,7 +47,8 @@ class ComponentSettings(StrictModel):
     log_level: str = "INFO"
 
 
-def _env_value(raw: str) -> Any:
+def parse_value(raw: str) -> Any:
+    """A value given as text (environment, --set): a YAML scalar or flow collection, else the text."""
     try:
         return yaml.safe_load(raw) if raw.strip() else raw
     except yaml.YAMLError:
@@ -61,7 +62,7 @@ def _from_env(model: type[BaseModel], service: str, env: Mapping[str, str]) -> d
     values: dict[str, Any] = {}
     for key, raw in env.items():
         if key.startswith(ENV_PREFIX) and key[len(ENV_PREFIX):].lower() in common:
-            values.setdefault(key[len(ENV_PREFIX):].lower(), _env_value(raw))
+            values.setdefault(key[len(ENV_PREFIX):].lower(), parse_value(raw))
     for key, raw in env.items():
         if not key.startswith(service_prefix):
             continue
@@ -72,7 +73,7 @@ def _from_env(model: type[BaseModel], service: str, env: Mapping[str, str]) -> d
             raise SettingsError(
                 f"unknown setting {key} for {service}; known: "
                 + ", ".join(sorted(service_prefix + f.upper() for f in fields)))
-        values[field] = _env_value(raw)
+        values[field] = parse_value(raw)
     return values
 
 

@@ -97,3 +97,9 @@ def test_each_question_of_the_demo_scene_comes_with_its_text_and_direction(launc
         assert abs((f["anchor"]["span"]["start_ns"] - start_ns) / 1e9 - t["start_s"]) < 0.3, (f["anchor"], t)
         azimuth = f["aggregates"]["ssl"]["azimuth_deg"]
         assert angle_difference_deg(azimuth, t["azimuth_deg"]) <= 15, (azimuth, t)
+
+
+def test_list_settings_can_be_given_with_set():
+    from esiaf.runner import parse_set
+    assert parse_set(["mic_channels=[1, 2, 3, 4]", "channels=6", "array=respeaker4"]) == \
+        {"mic_channels": [1, 2, 3, 4], "channels": 6, "array": "respeaker4"}
