@@ -44,6 +44,7 @@ class Transport:
                  bind_host: str, audio_port: int = 0, advertise_host: str = ""):
         self._poller = zmq.Poller()
         self._connected: set[str] = set()
+        self._leaving: set[str] = set()  # producers gone, still connected until their queue is read
         self._results_endpoint = ""
         self.state = context.socket(zmq.PAIR)
         self.state.setsockopt(zmq.LINGER, 0)
@@ -101,6 +102,8 @@ class Transport:
             ready = dict(self._poller.poll(timeout=0))
             if not take_audio:
                 ready.pop(self.sub, None)
+        if self._leaving:
+            self._drop_leaving()
 
     def send_audio(self, topic: str, message: bytes) -> bool:
         """False if refused at the high-water mark."""
@@ -122,13 +125,28 @@ class Transport:
         """Connects the input socket to exactly these producer endpoints."""
         if self.sub is None:
             return
-        for endpoint in wanted - self._connected:
+        for endpoint in wanted - self._connected - self._leaving:
             self.sub.connect(endpoint)
             log.info("connected to producer endpoint=%s", endpoint)
-        for endpoint in self._connected - wanted:
+        self._leaving = (self._leaving | self._connected) - wanted
+        self._connected = set(wanted)
+        if self._leaving:
+            self._drop_leaving()
+
+    def _drop_leaving(self) -> None:
+        """Disconnects producers that are gone, once nothing is waiting on the input socket.
+
+        Until then their queued audio is still read (a fast producer's last chunks and its end
+        of stream are not lost), and libzmq aborts a process whose SUB socket disconnects while
+        it holds the first frame of a message (``Assertion failed: !_more (src/fq.cpp)``,
+        zeromq/libzmq#2163): polling prefetches that frame, so wait until the socket is empty.
+        """
+        if self.sub.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+            return
+        for endpoint in self._leaving:
             self.sub.disconnect(endpoint)
             log.info("disconnected from producer endpoint=%s", endpoint)
-        self._connected = set(wanted)
+        self._leaving.clear()
 
     def connect_results(self, endpoint: str) -> None:
         if endpoint and endpoint != self._results_endpoint:
