@@ -144,7 +144,8 @@ def export(model, x: np.ndarray, path: Path) -> None:
 
 
 def label_map(task: Task, model, **extra) -> dict:
-    return {"labels": [str(c) for c in model.classes_], "features": FEATURE_SET, "sample_rate_hz": 16000,
+    return {"task": task.name, "labels": [str(c) for c in model.classes_], "features": FEATURE_SET,
+            "sample_rate_hz": 16000,
             "classifier": f"StandardScaler + LogisticRegression(C={task.regularisation_c}, L2)", **extra}
 
 
@@ -158,7 +159,7 @@ def train(task: Task, data: Path, rows: list[dict[str, str]], x_all: np.ndarray,
     log.info("%s LOSO: UAR %.3f accuracy %.3f", task.name, evaluation["uar"], evaluation["accuracy"])
     model = fit(task, x, y)
     export(model, x, out / f"{task.name}.onnx")
-    card = label_map(task, model, task=task.name, data=str(data.name), loso=evaluation,
+    card = label_map(task, model, data=str(data.name), loso=evaluation,
                      trained_on={"utterances": int(len(y)), "speakers": sorted(set(speakers))})
     (out / f"{task.name}.json").write_text(json.dumps(card, indent=1) + "\n")
 
@@ -167,7 +168,7 @@ def train(task: Task, data: Path, rows: list[dict[str, str]], x_all: np.ndarray,
     export(holdout, x[~held], out / "holdout" / f"{task.name}.onnx")
     predicted = holdout.predict(x[held]).astype(str)
     (out / "holdout" / f"{task.name}.json").write_text(json.dumps(label_map(
-        task, holdout, task=task.name, trained_without_speakers=list(HOLDOUT_SPEAKERS),
+        task, holdout, trained_without_speakers=list(HOLDOUT_SPEAKERS),
         held_out=scores(y[held], predicted, evaluation["labels"]),
         predictions={p: {"truth": t, "predicted": q} for p, t, q in zip(paths[held], y[held], predicted)}),
         indent=1) + "\n")
