@@ -77,6 +77,10 @@ class UtteranceClassifier(Component):
         segment = audio.meta.segment
         span = (segment.start_ns, segment.end_ns) if segment.end_ns else (utterance.start_ns, audio.end_ns)
         samples = np.concatenate(utterance.chunks) if utterance.chunks else np.zeros(0, np.float32)
+        if segment.end_ns:  # the speech span only, as in training (features.py): no pre-roll, no hang-over
+            rate = self.settings.sample_rate_hz
+            first = max(0, (segment.start_ns - utterance.start_ns) * rate // 1_000_000_000)
+            samples = samples[first:max(first, (segment.end_ns - utterance.start_ns) * rate // 1_000_000_000)]
         reason = self.unusable(samples)
         if reason:
             self.nothing += 1

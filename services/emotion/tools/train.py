@@ -2,7 +2,8 @@
 
     python -m services.emotion.tools.train [--data ../shared/data/emodb] [--tasks emotion4,emotion7,gender]
 
-For each task it extracts openSMILE ComParE 2016 functionals of every utterance (cached in
+For each task it extracts openSMILE ComParE 2016 functionals of every utterance's speech span,
+as the VAD would cut it (``features.speech_span``; cached in
 ``.cache/emotion/``, git-ignored), evaluates leave-one-speaker-out (train on 9 speakers, test on
 the 10th, for each speaker), trains the final model on all 10 speakers and writes, in
 ``services/emotion/models/``: ``<task>.onnx`` (standardisation + logistic regression, converted
@@ -26,7 +27,7 @@ import soundfile
 
 from esiaf.testing import SHARED_DATA
 from services.emotion.backends import MODELS
-from services.emotion.features import FeatureExtractor
+from services.emotion.features import FeatureExtractor, speech_span
 from services.emotion.tools.model_card import write_card
 
 log = logging.getLogger("train")
@@ -66,7 +67,7 @@ def read_manifest(data: Path) -> list[dict[str, str]]:
 def features(data: Path, rows: list[dict[str, str]]) -> np.ndarray:
     """(utterances, features), from the cache when it holds exactly these files."""
     import opensmile
-    cache = CACHE / f"{FEATURE_SET}-opensmile{opensmile.__version__}.npz"
+    cache = CACHE / f"{FEATURE_SET}-speech-span-opensmile{opensmile.__version__}.npz"
     paths = np.array([r["path"] for r in rows])
     if cache.is_file():
         stored = np.load(cache)
@@ -79,7 +80,8 @@ def features(data: Path, rows: list[dict[str, str]]) -> np.ndarray:
         samples, rate = soundfile.read(data / row["path"], dtype="float32")
         if rate != extractor.sample_rate_hz:
             raise SystemExit(f"train: {row['path']} is {rate} Hz, expected {extractor.sample_rate_hz}")
-        values.append(extractor(samples))
+        first, end = speech_span(samples, rate)  # what the VAD forwards as the segment's speech
+        values.append(extractor(samples[first:end]))
         if (i + 1) % 100 == 0:
             log.info("features: %d/%d", i + 1, len(rows))
     speech_s = sum(float(r["duration_s"]) for r in rows)
