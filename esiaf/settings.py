@@ -92,7 +92,7 @@ def read_yaml_file(path: Path) -> dict[str, Any]:
     return data
 
 
-def load_settings(model: type[S], service: str, *, config: str | Path | None = None,
+def load_settings(model: type[S], service: str, /, *, config: str | Path | None = None,
                   env: Mapping[str, str] | None = None, **overrides: Any) -> S:
     """Builds ``model`` from defaults < YAML < environment < ``overrides``.
 

@@ -1,0 +1,108 @@
+"""Emotion and gender services: CPU per second of speech, and latency from segment end to result.
+
+EmoDB utterances (default: 30 of speakers 03 and 08, 1.5 s of silence between them) are played in
+real time through grabber → vad → emotion + gender → orchestrator, with the bundled models
+(``emotion4``, ``gender``). Beside it, in this process, the same utterances are classified by the
+same backends with no transport, to show what the model itself costs. Figures, as ``name=value``:
+
+- ``cpu_s_per_speech_s_<service>``: CPU seconds (psutil, user + system) a service used while the
+  file played, per second of speech played (the utterances' total duration), idle time included;
+- ``model_cpu_s_per_speech_s_<model>``: features + ONNX alone, in this process;
+- ``latency_<kind>_p50_ms`` / ``p90`` / ``max``: arrival of the fused result at a websocket client
+  minus (capture time of the end of the segment's speech + the VAD's 400 ms hang-over), i.e. from
+  the moment a segmenter could know the utterance had ended;
+- ``thesis_cpu_s_per_speech_s_<service>``: the thesis' realistic pipeline, 30,120 (emotion) and
+  5,960 (gender) CPU seconds for 83 minutes of speech.
+
+    python bench/emotion.py [--utterances 30] [--gap-s 1.5]
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import soundfile
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+from esiaf.testing import SHARED_DATA  # noqa: E402
+from services.emotion.backends import load_backend  # noqa: E402
+from services.emotion.tools.pipeline import EmotionPipeline, build_recording  # noqa: E402
+from services.vad.segmenter import SegmenterParams  # noqa: E402
+
+HANGOVER_NS = int(SegmenterParams().keep_alive_ms * 1_000_000)
+THESIS_SPEECH_S = 83 * 60
+THESIS_CPU_S = {"emotion": 30_120, "gender": 5_960}
+MODELS = {"emotion": "emotion4", "gender": "gender"}
+
+
+def percentile(values: list[float], q: float) -> float:
+    ordered = sorted(values)
+    k = (len(ordered) - 1) * q
+    lo, hi = int(k), min(int(k) + 1, len(ordered) - 1)
+    return ordered[lo] + (ordered[hi] - ordered[lo]) * (k - lo)
+
+
+def model_cost(files: list[Path], speech_s: float) -> dict[str, float]:
+    """CPU seconds per second of speech of each bundled model, in this process."""
+    figures = {}
+    for model in MODELS.values():
+        classifier = load_backend("onnx", model)
+        samples = [soundfile.read(f, dtype="float32")[0] for f in files]
+        started = time.process_time()
+        for s in samples:
+            classifier.classify(s)
+        figures[f"model_cpu_s_per_speech_s_{model}"] = (time.process_time() - started) / speech_s
+    return figures
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    parser.add_argument("--utterances", type=int, default=30)
+    parser.add_argument("--gap-s", type=float, default=1.5)
+    args = parser.parse_args()
+    emodb = SHARED_DATA / "emodb" / "wav"
+    if not emodb.is_dir():
+        raise SystemExit(f"bench: {emodb} is absent (the shared data folder belongs beside the repository)")
+    files = sorted(p for p in emodb.glob("*.wav") if p.name[:2] in ("03", "08"))[::2][:args.utterances]
+    workdir = Path(tempfile.mkdtemp(prefix="esiaf-bench-emotion-"))
+    placed = build_recording(files, workdir / "utterances.wav", args.gap_s)
+    speech_s = sum(u.end_s - u.start_s for u in placed)
+    audio_s = soundfile.info(str(workdir / "utterances.wav")).duration
+
+    print(f"pipeline: playing {len(files)} utterances ({speech_s:.0f} s of speech, {audio_s:.0f} s in all) in "
+          f"real time ...", file=sys.stderr, flush=True)
+    pipeline = EmotionPipeline(workdir, MODELS["emotion"], MODELS["gender"], "bench")
+    try:
+        before = pipeline.cpu_s()
+        arrived, _ = pipeline.play(workdir / "utterances.wav", fast=False, timeout_s=audio_s + 120)
+        after = pipeline.cpu_s()
+    finally:
+        pipeline.close()
+
+    figures: dict[str, float | int] = {"utterances": len(files), "speech_s": speech_s, "audio_s": audio_s}
+    for kind in MODELS:
+        latencies = [(t - f["anchor"]["span"]["end_ns"] - HANGOVER_NS) / 1e6 for t, f in arrived if f["fusion"] == kind]
+        figures[f"results_{kind}"] = len(latencies)
+        if latencies:
+            figures[f"latency_{kind}_p50_ms"] = statistics.median(latencies)
+            figures[f"latency_{kind}_p90_ms"] = percentile(latencies, 0.9)
+            figures[f"latency_{kind}_max_ms"] = max(latencies)
+    for name in sorted(after):
+        figures[f"cpu_s_per_speech_s_{name}"] = (after[name] - before.get(name, 0.0)) / speech_s
+    for kind, cpu_s in THESIS_CPU_S.items():
+        figures[f"thesis_cpu_s_per_speech_s_{kind}"] = cpu_s / THESIS_SPEECH_S
+        figures[f"thesis_over_ours_{kind}"] = (cpu_s / THESIS_SPEECH_S) / figures[f"cpu_s_per_speech_s_{kind}"]
+    print("in-process: the same utterances through the backends alone ...", file=sys.stderr, flush=True)
+    figures.update(model_cost(files, speech_s))
+    for name, value in figures.items():
+        print(f"{name}={value:.3f}" if isinstance(value, float) else f"{name}={value}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,20 @@
+"""Gender service: male or female, with a probability, for each VAD segment.
+
+It is the emotion service's component (``services/emotion/service.py``) with the gender
+result type and the bundled gender model; backends and settings are the same.
+"""
+from __future__ import annotations
+
+from services.emotion.service import UtteranceClassifier, UtteranceSettings
+
+
+class GenderSettings(UtteranceSettings):
+    model: str = "gender"
+
+
+class Gender(UtteranceClassifier):
+    """Speaker gender of each speech segment (male/female)."""
+
+    service = "gender"
+    designation = "gender"
+    Settings = GenderSettings

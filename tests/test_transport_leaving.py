@@ -1,0 +1,51 @@
+"""A producer that leaves while its audio is still queued: the rest is read, then it is dropped.
+
+Disconnecting a SUB socket that holds part of a message aborts the process inside libzmq
+(zeromq/libzmq#2163), so the scenario runs in a child process: before the fix it died of SIGABRT
+as soon as the orchestrator reported a fast grabber gone.
+"""
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+from esiaf.testing import REPO
+
+SCENARIO = textwrap.dedent("""
+    import time, zmq
+    from esiaf.transport import Transport, topic_frame
+    context = zmq.Context()
+    pub = context.socket(zmq.PUB)
+    port = pub.bind_to_random_port("tcp://127.0.0.1")
+    endpoint = f"tcp://127.0.0.1:{port}"
+    transport = Transport(context, inputs=["grabber/audio"], has_outputs=False, bind_host="127.0.0.1")
+    transport.connect_peers({endpoint})
+    received = 0
+    while received == 0:  # until the subscription has reached the publisher
+        pub.send_multipart([topic_frame("grabber/audio"), b"probe"])
+        received += sum(1 for kind, _ in transport.events(50) if kind == "audio")
+    for i in range(500):
+        pub.send_multipart([topic_frame("grabber/audio"), b"x" * 640])
+    time.sleep(0.5)  # all 500 queued on the SUB side
+    transport.sub.recv_multipart()
+    transport.sub.poll(0)  # as the component's poller does: prefetches the next message's first frame
+    transport.connect_peers(set())  # the orchestrator says the producer is gone
+    queued = 1
+    while True:
+        got = sum(1 for kind, _ in transport.events(100) if kind == "audio")
+        if not got:
+            break
+        queued += got
+    pub.send_multipart([topic_frame("grabber/audio"), b"after"])  # disconnected now: never arrives
+    late = sum(1 for kind, _ in transport.events(300) if kind == "audio")
+    print(queued, late)
+    transport.close(); pub.close(0); context.term()
+""")
+
+
+def test_a_producer_gone_with_audio_queued_is_read_to_the_end_then_disconnected():
+    done = subprocess.run([sys.executable, "-c", SCENARIO], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    queued, late = map(int, done.stdout.split())
+    assert queued >= 500 and late == 0
