@@ -143,6 +143,22 @@ def project(docker_images, tmp_path):
         p("down", "-v", "--remove-orphans", "-t", "5", check=False)
 
 
+OPTIONAL = ("fastapi", "uvicorn", "pocketsphinx", "alsaaudio")
+CARRIES = {"orchestrator": {"fastapi", "uvicorn"}, "grabber": {"alsaaudio"}, "vad": set(), "asr": {"pocketsphinx"}}
+
+
+@pytest.mark.parametrize("service", sorted(CARRIES))
+def test_each_image_carries_only_what_its_service_needs(docker_images, service):
+    image = f"esiaf/{service}:latest"
+    probe = f"import importlib.util as u; print(' '.join(m for m in {OPTIONAL!r} if u.find_spec(m)))"
+    found = run("docker", "run", "--rm", "--entrypoint", "python3", image, "-c", probe).stdout.split()
+    assert set(found) == CARRIES[service]
+    config = json.loads(run("docker", "image", "inspect", image).stdout)[0]["Config"]
+    assert config["User"] == "esiaf"
+    assert config["Healthcheck"]["Test"] == ["CMD", "python3", "-m", "esiaf.health"]
+    assert config["Env"] and f"ESIAF_SERVICE={service}" in config["Env"]
+
+
 def test_compose_up_plays_the_example_and_down_leaves_nothing(project):
     p = project()
     started = time.monotonic()
@@ -226,7 +242,7 @@ def test_stack_deploy_on_a_single_node_swarm_gives_the_same_sentences(swarm, tmp
     inputs = input_folder(tmp_path / "input", EXAMPLE)
     port = free_port()
     env = {**os.environ, "ESIAF_HTTP_PORT": str(port), "ESIAF_INPUT_DIR": str(inputs), "ESIAF_INPUT_FILE": "speech.wav",
-           "ESIAF_STREAM_ID": name, "ESIAF_NETWORK_DRIVER": "overlay", "ESIAF_GRABBER_REPLICAS": "0"}
+           "ESIAF_STREAM_ID": name, "ESIAF_GRABBER_REPLICAS": "0"}
     http = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=5)
     try:
         run("docker", "stack", "deploy", "-c", str(REPO / "compose.yaml"), name, env=env, cwd=REPO)
