@@ -20,6 +20,7 @@ SERVICES=(
     "grabber      alsa"
     "vad          -"
     "asr          asr"
+    "splitter     -"
 )
 TAG=${ESIAF_TAG:-latest}
 BASE=${ESIAF_BASE_TAG:-esiaf/base:bookworm-offline}

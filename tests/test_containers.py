@@ -103,8 +103,9 @@ class Project:
                            "--filter", label).stdout.split() for kind in ("container", "network", "volume")}
         return {kind: ids for kind, ids in found.items() if ids}
 
-    def fused(self) -> list[dict]:
-        return self.http.get("/fused", params={"stream": self.name, "limit": 100}).json()["items"]
+    def fused(self, fusion: str = "speech") -> list[dict]:
+        params = {"stream": self.name, "fusion": fusion, "limit": 100}
+        return self.http.get("/fused", params=params).json()["items"]
 
     def components(self) -> dict[str, dict]:
         items = self.http.get("/components", params={"include_dead": "true"}).json()["items"]
@@ -192,28 +193,38 @@ def test_compose_up_plays_the_example_and_down_leaves_nothing(project):
     assert p.leftovers() == {}
 
 
-def test_killed_asr_is_dead_within_3_s_and_comes_back(project, tmp_path):
+def test_killed_asr_is_dead_within_3_s_fusions_stop_waiting_and_it_comes_back(project, tmp_path):
     samples, rate = soundfile.read(EXAMPLE, dtype="int16")
     longer = tmp_path / "twice.wav"
     soundfile.write(longer, np.concatenate([samples, samples]), rate)  # 42 s: room to kill and restart
     p = project(longer)
     p("up", "-d", timeout=600)
-    poll(lambda: p.fused(), timeout_s=120)
+    # besides the default speech fusion, one anchored on the vad's segments that fuses speech
+    p.http.put("/fusions", json={"items": [{"name": "speech", "anchor": "speech", "fuse": []},
+                                           {"name": "segments", "anchor": "vad", "fuse": ["speech"]}]}
+               ).raise_for_status()
+    poll(lambda: p.fused("speech"), timeout_s=120)
     asr_id = next(i for i, c in p.components().items() if c["name"] == "asr" and c["status"] == "alive")
     p("kill", "asr")
     killed = time.monotonic()
     poll(lambda: p.components()[asr_id]["status"] == "dead", timeout_s=10, interval_s=0.05)
     dead_after = time.monotonic() - killed
+    dead_ns = time.time_ns()
     print(f"asr killed: marked dead after {dead_after:.2f} s")
     assert dead_after <= 3.0
-    before = len(p.fused())
+    # an utterance while the asr is dead: its segment is fused without waiting for the asr
+    during = poll(lambda: [f for f in p.fused("segments") if f["anchor"]["received_ns"] > dead_ns], timeout_s=30)
+    assert during[0]["results"]["speech"] == [] and during[0]["completion"] != "timed_out", during[0]
+    before = len(p.fused("speech"))
     p("start", "asr")
     poll(lambda: any(c["name"] == "asr" and c["status"] == "alive" and i != asr_id
                      for i, c in p.components().items()), timeout_s=60)
-    resumed = poll(lambda: p.fused()[before:] or None, timeout_s=60)
+    resumed = poll(lambda: p.fused("speech")[before:] or None, timeout_s=60)
     assert best_text(resumed[0]), resumed[0]
-    texts = {normalise(best_text(f)) for f in p.fused()}
+    texts = {normalise(best_text(f)) for f in p.fused("speech")}
     assert texts <= {normalise(t) for t in TRUTH}, texts
+    # and segments are fused with its speech again
+    poll(lambda: any(f["results"]["speech"] for f in p.fused("segments") if f["id"] > during[0]["id"]), timeout_s=30)
 
 
 def swarm_state() -> str:
