@@ -31,6 +31,6 @@ stamp=.venv/.esiaf-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     echo "setup: installing Python packages into .venv" >&2
     .venv/bin/python -m pip install -q --upgrade pip
-    .venv/bin/python -m pip install -q -e ".[test,alsa,ssl,emotion]"
+    .venv/bin/python -m pip install -q -e ".[all,test]"
     touch "$stamp"
 fi

@@ -231,7 +231,7 @@ class Component:
                 raise SetupError(str(exc)) from None
             self.control = ControlClient(self._context, self.settings.orchestrator_url,
                                          self._registration_request(), self.stats,
-                                         self.settings.register_timeout_s)
+                                         self.settings.register_timeout_s, self.settings.health_file)
             self._output_links = {t: OutputLink(t, f) for t, f in self.outputs.items()}
             registration = self.control.start()
             self._apply_state(registration.state())

@@ -10,6 +10,10 @@ orchestrator answers ``unknown`` (it restarted, or thought us dead) the thread
 registers again; so it does when the orchestrator has been silent for longer
 than ``dead_after_s`` (it died, or came back on other ports), and it keeps
 trying for as long as the component runs. See docs/protocol.md.
+
+With a ``health_file``, the thread touches that file whenever the orchestrator
+answers (registration, state, heartbeat replies): its age tells a container's
+healthcheck (``python -m esiaf.health``) that the component is registered and heard.
 """
 from __future__ import annotations
 
@@ -137,8 +141,9 @@ class ControlClient:
     """Keeps the component registered and alive; runs in its own thread."""
 
     def __init__(self, context: zmq.Context, url: str, request: dict[str, Any],
-                 stats: Callable[[], dict[str, Any]], register_timeout_s: float):
+                 stats: Callable[[], dict[str, Any]], register_timeout_s: float, health_file: str = ""):
         self._context = context
+        self._health_file = health_file
         self._url = url
         self._request = dict(request, pid=os.getpid())
         self._stats = stats
@@ -156,6 +161,7 @@ class ControlClient:
         """Registers (blocking, with retries) and starts the heartbeat thread."""
         self.registration = register(self._url, self._request, self._register_timeout_s, self._stop.is_set)
         log.info("registered component_id=%s peers=%s", self.component_id, self.registration.peers)
+        self._heard()
         self._thread = threading.Thread(target=self._run, name="esiaf-control", daemon=True)
         self._thread.start()
         return self.registration
@@ -170,6 +176,17 @@ class ControlClient:
             self._thread.join(timeout=3.0)
         if unregister_too and self.registration:
             unregister(self._url, self.component_id)
+
+    def _heard(self) -> None:
+        """The orchestrator answered: freshens the health file, if there is one."""
+        if not self._health_file:
+            return
+        try:
+            with open(self._health_file, "a"):
+                os.utime(self._health_file)
+        except OSError as exc:
+            log.warning("cannot touch health_file=%s: %s", self._health_file, exc.strerror)
+            self._health_file = ""
 
     def _dealer(self) -> zmq.Socket:
         dealer = self._context.socket(zmq.DEALER)
@@ -204,6 +221,7 @@ class ControlClient:
                     continue
                 message = json.loads(dealer.recv())
                 last_heard = time.monotonic()
+                self._heard()
                 if message.get("type") == "state":
                     self.registration.peers = message.get("peers", {})
                     self.registration.formats = message.get("formats", {})

@@ -45,6 +45,7 @@ class ComponentSettings(StrictModel):
     audio_port: int = 0  # 0 = any free port
     register_timeout_s: float = 30.0  # keep retrying the orchestrator this long at start-up
     log_level: str = "INFO"
+    health_file: str = ""  # touched whenever the orchestrator answers (see esiaf.health)
 
 
 def parse_value(raw: str) -> Any:
