@@ -3,12 +3,35 @@
 A component is a small class against :class:`esiaf.Component`; see README.md,
 "Writing a component".
 """
-from esiaf.audio import Audio, SampleClock
-from esiaf.component import Component, SetupError
-from esiaf.formats import AudioFormat
-from esiaf.results import hypothesis, ssl_direction
-from esiaf.runner import main
-from esiaf.settings import ComponentSettings, SettingsError, load_settings
+from __future__ import annotations
 
-__all__ = ["Audio", "AudioFormat", "Component", "ComponentSettings", "SampleClock", "SettingsError",
-           "SetupError", "hypothesis", "load_settings", "main", "ssl_direction"]
+import importlib
+from typing import TYPE_CHECKING
+
+# Imported on first use (PEP 562), so that a light module such as esiaf.health (a container's
+# healthcheck, run every few seconds) starts without loading numpy, ZeroMQ and pydantic.
+_EXPORTS = {
+    "Audio": "esiaf.audio", "SampleClock": "esiaf.audio",
+    "Component": "esiaf.component", "SetupError": "esiaf.component",
+    "AudioFormat": "esiaf.formats",
+    "hypothesis": "esiaf.results", "ssl_direction": "esiaf.results",
+    "main": "esiaf.runner",
+    "ComponentSettings": "esiaf.settings", "SettingsError": "esiaf.settings", "load_settings": "esiaf.settings",
+}
+__all__ = sorted(_EXPORTS)
+
+if TYPE_CHECKING:
+    from esiaf.audio import Audio, SampleClock
+    from esiaf.component import Component, SetupError
+    from esiaf.formats import AudioFormat
+    from esiaf.results import hypothesis, ssl_direction
+    from esiaf.runner import main
+    from esiaf.settings import ComponentSettings, SettingsError, load_settings
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'esiaf' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_EXPORTS[name]), name)
+    globals()[name] = value
+    return value

@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     env = os.environ
     parser = argparse.ArgumentParser(prog="python -m esiaf.health", description=__doc__.splitlines()[0])
     parser.add_argument("--file", default=env.get("ESIAF_HEALTH_FILE", ""), help="health file of a component")
-    parser.add_argument("--max-age", type=float, default=5.0, help="seconds (default 5)")
+    parser.add_argument("--max-age", type=float, default=10.0, help="seconds (default 10)")
     parser.add_argument("--url", default="", help="HTTP URL to GET instead (default for the orchestrator: "
                                                   "its /health)")
     args = parser.parse_args(argv)

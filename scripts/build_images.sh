@@ -21,6 +21,9 @@ SERVICES=(
     "vad          -"
     "asr          asr"
     "splitter     -"
+    "ssl          ssl"
+    "emotion      emotion"
+    "gender       emotion"
 )
 TAG=${ESIAF_TAG:-latest}
 BASE=${ESIAF_BASE_TAG:-esiaf/base:bookworm-offline}
