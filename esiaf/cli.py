@@ -137,6 +137,8 @@ def parse_without(text: str | None) -> set[str]:
 
 def check_port_free(host: str, port: int) -> None:
     with socket.socket() as probe:
+        # as the orchestrator will (uvicorn): connections of an earlier run in TIME_WAIT do not count
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             probe.bind((host, port))
         except OSError as exc:
@@ -228,12 +230,20 @@ def run(args: argparse.Namespace) -> int:
             source = ["--input", str(args.input.resolve())] if args.input else ["--device", args.mic]
             grabber = supervisor.start("grabber", source + (["--fast"] if args.fast else []), env=grabber_env)
             print(f"esiaf: playing {args.input or args.mic} as stream {stream_id}; "
-                  f"orchestrator at {url} (API docs: {url}/docs); logs in {workdir / 'logs'}",
+                  f"orchestrator at {url} (API docs: {url}/docs); logs in {shown_path(workdir / 'logs')}",
                   file=sys.stderr, flush=True)
             return follow(ws, supervisor, client, grabber, args)
     finally:
         client.close()
         supervisor.stop()
+
+
+def shown_path(path: Path) -> Path:
+    """``path`` relative to the current directory where it is inside it (.esiaf/logs), else absolute."""
+    try:
+        return path.relative_to(Path.cwd())
+    except ValueError:
+        return path
 
 
 def topic_ready(client: OrchestratorClient, topic: str, consumers: int) -> bool:
