@@ -63,7 +63,7 @@ def format_line(fused: dict[str, Any], origin_ns: int) -> str:
             what += f", {aggregates[kind]['label']} ({aggregates[kind]['probability']:.2f})"
             shown.add(kind)
     extra = [f"{kind}×{len(results)}" for kind, results in sorted(fused.get("results", {}).items())
-             if kind not in shown]
+             if results and kind not in shown]  # fused types with results but no aggregate shown
     if fused.get("completion") not in (None, "complete"):
         extra.append(f"{fused['completion']}, missing {', '.join(fused.get('missing_components', []))}")
     revision = f" rev {fused['revision']}" if fused.get("revision", 1) > 1 else ""

@@ -43,6 +43,7 @@ def test_direction_emotion_and_gender_are_on_the_line_with_their_shares():
         "[12.31–14.05 s] 'go forward ten meters' (p=0.93) from 92°, angry (0.81), female (0.97)"
     # an analyser that had nothing to say (too short) is simply absent; one that never answered is named
     line = format_line(fused(aggregates={"gender": {"label": "male", "probability": 0.5}},
-                             results={"gender": [{}]}, completion="timed_out", missing_components=["emotion"]),
+                             results={"gender": [{}], "emotion": [], "ssl": []}, completion="timed_out",
+                             missing_components=["emotion"]),
                        ORIGIN_NS)
     assert line == "[12.31–14.05 s] 'go forward ten meters' (p=0.93), male (0.50) timed_out, missing emotion"
