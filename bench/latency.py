@@ -1,17 +1,23 @@
-"""End-of-speech-to-result latency: the full pipeline beside a monolithic baseline, in one run.
+"""End-of-speech-to-fused-line latency: the pipeline beside a monolithic baseline, in one run.
 
-Both play the same file in real time, in 20 ms chunks stamped from sample counts:
+All play the same file in real time, in 20 ms chunks stamped from sample counts:
 
-- pipeline: ``esiaf run --json --serve`` (grabber → vad → asr → orchestrator → websocket client);
-  a result's arrival is the moment its JSON line reaches this process;
-- baseline: the same segmenter and the same pocketsphinx recogniser in this one process, no
-  transport; a result's arrival is the moment the recogniser returns.
+- pipeline ``full``: ``esiaf run --json --serve`` as a user runs it (grabber → vad → asr, emotion,
+  gender [+ splitter, ssl with --array] → orchestrator fusing them → websocket client); a
+  result's arrival is the moment its fused JSON line reaches this process;
+- pipeline ``asr``: the same with ``--without emotion,gender`` (what a slow robot would run);
+- baseline: the same segmenter, the same pocketsphinx recogniser and the same emotion and gender
+  models in this one process, no transport, one after the other; ``baseline_asr`` is the moment
+  the recogniser returns, ``baseline_full`` the moment the gender model (the last) returns.
 
 Latency = arrival − (capture time of the utterance's last speech sample + the VAD hangover),
 i.e. from the earliest moment any segmenter could know the utterance ended. It prints
 ``name=value`` lines at the end; CPU is per component, per minute of audio (psutil).
+With ``--array`` (a multi-channel input such as the demo scene) the pipelines also run the
+splitter and ssl (the baseline does no SSL: it hears channel 0 only).
 
-    python bench/latency.py [--questions 20 | --input FILE] [--grammar robocup|FILE|''] [--port 8123]
+    python bench/latency.py [--questions 20 | --input FILE [--array SPEC]] [--grammar robocup|FILE|'']
+                            [--variants full,asr] [--port 8123]
 
 By default it synthesises 20 RoboCup questions with flite (2.5 s of silence between them) from
 ../shared/data/robocup/questions.tsv; without flite or the data it plays examples/robocup_questions.wav.
@@ -32,16 +38,20 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import psutil
 import soundfile
 
 REPO = Path(__file__).resolve().parent.parent
+# bench/ssl.py would shadow the standard library's ssl (which openSMILE's imports need)
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != REPO / "bench"]
 sys.path.insert(0, str(REPO))
 
 from esiaf.audio import SampleClock  # noqa: E402
 from esiaf.formats import AudioFormat, peak  # noqa: E402
 from services.asr.recognizer import PocketsphinxRecognizer  # noqa: E402
 from services.asr.service import resolve_grammar  # noqa: E402
+from services.emotion.backends import load_backend  # noqa: E402
 from services.vad.segmenter import Segmenter, SegmenterParams, level_db  # noqa: E402
 
 CHUNK_MS = 20
@@ -57,17 +67,22 @@ def percentile(values: list[float], q: float) -> float:
     return ordered[lo] + (ordered[hi] - ordered[lo]) * (k - lo)
 
 
-def baseline(path: Path, grammar: str) -> tuple[list[float], list[str], float]:
-    """Segmenter + recogniser in one loop, paced in real time. Returns latencies (ms), texts, CPU s."""
+def baseline(path: Path, grammar: str) -> tuple[dict[str, list[float]], list[str], float]:
+    """Segmenter + recogniser + emotion and gender models in one loop, paced in real time, on the
+    first channel. Returns latencies (ms) after the recogniser ("asr") and after all ("full"),
+    texts, CPU s."""
     audio, rate = soundfile.read(str(path), dtype="int16", always_2d=True)
+    audio = audio[:, :1]
     fmt = AudioFormat(rate, "int16")
     recognizer = PocketsphinxRecognizer(sample_rate_hz=rate, grammar=resolve_grammar(grammar))
-    segmenter: Segmenter[bytes] = Segmenter(SegmenterParams())
+    labellers = [load_backend("onnx", model) for model in ("emotion4", "gender")]
+    segmenter: Segmenter[tuple[int, np.ndarray]] = Segmenter(SegmenterParams())
     step = rate * CHUNK_MS // 1000
     cpu_start = time.process_time()
     origin_ns, started = time.time_ns(), time.monotonic()
     clock = SampleClock(origin_ns, rate)
-    latencies, texts, open_utterance = [], [], False
+    latencies: dict[str, list[float]] = {"asr": [], "full": []}
+    texts, forwarded = [], []
     for offset in range(0, len(audio), step):
         chunk = audio[offset:offset + step]
         start_ns, end_ns = clock.advance(len(chunk))
@@ -75,28 +90,38 @@ def baseline(path: Path, grammar: str) -> tuple[list[float], list[str], float]:
         if delay > 0:
             time.sleep(delay)
         last = offset + step >= len(audio)
-        for forward in segmenter.process(chunk.tobytes(), start_ns, end_ns, level_db(peak(chunk, fmt)),
+        for forward in segmenter.process((start_ns, chunk), start_ns, end_ns, level_db(peak(chunk, fmt)),
                                          force_end=last):
-            if not open_utterance:
+            if not forwarded:
                 recognizer.start()
-                open_utterance = True
-            recognizer.feed(forward.item)
+            forwarded.append(forward.item)
+            recognizer.feed(forward.item[1].tobytes())
             if forward.ended:
                 hypotheses = recognizer.finish()
-                open_utterance = False
-                latencies.append((time.time_ns() - forward.segment[1] - HANGOVER_NS) / 1e6)
                 texts.append(hypotheses[0].text if hypotheses else "")
+                speech_end_ns = forward.segment[1]
+                latencies["asr"].append((time.time_ns() - speech_end_ns - HANGOVER_NS) / 1e6)
+                first_ns = forwarded[0][0]  # the speech span only, as the services cut it
+                samples = np.concatenate([item for _, item in forwarded])[:, 0].astype(np.float32) / 32768
+                cut = samples[(forward.segment[0] - first_ns) * rate // 10**9:(speech_end_ns - first_ns) * rate // 10**9]
+                if cut.size >= rate // 2:  # the services' min_speech_ms
+                    for labeller in labellers:
+                        labeller.classify(cut)
+                latencies["full"].append((time.time_ns() - speech_end_ns - HANGOVER_NS) / 1e6)
+                forwarded = []
     return latencies, texts, time.process_time() - cpu_start
 
 
-def pipeline(path: Path, grammar: str, port: int) -> tuple[list[float], list[str], dict[str, float]]:
-    """The launcher with every service as a process. Returns latencies (ms), texts, CPU s per service."""
+def pipeline(path: Path, grammar: str, port: int, extra: list[str]):
+    """The launcher with every service as a process. Returns latencies (ms), texts, CPU s per
+    service while playing, CPU s per service at start-up, and the fused results."""
     workdir = Path(tempfile.mkdtemp(prefix="esiaf-bench-"))
     cmd = [sys.executable, "-m", "esiaf.cli", "run", "--input", str(path), "--json", "--serve",
-           "--port", str(port), "--workdir", str(workdir)] + (["--grammar", grammar] if grammar else [])
+           "--port", str(port), "--workdir", str(workdir), *extra] + (["--grammar", grammar] if grammar else [])
     launcher = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                env={**os.environ, "PYTHONPATH": str(REPO)})
-    latencies, texts = [], []
+                                env={**os.environ, "PYTHONPATH": str(REPO)},  # Ctrl-C stops it even when the
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # bench runs in bg
+    latencies, texts, fused_results = [], [], []
     ended = threading.Event()
     cpu_at_start: dict[str, float] = {}
     stderr_lines: list[str] = []
@@ -109,6 +134,7 @@ def pipeline(path: Path, grammar: str, port: int) -> tuple[list[float], list[str
                 cpu_at_start.update(children_cpu(launcher.pid))
             if fused.get("type") != "fused_result":
                 continue
+            fused_results.append(fused)
             anchor = fused["anchor"]
             latencies.append((arrived_ns - anchor["span"]["end_ns"] - HANGOVER_NS) / 1e6)
             hyps = anchor.get("speech", {}).get("hypotheses", [])
@@ -123,15 +149,21 @@ def pipeline(path: Path, grammar: str, port: int) -> tuple[list[float], list[str
     threads = [threading.Thread(target=f, daemon=True) for f in (read_stdout, read_stderr)]
     for thread in threads:
         thread.start()
-    info = soundfile.info(str(path))
-    if not ended.wait(timeout=info.duration + 120) or launcher.poll() is not None:
+    deadline = time.monotonic() + soundfile.info(str(path)).duration + 120
+    while not ended.wait(timeout=0.5) and launcher.poll() is None and time.monotonic() < deadline:
+        pass
+    if not ended.is_set() or launcher.poll() is not None:
         launcher.kill()
         raise SystemExit("pipeline did not finish:\n" + "".join(stderr_lines))
     cpu_at_end = children_cpu(launcher.pid)
     launcher.send_signal(signal.SIGINT)
-    launcher.wait(timeout=30)
+    try:
+        launcher.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        launcher.terminate()  # its services get SIGTERM with it (PR_SET_PDEATHSIG)
+        launcher.wait(timeout=30)
     return latencies, texts, {name: cpu_at_end[name] - cpu_at_start.get(name, 0.0) for name in cpu_at_end}, \
-        cpu_at_start
+        cpu_at_start, fused_results
 
 
 def children_cpu(pid: int) -> dict[str, float]:
@@ -161,39 +193,56 @@ def synthesised_input(count: int) -> Path | None:
     return path
 
 
+VARIANTS = {"full": [], "asr": ["--without", "emotion,gender"]}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
-    parser.add_argument("--input", type=Path, help="a 16 kHz mono file instead of synthesised questions")
+    parser.add_argument("--input", type=Path, help="a sound file instead of synthesised questions")
+    parser.add_argument("--array", help="the input's microphone array (pipelines run splitter and ssl too)")
     parser.add_argument("--questions", type=int, default=20, help="how many questions to synthesise (20)")
     parser.add_argument("--grammar", default="robocup", help="robocup (default), a JSGF file, or '' for the LM")
+    parser.add_argument("--variants", default="full,asr", help="pipelines to run: full (emotion, gender), "
+                        "asr (--without emotion,gender); default both")
     parser.add_argument("--port", type=int, default=8123)
     args = parser.parse_args()
     if args.input is None:
         args.input = synthesised_input(args.questions) or REPO / "examples" / "robocup_questions.wav"
     minutes = soundfile.info(str(args.input)).duration / 60
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    if set(variants) - set(VARIANTS):
+        parser.error(f"--variants takes {', '.join(VARIANTS)}")
 
     print(f"baseline: playing {args.input} in real time ...", file=sys.stderr, flush=True)
     base_ms, base_texts, base_cpu = baseline(args.input, args.grammar)
-    print(f"pipeline: playing {args.input} in real time ...", file=sys.stderr, flush=True)
-    pipe_ms, pipe_texts, pipe_cpu, startup_cpu = pipeline(args.input, args.grammar, args.port)
-
-    for name, texts in (("baseline", base_texts), ("pipeline", pipe_texts)):
-        print(f"{name} texts: {texts}", file=sys.stderr)
-    figures = {
-        "audio_s": minutes * 60,
-        "utterances_baseline": len(base_ms), "utterances_pipeline": len(pipe_ms),
-        "same_texts": int(base_texts == pipe_texts),
-        "baseline_p50_ms": percentile(base_ms, 0.5), "baseline_p95_ms": percentile(base_ms, 0.95),
-        "pipeline_p50_ms": percentile(pipe_ms, 0.5), "pipeline_p95_ms": percentile(pipe_ms, 0.95),
-        "overhead_p50_ms": percentile(pipe_ms, 0.5) - percentile(base_ms, 0.5),
-        "overhead_p95_ms": percentile(pipe_ms, 0.95) - percentile(base_ms, 0.95),
-        "baseline_cpu_s_per_min": base_cpu / minutes,
-    }
-    for name, seconds in sorted(pipe_cpu.items()):
-        figures[f"cpu_s_per_min_{name}"] = seconds / minutes
-    figures["pipeline_cpu_s_per_min_total"] = sum(pipe_cpu.values()) / minutes
-    for name, seconds in sorted(startup_cpu.items()):
-        figures[f"startup_cpu_s_{name}"] = seconds
+    print(f"baseline texts: {base_texts}", file=sys.stderr)
+    figures: dict[str, object] = {"audio_s": minutes * 60, "utterances_baseline": len(base_texts),
+                                  "baseline_cpu_s_per_min": base_cpu / minutes}
+    for kind in ("asr", "full"):
+        figures[f"baseline_{kind}_p50_ms"] = percentile(base_ms[kind], 0.5)
+        figures[f"baseline_{kind}_p95_ms"] = percentile(base_ms[kind], 0.95)
+    for variant in variants:
+        print(f"pipeline {variant}: playing {args.input} in real time ...", file=sys.stderr, flush=True)
+        extra = VARIANTS[variant] + (["--array", args.array] if args.array else [])
+        pipe_ms, pipe_texts, pipe_cpu, startup_cpu, fused = pipeline(args.input, args.grammar,
+                                                                     args.port + variants.index(variant), extra)
+        print(f"pipeline {variant} texts: {pipe_texts}", file=sys.stderr)
+        prefix = f"{variant}_"
+        figures[prefix + "utterances"] = len(pipe_ms)
+        figures[prefix + "same_texts"] = int(base_texts == pipe_texts)
+        figures[prefix + "complete"] = sum(f.get("completion") == "complete" for f in fused)
+        for label in ("emotion", "gender"):
+            figures[prefix + f"labelled_{label}"] = sum(bool((f.get("aggregates") or {}).get(label)) for f in fused)
+        figures[prefix + "pipeline_p50_ms"] = percentile(pipe_ms, 0.5)
+        figures[prefix + "pipeline_p95_ms"] = percentile(pipe_ms, 0.95)
+        figures[prefix + "pipeline_max_ms"] = max(pipe_ms, default=float("nan"))
+        figures[prefix + "overhead_p50_ms"] = percentile(pipe_ms, 0.5) - percentile(base_ms[variant], 0.5)
+        figures[prefix + "overhead_p95_ms"] = percentile(pipe_ms, 0.95) - percentile(base_ms[variant], 0.95)
+        for name, seconds in sorted(pipe_cpu.items()):
+            figures[prefix + f"cpu_s_per_min_{name}"] = seconds / minutes
+        figures[prefix + "cpu_s_per_min_total"] = sum(pipe_cpu.values()) / minutes
+        for name, seconds in sorted(startup_cpu.items()):
+            figures[prefix + f"startup_cpu_s_{name}"] = seconds
     for name, value in figures.items():
         print(f"{name}={value:.3f}" if isinstance(value, float) else f"{name}={value}")
 

@@ -1,12 +1,14 @@
 """The ``esiaf`` command: ``esiaf run`` starts the whole pipeline as local processes.
 
-    esiaf run --input FILE [--array SPEC] [--fast] [--grammar FILE|robocup] [--serve]
+    esiaf run --input FILE [--array SPEC] [--fast] [--grammar FILE|robocup] [--serve] [--without emotion,...]
     esiaf run --mic DEVICE [--array SPEC]
 
-It starts the orchestrator, the recogniser, the VAD and the grabber (with a microphone array
-also the ssl service and the channel splitter, the VAD hearing the first microphone), prints
-each fused result as one line as it arrives, and with ``--input`` exits once
-the file has been played and its last fused result printed.
+It starts the orchestrator, the recogniser, the VAD, the emotion and gender services (on the VAD's
+output, like the recogniser) and the grabber (with a microphone array also the ssl service and the
+channel splitter, the VAD hearing the first microphone), prints each fused result as one line as
+it arrives, and with ``--input`` exits once the file has been played and its last fused result
+printed. ``--without`` leaves analysers out; the orchestrator's default fusion waits only for
+the analysers that are running.
 """
 from __future__ import annotations
 
@@ -28,7 +30,8 @@ from esiaf.launcher import LaunchError, OrchestratorClient, Supervisor, wait_unt
 
 log = logging.getLogger("esiaf")
 
-PIPELINE_RATE_HZ = 16000  # what vad and asr take until format conversion arrives
+ANALYSERS = ("ssl", "emotion", "gender")  # what --without can leave out (the recogniser anchors every line)
+LABELS = ("emotion", "gender", "voice_id")  # label aggregates shown on a line, in this order
 START_TIMEOUT_S = 60.0
 DRAIN_TIMEOUT_S = 30.0  # after the grabber has finished: wait this long at most for the last results
 PROGRESS_EVERY_S = 10.0  # how often to say how much of a long file has been played
@@ -36,7 +39,10 @@ LONG_FILE_S = 60.0
 
 
 def format_line(fused: dict[str, Any], origin_ns: int) -> str:
-    """'[12.31–14.05 s] 'go forward ten meters' (p=0.93)', with ' from 92°' where SSL was fused."""
+    """'[12.31–14.05 s] 'go forward ten meters' (p=0.93) from 92°, angry (0.81), female (0.97)'.
+
+    The direction is shown where SSL was fused, each label (emotion, gender, voice) with the
+    share of its top class where that analyser said something about the utterance."""
     anchor = fused["anchor"]
     span = anchor["span"]
     start_s, end_s = (span["start_ns"] - origin_ns) / 1e9, (span["end_ns"] - origin_ns) / 1e9
@@ -47,13 +53,17 @@ def format_line(fused: dict[str, Any], origin_ns: int) -> str:
     else:
         payload = next((k for k in ("vad", "ssl", "emotion", "gender", "voice_id") if k in anchor), "")
         what = f"{payload} {json.dumps(anchor.get(payload, {}))}"
-    direction = (fused.get("aggregates") or {}).get("ssl")
-    if direction:  # where the utterance came from: the fused SSL directions' circular mean
-        what += f" from {direction['azimuth_deg']:.0f}°"
-    extra = []
-    for kind, results in sorted(fused.get("results", {}).items()):
-        if not (kind == "ssl" and direction):
-            extra.append(f"{kind}×{len(results)}")
+    aggregates = fused.get("aggregates") or {}
+    shown = set()
+    if aggregates.get("ssl"):  # where the utterance came from: the fused SSL directions' circular mean
+        what += f" from {aggregates['ssl']['azimuth_deg']:.0f}°"
+        shown.add("ssl")
+    for kind in LABELS:  # how, and who: the top label of the fused distribution and its share
+        if aggregates.get(kind):
+            what += f", {aggregates[kind]['label']} ({aggregates[kind]['probability']:.2f})"
+            shown.add(kind)
+    extra = [f"{kind}×{len(results)}" for kind, results in sorted(fused.get("results", {}).items())
+             if results and kind not in shown]  # fused types with results but no aggregate shown
     if fused.get("completion") not in (None, "complete"):
         extra.append(f"{fused['completion']}, missing {', '.join(fused.get('missing_components', []))}")
     revision = f" rev {fused['revision']}" if fused.get("revision", 1) > 1 else ""
@@ -61,7 +71,8 @@ def format_line(fused: dict[str, Any], origin_ns: int) -> str:
 
 
 def check_input(path: Path) -> int:
-    """Checks the input file; returns its channel count."""
+    """Checks the input file; returns its channel count. Any rate and sample type is fine: the
+    grabber sends the file as it is and the SDK converts it to what each consumer takes."""
     if not path.exists():
         raise LaunchError(f"input file {path} does not exist")
     if not path.is_file():
@@ -77,9 +88,8 @@ def check_input(path: Path) -> int:
         info = soundfile.info(str(path))
     except Exception as exc:  # libsndfile's own error types vary by version
         raise LaunchError(f"cannot read input file {path}: {exc}") from None
-    if info.samplerate != PIPELINE_RATE_HZ:
-        raise LaunchError(f"input file {path} is {info.samplerate} Hz with {info.channels} channel(s); this "
-                          f"pipeline takes {PIPELINE_RATE_HZ} Hz (convert it first, e.g. sox IN -r 16000 -b 16 OUT.wav)")
+    if info.frames == 0:
+        raise LaunchError(f"input file {path} holds no audio")
     return info.channels
 
 
@@ -91,8 +101,9 @@ def check_array(args: argparse.Namespace, channels: int):
         if mic_channels or args.channels:
             raise LaunchError("--mic-channels and --channels describe a microphone array: give --array too")
         if channels > 1:
-            raise LaunchError(f"input file {args.input} has {channels} channels: name the microphone array with "
-                              f"--array (pepper4, respeaker4, circular:MICS:RADIUS_M or a YAML file of positions)")
+            print(f"esiaf: {args.input} has {channels} channels and no --array: the analysers hear channel 0 "
+                  f"(name the microphone array with --array, e.g. respeaker4, to localise the speakers too)",
+                  file=sys.stderr, flush=True)
         return None, channels
     try:
         array = load_array(args.array)
@@ -114,8 +125,20 @@ def parse_channels(text: str | None) -> list[int]:
                           f"not {text!r}") from None
 
 
+def parse_without(text: str | None) -> set[str]:
+    """The analysers ``--without`` leaves out."""
+    names = {part.strip() for part in (text or "").split(",") if part.strip()}
+    unknown = sorted(names - set(ANALYSERS))
+    if unknown:
+        raise LaunchError(f"--without takes analysers separated by commas ({', '.join(ANALYSERS)}), "
+                          f"not {', '.join(unknown)}")
+    return names
+
+
 def check_port_free(host: str, port: int) -> None:
     with socket.socket() as probe:
+        # as the orchestrator will (uvicorn): connections of an earlier run in TIME_WAIT do not count
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             probe.bind((host, port))
         except OSError as exc:
@@ -128,7 +151,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="run every service as a local process")
     source = run.add_mutually_exclusive_group(required=True)
-    source.add_argument("--input", type=Path, help="sound file to play (16 kHz WAV/FLAC, or .raw s16le mono)")
+    source.add_argument("--input", type=Path, help="sound file to play (WAV/FLAC/... of any rate and sample type, "
+                        "or .raw: 16 kHz s16le mono)")
     source.add_argument("--mic", metavar="DEVICE", help="ALSA capture device (see arecord -L)")
     run.add_argument("--array", help="microphone array of a multi-channel input or --mic: pepper4, respeaker4, "
                      "circular:MICS:RADIUS_M or a YAML file; starts sound source localisation")
@@ -136,6 +160,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                      "order, where the audio has others too (ReSpeaker 6-channel firmware: 1,2,3,4)")
     run.add_argument("--channels", type=int, help="with --mic and --array: channels to capture "
                      "(default: as the microphones need)")
+    run.add_argument("--without", metavar="ANALYSERS", help="analysers to leave out, separated by commas: "
+                     "emotion, gender, ssl (e.g. --without emotion,gender on a slow robot)")
     run.add_argument("--ssl-algorithm", help="DOA algorithm of the ssl service (default NormMUSIC)")
     run.add_argument("--fast", action="store_true", help="play the file as fast as possible")
     run.add_argument("--grammar", help="JSGF grammar file for the recogniser, or 'robocup'")
@@ -152,6 +178,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 
 def run(args: argparse.Namespace) -> int:
     array, channels = check_array(args, check_input(args.input) if args.input else 0)
+    without = parse_without(args.without)
     if args.grammar and args.grammar != "robocup" and not Path(args.grammar).is_file():
         raise LaunchError(f"grammar file {args.grammar} does not exist")
     check_port_free(args.host, args.port)
@@ -162,36 +189,48 @@ def run(args: argparse.Namespace) -> int:
     supervisor = Supervisor(workdir, env={"ESIAF_ORCHESTRATOR_URL": url, "ESIAF_STREAM_ID": stream_id})
     client = OrchestratorClient(url)
     try:
-        orchestrator_env = {"ESIAF_ORCHESTRATOR_CONTROL_PORT": "0", "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"}
-        if array is not None:  # each utterance fused with the directions heard while it was spoken
-            orchestrator_env["ESIAF_ORCHESTRATOR_FUSIONS"] = "[{name: speech, anchor: speech, fuse: [ssl]}]"
+        # the default fusion: each recognised utterance with the ssl, emotion and gender results
+        # within it; the orchestrator waits only for those analysers that are running
         orchestrator = supervisor.start("orchestrator", ["--host", args.host, "--port", str(args.port),
-                                                         "--db", str(workdir / "esiaf.db")], env=orchestrator_env)
+                                                         "--db", str(workdir / "esiaf.db")],
+                                        env={"ESIAF_ORCHESTRATOR_CONTROL_PORT": "0",
+                                             "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"})
         wait_until(client.healthy, supervisor, "the orchestrator to answer", START_TIMEOUT_S, orchestrator)
-        start_service(supervisor, client, "asr", ["--grammar", args.grammar] if args.grammar else [])
+        # every service at once (their imports and models load in parallel), then each must register
+        services = {"asr": supervisor.start("asr", ["--grammar", args.grammar] if args.grammar else [])}
         grabber_env = {"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1", "ESIAF_GRABBER_CHUNK_MS": str(args.chunk_ms)}
-        if array is None:
-            vad = start_service(supervisor, client, "vad")
-        else:  # the recogniser hears the first microphone; ssl hears them all
-            vad = start_service(supervisor, client, "vad", env={"ESIAF_VAD_INPUT_TOPIC": "splitter/ch0"})
-            start_service(supervisor, client, "splitter", env={
+        if channels <= 1 and array is None:
+            services["vad"] = supervisor.start("vad")
+        else:  # the recogniser hears the first channel (microphone); ssl hears them all
+            services["vad"] = supervisor.start("vad", env={"ESIAF_VAD_INPUT_TOPIC": "splitter/ch0"})
+            services["splitter"] = supervisor.start("splitter", env={
                 "ESIAF_SPLITTER_INPUT_CHANNELS": str(channels), "ESIAF_SPLITTER_CHANNELS": "[0]"})
-            ssl_env = {"ESIAF_SSL_ARRAY": args.array, "ESIAF_SSL_CHANNELS": str(channels)}
-            if args.mic_channels:
-                ssl_env["ESIAF_SSL_MIC_CHANNELS"] = f"[{args.mic_channels}]"
-            if args.ssl_algorithm:
-                ssl_env["ESIAF_SSL_ALGORITHM"] = args.ssl_algorithm
-            start_service(supervisor, client, "ssl", env=ssl_env)
+            grabber_env["ESIAF_GRABBER_CHANNELS"] = str(channels)
+            if array is not None and "ssl" not in without:
+                ssl_env = {"ESIAF_SSL_ARRAY": args.array, "ESIAF_SSL_CHANNELS": str(channels)}
+                if args.mic_channels:
+                    ssl_env["ESIAF_SSL_MIC_CHANNELS"] = f"[{args.mic_channels}]"
+                if args.ssl_algorithm:
+                    ssl_env["ESIAF_SSL_ALGORITHM"] = args.ssl_algorithm
+                services["ssl"] = supervisor.start("ssl", env=ssl_env)
+                grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"] = "2"
+        labellers = [name for name in ("emotion", "gender") if name not in without]
+        for name in labellers:  # on the VAD's output, like the recogniser
+            services[name] = supervisor.start(name)
+        for name, child in services.items():
+            wait_until(lambda: client.component(name), supervisor, f"the {name} service to register",
+                       START_TIMEOUT_S, child)
+        if "splitter" in services:
             wait_until(lambda: topic_ready(client, "splitter/ch0", 1), supervisor,
-                       "vad to subscribe to splitter/ch0", START_TIMEOUT_S, vad)
-            grabber_env.update(ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS="2", ESIAF_GRABBER_CHANNELS=str(channels))
-        wait_until(lambda: topic_ready(client, "vad/speech", 1), supervisor, "asr to subscribe to vad/speech",
-                   START_TIMEOUT_S, vad)
+                       "vad to subscribe to splitter/ch0", START_TIMEOUT_S, services["vad"])
+        wait_until(lambda: topic_ready(client, "vad/speech", 1 + len(labellers)), supervisor,
+                   f"{', '.join(['asr', *labellers])} to subscribe to vad/speech", START_TIMEOUT_S, services["vad"])
+        log.info("services: %s", ", ".join(services))
         with connect(f"ws://{args.host}:{args.port}/ws/fused?stream={stream_id}", open_timeout=10) as ws:
             source = ["--input", str(args.input.resolve())] if args.input else ["--device", args.mic]
             grabber = supervisor.start("grabber", source + (["--fast"] if args.fast else []), env=grabber_env)
             print(f"esiaf: playing {args.input or args.mic} as stream {stream_id}; "
-                  f"orchestrator at {url} (API docs: {url}/docs); logs in {workdir / 'logs'}",
+                  f"orchestrator at {url} (API docs: {url}/docs); logs in {shown_path(workdir / 'logs')}",
                   file=sys.stderr, flush=True)
             return follow(ws, supervisor, client, grabber, args)
     finally:
@@ -199,13 +238,12 @@ def run(args: argparse.Namespace) -> int:
         supervisor.stop()
 
 
-def start_service(supervisor: Supervisor, client: OrchestratorClient, name: str, args: list[str] = (),
-                  env: dict[str, str] | None = None):
-    """Starts a service and waits until it has registered."""
-    child = supervisor.start(name, list(args), env=env)
-    wait_until(lambda: client.component(name), supervisor, f"the {name} service to register", START_TIMEOUT_S,
-               child)
-    return child
+def shown_path(path: Path) -> Path:
+    """``path`` relative to the current directory where it is inside it (.esiaf/logs), else absolute."""
+    try:
+        return path.relative_to(Path.cwd())
+    except ValueError:
+        return path
 
 
 def topic_ready(client: OrchestratorClient, topic: str, consumers: int) -> bool:

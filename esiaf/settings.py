@@ -103,22 +103,29 @@ def load_settings(model: type[S], service: str, /, *, config: str | Path | None 
     env = os.environ if env is None else env
     config = config or env.get(f"{ENV_PREFIX}{service.upper()}_CONFIG")
     values: dict[str, Any] = {}
-    sources = []
-    if config:
-        values.update(read_yaml_file(Path(config)))
-        sources.append(f"config file {config}")
-    env_values = _from_env(model, service, env)
-    if env_values:
-        sources.append("environment")
-    values.update(env_values)
-    values.update({k: v for k, v in overrides.items() if v is not None})
+    origin: dict[str, str] = {}  # where each value came from, the last source that gave it
+    given = [(f"config file {config}", read_yaml_file(Path(config)) if config else {}),
+             ("environment", _from_env(model, service, env)),
+             ("command line", {k: v for k, v in overrides.items() if v is not None})]
+    for source, given_values in given:
+        values.update(given_values)
+        origin.update(dict.fromkeys(given_values, source))
     try:
         settings = model(**values)
     except ValidationError as exc:
-        problems = "; ".join(
-            f"{'.'.join(str(p) for p in err['loc']) or '(root)'}: {err['msg']}" for err in exc.errors())
-        where = " and ".join(sources) or "defaults"
-        raise SettingsError(f"bad {service} settings (from {where}): {problems}") from None
+        problems, blamed = [], []
+        for err in exc.errors():
+            key = str(err["loc"][0]) if err["loc"] else ""
+            if key in origin:  # a bad value: the source it came from
+                sources = [origin[key]]
+            elif key:  # a value missing (or a default that does not fit)
+                sources = ["defaults"]
+            else:  # a check across values: every source that gave some
+                sources = [source for source, given_values in given if given_values]
+            blamed.extend(s for s in sources if s not in blamed)
+            problems.append(f"{'.'.join(str(p) for p in err['loc']) or '(root)'}: {err['msg']}")
+        where = " and ".join(blamed) or "defaults"
+        raise SettingsError(f"bad {service} settings (from {where}): {'; '.join(problems)}") from None
     if isinstance(settings, ComponentSettings) and not settings.name:
         settings.name = service
     return settings

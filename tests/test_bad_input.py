@@ -38,14 +38,6 @@ def test_unreadable_input_file(tmp_path):
     assert_clear(esiaf_run("--input", str(bad), "--workdir", str(tmp_path)), "cannot read input file", "noise.wav")
 
 
-def test_wrong_rate_is_refused_with_the_fix(tmp_path):
-    import numpy as np
-    import soundfile
-    wav = tmp_path / "cd.wav"
-    soundfile.write(str(wav), np.zeros((4410, 2), dtype="int16"), 44100)
-    assert_clear(esiaf_run("--input", str(wav), "--workdir", str(tmp_path)), "44100 Hz with 2 channel(s)", "sox")
-
-
 def test_port_in_use(tmp_path):
     with socket.socket() as held:
         held.bind(("127.0.0.1", 0))

@@ -52,3 +52,31 @@ def test_unknown_yaml_key_and_bad_yaml_are_errors(tmp_path):
         load_settings(DemoSettings, "demo", config=config, env={})
     with pytest.raises(SettingsError, match="cannot read config file"):
         load_settings(DemoSettings, "demo", config=tmp_path / "missing.yaml", env={})
+
+
+def test_a_bad_value_names_the_source_it_came_from(tmp_path):
+    config = tmp_path / "c.yaml"
+    config.write_text("threshold_db: loud\n")
+    env = {"ESIAF_DEMO_STREAM_ID": "s", "ESIAF_DEMO_TOPICS": "[x]"}
+    with pytest.raises(SettingsError, match=r"^bad demo settings \(from command line\): threshold_db"):
+        load_settings(DemoSettings, "demo", env=env, threshold_db="loud")
+    with pytest.raises(SettingsError, match=rf"\(from config file {config}\): threshold_db"):
+        load_settings(DemoSettings, "demo", config=config, env=env)
+    with pytest.raises(SettingsError, match=r"\(from environment\): threshold_db"):
+        load_settings(DemoSettings, "demo", config=config, env={**env, "ESIAF_DEMO_THRESHOLD_DB": "loud"})
+    # a good value given later wins, and the bad one overridden is not blamed
+    assert load_settings(DemoSettings, "demo", config=config, env=env, threshold_db=3).threshold_db == 3
+    with pytest.raises(SettingsError, match=r"\(from environment and command line\): threshold_db.*; topics"):
+        load_settings(DemoSettings, "demo", env={"ESIAF_DEMO_THRESHOLD_DB": "loud"}, topics=5)
+
+
+def test_a_bad_set_on_the_command_line_is_blamed_on_the_command_line():
+    import subprocess
+    import sys
+
+    from esiaf.testing import REPO
+    result = subprocess.run([sys.executable, "-m", "services.vad", "--set", "db_min=loud"], cwd=REPO,
+                            capture_output=True, text=True, timeout=60,
+                            env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO), "ESIAF_STREAM_ID": "s"})
+    assert result.returncode == 2
+    assert result.stderr.startswith("vad: bad vad settings (from command line): db_min:"), result.stderr

@@ -26,7 +26,6 @@ def four_channels(tmp_path):
 
 
 @pytest.mark.parametrize("extra, phrases", [
-    ([], ["has 4 channels", "--array"]),
     (["--array", "circular:6:0.05"], ["6 microphones but the audio has 4 channel(s)"]),
     (["--array", "pepper5"], ["unknown array 'pepper5'"]),
     (["--array", "respeaker4", "--mic-channels", "1,2,3,4"], ["channels [4] do not exist in audio of 4"]),
@@ -85,7 +84,8 @@ def test_a_six_channel_recording_with_the_microphones_on_channels_1_to_4(launch,
 
 
 @pytest.mark.e2e
-def test_each_question_of_the_demo_scene_comes_with_its_text_and_direction(launch):
+def test_each_question_of_the_demo_scene_comes_with_its_text_direction_emotion_and_gender(launch):
+    """The README's demo command (played fast): one fused answer per question, every analyser in it."""
     truth = json.loads(SCENE.with_suffix(".json").read_text())["utterances"]
     run = launch("--input", str(SCENE), "--array", "respeaker4", "--grammar", "robocup", "--fast", "--json")
     assert run.process.wait(timeout=180) == 0, "".join(run.stderr)
@@ -97,6 +97,12 @@ def test_each_question_of_the_demo_scene_comes_with_its_text_and_direction(launc
         assert abs((f["anchor"]["span"]["start_ns"] - start_ns) / 1e9 - t["start_s"]) < 0.3, (f["anchor"], t)
         azimuth = f["aggregates"]["ssl"]["azimuth_deg"]
         assert angle_difference_deg(azimuth, t["azimuth_deg"]) <= 15, (azimuth, t)
+        assert f["completion"] == "complete", f  # nobody timed out: every analyser answered
+        for kind, labels in (("emotion", {"neutral", "angry", "happy", "sad"}), ("gender", {"female", "male"})):
+            label = f["aggregates"][kind]
+            assert label["label"] in labels and 0 < label["probability"] <= 1, (kind, label)
+            assert set(label["distribution"]) == labels and abs(sum(label["distribution"].values()) - 1) < 1e-3
+            assert len(f["results"][kind]) == 1 and f["results"][kind][0]["span"] == f["anchor"]["span"]
 
 
 def test_list_settings_can_be_given_with_set():

@@ -15,7 +15,8 @@ from esiaf.formats import FormatError, decode
 
 log = logging.getLogger(__name__)
 
-# soundfile subtype -> (dtype soundfile reads, ESIAF sample type sent)
+# soundfile subtype -> (dtype soundfile reads, ESIAF sample type sent); any other (compressed:
+# Vorbis, Opus, MP3, FLAC's own, u-law, ...) is decoded by libsndfile to float32
 _SUBTYPES = {"PCM_16": ("int16", "int16"), "PCM_24": ("int32", "int32"), "PCM_32": ("int32", "int32"),
              "PCM_S8": ("int16", "int16"), "PCM_U8": ("int16", "int16"), "FLOAT": ("float32", "float32"),
              "DOUBLE": ("float64", "float64")}
@@ -47,10 +48,7 @@ class FileSource:
                 info = soundfile.info(str(path))
             except (RuntimeError, soundfile.LibsndfileError) as exc:
                 raise SetupError(f"cannot read input file {path}: {exc}") from None
-            if info.subtype not in _SUBTYPES:
-                raise SetupError(f"input file {path} has samples of type {info.subtype}, which the grabber "
-                                 f"does not play; known: {', '.join(_SUBTYPES)}")
-            self._read_dtype, sample_type = _SUBTYPES[info.subtype]
+            self._read_dtype, sample_type = _SUBTYPES.get(info.subtype, ("float32", "float32"))
             self.format = AudioFormat(info.samplerate, sample_type, "little", info.channels)
             self.total_frames = info.frames
         self.chunk_frames = max(1, round(self.format.sample_rate_hz * chunk_ms / 1000))

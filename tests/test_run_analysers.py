@@ -1,0 +1,85 @@
+"""``esiaf run``: which analysers it starts (``--without``), and input files of any rate, sample
+type and channel count."""
+from __future__ import annotations
+
+import json
+
+import httpx
+import numpy as np
+import pytest
+import soundfile
+
+from esiaf.testing import REPO, normalise
+from tests.test_bad_input import assert_clear, esiaf_run
+
+pytestmark = pytest.mark.e2e
+SCENE = REPO / "examples" / "robocup_scene.flac"
+TRUTH = json.loads(SCENE.with_suffix(".json").read_text())["utterances"][:2]
+
+
+def first_two_questions() -> tuple[np.ndarray, int]:
+    """The demo scene's first two questions (0° and 90°), all four microphones, float in [-1, 1]."""
+    mics, rate = soundfile.read(str(SCENE), dtype="float32", frames=int((TRUTH[-1]["end_s"] + 1.0) * 16000))
+    return mics, rate
+
+
+def fused_results(run) -> list[dict]:
+    return [line for line in run.lines if line.get("type") == "fused_result"]
+
+
+def test_without_leaves_the_analysers_out_and_nothing_waits_for_them(launch, tmp_path):
+    mics, rate = first_two_questions()
+    scene = tmp_path / "two.flac"
+    soundfile.write(str(scene), mics, rate, subtype="PCM_16")
+    run = launch("--input", str(scene), "--array", "respeaker4", "--grammar", "robocup", "--without",
+                 "emotion,gender", "--fast", "--json", "--serve")
+    run.wait_for_line(lambda line: line.get("type") == "stream_end", timeout_s=150)
+    components = {c["name"] for c in httpx.get(f"{run.url}/components").json()["items"]}
+    assert {"asr", "vad", "splitter", "ssl"} <= components and not components & {"emotion", "gender"}, components
+    fusions = httpx.get(f"{run.url}/fusions").json()
+    assert any(set(f["fuse"]) == {"ssl", "emotion", "gender"} for f in fusions["items"]), fusions  # the default
+    fused = fused_results(run)
+    assert [normalise(f["anchor"]["speech"]["hypotheses"][0]["text"]) for f in fused] == \
+        [normalise(t["text"]) for t in TRUTH]
+    for f in fused:
+        # published as soon as asr and ssl were done: no wait for analysers that are not running
+        assert f["completion"] == "complete" and not f["missing_components"], f
+        assert {kind for kind, results in f["results"].items() if results} == {"ssl"}, f["results"]
+        assert f["aggregates"]["ssl"], f
+        assert not (f["aggregates"].get("emotion") or f["aggregates"].get("gender"))
+
+
+def test_a_stereo_44_1_khz_float_file_is_converted_and_channel_0_heard(launch, tmp_path):
+    """The grabber sends the file as it is; the SDK converts it to the VAD's 16 kHz int16; without
+    --array the splitter passes channel 0 on (and the launcher says so)."""
+    import soxr
+    mics, rate = first_two_questions()
+    stereo = soxr.resample(np.stack([mics[:, 0], np.zeros_like(mics[:, 0])], axis=1), rate, 44100)
+    path = tmp_path / "stereo.wav"
+    soundfile.write(str(path), stereo.astype(np.float32), 44100, subtype="FLOAT")
+    run = launch("--input", str(path), "--grammar", "robocup", "--without", "emotion,gender", "--fast", "--json")
+    assert run.process.wait(timeout=150) == 0, "".join(run.stderr)
+    assert any("has 2 channels and no --array: the analysers hear channel 0" in line for line in run.stderr), \
+        run.stderr
+    fused = fused_results(run)
+    assert [normalise(f["anchor"]["speech"]["hypotheses"][0]["text"]) for f in fused] == \
+        [normalise(t["text"]) for t in TRUTH]
+    start_ns = next(line for line in run.lines if line.get("type") == "stream_start")["start_ns"]
+    for f, t in zip(fused, TRUTH):  # capture times stay those of the file, whatever its rate
+        assert abs((f["anchor"]["span"]["start_ns"] - start_ns) / 1e9 - t["start_s"]) < 0.3
+
+
+@pytest.mark.parametrize("without, message", [
+    ("emotion,voice", "--without takes analysers separated by commas (ssl, emotion, gender), not voice"),
+    ("asr", "not asr"),
+])
+def test_without_names_only_analysers(tmp_path, without, message):
+    result = esiaf_run("--input", str(SCENE), "--without", without, "--workdir", str(tmp_path))
+    assert result.returncode == 2
+    assert_clear(result, message)
+
+
+def test_an_empty_file_is_refused(tmp_path):
+    empty = tmp_path / "empty.wav"
+    soundfile.write(str(empty), np.zeros((0, 1), dtype="int16"), 48000)
+    assert_clear(esiaf_run("--input", str(empty), "--workdir", str(tmp_path)), "empty.wav holds no audio")
