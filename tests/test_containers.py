@@ -176,6 +176,10 @@ def test_compose_up_plays_the_example_and_down_leaves_nothing(project):
         fused = poll(lambda: at_least(len(TRUTH), p.fused()), timeout_s=90)
         assert first[0]["id"] == fused[0]["id"]
         assert [normalise(best_text(f)) for f in fused] == [normalise(t) for t in TRUTH], p.logs()
+        for f in fused:  # the default fusion: speech with the emotion and gender containers' labels
+            assert f["completion"] == "complete", f
+            for kind in ("emotion", "gender"):
+                assert f["aggregates"][kind]["label"] and 0 < f["aggregates"][kind]["probability"] <= 1, f
         ws_fused = poll(lambda: [m for m in from_ws if m["type"] == "fused_result"] if any(
             m["type"] == "stream_end" for m in from_ws) else None, timeout_s=30)
         assert [m["id"] for m in ws_fused] == [f["id"] for f in fused]
