@@ -201,6 +201,24 @@ def test_compose_up_plays_the_example_and_down_leaves_nothing(project):
     assert p.leftovers() == {}
 
 
+def test_compose_with_a_microphone_array_fuses_text_direction_emotion_and_gender(project):
+    """The recipe of docs/deploy.md for an array: splitter and ssl on, the VAD on channel 0."""
+    truth = json.loads((REPO / "examples" / "robocup_scene.json").read_text())["utterances"]
+    p = project(REPO / "examples" / "robocup_scene.flac")
+    p.env.update(ESIAF_SPLITTER_REPLICAS="1", ESIAF_SSL_REPLICAS="1", ESIAF_SSL_ARRAY="respeaker4",
+                 ESIAF_VAD_INPUT_TOPIC="splitter/ch0")
+    p("up", "-d", timeout=600)
+    fused = poll(lambda: at_least(len(truth), p.fused()), timeout_s=150)
+    assert [normalise(best_text(f)) for f in fused] == [normalise(u["text"]) for u in truth], p.logs()
+    for f, utterance in zip(fused, truth):
+        assert f["completion"] == "complete", f
+        error = abs((f["aggregates"]["ssl"]["azimuth_deg"] - utterance["azimuth_deg"] + 180) % 360 - 180)
+        assert error <= 15, (utterance, f["aggregates"]["ssl"])
+        assert f["aggregates"]["emotion"]["label"] and f["aggregates"]["gender"]["label"], f
+    p("down", "-v", "-t", "5")
+    assert p.leftovers() == {}
+
+
 def test_killed_asr_is_dead_within_3_s_fusions_stop_waiting_and_it_comes_back(project, tmp_path):
     samples, rate = soundfile.read(EXAMPLE, dtype="int16")
     longer = tmp_path / "twice.wav"
