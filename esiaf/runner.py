@@ -34,8 +34,9 @@ def parse_set(values: Sequence[str]) -> dict[str, Any]:
 
 def main(component_cls: type[Component], argv: Sequence[str] | None = None) -> int:
     service = component_cls.service
+    doc_lines = (component_cls.__doc__ or "").strip().splitlines()
     parser = argparse.ArgumentParser(prog=f"python -m services.{service}",
-                                     description=(component_cls.__doc__ or "").strip().splitlines()[0])
+                                     description=doc_lines[0] if doc_lines else f"the {service} component")
     parser.add_argument("--config", help="YAML settings file (also ESIAF_%s_CONFIG)" % service.upper())
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one setting (repeatable; the value is read as YAML, e.g. 3 or [1, 2])")

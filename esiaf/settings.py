@@ -14,12 +14,13 @@ collections, so ``ESIAF_ASR_NBEST=3`` and ``ESIAF_X_LIST=[a, b]`` work.
 """
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 from typing import Any, Mapping, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 
 ENV_PREFIX = "ESIAF_"
 
@@ -46,6 +47,13 @@ class ComponentSettings(StrictModel):
     register_timeout_s: float = 30.0  # keep retrying the orchestrator this long at start-up
     log_level: str = "INFO"
     health_file: str = ""  # touched whenever the orchestrator answers (see esiaf.health)
+
+    @field_validator("log_level")
+    @classmethod
+    def _known_level(cls, value: str) -> str:
+        if not isinstance(logging.getLevelName(value.upper()), int):
+            raise ValueError(f"unknown log level {value!r}; one of DEBUG, INFO, WARNING, ERROR, CRITICAL")
+        return value.upper()
 
 
 def parse_value(raw: str) -> Any:

@@ -36,6 +36,7 @@ def test_config_file_from_environment(tmp_path):
 @pytest.mark.parametrize("env, message", [
     ({"ESIAF_DEMO_TRESHOLD_DB": "1"}, "unknown setting ESIAF_DEMO_TRESHOLD_DB"),
     ({"ESIAF_DEMO_THRESHOLD_DB": "loud"}, "threshold_db"),
+    ({"ESIAF_DEMO_LOG_LEVEL": "verbose"}, "unknown log level 'verbose'"),
 ])
 def test_bad_environment_is_a_clear_error(env, message):
     with pytest.raises(SettingsError, match=message):
@@ -80,3 +81,30 @@ def test_a_bad_set_on_the_command_line_is_blamed_on_the_command_line():
                             env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO), "ESIAF_STREAM_ID": "s"})
     assert result.returncode == 2
     assert result.stderr.startswith("vad: bad vad settings (from command line): db_min:"), result.stderr
+
+
+def test_a_component_without_a_docstring_still_starts_its_command_line(capsys):
+    from esiaf.component import Component
+    from esiaf.runner import main
+
+    class Bare(Component):
+        service = "bare"
+
+    Bare.__doc__ = None
+    with pytest.raises(SystemExit) as exited:
+        main(Bare, ["--help"])
+    assert exited.value.code == 0
+    assert "the bare component" in capsys.readouterr().out
+
+
+def test_a_bad_log_level_is_one_line_and_exit_2(capsys):
+    from esiaf.component import Component
+    from esiaf.runner import main
+
+    class Quiet(Component):
+        """Does nothing."""
+        service = "quiet"
+
+    assert main(Quiet, ["--set", "log_level=verbose"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown log level 'verbose'" in err and "Traceback" not in err
