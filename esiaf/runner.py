@@ -13,7 +13,7 @@ from typing import Any, Sequence
 
 from esiaf.component import Component, SetupError
 from esiaf.control import RegistrationError
-from esiaf.settings import SettingsError, load_settings, parse_value
+from esiaf.settings import ComponentSettings, SettingsError, load_settings, parse_value
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s [{service}] %(message)s"
 
@@ -32,11 +32,24 @@ def parse_set(values: Sequence[str]) -> dict[str, Any]:
     return overrides
 
 
+def settings_help(model: type[ComponentSettings], service: str) -> str:
+    """Every setting, common ones included, with its default and its environment variable."""
+    common = set(ComponentSettings.model_fields)
+    lines = ["settings (defaults < --config YAML < environment < --set / flags):"]
+    for name, field in model.model_fields.items():
+        default = field.get_default(call_default_factory=True)
+        env = f"ESIAF_{service.upper()}_{name.upper()}" + (f" or ESIAF_{name.upper()}" if name in common else "")
+        lines.append(f"  {name} = {default!r}  ({env})")
+    return "\n".join(lines)
+
+
 def main(component_cls: type[Component], argv: Sequence[str] | None = None) -> int:
     service = component_cls.service
     doc_lines = (component_cls.__doc__ or "").strip().splitlines()
     parser = argparse.ArgumentParser(prog=f"python -m services.{service}",
-                                     description=doc_lines[0] if doc_lines else f"the {service} component")
+                                     description=doc_lines[0] if doc_lines else f"the {service} component",
+                                     epilog=settings_help(component_cls.Settings, service),
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", help="YAML settings file (also ESIAF_%s_CONFIG)" % service.upper())
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one setting (repeatable; the value is read as YAML, e.g. 3 or [1, 2])")

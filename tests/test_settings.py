@@ -94,7 +94,11 @@ def test_a_component_without_a_docstring_still_starts_its_command_line(capsys):
     with pytest.raises(SystemExit) as exited:
         main(Bare, ["--help"])
     assert exited.value.code == 0
-    assert "the bare component" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "the bare component" in out
+    # every setting is listed, the common ones too, with its environment variable
+    assert "log_level = 'INFO'  (ESIAF_BARE_LOG_LEVEL or ESIAF_LOG_LEVEL)" in out
+    assert "orchestrator_url" in out
 
 
 def test_a_bad_log_level_is_one_line_and_exit_2(capsys):
