@@ -33,7 +33,7 @@ log = logging.getLogger("esiaf")
 ANALYSERS = ("ssl", "emotion", "gender")  # what --without can leave out (the recogniser anchors every line)
 LABELS = ("emotion", "gender", "voice_id")  # label aggregates shown on a line, in this order
 START_TIMEOUT_S = 60.0
-DRAIN_TIMEOUT_S = 30.0  # after the grabber has finished: wait this long at most for the last results
+DRAIN_TIMEOUT_S = 30.0  # after the grabber has finished: wait this long for the next result at most
 PROGRESS_EVERY_S = 10.0  # how often to say how much of a long file has been played
 LONG_FILE_S = 60.0
 
@@ -263,6 +263,8 @@ def follow(ws, supervisor: Supervisor, client: OrchestratorClient, grabber, args
     if args.json:
         print(json.dumps({"type": "stream_start", "stream_id": args.stream_id, "start_ns": origin_ns}), flush=True)
     grabber_done_at = None
+    heard_at = 0.0  # when the last message arrived
+    warned = False
     ended = False
     printed = 0
     next_progress = time.monotonic() + PROGRESS_EVERY_S
@@ -275,16 +277,22 @@ def follow(ws, supervisor: Supervisor, client: OrchestratorClient, grabber, args
                 grabber_done_at = grabber_done_at or time.monotonic()
                 continue
             raise LaunchError(supervisor.failure(child))
-        if grabber_done_at and not ended and time.monotonic() - grabber_done_at > DRAIN_TIMEOUT_S:
-            print(f"esiaf: no end of stream {DRAIN_TIMEOUT_S:g} s after the file was played; stopping",
-                  file=sys.stderr)
-            return 1
+        if grabber_done_at and not ended and time.monotonic() - max(grabber_done_at, heard_at) > DRAIN_TIMEOUT_S:
+            if not args.serve:
+                print(f"esiaf: no end of stream and no result {DRAIN_TIMEOUT_S:g} s after the file was played; "
+                      f"stopping", file=sys.stderr)
+                return 1
+            if not warned:  # --serve never stops the services on its own
+                warned = True
+                print(f"esiaf: no end of stream {DRAIN_TIMEOUT_S:g} s after the file was played; still serving",
+                      file=sys.stderr, flush=True)
         try:
             message = json.loads(ws.recv(timeout=0.2))
         except TimeoutError:
             continue
         except ConnectionClosed as exc:
             raise LaunchError(f"the orchestrator closed the websocket: {exc}") from None
+        heard_at = time.monotonic()  # results still arriving: the drain deadline moves on
         if message.get("type") == "stream_end":
             ended = True
             if args.json:

@@ -47,3 +47,46 @@ def test_direction_emotion_and_gender_are_on_the_line_with_their_shares():
                              missing_components=["emotion"]),
                        ORIGIN_NS)
     assert line == "[12.31–14.05 s] 'go forward ten meters' (p=0.93), male (0.50) timed_out, missing emotion"
+
+
+class _Silent:
+    """A websocket on which nothing arrives: after ``polls`` receives the orchestrator 'closes' it."""
+
+    def __init__(self, polls):
+        self.polls = polls
+
+    def recv(self, timeout):
+        from websockets.exceptions import ConnectionClosed
+        self.polls -= 1
+        if self.polls < 0:
+            raise ConnectionClosed(None, None)
+        raise TimeoutError
+
+
+def _follow_a_played_file_that_never_ends(monkeypatch, serve):
+    import argparse
+    import types
+
+    from esiaf import cli
+    from esiaf.launcher import LaunchError
+
+    monkeypatch.setattr(cli, "DRAIN_TIMEOUT_S", 0.0)
+    grabber = types.SimpleNamespace(process=types.SimpleNamespace(returncode=0))
+    supervisor = types.SimpleNamespace(exited=lambda: [grabber])
+    client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS})
+    args = argparse.Namespace(stream_id="s", json=False, input="a.wav", serve=serve, mic=None)
+    try:
+        return cli.follow(_Silent(polls=5), supervisor, client, grabber, args)
+    except LaunchError:  # the websocket went away while it still listened
+        return "kept serving"
+
+
+def test_without_serve_the_launcher_gives_up_when_no_end_of_stream_comes(monkeypatch, capsys):
+    assert _follow_a_played_file_that_never_ends(monkeypatch, serve=False) == 1
+    assert "no end of stream and no result" in capsys.readouterr().err
+
+
+def test_serve_never_stops_the_services_on_its_own(monkeypatch, capsys):
+    # it keeps listening until the websocket goes away, and says once that the stream did not end
+    assert _follow_a_played_file_that_never_ends(monkeypatch, serve=True) == "kept serving"
+    assert capsys.readouterr().err.count("still serving") == 1
