@@ -9,7 +9,7 @@ import asyncio
 import json
 import logging
 import time
-from collections import Counter, deque
+from collections import Counter, OrderedDict, deque
 from typing import Any, Callable
 
 import zmq
@@ -26,6 +26,8 @@ from .streams import StreamEnds
 log = logging.getLogger(__name__)
 
 MAX_BATCH = 64  # messages handled per transaction
+MAX_NOTICE_BYTES = 4096  # an end_of_stream notice
+MAX_STREAMS = 10_000  # streams whose reference time is kept
 OVERHEAD_SAMPLES = 10_000
 
 
@@ -52,6 +54,7 @@ class Ingest:
         # timed-out fusions: their deadline -> fused result handed to the websocket clients
         self.timer_lateness_ns: deque[int] = deque(maxlen=OVERHEAD_SAMPLES)
         self._triggers: dict[Outgoing, tuple[deque[int], int]] = {}
+        self._stream_reference: OrderedDict[str, int] = OrderedDict()
 
     def restore(self) -> None:
         """Warm start from the database: latencies (so timeouts), the recent results and fused
@@ -82,8 +85,44 @@ class Ingest:
 
     def handle_batch(self, batch: list[list[bytes]]) -> None:
         def work() -> list[Outgoing]:
-            return [message for frames in batch for message in self._handle(frames)]
+            return [message for frames in batch for message in self._isolated(frames)]
         self._transaction(work, lost=len(batch), after="batch")
+
+    def _isolated(self, frames: list[bytes]) -> list[Outgoing]:
+        """One message in a savepoint of the batch's transaction: if handling it fails, it alone
+        is undone and refused (counted with its reason); its neighbours are stored."""
+        self.store.savepoint()
+        counters = self.counters.copy()
+        try:
+            outgoing = self._handle(frames)
+        except Exception as exc:  # a poison message must not take its batch with it
+            self.store.rollback_savepoint()
+            self.counters = counters
+            self._refuse("handler_error", f"{type(exc).__name__}: {exc}")
+            return []
+        self.store.release_savepoint()
+        return outgoing
+
+    def _stream_reference_ns(self, stream_id: str) -> int | None:
+        return self._stream_reference.get(stream_id)
+
+    def _remember_stream(self, stream_id: str, start_ns: int) -> None:
+        """The first span of each stream (the most recent MAX_STREAMS streams): later spans must
+        lie near it."""
+        if stream_id in self._stream_reference:
+            self._stream_reference.move_to_end(stream_id)
+            return
+        self._stream_reference[stream_id] = start_ns
+        while len(self._stream_reference) > MAX_STREAMS:
+            self._stream_reference.popitem(last=False)
+
+    def _refuse(self, reason: str, detail: str) -> None:
+        """Counts a refused message by reason; logs the first and then every 100th of a reason."""
+        self.counters["refused"] += 1
+        key = f"refused_{reason}"
+        self.counters[key] += 1
+        if self.counters[key] == 1 or self.counters[key] % 100 == 0:
+            log.warning("event=message_refused reason=%s count=%d detail=%.300s", reason, self.counters[key], detail)
 
     def components_gone(self, names: list[str]) -> None:
         """Fusions and stream ends stop waiting for components that died or left."""
@@ -103,6 +142,7 @@ class Ingest:
                      after: str) -> None:
         """Runs ``work`` in one transaction with what fusion must record, then publishes what
         it returned (nothing is published before it is committed); re-arms the timer."""
+        counters = self.counters.copy()  # what a rolled-back transaction counted did not happen
         try:
             self.store.begin()
             outgoing = work()
@@ -111,6 +151,7 @@ class Ingest:
         except Exception:
             self.store.rollback()
             self._triggers.clear()
+            self.counters = counters
             self.counters["lost_in_db_error"] += lost
             log.exception("event=store_failed after=%s messages=%d", after, lost)
             outgoing = []
@@ -165,19 +206,19 @@ class Ingest:
         if kind == b"end_of_stream" and len(frames) == 2:
             return self._on_end_of_stream(frames[1])
         self.counters["bad_messages"] += 1
-        log.warning("event=bad_message plane=results kind=%r frames=%d", kind[:40], len(frames))
+        self._refuse("bad_frames", f"kind={kind[:40]!r} frames={len(frames)}")
         return []
 
     def _on_result(self, data: bytes) -> list[Outgoing]:
         received_ns = self._clock_ns()
         try:
-            result = parse_result(data)
+            result = parse_result(data, self._stream_reference_ns)
             result_id = self.store.next_result_id
             as_json = result_to_json(result, result_id, received_ns)
             text = _dumps(as_json)
         except (BadResult, ValueError) as exc:
             self.counters["bad_results"] += 1
-            log.warning("event=bad_result reason=%r", str(exc))
+            self._refuse("bad_result", str(exc))
             return []
         self.store.allocate_result_id()
         kind = type_name(result)
@@ -185,16 +226,18 @@ class Ingest:
             result_id=result_id, component=result.component, type_name=kind,
             stream_id=result.stream_id, start_ns=result.span.start_ns, end_ns=result.span.end_ns,
             produced_ns=result.produced_ns, received_ns=received_ns, proto=data, json_text=text)
-        self.counters["results"] += 1
         component = self.registry.by_name(result.component)
         if component is not None:  # any message counts as life
             component.touch()
             component.results_received += 1
         self.streams.on_result(result.stream_id)
+        self._remember_stream(result.stream_id, result.span.start_ns)
         stored = StoredResult(id=result_id, component=result.component, type=kind,
                               stream_id=result.stream_id, start_ns=result.span.start_ns,
                               end_ns=result.span.end_ns, json=as_json)
-        return [self._store_fused(fused) for fused in self.engine.on_result(stored, received_ns)]
+        outgoing = [self._store_fused(fused) for fused in self.engine.on_result(stored, received_ns)]
+        self.counters["results"] += 1  # stored and fused: counted once nothing can undo it
+        return outgoing
 
     def _store_fused(self, fused: FusedResult) -> Outgoing:
         seq = fused.json["seq"] = self.store.allocate_seq()
@@ -216,13 +259,15 @@ class Ingest:
 
     def _on_end_of_stream(self, data: bytes) -> list[Outgoing]:
         try:
+            if len(data) > MAX_NOTICE_BYTES:
+                raise ValueError(f"{len(data)} bytes, more than {MAX_NOTICE_BYTES}")
             message = json.loads(data)
             component_id, stream_id = message["component_id"], message["stream_id"]
             if not isinstance(component_id, str) or not isinstance(stream_id, str):
                 raise TypeError("component_id and stream_id must be strings")
-        except (ValueError, KeyError, TypeError) as exc:
+        except (ValueError, KeyError, TypeError, RecursionError) as exc:
             self.counters["bad_messages"] += 1
-            log.warning("event=bad_end_of_stream reason=%r data=%r", str(exc), data[:200])
+            self._refuse("bad_end_of_stream", f"{type(exc).__name__}: {exc} data={data[:100]!r}")
             return []
         component = self.registry.get(component_id)
         fused: list[Outgoing] = []

@@ -156,6 +156,18 @@ class Store:
         if self._db.in_transaction:
             self._db.execute("ROLLBACK")
 
+    # one message inside a transaction: undone alone if it fails
+    def savepoint(self) -> None:
+        self._db.execute("SAVEPOINT message")
+
+    def release_savepoint(self) -> None:
+        self._db.execute("RELEASE SAVEPOINT message")
+
+    def rollback_savepoint(self) -> None:
+        if self._db.in_transaction:
+            self._db.execute("ROLLBACK TO SAVEPOINT message")
+            self._db.execute("RELEASE SAVEPOINT message")
+
     def allocate_result_id(self) -> int:
         result_id, self.next_result_id = self.next_result_id, self.next_result_id + 1
         return result_id
