@@ -38,6 +38,31 @@ from esiaf.transport import Transport, TransportError, topic_name
 log = logging.getLogger(__name__)
 
 
+# Bounds on what a peer may send (docs/reliability.md)
+MAX_MESSAGE_BYTES = 16 * 1024 * 1024  # one AugmentedAudio message
+MAX_CHUNK_S = 10.0  # audio in one message
+MIN_RATE_HZ, MAX_RATE_HZ = 8_000, 192_000
+MAX_CHANNELS = 64
+MAX_PUBLISHERS = 256  # publishers (topic, instance) whose state is kept
+MAX_TIME_NS = 2**62  # capture times after 2116 are refused: sums never overflow
+
+
+def check_audio(audio: Audio) -> None:
+    """Raises ValueError if a received chunk is out of bounds: rate, channels, size, times."""
+    fmt = audio.format
+    if not MIN_RATE_HZ <= fmt.sample_rate_hz <= MAX_RATE_HZ:
+        raise ValueError(f"sample rate {fmt.sample_rate_hz} Hz outside {MIN_RATE_HZ}..{MAX_RATE_HZ}")
+    if fmt.channels > MAX_CHANNELS:
+        raise ValueError(f"{fmt.channels} channels, more than {MAX_CHANNELS}")
+    frames = fmt.frames_in(audio.payload)  # FormatError (a ValueError) if not whole frames
+    if frames > MAX_CHUNK_S * fmt.sample_rate_hz:
+        raise ValueError(f"{frames / fmt.sample_rate_hz:.1f} s of audio in one message, more than {MAX_CHUNK_S:g}")
+    if not 0 <= audio.start_ns <= audio.end_ns < MAX_TIME_NS:
+        raise ValueError(f"capture span {audio.start_ns}..{audio.end_ns} is not ordered within 1970..2116")
+    if len(audio.stream_id) > 200 or len(audio.publisher) > 200:
+        raise ValueError("stream or publisher name over 200 characters")
+
+
 class SetupError(Exception):
     """A component could not be configured (model missing, device unknown...)."""
 
@@ -78,6 +103,8 @@ class Component:
         self._exit_code = 0
         self._sequences: dict[str, int] = {}
         self._last_seen: dict[tuple[str, str], int] = {}
+        self.refused: dict[str, int] = {}  # audio messages refused, by reason
+        self.refused_by_publisher: dict[str, int] = {}  # ... by publisher (the most recent ones)
         self._ended: dict[str, set[str]] = {}
         self._result_sequence = 0
         self._handling = False  # inside a handler: audio input waits, so handlers never nest
@@ -215,6 +242,7 @@ class Component:
         return {"inputs": {t: asdict(s) for t, s in list(self.input_stats.items())},
                 "outputs": {t: asdict(s) for t, s in list(self.output_stats.items())},
                 "results_sent": self.results_sent, "results_dropped": self.results_dropped,
+                "refused": dict(self.refused), "refused_by_publisher": dict(self.refused_by_publisher),
                 "info": dict(self.info)}
 
     def run(self) -> int:
@@ -299,26 +327,28 @@ class Component:
             self.control.poke()
 
     def _on_message(self, frames: list[bytes]) -> None:
-        topic = topic_name(frames[0])
+        topic = topic_name(frames[0]) if frames else ""
         stats = self.input_stats.get(topic)
-        if stats is None or len(frames) != 2:
+        if stats is None:
+            return  # a topic this component did not subscribe to (a SUB filters by prefix)
+        if len(frames) != 2:
+            self._refuse(stats, "frames", "", f"{len(frames)} frames, not 2")
             return
         try:
+            if len(frames[1]) > MAX_MESSAGE_BYTES:
+                raise ValueError(f"message of {len(frames[1])} bytes, more than {MAX_MESSAGE_BYTES}")
             audio = Audio.from_message(pb.AugmentedAudio.FromString(frames[1]))
-            audio.format.frames_in(audio.payload)
-        except (ValueError, FormatError) as exc:  # DecodeError is a ValueError
-            stats.bad += 1
-            log.error("undecodable audio topic=%s bad=%d error=%s", topic, stats.bad, exc)
+            check_audio(audio)
+        except Exception as exc:  # a peer's bytes: DecodeError, FormatError, bounds... never fatal
+            self._refuse(stats, "undecodable", "", f"{type(exc).__name__}: {exc}")
             return
         stats.received += 1
         self._count_gap(audio, stats)
-        link = self._input_links.setdefault((topic, audio.publisher), InputLink(self.inputs[topic]))
+        link = self._input_link(topic, audio.publisher)
         try:
             chunks = link.receive(audio)
         except FormatError as exc:  # a channel count this component does not take
-            stats.bad += 1
-            if stats.bad == 1 or stats.bad % 100 == 0:
-                log.error("audio in an unusable format topic=%s bad=%d error=%s", topic, stats.bad, exc)
+            self._refuse(stats, "format", audio.publisher, str(exc))
             return
         self._handling = True
         try:
@@ -329,6 +359,31 @@ class Component:
             log.exception("handler failed topic=%s sequence=%d start_ns=%d", topic, audio.sequence, audio.start_ns)
         finally:
             self._handling = False
+
+    def _input_link(self, topic: str, publisher: str) -> InputLink:
+        """The conversion state of one publisher on one topic; the least recently heard of more
+        than MAX_PUBLISHERS are forgotten (10,000 forged names must not grow the process)."""
+        key = (topic, publisher)
+        link = self._input_links.pop(key, None) or InputLink(self.inputs[topic])
+        self._input_links[key] = link  # most recent last
+        while len(self._input_links) > MAX_PUBLISHERS:
+            oldest = next(iter(self._input_links))
+            del self._input_links[oldest]
+            self._last_seen.pop(oldest, None)
+        return link
+
+    def _refuse(self, stats: InputStats, reason: str, publisher: str, detail: str) -> None:
+        """Counts a refused message (per reason, per publisher) and logs the first and every 100th."""
+        stats.bad += 1
+        self.refused[reason] = self.refused.get(reason, 0) + 1
+        if publisher:
+            by_peer = self.refused_by_publisher
+            by_peer[publisher] = by_peer.pop(publisher, 0) + 1
+            if len(by_peer) > MAX_PUBLISHERS:
+                del by_peer[next(iter(by_peer))]
+        if self.refused[reason] == 1 or self.refused[reason] % 100 == 0:
+            log.error("refused audio reason=%s publisher=%s count=%d detail=%.300s",
+                      reason, publisher or "?", self.refused[reason], detail)
 
     def _dispatch(self, audio: Audio) -> None:
         self.on_audio(audio)

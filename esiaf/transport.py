@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import socket
 import time
 from typing import Any, Iterable, Iterator, Sequence
@@ -26,6 +27,15 @@ RESULTS_HWM = 10_000
 FLUSH_LINGER_MS = 2_000  # data sockets get this long to deliver the last messages at shutdown
 ANY_HOST = ("0.0.0.0", "*", "::")
 LEAVE_GRACE_S = 1.0  # a departed producer's messages still arriving are taken this long at least
+
+
+_ENDPOINT = re.compile(r"^tcp://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]{1,253}):(\d{1,5})$")
+
+
+def valid_endpoint(endpoint: str) -> bool:
+    """``tcp://HOST:PORT`` with a port in 1..65535: the only endpoints components exchange."""
+    match = _ENDPOINT.match(endpoint) if isinstance(endpoint, str) else None
+    return bool(match) and 0 < int(match.group(2)) < 65536
 
 
 class TransportError(Exception):
@@ -132,10 +142,19 @@ class Transport:
         """
         if self.sub is None:
             return
+        refused = set()
         for endpoint in wanted - self._connected:
+            try:
+                if not valid_endpoint(endpoint):
+                    raise ValueError("tcp://HOST:PORT expected")
+                self.sub.connect(endpoint)
+            except (ValueError, zmq.ZMQError) as exc:  # what a peer registered is never fatal here
+                log.error("not connecting to producer endpoint=%.200r: %s", endpoint, exc)
+                refused.add(endpoint)
+                continue
             self._leaving.pop(endpoint, None)
-            self.sub.connect(endpoint)
             log.info("connected to producer endpoint=%s", endpoint)
+        wanted = wanted - refused
         for endpoint in self._connected - wanted:
             self._leaving.setdefault(endpoint, time.monotonic())
         self._connected = set(wanted) | set(self._leaving)
@@ -154,6 +173,9 @@ class Transport:
 
     def connect_results(self, endpoint: str) -> None:
         if endpoint and endpoint != self._results_endpoint:
+            if not valid_endpoint(endpoint):
+                log.error("not connecting to a bad results endpoint=%.200r", endpoint)
+                return
             if self._results_endpoint:
                 self.push.disconnect(self._results_endpoint)
             self.push.connect(endpoint)

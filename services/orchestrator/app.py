@@ -9,6 +9,7 @@ from fastapi_offline import FastAPIOffline  # /docs without a CDN: robots are of
 
 from .api import components, fused, fusions, health, latency, results, streams, topics, ws
 from .core import Orchestrator
+from .limits import BodyLimit
 from .settings import OrchestratorSettings
 
 DESCRIPTION = """\
@@ -42,4 +43,5 @@ def create_app(settings: OrchestratorSettings, *,
                          lifespan=lifespan)
     for module in (components, topics, streams, results, latency, fused, ws, fusions, health):
         app.include_router(module.router)
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     return app

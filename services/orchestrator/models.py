@@ -1,9 +1,10 @@
 """Request and response models of the REST API (they make the OpenAPI schema at /docs)."""
 from __future__ import annotations
 
+import json
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from .settings import FusionSettings
 
@@ -11,6 +12,7 @@ SampleType = Literal["int8", "uint8", "int16", "uint16", "int24", "uint24", "int
                      "float32", "float64"]
 Designation = Literal["vad", "speech", "ssl", "emotion", "gender", "voice_id", "other"]
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]*$"
+MAX_INFO_BYTES = 64 * 1024  # a registration's info, as JSON
 
 
 class Strict(BaseModel):
@@ -48,11 +50,30 @@ class RegisterRequest(Strict):
     inputs: list[TopicDeclaration] = Field(default_factory=list)
     outputs: list[TopicDeclaration] = Field(default_factory=list)
     audio_endpoint: str | None = Field(
-        default=None, pattern=r"^[a-z]+://\S+$", examples=["tcp://127.0.0.1:40123"],
-        description="where its XPUB socket is reached; null without outputs")
-    host: str = ""
+        default=None, max_length=300, pattern=r"^tcp://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]{1,253}):[0-9]{1,5}$",
+        examples=["tcp://127.0.0.1:40123"],
+        description="where its XPUB socket is reached (tcp://HOST:PORT); null without outputs")
+    host: str = Field(default="", max_length=253)
     pid: int | None = None
-    info: dict[str, Any] = Field(default_factory=dict)
+    info: dict[str, Any] = Field(default_factory=dict, description=f"at most {MAX_INFO_BYTES} bytes as JSON")
+
+    @field_validator("audio_endpoint")
+    @classmethod
+    def _port_in_range(cls, value: str | None) -> str | None:
+        if value is not None and not 0 < int(value.rsplit(":", 1)[1]) < 65536:
+            raise ValueError(f"audio_endpoint port must be in 1..65535: {value}")
+        return value
+
+    @field_validator("info")
+    @classmethod
+    def _info_bounded(cls, value: dict[str, Any]) -> dict[str, Any]:
+        try:
+            size = len(json.dumps(value, default=str))
+        except (RecursionError, ValueError):
+            raise ValueError("info is nested too deeply to store") from None
+        if size > MAX_INFO_BYTES:
+            raise ValueError(f"info is {size} bytes as JSON, more than {MAX_INFO_BYTES}")
+        return value
 
     @model_validator(mode="after")
     def _consistent(self) -> "RegisterRequest":

@@ -79,6 +79,7 @@ class OrchestratorSettings(StrictModel):
         default_factory=lambda: [FusionSettings(name="speech", anchor="speech", fuse=["ssl", "emotion", "gender"])])
     timeouts: TimeoutSettings = Field(default_factory=TimeoutSettings)
     log_level: str = "INFO"
+    max_body_bytes: int = Field(default=1024 * 1024, gt=0)  # HTTP request bodies larger than this get 413
 
     @field_validator("log_level")
     @classmethod
