@@ -24,9 +24,9 @@ from typing import Any, Sequence
 
 import httpx
 from websockets.exceptions import ConnectionClosed
-from websockets.sync.client import connect
 
-from esiaf.launcher import LaunchError, OrchestratorClient, Supervisor, wait_until
+from esiaf.feed import FusedFeed
+from esiaf.launcher import LaunchError, OrchestratorClient, Supervisor, fixed_ports, wait_until
 
 log = logging.getLogger("esiaf")
 
@@ -191,10 +191,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         # the default fusion: each recognised utterance with the ssl, emotion and gender results
         # within it; the orchestrator waits only for those analysers that are running
+        ports = fixed_ports(workdir)  # the same across restarts: components find it again, nothing is lost
         orchestrator = supervisor.start("orchestrator", ["--host", args.host, "--port", str(args.port),
                                                          "--db", str(workdir / "esiaf.db")],
-                                        env={"ESIAF_ORCHESTRATOR_CONTROL_PORT": "0",
-                                             "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"})
+                                        env={"ESIAF_ORCHESTRATOR_CONTROL_PORT": str(ports["control"]),
+                                             "ESIAF_ORCHESTRATOR_RESULTS_PORT": str(ports["results"])})
         wait_until(client.healthy, supervisor, "the orchestrator to answer", START_TIMEOUT_S, orchestrator)
         # every service at once (their imports and models load in parallel), then each must register
         services = {"asr": supervisor.start("asr", ["--grammar", args.grammar] if args.grammar else [])}
@@ -226,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
         wait_until(lambda: topic_ready(client, "vad/speech", 1 + len(labellers)), supervisor,
                    f"{', '.join(['asr', *labellers])} to subscribe to vad/speech", START_TIMEOUT_S, services["vad"])
         log.info("services: %s", ", ".join(services))
-        with connect(f"ws://{args.host}:{args.port}/ws/fused?stream={stream_id}", open_timeout=10) as ws:
+        with FusedFeed(f"ws://{args.host}:{args.port}/ws/fused?stream={stream_id}") as ws:
             source = ["--input", str(args.input.resolve())] if args.input else ["--device", args.mic]
             grabber = supervisor.start("grabber", source + (["--fast"] if args.fast else []), env=grabber_env)
             print(f"esiaf: playing {args.input or args.mic} as stream {stream_id}; "
@@ -276,7 +277,9 @@ def follow(ws, supervisor: Supervisor, client: OrchestratorClient, grabber, args
             if child is grabber and child.process.returncode == 0:
                 grabber_done_at = grabber_done_at or time.monotonic()
                 continue
-            raise LaunchError(supervisor.failure(child))
+            if child is grabber:
+                raise LaunchError(supervisor.failure(child))
+            supervisor.restart_when_due(child)
         if grabber_done_at and not ended and time.monotonic() - max(grabber_done_at, heard_at) > DRAIN_TIMEOUT_S:
             if not args.serve:
                 print(f"esiaf: no end of stream and no result {DRAIN_TIMEOUT_S:g} s after the file was played; "

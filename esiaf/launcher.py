@@ -9,9 +9,11 @@ itself dies (PR_SET_PDEATHSIG), so no process is left orphaned.
 from __future__ import annotations
 
 import ctypes
+import json
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -25,6 +27,8 @@ log = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 _PR_SET_PDEATHSIG = 1
+MAX_RESTARTS = 5  # a service that died this often is not restarted again: the run ends
+RESTART_BACKOFF_S = 0.5  # before the first restart; doubles with each, up to 10 s
 
 
 class LaunchError(Exception):
@@ -43,6 +47,22 @@ class Child:
     name: str
     process: subprocess.Popen
     log_path: Path
+    command: list[str] = field(default_factory=list)
+    env: dict[str, str] = field(default_factory=dict)
+    restarts: int = 0
+    died_at: float | None = None  # monotonic time its death was first seen
+
+    def restart_delay_s(self) -> float:
+        return min(RESTART_BACKOFF_S * 2 ** self.restarts, 10.0)
+
+    def how_it_ended(self) -> str:
+        code = self.process.returncode
+        if code is not None and code < 0:
+            try:
+                return f"killed by {signal.Signals(-code).name}"
+            except ValueError:
+                return f"killed by signal {-code}"
+        return f"exited with code {code}"
 
     def tail(self, lines: int = 12) -> str:
         try:
@@ -64,20 +84,47 @@ class Supervisor:
         log_path = logs / f"{name}.log"
         child_env = {**os.environ, **self.env, **(env or {})}
         child_env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), child_env.get("PYTHONPATH")]))
-        with log_path.open("wb") as out:
-            process = subprocess.Popen([sys.executable, "-m", f"services.{name}", *args], stdout=out,
-                                       stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=child_env,
-                                       cwd=REPO_ROOT, start_new_session=True, preexec_fn=_die_with_parent)
-        child = Child(name, process, log_path)
+        command = [sys.executable, "-m", f"services.{name}", *args]
+        child = Child(name, self._spawn(command, child_env, log_path, "wb"), log_path, command, child_env)
         self.children.append(child)
-        log.info("started service=%s pid=%d log=%s", name, process.pid, log_path)
+        log.info("started service=%s pid=%d log=%s", name, child.process.pid, log_path)
         return child
+
+    @staticmethod
+    def _spawn(command: list[str], env: dict[str, str], log_path: Path, mode: str) -> subprocess.Popen:
+        with log_path.open(mode) as out:
+            return subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                    env=env, cwd=REPO_ROOT, start_new_session=True, preexec_fn=_die_with_parent)
+
+    def restart(self, child: Child) -> None:
+        """Starts a dead child again with the same command and environment; its log goes on."""
+        child.restarts += 1
+        child.died_at = None
+        with child.log_path.open("ab") as out:
+            out.write(f"\n--- esiaf: restart {child.restarts} ---\n".encode())
+        child.process = self._spawn(child.command, child.env, child.log_path, "ab")
+        log.info("restarted service=%s pid=%d restarts=%d", child.name, child.process.pid, child.restarts)
+
+    def restart_when_due(self, child: Child) -> None:
+        """A service died: say which and why, restart it after a back-off (doubling from
+        RESTART_BACKOFF_S), and give up with its log's tail after MAX_RESTARTS deaths."""
+        now = time.monotonic()
+        if child.died_at is None:
+            child.died_at = now
+            last_line = child.tail(1).strip()
+            if child.restarts >= MAX_RESTARTS:
+                raise LaunchError(f"{self.failure(child)}\n(not restarted: it died {child.restarts + 1} times)")
+            print(f"esiaf: service {child.name} {child.how_it_ended()}"
+                  f"{f' ({last_line})' if last_line else ''}; restarting it in {child.restart_delay_s():.1f} s "
+                  f"({child.restarts + 1} of {MAX_RESTARTS})", file=sys.stderr, flush=True)
+        if now - child.died_at >= child.restart_delay_s():
+            self.restart(child)
 
     def exited(self) -> list[Child]:
         return [c for c in self.children if c.process.poll() is not None]
 
     def failure(self, child: Child) -> str:
-        return (f"service {child.name} exited with code {child.process.returncode}; "
+        return (f"service {child.name} {child.how_it_ended()}; "
                 f"its log ({child.log_path}) ends:\n{child.tail()}")
 
     def stop(self, timeout_s: float = 5.0) -> None:
@@ -112,6 +159,38 @@ def wait_until(condition: Callable[[], Any], supervisor: Supervisor, what: str, 
             extra = f"; its log ({watch.log_path}) ends:\n{watch.tail()}" if watch else ""
             raise LaunchError(f"timed out after {timeout_s:g} s waiting for {what}{extra}")
         time.sleep(0.05)
+
+
+def fixed_ports(workdir: Path, names: tuple[str, ...] = ("control", "results")) -> dict[str, int]:
+    """The orchestrator's ZeroMQ ports of this workdir: chosen free once, kept in ports.json, so an
+    orchestrator restarted in the same workdir comes back where its components push results."""
+    path = workdir / "ports.json"
+    try:
+        ports = {name: int(port) for name, port in json.loads(path.read_text()).items() if name in names}
+    except (OSError, ValueError, AttributeError, TypeError):
+        ports = {}
+    for name in names:
+        if name not in ports or not _port_free(ports[name]):
+            ports[name] = _any_free_port()
+    workdir.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(ports))
+    return ports
+
+
+def _port_free(port: int) -> bool:
+    with socket.socket() as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def _any_free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
 
 
 class OrchestratorClient:

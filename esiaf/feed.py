@@ -1,0 +1,50 @@
+"""The launcher's view of the fused results: a websocket that survives an orchestrator restart."""
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import time
+
+from websockets.exceptions import ConnectionClosed, InvalidHandshake
+from websockets.sync.client import connect
+
+log = logging.getLogger(__name__)
+
+
+class FusedFeed:
+    """The websocket of fused results. If the orchestrator goes away (it died and is being
+    restarted), it reconnects with ``after_seq`` = the last publication seen, so no fused
+    result or revision is missed; meanwhile ``recv`` times out as if nothing had arrived."""
+
+    def __init__(self, url: str) -> None:
+        self.url = url
+        self.last_seq: int | None = None
+        self.ws = connect(url, open_timeout=10)
+
+    def __enter__(self) -> "FusedFeed":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.ws is not None:
+            self.ws.close()
+
+    def recv(self, timeout: float) -> str:
+        if self.ws is None:
+            url = self.url + (f"&after_seq={self.last_seq}" if self.last_seq is not None else "")
+            try:
+                self.ws = connect(url, open_timeout=timeout)
+            except (OSError, TimeoutError, InvalidHandshake):
+                time.sleep(timeout)
+                raise TimeoutError from None
+            log.info("websocket reconnected after_seq=%s", self.last_seq)
+        try:
+            text = self.ws.recv(timeout=timeout)
+        except ConnectionClosed:
+            self.ws = None
+            print("esiaf: lost the orchestrator's websocket; reconnecting", file=sys.stderr, flush=True)
+            raise TimeoutError from None
+        seq = json.loads(text).get("seq")
+        if isinstance(seq, int):
+            self.last_seq = seq
+        return text
