@@ -269,10 +269,13 @@ def follow(ws, supervisor: Supervisor, client: OrchestratorClient, grabber, args
     ended = False
     printed = 0
     next_progress = time.monotonic() + PROGRESS_EVERY_S
+    unhealthy = ""  # why the orchestrator said it is unhealthy, as last reported
     while True:
-        if args.input and grabber_done_at is None and time.monotonic() >= next_progress:
+        if time.monotonic() >= next_progress:
             next_progress += PROGRESS_EVERY_S
-            show_progress(client)
+            if args.input and grabber_done_at is None:
+                show_progress(client)
+            unhealthy = report_health(client, unhealthy)
         for child in supervisor.exited():
             if child is grabber and child.process.returncode == 0:
                 grabber_done_at = grabber_done_at or time.monotonic()
@@ -308,6 +311,19 @@ def follow(ws, supervisor: Supervisor, client: OrchestratorClient, grabber, args
             continue
         printed += 1
         print(json.dumps(message) if args.json else format_line(message, origin_ns), flush=True)
+
+
+def report_health(client: OrchestratorClient, reported: str) -> str:
+    """Says on stderr when the orchestrator turns unhealthy (its database cannot be written) and
+    when it recovers; returns what is now reported."""
+    try:
+        problem = client.health_problem()
+    except httpx.HTTPError:
+        return reported  # restarting: the supervisor says so
+    if problem != reported:
+        print(f"esiaf: orchestrator unhealthy: {problem}" if problem else "esiaf: orchestrator healthy again",
+              file=sys.stderr, flush=True)
+    return problem
 
 
 def show_progress(client: OrchestratorClient) -> None:

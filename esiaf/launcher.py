@@ -201,6 +201,16 @@ class OrchestratorClient:
     def healthy(self) -> bool:
         return self._http.get(f"{self.url}/health").status_code == 200
 
+    def health_problem(self) -> str:
+        """'' while healthy, else what /health says is wrong."""
+        response = self._http.get(f"{self.url}/health")
+        if response.status_code == 200:
+            return ""
+        try:
+            return str(response.json().get("detail") or response.status_code)
+        except ValueError:
+            return f"/health answered {response.status_code}"
+
     def components(self) -> list[dict[str, Any]]:
         response = self._http.get(f"{self.url}/components")
         response.raise_for_status()

@@ -20,7 +20,7 @@ from .fusion import FusedResult, FusionEngine, StoredResult
 from .hub import Hub, Outgoing
 from .registry import Registry
 from .settings import FusionSettings
-from .store import Store
+from .store import Store, StoreUnavailable
 from .streams import StreamEnds
 
 log = logging.getLogger(__name__)
@@ -28,6 +28,7 @@ log = logging.getLogger(__name__)
 MAX_BATCH = 64  # messages handled per transaction
 MAX_NOTICE_BYTES = 4096  # an end_of_stream notice
 MAX_STREAMS = 10_000  # streams whose reference time is kept
+STORE_RETRY_S = 1.0  # while the database cannot be written: how often queued writes are retried
 OVERHEAD_SAMPLES = 10_000
 
 
@@ -55,6 +56,7 @@ class Ingest:
         self.timer_lateness_ns: deque[int] = deque(maxlen=OVERHEAD_SAMPLES)
         self._triggers: dict[Outgoing, tuple[deque[int], int]] = {}
         self._stream_reference: OrderedDict[str, int] = OrderedDict()
+        self._store_retry: asyncio.TimerHandle | None = None
 
     def restore(self) -> None:
         """Warm start from the database: latencies (so timeouts), the recent results and fused
@@ -91,16 +93,15 @@ class Ingest:
     def _isolated(self, frames: list[bytes]) -> list[Outgoing]:
         """One message in a savepoint of the batch's transaction: if handling it fails, it alone
         is undone and refused (counted with its reason); its neighbours are stored."""
-        self.store.savepoint()
+        mark = self.store.savepoint()
         counters = self.counters.copy()
         try:
             outgoing = self._handle(frames)
         except Exception as exc:  # a poison message must not take its batch with it
-            self.store.rollback_savepoint()
+            self.store.rollback_savepoint(mark)
             self.counters = counters
             self._refuse("handler_error", f"{type(exc).__name__}: {exc}")
             return []
-        self.store.release_savepoint()
         return outgoing
 
     def _stream_reference_ns(self, stream_id: str) -> int | None:
@@ -148,6 +149,10 @@ class Ingest:
             outgoing = work()
             self._record_fusion_changes()
             self.store.commit()
+        except StoreUnavailable:
+            # the disk is full or the file read-only: the writes stay queued (bounded) and are
+            # retried; the fused results still go out, a robot must not go deaf for its disk
+            self._retry_store_later()
         except Exception:
             self.store.rollback()
             self._triggers.clear()
@@ -157,6 +162,17 @@ class Ingest:
             outgoing = []
         self._publish(outgoing)
         self._arm_timer()
+
+    def _retry_store_later(self) -> None:
+        if self._store_retry is None:
+            self._store_retry = asyncio.get_running_loop().call_later(STORE_RETRY_S, self._retry_store)
+
+    def _retry_store(self) -> None:
+        self._store_retry = None
+        try:
+            self.store.commit()
+        except StoreUnavailable:
+            self._retry_store_later()
 
     def _record_fusion_changes(self) -> None:
         changes = self.engine.changes

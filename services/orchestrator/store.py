@@ -102,9 +102,18 @@ def _remove_db_files(path: Path) -> None:
         Path(f"{path}{suffix}").unlink(missing_ok=True)
 
 
+class StoreUnavailable(Exception):
+    """The database cannot be written now; the writes stay queued."""
+
+
 class Store:
-    def __init__(self, path: str | Path, *, fresh: bool = False) -> None:
+    def __init__(self, path: str | Path, *, fresh: bool = False, max_queued: int = 100_000) -> None:
         path = Path(path)
+        self._queued: list[tuple[str, tuple]] = []
+        self._batch_start = 0
+        self.max_queued = max_queued
+        self.lost_writes = 0
+        self.error: str | None = None  # why the last commit failed; None while writes succeed
         try:
             if fresh:
                 _remove_db_files(path)
@@ -145,28 +154,55 @@ class Store:
     def close(self) -> None:
         self._db.close()
 
-    # writes: call begin(), the add_* methods, then commit()
+    # writes: call begin(), the add_* methods, then commit(). The writes wait in memory until
+    # commit() runs them in one transaction; if the database cannot take them (disk full, file
+    # read-only) they stay queued (at most max_queued, the oldest then counted lost) and every
+    # later commit() tries them again, so nothing is lost when the disk comes back.
     def begin(self) -> None:
-        self._db.execute("BEGIN")
+        self._batch_start = len(self._queued)
 
     def commit(self) -> None:
-        self._db.execute("COMMIT")
+        if not self._queued:
+            return
+        try:
+            self._db.execute("BEGIN")
+            for sql, params in self._queued:
+                self._db.execute(sql, params)
+            self._db.execute("COMMIT")
+        except sqlite3.Error as exc:
+            if self._db.in_transaction:
+                self._db.execute("ROLLBACK")
+            overflow = len(self._queued) - self.max_queued
+            if overflow > 0:
+                del self._queued[:overflow]
+                self.lost_writes += overflow
+            if self.error is None:
+                log.error("event=store_unwritable path=%s error=%s queued=%d", self.path, exc, len(self._queued))
+            self.error = f"database {self.path} cannot be written: {exc} ({len(self._queued)} writes queued, " \
+                         f"{self.lost_writes} lost)"
+            raise StoreUnavailable(self.error) from None
+        if self.error is not None:
+            log.warning("event=store_writable_again path=%s written=%d", self.path, len(self._queued))
+        self.error = None
+        self._queued.clear()
 
     def rollback(self) -> None:
-        if self._db.in_transaction:
-            self._db.execute("ROLLBACK")
+        """Forgets the writes since begin() (the work that made them failed)."""
+        del self._queued[self._batch_start:]
 
-    # one message inside a transaction: undone alone if it fails
-    def savepoint(self) -> None:
-        self._db.execute("SAVEPOINT message")
+    # one message inside a batch: its writes are undone alone if it fails
+    def savepoint(self) -> int:
+        return len(self._queued)
 
-    def release_savepoint(self) -> None:
-        self._db.execute("RELEASE SAVEPOINT message")
+    def rollback_savepoint(self, mark: int) -> None:
+        del self._queued[mark:]
 
-    def rollback_savepoint(self) -> None:
-        if self._db.in_transaction:
-            self._db.execute("ROLLBACK TO SAVEPOINT message")
-            self._db.execute("RELEASE SAVEPOINT message")
+    @property
+    def queued(self) -> int:
+        return len(self._queued)
+
+    def _write(self, sql: str, params: tuple) -> None:
+        self._queued.append((sql, params))
 
     def allocate_result_id(self) -> int:
         result_id, self.next_result_id = self.next_result_id, self.next_result_id + 1
@@ -179,7 +215,7 @@ class Store:
     def add_result(self, *, result_id: int, component: str, type_name: str, stream_id: str,
                    start_ns: int, end_ns: int, produced_ns: int, received_ns: int,
                    proto: bytes, json_text: str) -> None:
-        self._db.execute(
+        self._write(
             "INSERT INTO results (id, component, type, stream_id, start_ns, end_ns, produced_ns,"
             " received_ns, proto, json) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
             (result_id, component, type_name, stream_id, start_ns, end_ns, produced_ns,
@@ -193,7 +229,7 @@ class Store:
     def add_fused(self, *, fused_id: int, revision: int, fusion: str, stream_id: str,
                   start_ns: int, end_ns: int, published_ns: int, json_text: str,
                   seq: int | None = None) -> None:
-        self._db.execute(
+        self._write(
             "INSERT INTO fused (id, revision, fusion, stream_id, start_ns, end_ns, published_ns,"
             " json, seq) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
             (fused_id, revision, fusion, stream_id, start_ns, end_ns, published_ns, json_text,
@@ -201,15 +237,15 @@ class Store:
 
     def add_pending(self, *, fused_id: int, anchor_id: int, settings_json: str,
                     waiting_json: str, opened_ns: int) -> None:
-        self._db.execute(
+        self._write(
             "INSERT INTO pending_fusions (fused_id, anchor_id, settings, waiting, opened_ns)"
             " VALUES (?, ?, ?, ?, ?)", (fused_id, anchor_id, settings_json, waiting_json, opened_ns))
 
     def remove_pending(self, fused_id: int) -> None:
-        self._db.execute("DELETE FROM pending_fusions WHERE fused_id = ?", (fused_id,))
+        self._write("DELETE FROM pending_fusions WHERE fused_id = ?", (fused_id,))
 
     def put_latency(self, *, component: str, count: int, mean_ns: float, updated_ns: int) -> None:
-        self._db.execute(
+        self._write(
             "INSERT INTO latency (component, count, mean_ns, updated_ns) VALUES (?, ?, ?, ?)"
             " ON CONFLICT (component) DO UPDATE SET count = excluded.count,"
             " mean_ns = excluded.mean_ns, updated_ns = excluded.updated_ns",

@@ -6,6 +6,7 @@ turn any span into a position in the recording (``(start_ns - stream.start_ns) /
 from __future__ import annotations
 
 import json
+import sqlite3
 import time
 from typing import Any
 
@@ -43,8 +44,12 @@ def _stream(row: tuple) -> Stream:
 @router.put("/streams/{stream_id}", response_model=Stream, summary="announce a stream (sources do this)")
 async def announce(body: StreamAnnouncement, stream_id: str = Path(min_length=1),
                    core: Orchestrator = Depends(get_core)) -> Stream:
-    core.store.put_stream(stream_id=stream_id, start_ns=body.start_ns, source=body.source,
-                          announced_ns=time.time_ns(), info_json=json.dumps(body.info))
+    try:
+        core.store.put_stream(stream_id=stream_id, start_ns=body.start_ns, source=body.source,
+                              announced_ns=time.time_ns(), info_json=json.dumps(body.info))
+    except sqlite3.Error as exc:
+        raise HTTPException(503, f"the stream cannot be recorded: database {core.store.path} cannot be "
+                                 f"written ({exc})") from None
     return _stream(core.store.streams(stream_id)[0])
 
 
