@@ -64,6 +64,8 @@ class Fusion:
     revision: int = 0
     completion: str = ""
     scheduled_ns: int | None = None  # the deadline of its one valid timer-heap entry
+    published_ns: int = 0  # when its latest revision was published
+    revision_due_ns: int | None = None  # a coalesced revision waits for this time
 
     @property
     def window(self) -> tuple[int, int]:
@@ -127,6 +129,9 @@ class FusionEngine:
         self.open: dict[int, Fusion] = {}  # by fused id
         self.changes = Changes()
         self._heap: list[tuple[int, int]] = []  # (deadline_ns, fused id)
+        self._revisions: list[tuple[int, int]] = []  # (due_ns, fused id) of coalesced revisions
+        self._revising: dict[int, Fusion] = {}
+        self._revision_interval_ns = int(self.timeouts.revision_interval_s * 1e9)
         self.fusions: list[FusionSettings] = []
         self.replace_fusions(fusions)
 
@@ -145,8 +150,8 @@ class FusionEngine:
         fused: list[FusedResult] = []
         if not result.is_nothing:
             for fusion in list(memory.published.overlapping(result.start_ns, result.end_ns)):
-                if fusion.add(result):  # late: a new revision
-                    fused.append(self._publish(fusion, received_ns))
+                if fusion.add(result):  # late: a new revision, at most one per revision interval
+                    fused.extend(self._revise(fusion, received_ns))
             for fusion in memory.open:
                 fusion.add(result)
         for fusion in list(memory.open):
@@ -194,6 +199,12 @@ class FusionEngine:
         """Publishes every fusion whose deadline has passed."""
         now_ns = self._clock_ns() if now_ns is None else now_ns
         fused = []
+        while self._revisions and self._revisions[0][0] <= now_ns:
+            due, fused_id = heapq.heappop(self._revisions)
+            fusion = self._revising.pop(fused_id, None)
+            if fusion is not None:
+                fusion.revision_due_ns = None
+                fused.append(self._publish(fusion, None))
         while self._heap and self._heap[0][0] <= now_ns:
             deadline, fused_id = heapq.heappop(self._heap)
             fusion = self.open.get(fused_id)
@@ -206,13 +217,27 @@ class FusionEngine:
         return fused
 
     def next_deadline_ns(self) -> int | None:
+        revision_due = self._revisions[0][0] if self._revisions else None
         while self._heap:
             deadline, fused_id = self._heap[0]
             fusion = self.open.get(fused_id)
             if fusion is not None and fusion.scheduled_ns == deadline:
-                return deadline
+                return deadline if revision_due is None else min(deadline, revision_due)
             heapq.heappop(self._heap)
-        return None
+        return revision_due
+
+    def _revise(self, fusion: Fusion, received_ns: int) -> list[FusedResult]:
+        """A late result joined a published fusion: its next revision now, or (if the last one
+        is younger than the revision interval) once, at the end of the interval."""
+        if fusion.revision_due_ns is not None:
+            return []  # coalesced into the revision already waiting
+        due_ns = fusion.published_ns + self._revision_interval_ns
+        if received_ns >= due_ns:
+            return [self._publish(fusion, received_ns)]
+        fusion.revision_due_ns = due_ns
+        self._revising[fusion.id] = fusion
+        heapq.heappush(self._revisions, (due_ns, fusion.id))
+        return []
 
     # restoring after a restart (results first, then fused results, then open fusions)
     def restore_result(self, result: StoredResult) -> None:
@@ -334,7 +359,7 @@ class FusionEngine:
             fusion.missing = {c: m for c, m in fusion.missing.items()
                               if not self._covered(memory, c, fusion)}
         fusion.revision += 1
-        published_ns = self._clock_ns()
+        published_ns = fusion.published_ns = self._clock_ns()
         window = fusion.window
         results = {t: [r.json for r in sorted(by_id.values(), key=lambda r: (r.start_ns, r.id))]
                    for t, by_id in fusion.results.items()}

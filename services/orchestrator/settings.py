@@ -52,6 +52,9 @@ class TimeoutSettings(StrictModel):
     memory_s: float = Field(default=120.0, gt=0,
                             description="capture time kept in memory per stream, for late "
                                         "results and anchors that come after their results")
+    revision_interval_s: float = Field(default=0.5, ge=0,
+                                       description="at most one revision per fused result this often: "
+                                                   "late results that come sooner are coalesced")
 
     @model_validator(mode="after")
     def _bounds(self) -> "TimeoutSettings":

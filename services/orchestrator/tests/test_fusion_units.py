@@ -158,3 +158,23 @@ def test_a_component_that_ended_the_stream_is_not_waited_for_until_it_sends_agai
     assert fused.json["completion"] == "complete"
     engine.on_result(result(4, "ssl", "ssl", 0, S // 2, nothing={"reason": "none"}), 2 * S)
     assert engine.on_result(result(5, "asr", "speech", 2 * S, 3 * S), 3 * S) == []  # again
+
+
+def test_late_results_within_the_revision_interval_make_one_revision():
+    # issue 13: 1,000 late results made 1,000 revisions (and 400 MB of database)
+    engine, clock = engine_with(("ssl", "ssl"), revision_interval_s=0.5)
+    clock.now = S
+    engine.on_end_of_stream("s", "ssl")
+    [first] = engine.on_result(result(1, "asr", "speech", 0, S), S)  # nothing to wait for
+    assert first.revision == 1
+    late = [engine.on_result(result(10 + i, "ssl2", "ssl", 0, S, ssl={"directions": [direction(90)]}),
+                             S + (1 + i) * MS) for i in range(1000)]
+    assert not any(late) and engine.next_deadline_ns() == S + 500 * MS
+    assert engine.on_timer(S + 499 * MS) == []
+    [revised] = engine.on_timer(S + 500 * MS)
+    assert revised.revision == 2 and len(revised.json["results"]["ssl"]) == 1000
+    assert engine.next_deadline_ns() is None
+    # a late result after the interval revises at once
+    clock.now = S + 2 * S
+    [third] = engine.on_result(result(5000, "ssl2", "ssl", 0, S, ssl={"directions": [direction(80)]}), 3 * S)
+    assert third.revision == 3

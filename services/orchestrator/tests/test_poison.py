@@ -54,6 +54,7 @@ def test_an_endless_span_does_not_corrupt_the_streams_fusions(orch, component, h
                                                     ssl={"directions": [{"azimuth_deg": 10.0}]}).SerializeToString()])
     ssl.emit("ssl", (BASE_NS + 10**9, BASE_NS + 2 * 10**9), stream_id="s",
              ssl={"directions": [{"azimuth_deg": 90.0, "probability": 0.9}]})
+    wait_until(lambda: len(stored(http, stream="s", type="ssl")) == 2, 10, "the valid ssl results")
     asr.send_result(stream_id="s", start_ns=BASE_NS, end_ns=BASE_NS + 2 * 10**9)
     ssl.end_of_stream("s")
     fused = wait_until(lambda: http.get("/fused", params={"stream": "s"}).json()["items"], 10, "the fused result")
