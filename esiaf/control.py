@@ -137,6 +137,26 @@ def declared_format(url: str, topic: str, timeout_s: float,
         time.sleep(0.2)
 
 
+def _jsonable(value: Any) -> Any:
+    """Heartbeat stats may hold numpy numbers or arrays (an analyser's ``info``): sent as numbers
+    and lists; anything else as its text."""
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    if hasattr(value, "item"):
+        return value.item()
+    return str(value)
+
+
+def _control_message(data: bytes) -> dict[str, Any]:
+    """A message from the orchestrator's control socket; {} (ignored) if it is not a JSON object."""
+    try:
+        message = json.loads(data)
+    except (ValueError, RecursionError):
+        log.warning("ignored a control message that is not JSON (%d bytes)", len(data))
+        return {}
+    return message if isinstance(message, dict) else {}
+
+
 class ControlClient:
     """Keeps the component registered and alive; runs in its own thread."""
 
@@ -149,7 +169,10 @@ class ControlClient:
         self._stats = stats
         self._register_timeout_s = register_timeout_s
         self._stop = threading.Event()
-        self._poke = threading.Event()
+        # poke() and stop() write a byte here: the heartbeat thread sleeps in one poll until the
+        # next beat is due or something is worth reporting, instead of waking every few ms
+        self._wake_read, self._wake_write = os.pipe()
+        os.set_blocking(self._wake_write, False)
         self._thread: threading.Thread | None = None
         self.registration: Registration | None = None
 
@@ -168,14 +191,26 @@ class ControlClient:
 
     def poke(self) -> None:
         """Sends a heartbeat now (something worth reporting changed)."""
-        self._poke.set()
+        self._wake()
+
+    def _wake(self) -> None:
+        try:
+            os.write(self._wake_write, b"!")
+        except (BlockingIOError, OSError):
+            pass  # the pipe is full: the thread is woken already
 
     def stop(self, unregister_too: bool = True) -> None:
         self._stop.set()
+        self._wake()
         if self._thread:
             self._thread.join(timeout=3.0)
         if unregister_too and self.registration:
             unregister(self._url, self.component_id)
+        for fd in (self._wake_read, self._wake_write):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
 
     def _heard(self) -> None:
         """The orchestrator answered: freshens the health file, if there is one."""
@@ -202,6 +237,8 @@ class ControlClient:
         dealer = self._dealer()
         next_beat = 0.0
         last_heard = time.monotonic()
+        poked = True
+        poller: zmq.Poller | None = None
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
@@ -212,14 +249,21 @@ class ControlClient:
                     dealer = self._dealer()
                     last_heard = next_beat = time.monotonic()
                     continue
-                if now >= next_beat or self._poke.is_set():
-                    self._poke.clear()
+                if now >= next_beat or poked:
                     beat = {"type": "heartbeat", "component_id": self.component_id, "stats": self._stats()}
-                    dealer.send(json.dumps(beat).encode())
+                    dealer.send(json.dumps(beat, default=_jsonable).encode())
                     next_beat = now + self.registration.heartbeat_interval_s
-                if not dealer.poll(timeout=50):
+                # sleep until the next beat (or the orchestrator's silence deadline), a message or a poke
+                wait_s = max(0.0, min(next_beat, last_heard + self.registration.dead_after_s) - time.monotonic())
+                if poller is None or dealer not in poller:
+                    poller = self._poller(dealer)
+                ready = dict(poller.poll(timeout=max(1, round(wait_s * 1000))))
+                poked = self._wake_read in ready
+                if poked:
+                    os.read(self._wake_read, 4096)
+                if dealer not in ready:
                     continue
-                message = json.loads(dealer.recv())
+                message = _control_message(dealer.recv())
                 last_heard = time.monotonic()
                 self._heard()
                 if message.get("type") == "state":
@@ -235,9 +279,19 @@ class ControlClient:
         except RegistrationError as exc:  # refused: the orchestrator will not have us any more
             log.error("%s", exc)
             state_out.send(json.dumps({"type": "fatal", "error": str(exc)}).encode())
+        except Exception as exc:  # a bug here must not leave the component running unregistered
+            log.exception("heartbeat thread failed")
+            state_out.send(json.dumps({"type": "fatal", "error": f"heartbeat thread failed: "
+                                                                 f"{type(exc).__name__}: {exc}"}).encode())
         finally:
             dealer.close()
             state_out.close()
+
+    def _poller(self, dealer: zmq.Socket) -> zmq.Poller:
+        poller = zmq.Poller()
+        poller.register(dealer, zmq.POLLIN)
+        poller.register(self._wake_read, zmq.POLLIN)
+        return poller
 
     def _register_again(self, state_out: zmq.Socket) -> None:
         """Registers until it works (the component goes on meanwhile); raises only if refused."""

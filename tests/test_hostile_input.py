@@ -112,3 +112,14 @@ def test_oversized_registrations_are_refused(orchestrator):
     response = orchestrator.http.post("/components", json=body)
     assert response.status_code == 413 and "max_body_bytes" in response.text
     assert orchestrator.http.get("/health").status_code == 200
+
+
+def test_numpy_numbers_in_info_travel_with_heartbeats_and_the_component_stays_registered(pair, orchestrator):
+    # issue 14: a numpy float in self.info killed the heartbeat thread; the component ran on unregistered
+    source, sink, sink_thread = pair
+    sink.info.update(peak=np.float32(0.5), levels=np.array([1, 2]))
+    sink.control.poke()
+    info = poll(lambda: orchestrator.component("sink")["stats"]["info"].get("levels") and
+                orchestrator.component("sink")["stats"]["info"], timeout_s=10)
+    assert info["peak"] == 0.5 and info["levels"] == [1, 2]
+    assert sink.control._thread.is_alive() and sink_thread.is_alive()
