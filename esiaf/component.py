@@ -45,6 +45,7 @@ MIN_RATE_HZ, MAX_RATE_HZ = 8_000, 192_000
 MAX_CHANNELS = 64
 MAX_PUBLISHERS = 256  # publishers (topic, instance) whose state is kept
 MAX_TIME_NS = 2**62  # capture times after 2116 are refused: sums never overflow
+IDLE_WAIT_MS = 5_000  # a consumer's longest sleep in one poll (input, control and stop() wake it)
 
 
 def check_audio(audio: Audio) -> None:
@@ -157,6 +158,8 @@ class Component:
     def stop(self, exit_code: int = 0) -> None:
         self._exit_code = self._exit_code or exit_code
         self._stop.set()
+        if self._transport is not None:
+            self._transport.wake()  # a long wait for input ends now
 
     def publish(self, topic: str, audio: bytes | np.ndarray, start_ns: int, end_ns: int, *,
                 stream_id: str | None = None, segmentation_ended: bool = False,
@@ -223,7 +226,7 @@ class Component:
         while self.output_stats[topic].subscribers < count:
             if self.stopping or time.monotonic() >= deadline:
                 return False
-            self._service(50)
+            self._service(max(1, int((deadline - time.monotonic()) * 1000)))  # a subscription wakes it
         return True
 
     def sleep_until(self, deadline_monotonic: float) -> None:
@@ -235,7 +238,7 @@ class Component:
             if remaining_ms < 1:  # zmq polls in whole milliseconds: 0 would spin
                 time.sleep(remaining_ms / 1000)
                 return
-            self._service(min(int(remaining_ms), 100))
+            self._service(int(remaining_ms))
 
     # -- running ---------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:
@@ -265,9 +268,9 @@ class Component:
             self._apply_state(registration.state())
             if type(self).produce is not Component.produce:
                 self.produce()
-            else:
+            else:  # a consumer: sleeps until input, a control message or stop() wakes it
                 while not self.stopping:
-                    self._service(100)
+                    self._service(IDLE_WAIT_MS)
         finally:
             self._shutdown()
         return self._exit_code

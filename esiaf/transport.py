@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import re
 import socket
 import time
@@ -86,6 +87,11 @@ class Transport:
             for topic in topics:
                 self.sub.setsockopt(zmq.SUBSCRIBE, topic_frame(topic))
             self._poller.register(self.sub, zmq.POLLIN)
+        # stop() from a signal handler or another thread writes here: a poll that waits long ends at once
+        self._wake_read, self._wake_write = os.pipe()
+        os.set_blocking(self._wake_read, False)
+        os.set_blocking(self._wake_write, False)
+        self._poller.register(self._wake_read, zmq.POLLIN)
         self.push = context.socket(zmq.PUSH)
         self.push.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
         self.push.setsockopt(zmq.SNDHWM, RESULTS_HWM)
@@ -104,8 +110,12 @@ class Transport:
         ("subscription", (topic, +1 | -1)) and, if ``take_audio``, ("audio", frames)."""
         if self._leaving and take_audio:
             self._drop_departed()
+        if self._leaving:  # departed producers are dropped once their grace period is over
+            timeout_ms = min(timeout_ms, LEAVE_GRACE_S * 1000)
         ready = dict(self._poller.poll(timeout=timeout_ms))
         while ready:
+            if ready.pop(self._wake_read, None):
+                self._drain_wake()
             if self.state in ready:
                 yield "state", json.loads(self.state.recv())
             if self.pub is not None and self.pub in ready:
@@ -116,6 +126,20 @@ class Transport:
             ready = dict(self._poller.poll(timeout=0))
             if not take_audio:
                 ready.pop(self.sub, None)
+
+    def wake(self) -> None:
+        """Ends a wait in :meth:`events` now (safe from any thread and from signal handlers)."""
+        try:
+            os.write(self._wake_write, b"!")
+        except OSError:  # full (already woken) or closed
+            pass
+
+    def _drain_wake(self) -> None:
+        try:
+            while os.read(self._wake_read, 4096):
+                pass
+        except OSError:  # empty
+            pass
 
     def send_audio(self, topic: str, message: bytes) -> bool:
         """False if refused at the high-water mark."""
@@ -185,3 +209,9 @@ class Transport:
         for sock in (self.state, self.sub, self.pub, self.push):
             if sock is not None and not sock.closed:
                 sock.close()
+        for fd in (self._wake_read, self._wake_write):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        self._wake_read = self._wake_write = -1

@@ -1,0 +1,71 @@
+"""Idle CPU: the orchestrator and a few services registered and heartbeating, with no audio.
+
+    python bench/idle.py [--seconds 30] [--services vad,splitter,asr]
+
+Prints CPU seconds per minute of each process while idle, as ``name=value`` lines
+(``idle_cpu_s_per_min_vad=0.02``). Issue 18's target: at most 0.03 s per minute per service.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path[0] = str(REPO)  # not bench/: its ssl.py would shadow the standard library's
+
+import argparse  # noqa: E402
+import os  # noqa: E402
+import subprocess  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+
+import httpx  # noqa: E402
+import psutil  # noqa: E402
+
+from esiaf.testing import free_port, poll  # noqa: E402
+
+
+def cpu_s(process: psutil.Process) -> float:
+    times = process.cpu_times()
+    return times.user + times.system
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=30.0, help="how long to measure (default 30)")
+    parser.add_argument("--services", default="vad,splitter", help="services to start beside the orchestrator")
+    args = parser.parse_args()
+    if args.seconds <= 0:
+        raise SystemExit("bench/idle.py: --seconds must be positive")
+    workdir = Path(tempfile.mkdtemp(prefix="esiaf-idle-"))
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_URL": url,
+           "ESIAF_ORCHESTRATOR_CONTROL_PORT": "0", "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"}
+    names = ["orchestrator", *[s for s in args.services.split(",") if s]]
+    processes = {}
+    try:
+        for name in names:
+            extra = ["--port", str(port), "--db", str(workdir / "o.db")] if name == "orchestrator" else []
+            processes[name] = subprocess.Popen([sys.executable, "-m", f"services.{name}", *extra], cwd=REPO,
+                                               env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            if name == "orchestrator":
+                poll(lambda: httpx.get(f"{url}/health").status_code == 200, timeout_s=60)
+        poll(lambda: len(httpx.get(f"{url}/components").json()["items"]) == len(names) - 1, timeout_s=120)
+        time.sleep(3.0)  # settle after start-up
+        handles = {name: psutil.Process(p.pid) for name, p in processes.items()}
+        before = {name: cpu_s(h) for name, h in handles.items()}
+        print(f"bench/idle: measuring {', '.join(names)} idle for {args.seconds:g} s", file=sys.stderr)
+        time.sleep(args.seconds)
+        for name, handle in handles.items():
+            per_min = (cpu_s(handle) - before[name]) * 60.0 / args.seconds
+            print(f"idle_cpu_s_per_min_{name}={per_min:.3f}")
+    finally:
+        for process in processes.values():
+            process.terminate()
+        for process in processes.values():
+            process.wait(timeout=10)
+
+
+if __name__ == "__main__":
+    main()
