@@ -16,6 +16,7 @@ _EXPORTS = {
     "AudioFormat": "esiaf.formats",
     "hypothesis": "esiaf.results", "ssl_direction": "esiaf.results",
     "main": "esiaf.runner",
+    "UtteranceComponent": "esiaf.utterance", "UtteranceSettings": "esiaf.utterance",
     "ComponentSettings": "esiaf.settings", "SettingsError": "esiaf.settings", "load_settings": "esiaf.settings",
 }
 __all__ = sorted(_EXPORTS)
@@ -27,6 +28,7 @@ if TYPE_CHECKING:
     from esiaf.results import hypothesis, ssl_direction
     from esiaf.runner import main
     from esiaf.settings import ComponentSettings, SettingsError, load_settings
+    from esiaf.utterance import UtteranceComponent, UtteranceSettings
 
 
 def __getattr__(name: str):

@@ -27,6 +27,7 @@ from websockets.exceptions import ConnectionClosed
 
 from esiaf.feed import FusedFeed
 from esiaf.launcher import LaunchError, OrchestratorClient, Supervisor, fixed_ports, wait_until
+from esiaf.plugins import resolve as resolve_plugin
 
 log = logging.getLogger("esiaf")
 
@@ -61,6 +62,12 @@ def format_line(fused: dict[str, Any], origin_ns: int) -> str:
     for kind in LABELS:  # how, and who: the top label of the fused distribution and its share
         if aggregates.get(kind):
             what += f", {aggregates[kind]['label']} ({aggregates[kind]['probability']:.2f})"
+            shown.add(kind)
+    for kind, aggregate in sorted(aggregates.items()):  # plug-ins' kinds: "duration 1.64", "pace fast (0.80)"
+        if aggregate and kind not in shown and kind != "ssl":
+            label = f" {aggregate['label']} ({aggregate['probability']:.2f})" if aggregate.get("label") else ""
+            value = f" {aggregate['value']:.3g}" if aggregate.get("value") is not None else ""
+            what += f", {kind}{label}{value}"
             shown.add(kind)
     extra = [f"{kind}×{len(results)}" for kind, results in sorted(fused.get("results", {}).items())
              if results and kind not in shown]  # fused types with results but no aggregate shown
@@ -162,6 +169,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                      "(default: as the microphones need)")
     run.add_argument("--without", metavar="ANALYSERS", help="analysers to leave out, separated by commas: "
                      "emotion, gender, ssl (e.g. --without emotion,gender on a slow robot)")
+    run.add_argument("--with", dest="plugins", action="append", default=[], metavar="FOLDER_OR_NAME",
+                     help="also run your own analyser: a folder with a __main__.py, an installed component "
+                     "(entry point group esiaf.components) or a module; repeatable")
     run.add_argument("--ssl-algorithm", help="DOA algorithm of the ssl service (default NormMUSIC)")
     run.add_argument("--fast", action="store_true", help="play the file as fast as possible")
     run.add_argument("--grammar", help="JSGF grammar file for the recogniser, or 'robocup'")
@@ -179,6 +189,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 def run(args: argparse.Namespace) -> int:
     array, channels = check_array(args, check_input(args.input) if args.input else 0)
     without = parse_without(args.without)
+    wanted_plugins = [resolve_plugin(spec) for spec in args.plugins]  # a bad --with fails before anything starts
     if args.grammar and args.grammar != "robocup" and not Path(args.grammar).is_file():
         raise LaunchError(f"grammar file {args.grammar} does not exist")
     check_port_free(args.host, args.port)
@@ -218,14 +229,23 @@ def run(args: argparse.Namespace) -> int:
         labellers = [name for name in ("emotion", "gender") if name not in without]
         for name in labellers:  # on the VAD's output, like the recogniser
             services[name] = supervisor.start(name)
+        plugins = {plugin.name: supervisor.start(plugin.name, target=plugin.target) for plugin in wanted_plugins}
         for name, child in services.items():
             wait_until(lambda: client.component(name), supervisor, f"the {name} service to register",
                        START_TIMEOUT_S, child)
+        registered = [wait_until(lambda: client.by_pid(child.process.pid), supervisor,
+                                 f"{name} (--with) to register", START_TIMEOUT_S, child) for name, child in plugins.items()]
+        kinds = [component["designation"] for component in registered]
+        fuse_kinds(client, [kind for kind in kinds if kind != "other"])
+        on_speech = sum(any(i["topic"] == "vad/speech" for i in c["inputs"]) for c in registered)
+        services.update(plugins)
         if "splitter" in services:
             wait_until(lambda: topic_ready(client, "splitter/ch0", 1), supervisor,
                        "vad to subscribe to splitter/ch0", START_TIMEOUT_S, services["vad"])
-        wait_until(lambda: topic_ready(client, "vad/speech", 1 + len(labellers)), supervisor,
+        wait_until(lambda: topic_ready(client, "vad/speech", 1 + len(labellers) + on_speech), supervisor,
                    f"{', '.join(['asr', *labellers])} to subscribe to vad/speech", START_TIMEOUT_S, services["vad"])
+        if plugins:
+            print(f"esiaf: with {', '.join(f'{n} ({k})' for n, k in zip(plugins, kinds))}", file=sys.stderr)
         log.info("services: %s", ", ".join(services))
         with FusedFeed(f"ws://{args.host}:{args.port}/ws/fused?stream={stream_id}") as ws:
             source = ["--input", str(args.input.resolve())] if args.input else ["--device", args.mic]
@@ -237,6 +257,18 @@ def run(args: argparse.Namespace) -> int:
     finally:
         client.close()
         supervisor.stop()
+
+
+def fuse_kinds(client: OrchestratorClient, kinds: list[str]) -> None:
+    """Adds the plug-ins' result kinds to every speech-anchored fusion, so their results are on
+    each line; the orchestrator then waits for them like for the built-in analysers."""
+    if not kinds:
+        return
+    fusions = client.fusions()
+    for fusion in fusions:
+        if fusion["anchor"] == "speech":
+            fusion["fuse"] = list(dict.fromkeys([*fusion["fuse"], *kinds]))
+    client.put_fusions(fusions)
 
 
 def shown_path(path: Path) -> Path:

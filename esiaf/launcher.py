@@ -78,13 +78,15 @@ class Supervisor:
     env: dict[str, str] = field(default_factory=dict)
     children: list[Child] = field(default_factory=list)
 
-    def start(self, name: str, args: list[str] = (), env: dict[str, str] | None = None) -> Child:
+    def start(self, name: str, args: list[str] = (), env: dict[str, str] | None = None,
+              target: list[str] | None = None) -> Child:
+        """Starts ``python -m services.<name>`` (or ``python <target...>``, a plug-in) with ``args``."""
         logs = self.workdir / "logs"
         logs.mkdir(parents=True, exist_ok=True)
         log_path = logs / f"{name}.log"
         child_env = {**os.environ, **self.env, **(env or {})}
         child_env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), child_env.get("PYTHONPATH")]))
-        command = [sys.executable, "-m", f"services.{name}", *args]
+        command = [sys.executable, *(target or ["-m", f"services.{name}"]), *args]
         child = Child(name, self._spawn(command, child_env, log_path, "wb"), log_path, command, child_env)
         self.children.append(child)
         log.info("started service=%s pid=%d log=%s", name, child.process.pid, log_path)
@@ -218,6 +220,20 @@ class OrchestratorClient:
 
     def component(self, name: str) -> dict[str, Any] | None:
         return next((c for c in self.components() if c.get("name") == name), None)
+
+    def by_pid(self, pid: int) -> dict[str, Any] | None:
+        """The live component a process registered (plug-ins: their name is their own)."""
+        return next((c for c in self.components() if c.get("pid") == pid and c.get("status") == "alive"), None)
+
+    def fusions(self) -> list[dict[str, Any]]:
+        response = self._http.get(f"{self.url}/fusions")
+        response.raise_for_status()
+        return response.json()["items"]
+
+    def put_fusions(self, fusions: list[dict[str, Any]]) -> None:
+        response = self._http.put(f"{self.url}/fusions", json={"items": fusions})
+        if response.status_code != 200:
+            raise LaunchError(f"the orchestrator refused the fusions {fusions}: {response.text}")
 
     def topics(self) -> list[dict[str, Any]]:
         response = self._http.get(f"{self.url}/topics")

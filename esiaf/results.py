@@ -1,15 +1,45 @@
 """Building result messages from plain Python values."""
 from __future__ import annotations
 
+import re
 import time
 from typing import Any, Mapping, Sequence
 
 from esiaf.proto import esiaf_pb2 as pb
 
-RESULT_TYPES = ("vad", "speech", "ssl", "emotion", "gender", "voice_id")
+# The one source of truth for the built-in kinds: the payload fields of Result in proto/esiaf.proto
+# (all but "nothing" and "generic"), each with its RESULT_TYPE_<NAME>. Every other kind is data:
+# RESULT_TYPE_GENERIC, Result.kind naming it, a GenericResult payload.
+_PAYLOAD_FIELDS = [f.name for f in pb.Result.DESCRIPTOR.oneofs_by_name["payload"].fields]
+RESULT_TYPES = tuple(name for name in _PAYLOAD_FIELDS if name not in ("nothing", "generic"))
 DESIGNATIONS = RESULT_TYPES + ("other",)
-PB_RESULT_TYPE = {name: getattr(pb, f"RESULT_TYPE_{name.upper()}") for name in RESULT_TYPES}
+PB_RESULT_TYPE = {name: pb.ResultType.Value(f"RESULT_TYPE_{name.upper()}") for name in RESULT_TYPES}
 RESULT_TYPE_NAME = {value: name for name, value in PB_RESULT_TYPE.items()}
+KIND_PATTERN = r"^[a-z][a-z0-9_]{0,39}$"  # any kind's name: "rate", "duration", "voice_id"
+LABEL_PAYLOADS = tuple(f.name for f in pb.Result.DESCRIPTOR.oneofs_by_name["payload"].fields
+                       if f.message_type is pb.LabelResult.DESCRIPTOR)  # emotion, gender, voice_id
+
+
+def valid_kind(name: str) -> bool:
+    return isinstance(name, str) and re.match(KIND_PATTERN, name) is not None and name != "other"
+
+
+def kind_of(result: pb.Result) -> str:
+    """The kind of a result: a built-in payload's name, or what a generic result names."""
+    return result.kind if result.type == pb.RESULT_TYPE_GENERIC else RESULT_TYPE_NAME.get(result.type, "")
+
+
+def generic(label: str = "", probability: float = 0.0, class_probabilities: Mapping[str, float] | None = None,
+            value: float | None = None, text: str = "", attributes: Mapping[str, Any] | None = None
+            ) -> pb.GenericResult:
+    """The payload of a kind that is not built in: a label, a number, a text, JSON-able attributes."""
+    payload = pb.GenericResult(label=label, probability=probability, text=text,
+                               class_probabilities=dict(class_probabilities or {}))
+    if value is not None:
+        payload.value, payload.has_value = float(value), True
+    if attributes:
+        payload.attributes.update(dict(attributes))
+    return payload
 
 
 def hypothesis(text: str, probability: float, words: Sequence[Mapping[str, Any]] = ()) -> pb.Hypothesis:
@@ -24,20 +54,27 @@ def ssl_direction(azimuth_deg: float, elevation_deg: float = 0.0, probability: f
 
 def make_result(component: str, result_type: str, stream_id: str, span: tuple[int, int], sequence: int,
                 **payload: Any) -> pb.Result:
-    """One Result. ``payload`` holds exactly one of vad=, speech=, ssl=, emotion=, gender=, voice_id=
-    (a message or a dict of its fields) or nothing= (a reason string): "covered, no result"."""
-    if result_type not in PB_RESULT_TYPE:
-        raise ValueError(f"unknown result type {result_type!r}; known: {', '.join(RESULT_TYPES)}")
-    if len(payload) != 1 or next(iter(payload)) not in RESULT_TYPES + ("nothing",):
-        raise ValueError(f"a result needs exactly one payload of {RESULT_TYPES + ('nothing',)}, got {list(payload)}")
+    """One Result of kind ``result_type``. ``payload`` holds exactly one of: the built-in kind's
+    payload (vad=, speech=, ssl=, emotion=, gender=, voice_id=: a message or a dict of its
+    fields); for any other kind, generic= (or the kind's own name) with a GenericResult or the
+    keyword arguments of :func:`generic`; or nothing= (a reason string): "covered, no result"."""
+    built_in = result_type in PB_RESULT_TYPE
+    if not built_in and not valid_kind(result_type):
+        raise ValueError(f"bad result kind {result_type!r}: a name like 'rate' ({KIND_PATTERN})")
+    allowed = (result_type, "nothing") if built_in else (result_type, "generic", "nothing")
+    if len(payload) != 1 or next(iter(payload)) not in allowed:
+        raise ValueError(f"a {result_type} result needs exactly one payload of {', '.join(allowed)}, "
+                         f"got {list(payload)}")
     start_ns, end_ns = span
     if end_ns < start_ns:
         raise ValueError(f"result span ends before it starts: {start_ns} > {end_ns}")
-    result = pb.Result(component=component, type=PB_RESULT_TYPE[result_type], stream_id=stream_id,
-                       span=pb.Span(start_ns=start_ns, end_ns=end_ns), produced_ns=time.time_ns(),
-                       sequence=sequence)
+    result = pb.Result(component=component, type=PB_RESULT_TYPE.get(result_type, pb.RESULT_TYPE_GENERIC),
+                       stream_id=stream_id, span=pb.Span(start_ns=start_ns, end_ns=end_ns),
+                       produced_ns=time.time_ns(), sequence=sequence, kind="" if built_in else result_type)
     (key, value), = payload.items()
-    if key == "nothing":
+    if not built_in and key != "nothing":
+        result.generic.CopyFrom(value if isinstance(value, pb.GenericResult) else generic(**value))
+    elif key == "nothing":
         result.nothing.reason = str(value)
     elif isinstance(value, Mapping):
         getattr(result, key).CopyFrom(_message_for(key)(**value))

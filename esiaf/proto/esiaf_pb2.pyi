@@ -1,3 +1,4 @@
+from google.protobuf import struct_pb2 as _struct_pb2
 from google.protobuf.internal import containers as _containers
 from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from google.protobuf import descriptor as _descriptor
@@ -36,6 +37,7 @@ class ResultType(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     RESULT_TYPE_EMOTION: _ClassVar[ResultType]
     RESULT_TYPE_GENDER: _ClassVar[ResultType]
     RESULT_TYPE_VOICE_ID: _ClassVar[ResultType]
+    RESULT_TYPE_GENERIC: _ClassVar[ResultType]
 
 class Completion(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
@@ -70,6 +72,7 @@ RESULT_TYPE_SSL: ResultType
 RESULT_TYPE_EMOTION: ResultType
 RESULT_TYPE_GENDER: ResultType
 RESULT_TYPE_VOICE_ID: ResultType
+RESULT_TYPE_GENERIC: ResultType
 COMPLETION_UNSPECIFIED: Completion
 COMPLETION_COMPLETE: Completion
 COMPLETION_TIMED_OUT: Completion
@@ -215,14 +218,40 @@ class NoResult(_message.Message):
     reason: str
     def __init__(self, reason: _Optional[str] = ...) -> None: ...
 
+class GenericResult(_message.Message):
+    __slots__ = ("label", "probability", "class_probabilities", "value", "has_value", "text", "attributes")
+    class ClassProbabilitiesEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: float
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[float] = ...) -> None: ...
+    LABEL_FIELD_NUMBER: _ClassVar[int]
+    PROBABILITY_FIELD_NUMBER: _ClassVar[int]
+    CLASS_PROBABILITIES_FIELD_NUMBER: _ClassVar[int]
+    VALUE_FIELD_NUMBER: _ClassVar[int]
+    HAS_VALUE_FIELD_NUMBER: _ClassVar[int]
+    TEXT_FIELD_NUMBER: _ClassVar[int]
+    ATTRIBUTES_FIELD_NUMBER: _ClassVar[int]
+    label: str
+    probability: float
+    class_probabilities: _containers.ScalarMap[str, float]
+    value: float
+    has_value: bool
+    text: str
+    attributes: _struct_pb2.Struct
+    def __init__(self, label: _Optional[str] = ..., probability: _Optional[float] = ..., class_probabilities: _Optional[_Mapping[str, float]] = ..., value: _Optional[float] = ..., has_value: _Optional[bool] = ..., text: _Optional[str] = ..., attributes: _Optional[_Union[_struct_pb2.Struct, _Mapping]] = ...) -> None: ...
+
 class Result(_message.Message):
-    __slots__ = ("component", "type", "stream_id", "span", "produced_ns", "sequence", "vad", "speech", "ssl", "emotion", "gender", "voice_id", "nothing")
+    __slots__ = ("component", "type", "stream_id", "span", "produced_ns", "sequence", "kind", "vad", "speech", "ssl", "emotion", "gender", "voice_id", "nothing", "generic")
     COMPONENT_FIELD_NUMBER: _ClassVar[int]
     TYPE_FIELD_NUMBER: _ClassVar[int]
     STREAM_ID_FIELD_NUMBER: _ClassVar[int]
     SPAN_FIELD_NUMBER: _ClassVar[int]
     PRODUCED_NS_FIELD_NUMBER: _ClassVar[int]
     SEQUENCE_FIELD_NUMBER: _ClassVar[int]
+    KIND_FIELD_NUMBER: _ClassVar[int]
     VAD_FIELD_NUMBER: _ClassVar[int]
     SPEECH_FIELD_NUMBER: _ClassVar[int]
     SSL_FIELD_NUMBER: _ClassVar[int]
@@ -230,12 +259,14 @@ class Result(_message.Message):
     GENDER_FIELD_NUMBER: _ClassVar[int]
     VOICE_ID_FIELD_NUMBER: _ClassVar[int]
     NOTHING_FIELD_NUMBER: _ClassVar[int]
+    GENERIC_FIELD_NUMBER: _ClassVar[int]
     component: str
     type: ResultType
     stream_id: str
     span: Span
     produced_ns: int
     sequence: int
+    kind: str
     vad: VadResult
     speech: SpeechResult
     ssl: SslResult
@@ -243,7 +274,8 @@ class Result(_message.Message):
     gender: LabelResult
     voice_id: LabelResult
     nothing: NoResult
-    def __init__(self, component: _Optional[str] = ..., type: _Optional[_Union[ResultType, str]] = ..., stream_id: _Optional[str] = ..., span: _Optional[_Union[Span, _Mapping]] = ..., produced_ns: _Optional[int] = ..., sequence: _Optional[int] = ..., vad: _Optional[_Union[VadResult, _Mapping]] = ..., speech: _Optional[_Union[SpeechResult, _Mapping]] = ..., ssl: _Optional[_Union[SslResult, _Mapping]] = ..., emotion: _Optional[_Union[LabelResult, _Mapping]] = ..., gender: _Optional[_Union[LabelResult, _Mapping]] = ..., voice_id: _Optional[_Union[LabelResult, _Mapping]] = ..., nothing: _Optional[_Union[NoResult, _Mapping]] = ...) -> None: ...
+    generic: GenericResult
+    def __init__(self, component: _Optional[str] = ..., type: _Optional[_Union[ResultType, str]] = ..., stream_id: _Optional[str] = ..., span: _Optional[_Union[Span, _Mapping]] = ..., produced_ns: _Optional[int] = ..., sequence: _Optional[int] = ..., kind: _Optional[str] = ..., vad: _Optional[_Union[VadResult, _Mapping]] = ..., speech: _Optional[_Union[SpeechResult, _Mapping]] = ..., ssl: _Optional[_Union[SslResult, _Mapping]] = ..., emotion: _Optional[_Union[LabelResult, _Mapping]] = ..., gender: _Optional[_Union[LabelResult, _Mapping]] = ..., voice_id: _Optional[_Union[LabelResult, _Mapping]] = ..., nothing: _Optional[_Union[NoResult, _Mapping]] = ..., generic: _Optional[_Union[GenericResult, _Mapping]] = ...) -> None: ...
 
 class MissingComponent(_message.Message):
     __slots__ = ("component", "type", "reason")

@@ -16,5 +16,5 @@ class Gender(UtteranceClassifier):
     """Speaker gender of each speech segment (male/female)."""
 
     service = "gender"
-    designation = "gender"
+    kind = "gender"
     Settings = GenderSettings

@@ -3,15 +3,19 @@
 - SSL: the circular mean of every direction's azimuth (never an arithmetic mean of angles,
   which would put 350° and 10° at 180°), each weighted by its result's overlap with the
   window times the direction's probability (0, i.e. unset, counts as 1);
-- labels (emotion, gender, voice_id): the overlap-weighted distribution over labels (a
-  result's ``class_probabilities``, or its ``label`` alone if it has none) and its top label.
+- labels (emotion, gender, voice_id, and any other kind whose results have labels): the
+  overlap-weighted distribution over labels (a result's ``class_probabilities``, or its
+  ``label`` alone if it has none) and its top label;
+- values (any other kind whose results carry a number): the overlap-weighted mean value.
 """
 from __future__ import annotations
 
 import math
 from typing import Any, Iterable
 
-LABEL_TYPES = ("emotion", "gender", "voice_id")
+from esiaf.results import LABEL_PAYLOADS, RESULT_TYPES
+
+LABEL_TYPES = LABEL_PAYLOADS  # emotion, gender, voice_id: derived from the proto
 
 
 def overlap_ns(start_ns: int, end_ns: int, w_start_ns: int, w_end_ns: int) -> int:
@@ -70,6 +74,8 @@ def label_aggregate(results: Iterable[dict[str, Any]], type_name: str,
         if not payload:
             continue
         weight = _weight(result, window)
+        if not payload.get("class_probabilities") and not payload.get("label"):
+            continue  # a generic result with a value but no label
         classes = payload.get("class_probabilities") or {payload["label"]: 1.0}
         norm = sum(classes.values())
         if norm <= 0:
@@ -87,13 +93,48 @@ def label_aggregate(results: Iterable[dict[str, Any]], type_name: str,
             "overlap_s": round(overlap_total, 9)}
 
 
+def value_aggregate(results: Iterable[dict[str, Any]], type_name: str,
+                    window: tuple[int, int]) -> dict[str, Any] | None:
+    """``{"value", "overlap_s", "results"}``: the overlap-weighted mean of the results' values
+    (each result's weight at least a nanosecond's, so instants count), or None without values."""
+    weighted = total = overlap_total = 0.0
+    count = 0
+    for result in results:
+        payload = result.get(type_name) or {}
+        if not payload.get("has_value"):
+            continue
+        weight = max(_weight(result, window), 1e-9)
+        weighted += weight * payload["value"]
+        total += weight
+        overlap_total += _weight(result, window)
+        count += 1
+    if count == 0:
+        return None
+    return {"value": round(weighted / total, 9), "overlap_s": round(overlap_total, 9), "results": count}
+
+
+def generic_aggregate(results: list[dict[str, Any]], type_name: str,
+                      window: tuple[int, int]) -> dict[str, Any] | None:
+    """A kind that is not built in: its label distribution where its results have labels, the
+    mean of their values where they have values (both, where both)."""
+    labels = label_aggregate(results, type_name, window)
+    values = value_aggregate(results, type_name, window)
+    if labels is None and values is None:
+        return None
+    return {**(labels or {}), **({"value": values["value"]} if values else {}),
+            "overlap_s": (labels or values)["overlap_s"]}
+
+
 def aggregates(results: dict[str, list[dict[str, Any]]],
                window: tuple[int, int]) -> dict[str, Any]:
-    """One aggregate per fused type that has one (ssl and the label types), None if empty."""
+    """One aggregate per fused kind that has one (ssl, the label kinds, every kind that is not
+    built in), None if empty."""
     out: dict[str, Any] = {}
     for type_name, items in results.items():
         if type_name == "ssl":
             out[type_name] = ssl_aggregate(items, window)
         elif type_name in LABEL_TYPES:
             out[type_name] = label_aggregate(items, type_name, window)
+        elif type_name not in RESULT_TYPES:
+            out[type_name] = generic_aggregate(items, type_name, window)
     return out

@@ -7,17 +7,14 @@ from typing import Any, Callable
 from google.protobuf.descriptor import FieldDescriptor
 from google.protobuf.message import DecodeError, Message
 
-from esiaf.proto import esiaf_pb2 as pb
+from google.protobuf import json_format
+from google.protobuf.struct_pb2 import Struct
 
-# ResultType enum value -> the name used in JSON, designations and settings.
-TYPE_NAMES = {
-    pb.RESULT_TYPE_VAD: "vad",
-    pb.RESULT_TYPE_SPEECH: "speech",
-    pb.RESULT_TYPE_SSL: "ssl",
-    pb.RESULT_TYPE_EMOTION: "emotion",
-    pb.RESULT_TYPE_GENDER: "gender",
-    pb.RESULT_TYPE_VOICE_ID: "voice_id",
-}
+from esiaf.proto import esiaf_pb2 as pb
+from esiaf.results import PB_RESULT_TYPE, kind_of, valid_kind
+
+# ResultType enum value -> the name used in JSON, designations and settings (from the proto).
+TYPE_NAMES = {value: name for name, value in PB_RESULT_TYPE.items()}
 NO_RESULT = "nothing"
 
 # Bounds on what a peer may send (docs/reliability.md).
@@ -36,6 +33,8 @@ class BadResult(ValueError):
 
 
 def _value(field: FieldDescriptor, value: Any) -> Any:
+    if field.message_type is Struct.DESCRIPTOR:  # a generic result's attributes: plain JSON
+        return json_format.MessageToDict(value)
     if field.type == FieldDescriptor.TYPE_MESSAGE:
         return message_to_dict(value)
     if field.type == FieldDescriptor.TYPE_ENUM:
@@ -114,13 +113,16 @@ def parse_result(data: bytes, reference_ns: Callable[[str], int | None] = lambda
         result.ParseFromString(data)
     except (DecodeError, RecursionError, ValueError) as exc:
         raise BadResult(f"not a Result protobuf ({len(data)} bytes): {exc}") from None
-    type_name = TYPE_NAMES.get(result.type)
-    if type_name is None:
+    type_name = kind_of(result)
+    if result.type == pb.RESULT_TYPE_GENERIC and (not valid_kind(type_name) or type_name in PB_RESULT_TYPE):
+        raise BadResult(f"generic result from {result.component!r} has no valid kind ({result.kind[:50]!r})")
+    if not type_name:
         raise BadResult(f"result from {result.component!r} has no valid type ({result.type})")
     payload = result.WhichOneof("payload")
     if payload is None:
         raise BadResult(f"{type_name} result from {result.component!r} has no payload")
-    if payload not in (type_name, NO_RESULT):
+    expected = "generic" if result.type == pb.RESULT_TYPE_GENERIC else type_name
+    if payload not in (expected, NO_RESULT):
         raise BadResult(f"{type_name} result from {result.component!r} carries a {payload} payload")
     if not result.component:
         raise BadResult(f"{type_name} result without a component name")
@@ -133,7 +135,7 @@ def parse_result(data: bytes, reference_ns: Callable[[str], int | None] = lambda
 
 
 def type_name(result: pb.Result) -> str:
-    return TYPE_NAMES[result.type]
+    return kind_of(result)
 
 
 def result_to_json(result: pb.Result, result_id: int, received_ns: int) -> dict[str, Any]:
@@ -142,12 +144,13 @@ def result_to_json(result: pb.Result, result_id: int, received_ns: int) -> dict[
     return {
         "id": result_id,
         "component": result.component,
-        "type": TYPE_NAMES[result.type],
+        "type": kind_of(result),
         "stream_id": result.stream_id,
         "span": {"start_ns": result.span.start_ns, "end_ns": result.span.end_ns},
         "produced_ns": result.produced_ns,
         "received_ns": received_ns,
         "latency_ms": round((received_ns - result.span.end_ns) / 1e6, 3),
         "sequence": result.sequence,
-        payload: message_to_dict(getattr(result, payload)),
+        # a generic payload is keyed by its kind, like the built-in ones: {"type": "rate", "rate": {...}}
+        (kind_of(result) if payload == "generic" else payload): message_to_dict(getattr(result, payload)),
     }

@@ -2,15 +2,19 @@
 from __future__ import annotations
 
 import json
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from esiaf.results import KIND_PATTERN, RESULT_TYPES
 
 from .settings import FusionSettings
 
 SampleType = Literal["int8", "uint8", "int16", "uint16", "int24", "uint24", "int32", "uint32",
                      "float32", "float64"]
-Designation = Literal["vad", "speech", "ssl", "emotion", "gender", "voice_id", "other"]
+Designation = Annotated[str, Field(pattern=KIND_PATTERN, examples=[*RESULT_TYPES, "other"],
+                                   description="the result kind it produces (built in, or any name "
+                                               "like 'rate'); other: none")]
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]*$"
 MAX_INFO_BYTES = 64 * 1024  # a registration's info, as JSON
 
@@ -199,9 +203,12 @@ class NoResultPayload(BaseModel):
 
 
 class Result(BaseModel):
+    model_config = ConfigDict(extra="allow")  # a kind that is not built in: its payload under its name
+
     id: int
     component: str
-    type: Literal["vad", "speech", "ssl", "emotion", "gender", "voice_id"]
+    type: str = Field(description="the result kind: built in, or any other (its payload then has "
+                                   "label, probability, class_probabilities, value, has_value, text, attributes)")
     stream_id: str
     span: Span = Field(description="capture time of the audio the result was computed on")
     produced_ns: int
@@ -232,6 +239,14 @@ class LabelAggregate(BaseModel):
     overlap_s: float
 
 
+class GenericAggregate(BaseModel):
+    label: str | None = Field(default=None, description="the top label, where the results have labels")
+    probability: float | None = None
+    distribution: dict[str, float] | None = None
+    value: float | None = Field(default=None, description="overlap-weighted mean, where the results have values")
+    overlap_s: float
+
+
 class Missing(BaseModel):
     component: str
     type: str
@@ -247,8 +262,8 @@ class FusedResult(BaseModel):
     anchor: Result = Field(description="its span is the window")
     results: dict[str, list[Result]] = Field(
         description="every fused type: its results overlapping the window, by start")
-    aggregates: dict[str, SslAggregate | LabelAggregate | None] = Field(
-        description="ssl and label types: null when they have no results")
+    aggregates: dict[str, SslAggregate | LabelAggregate | GenericAggregate | None] = Field(
+        description="ssl, label kinds and every kind that is not built in: null when they have no results")
     completion: Literal["complete", "timed_out", "components_gone"] = Field(
         description="how revision 1 was decided; kept in later revisions")
     missing_components: list[str] = Field(description="components that had not covered the window")

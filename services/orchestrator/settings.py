@@ -3,19 +3,22 @@ from __future__ import annotations
 
 import socket
 from pathlib import Path
-from typing import Any, Literal, Mapping
+from typing import Annotated, Any, Literal, Mapping
 
 from pydantic import Field, field_validator, model_validator
 
+from esiaf.results import KIND_PATTERN, RESULT_TYPES
 from esiaf.settings import StrictModel, load_settings
 
 from .negotiation import Strategy
 
 SERVICE = "orchestrator"
 
-# Result types a component can produce (its designation), "other" produces none.
-RESULT_TYPES = ("vad", "speech", "ssl", "emotion", "gender", "voice_id")
-ResultTypeName = Literal["vad", "speech", "ssl", "emotion", "gender", "voice_id"]
+# Result kinds a component can produce (its designation; "other" produces none): the built-in
+# ones of the proto, and any other name (an analyser in its own folder), e.g. "rate".
+ResultTypeName = Annotated[str, Field(pattern=KIND_PATTERN, examples=list(RESULT_TYPES),
+                                      description="a result kind: built in (" + ", ".join(RESULT_TYPES)
+                                                  + ") or any other name like 'rate'")]
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
 
 

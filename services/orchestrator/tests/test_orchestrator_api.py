@@ -78,7 +78,7 @@ def test_channel_mismatch_is_409_naming_topic_and_formats(http):
 
 @pytest.mark.parametrize("change, complaint", [
     ({"name": ""}, "name"),
-    ({"designation": "asr"}, "designation"),
+    ({"designation": "Not a kind!"}, "designation"),  # any name like "rate" is a kind (issue 14)
     ({"inputs": [{"topic": "a", "format": {**FMT16, "sample_type": "int12"}}]}, "sample_type"),
     ({"inputs": [{"topic": "a", "format": {**FMT16, "channels": 0}}]}, "channels"),
     ({"inputs": [{"topic": "a", "format": FMT16}, {"topic": "a", "format": FMT16}]},
@@ -94,7 +94,7 @@ def test_bad_body_is_422(http, change, complaint):
 
 
 def test_bad_queries_are_422(http):
-    assert http.get("/results", params={"type": "speach"}).status_code == 422
+    assert http.get("/results", params={"type": "Speech!"}).status_code == 422  # not a kind name
     response = http.get("/fused", params={"start_ns": 5, "end_ns": 1})
     assert response.status_code == 422 and "start_ns" in response.json()["detail"]
     assert http.get("/fused", params={"limit": 0}).status_code == 422
@@ -125,7 +125,7 @@ def test_fusions_are_replaced_over_rest_and_bad_ones_refused(component, http):
     assert http.get("/fusions").json() == new
     for items, complaint in (([new["items"][0]] * 2, "unique"),
                              ([{"name": "w", "anchor": "ssl", "fuse": ["ssl"]}], "cannot also be fused"),
-                             ([{"name": "w", "anchor": "speach"}], "anchor")):
+                             ([{"name": "w", "anchor": "Speech!"}], "anchor")):
         response = http.put("/fusions", json={"items": items})
         assert response.status_code == 422 and complaint in response.text
     assert http.get("/fusions").json() == new

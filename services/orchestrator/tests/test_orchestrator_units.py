@@ -88,9 +88,9 @@ def test_a_covered_nothing_result_anchors_no_fusion():
     assert engine.on_result(nothing, 30) == []
 
 
-def test_settings_refuse_unknown_result_types_and_duplicate_fusions():
+def test_settings_refuse_bad_kind_names_and_duplicate_fusions():
     with pytest.raises(ValueError, match="anchor"):
-        OrchestratorSettings(fusions=[{"name": "x", "anchor": "speach"}])
+        OrchestratorSettings(fusions=[{"name": "x", "anchor": "Speech!"}])  # any name like "rate" is a kind
     with pytest.raises(ValueError, match="unique"):
         OrchestratorSettings(fusions=[{"name": "x", "anchor": "speech"},
                                       {"name": "x", "anchor": "vad"}])
