@@ -88,14 +88,18 @@ class UtteranceClassifier(Component):
             self.emit(self.designation, span, stream_id=audio.stream_id, nothing=reason)
             log.info("segment stream_id=%s start_ns=%d nothing: %s", audio.stream_id, span[0], reason)
             return
+        self.label(audio.stream_id, span, samples)
+
+    def label(self, stream_id: str, span: tuple[int, int], samples: np.ndarray) -> None:
+        """Emits the label result of one usable segment (the voiceid service overrides this)."""
         started = time.process_time()
         probabilities = self.classifier.classify(samples)
         label = max(probabilities, key=probabilities.get)
         self.labelled += 1
         self.info["labelled"] = self.labelled
-        self.emit(self.designation, span, stream_id=audio.stream_id, **{self.designation: {
+        self.emit(self.designation, span, stream_id=stream_id, **{self.designation: {
             "label": label, "probability": probabilities[label], "class_probabilities": probabilities}})
-        log.info("segment stream_id=%s start_ns=%d duration_s=%.2f %s=%s p=%.2f cpu_ms=%.0f", audio.stream_id,
+        log.info("segment stream_id=%s start_ns=%d duration_s=%.2f %s=%s p=%.2f cpu_ms=%.0f", stream_id,
                  span[0], samples.size / self.settings.sample_rate_hz, self.designation, label,
                  probabilities[label], 1000 * (time.process_time() - started))
 

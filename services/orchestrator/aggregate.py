@@ -4,7 +4,8 @@
   which would put 350° and 10° at 180°), each weighted by its result's overlap with the
   window times the direction's probability (0, i.e. unset, counts as 1);
 - labels (emotion, gender, voice_id): the overlap-weighted distribution over labels (a
-  result's ``class_probabilities``, or its ``label`` alone if it has none) and its top label.
+  result's ``class_probabilities``, or its ``label`` alone if it has none; for voice_id its
+  label with its probability, the rest "unknown") and its top label.
 """
 from __future__ import annotations
 
@@ -71,6 +72,9 @@ def label_aggregate(results: Iterable[dict[str, Any]], type_name: str,
             continue
         weight = _weight(result, window)
         classes = payload.get("class_probabilities") or {payload["label"]: 1.0}
+        if type_name == "voice_id":  # its class_probabilities are every enrolled voice's cosine score
+            classes = {payload["label"]: payload.get("probability", 1.0),
+                       "unknown": 1.0 - payload.get("probability", 1.0)}
         norm = sum(classes.values())
         if norm <= 0:
             continue

@@ -76,7 +76,7 @@ class OrchestratorSettings(StrictModel):
     # each recognised utterance with its direction, emotion and gender; a fusion waits only for
     # live components of a fused type, so without ssl/emotion/gender running nothing waits
     fusions: list[FusionSettings] = Field(
-        default_factory=lambda: [FusionSettings(name="speech", anchor="speech", fuse=["ssl", "emotion", "gender"])])
+        default_factory=lambda: [FusionSettings(name="speech", anchor="speech", fuse=["ssl", "emotion", "gender", "voice_id"])])
     timeouts: TimeoutSettings = Field(default_factory=TimeoutSettings)
     log_level: str = "INFO"
     max_body_bytes: int = Field(default=1024 * 1024, gt=0)  # HTTP request bodies larger than this get 413

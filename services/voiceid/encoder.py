@@ -148,3 +148,14 @@ class VoiceEncoder:
         partials = self.embed_mels(np.stack([mel[s:s + PARTIAL_FRAMES] for s in starts]))
         mean = partials.mean(axis=0)
         return (mean / np.linalg.norm(mean)).astype(np.float32)
+
+
+_shared: VoiceEncoder | None = None
+
+
+def shared_encoder() -> VoiceEncoder:
+    """One encoder per process (its weights are read once)."""
+    global _shared
+    if _shared is None:
+        _shared = VoiceEncoder()
+    return _shared
