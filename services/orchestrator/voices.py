@@ -101,14 +101,14 @@ def list_voices(request: Request, embeddings: bool = False, table: VoiceTable = 
     return Response(body, media_type="application/json", headers={"ETag": etag})
 
 
-@router.delete("/voices/{name}", summary="forget a voice and every embedding of theirs")
+@router.delete("/voices/{name:path}", summary="forget a voice and every embedding of theirs")
 def delete_voice(name: str, table: VoiceTable = Depends(get_voices)) -> dict:
     if not table.delete(name):
         raise HTTPException(404, f"no voice named {name!r}")
     return {"deleted": name}
 
 
-@router.post("/voices/{name}", summary="add to a voice: multipart WAV field 'audio', or JSON naming a "
+@router.post("/voices/{name:path}", summary="add to a voice: multipart WAV field 'audio', or JSON naming a "
              "past utterance {stream, start_ns, end_ns} or an anonymous voice {stream, anonymous}")
 async def enrol_voice(name: str, request: Request, core: Orchestrator = Depends(get_core),
                       table: VoiceTable = Depends(get_voices)) -> dict:
