@@ -97,7 +97,8 @@ def eer(genuine: np.ndarray, impostor: np.ndarray) -> tuple[float, float]:
 
 def evaluate(names: list[str], speakers: list[str], neutral: list[bool], embeddings: np.ndarray) -> dict[str, float]:
     ids = sorted(set(speakers))
-    enrol = {s: [i for i, (sp, n) in enumerate(zip(speakers, neutral)) if sp == s and n][:ENROL_UTTERANCES] for s in ids}
+    enrol = {s: [i for i, (sp, n) in enumerate(zip(speakers, neutral)) if sp == s and n][:ENROL_UTTERANCES]
+             for s in ids}
     enrolled = {i for idx in enrol.values() for i in idx}
     trials = [i for i in range(len(names)) if i not in enrolled]
     book = VoiceBook({s: embeddings[idx] for s, idx in enrol.items()})

@@ -3,7 +3,7 @@
     esiaf run --input FILE [--array SPEC] [--fast] [--grammar FILE|robocup] [--serve] [--without emotion,...]
     esiaf run --mic DEVICE [--array SPEC]
 
-It starts the orchestrator, the recogniser, the VAD, the emotion and gender services (on the VAD's
+It starts the orchestrator, the recogniser, the VAD, the emotion, gender and voiceid services (on the VAD's
 output, like the recogniser) and the grabber (with a microphone array also the ssl service and the
 channel splitter, the VAD hearing the first microphone), prints each fused result as one line as
 it arrives, and with ``--input`` exits once the file has been played and its last fused result

@@ -38,7 +38,8 @@ def test_without_leaves_the_analysers_out_and_nothing_waits_for_them(launch, tmp
     assert {"asr", "vad", "splitter", "ssl"} <= components and not components & {"emotion", "gender", "voiceid"}, \
         components
     fusions = httpx.get(f"{run.url}/fusions").json()
-    assert any(set(f["fuse"]) == {"ssl", "emotion", "gender", "voice_id"} for f in fusions["items"]), fusions  # the default
+    default = {"ssl", "emotion", "gender", "voice_id"}
+    assert any(set(f["fuse"]) == default for f in fusions["items"]), fusions
     fused = fused_results(run)
     assert [normalise(f["anchor"]["speech"]["hypotheses"][0]["text"]) for f in fused] == \
         [normalise(t["text"]) for t in TRUTH]
@@ -58,7 +59,8 @@ def test_a_stereo_44_1_khz_float_file_is_converted_and_channel_0_heard(launch, t
     stereo = soxr.resample(np.stack([mics[:, 0], np.zeros_like(mics[:, 0])], axis=1), rate, 44100)
     path = tmp_path / "stereo.wav"
     soundfile.write(str(path), stereo.astype(np.float32), 44100, subtype="FLOAT")
-    run = launch("--input", str(path), "--grammar", "robocup", "--without", "emotion,gender,voiceid", "--fast", "--json")
+    run = launch("--input", str(path), "--grammar", "robocup", "--without", "emotion,gender,voiceid", "--fast",
+                 "--json")
     assert run.process.wait(timeout=150) == 0, "".join(run.stderr)
     assert any("has 2 channels and no --array: the analysers hear channel 0" in line for line in run.stderr), \
         run.stderr
