@@ -101,3 +101,12 @@ def test_anonymous_voices_keep_their_ids_and_are_bounded():
     assert voices.assign(_unit([0, 0, 1]))[0] == "voice-3"  # voice-2, least recently heard, is forgotten
     assert list(voices.voices) == ["voice-1", "voice-3"]
     assert voices.assign(_unit([0, 1, 0]))[0] == "voice-4"
+
+
+def test_the_fused_voice_is_the_results_label_not_the_best_enrolled_score():
+    from services.orchestrator.aggregate import label_aggregate
+    stranger = {"span": {"start_ns": 0, "end_ns": 2_000_000_000},
+                "voice_id": {"label": "voice-2", "probability": 0.9, "class_probabilities": {"Anna": 0.6}}}
+    aggregate = label_aggregate([stranger], "voice_id", (0, 2_000_000_000))
+    assert aggregate["label"] == "voice-2" and aggregate["probability"] == pytest.approx(0.9)
+    assert aggregate["distribution"] == {"voice-2": pytest.approx(0.9), "unknown": pytest.approx(0.1)}
