@@ -59,12 +59,15 @@ class VoiceTable:
             return self._db.execute("DELETE FROM voices WHERE name = ?", (name,)).rowcount
 
     def etag(self) -> str:
-        count, last = self._db.execute("SELECT COUNT(*), COALESCE(MAX(id), 0) FROM voices").fetchone()
+        with self._lock:
+            count, last = self._db.execute("SELECT COUNT(*), COALESCE(MAX(id), 0) FROM voices").fetchone()
         return f'"{count}-{last}"'
 
     def listing(self, embeddings: bool) -> list[dict]:
         voices: dict[str, dict] = {}
-        for name, blob, source in self._db.execute("SELECT name, embedding, source FROM voices ORDER BY id"):
+        with self._lock:  # the sync routes run in a thread pool: one statement at a time
+            rows = self._db.execute("SELECT name, embedding, source FROM voices ORDER BY id").fetchall()
+        for name, blob, source in rows:
             voice = voices.setdefault(name, {"name": name, "count": 0, "sources": []})
             voice["count"] += 1
             if source not in voice["sources"]:
