@@ -32,5 +32,7 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     echo "setup: installing Python packages into .venv" >&2
     .venv/bin/python -m pip install -q --upgrade pip
     .venv/bin/python -m pip install -q -e ".[all,test]"
+    # voiceid's speaker encoder weights; the wheel depends on torch, which is never needed (encoder.py)
+    .venv/bin/python -m pip install -q --no-deps resemblyzer==0.1.4
     touch "$stamp"
 fi

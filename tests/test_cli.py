@@ -90,3 +90,12 @@ def test_serve_never_stops_the_services_on_its_own(monkeypatch, capsys):
     # it keeps listening until the websocket goes away, and says once that the stream did not end
     assert _follow_a_played_file_that_never_ends(monkeypatch, serve=True) == "kept serving"
     assert capsys.readouterr().err.count("still serving") == 1
+
+
+def test_the_line_ends_with_who_spoke():
+    named = {"emotion": {"label": "angry", "probability": 0.81}, "voice_id": {"label": "Anna", "probability": 0.912}}
+    assert format_line(fused(aggregates=named, results={"emotion": [{}], "voice_id": [{}]}), ORIGIN_NS) == \
+        "[12.31–14.05 s] 'go forward ten meters' (p=0.93), angry (0.81) by Anna (0.91)"
+    anonymous = {"voice_id": {"label": "voice-2", "probability": 1.0}}
+    assert format_line(fused(aggregates=anonymous, results={"voice_id": [{}]}), ORIGIN_NS) == \
+        "[12.31–14.05 s] 'go forward ten meters' (p=0.93) by voice-2"

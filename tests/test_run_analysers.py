@@ -32,12 +32,14 @@ def test_without_leaves_the_analysers_out_and_nothing_waits_for_them(launch, tmp
     scene = tmp_path / "two.flac"
     soundfile.write(str(scene), mics, rate, subtype="PCM_16")
     run = launch("--input", str(scene), "--array", "respeaker4", "--grammar", "robocup", "--without",
-                 "emotion,gender", "--fast", "--json", "--serve")
+                 "emotion,gender,voiceid", "--fast", "--json", "--serve")
     run.wait_for_line(lambda line: line.get("type") == "stream_end", timeout_s=150)
     components = {c["name"] for c in httpx.get(f"{run.url}/components").json()["items"]}
-    assert {"asr", "vad", "splitter", "ssl"} <= components and not components & {"emotion", "gender"}, components
+    assert {"asr", "vad", "splitter", "ssl"} <= components and not components & {"emotion", "gender", "voiceid"}, \
+        components
     fusions = httpx.get(f"{run.url}/fusions").json()
-    assert any(set(f["fuse"]) == {"ssl", "emotion", "gender"} for f in fusions["items"]), fusions  # the default
+    default = {"ssl", "emotion", "gender", "voice_id"}
+    assert any(set(f["fuse"]) == default for f in fusions["items"]), fusions
     fused = fused_results(run)
     assert [normalise(f["anchor"]["speech"]["hypotheses"][0]["text"]) for f in fused] == \
         [normalise(t["text"]) for t in TRUTH]
@@ -46,7 +48,7 @@ def test_without_leaves_the_analysers_out_and_nothing_waits_for_them(launch, tmp
         assert f["completion"] == "complete" and not f["missing_components"], f
         assert {kind for kind, results in f["results"].items() if results} == {"ssl"}, f["results"]
         assert f["aggregates"]["ssl"], f
-        assert not (f["aggregates"].get("emotion") or f["aggregates"].get("gender"))
+        assert not (f["aggregates"].get("emotion") or f["aggregates"].get("gender") or f["aggregates"].get("voice_id"))
 
 
 def test_a_stereo_44_1_khz_float_file_is_converted_and_channel_0_heard(launch, tmp_path):
@@ -57,7 +59,8 @@ def test_a_stereo_44_1_khz_float_file_is_converted_and_channel_0_heard(launch, t
     stereo = soxr.resample(np.stack([mics[:, 0], np.zeros_like(mics[:, 0])], axis=1), rate, 44100)
     path = tmp_path / "stereo.wav"
     soundfile.write(str(path), stereo.astype(np.float32), 44100, subtype="FLOAT")
-    run = launch("--input", str(path), "--grammar", "robocup", "--without", "emotion,gender", "--fast", "--json")
+    run = launch("--input", str(path), "--grammar", "robocup", "--without", "emotion,gender,voiceid", "--fast",
+                 "--json")
     assert run.process.wait(timeout=150) == 0, "".join(run.stderr)
     assert any("has 2 channels and no --array: the analysers hear channel 0" in line for line in run.stderr), \
         run.stderr
@@ -70,7 +73,7 @@ def test_a_stereo_44_1_khz_float_file_is_converted_and_channel_0_heard(launch, t
 
 
 @pytest.mark.parametrize("without, message", [
-    ("emotion,voice", "--without takes analysers separated by commas (ssl, emotion, gender), not voice"),
+    ("emotion,voice", "--without takes analysers separated by commas (ssl, emotion, gender, voiceid), not voice"),
     ("asr", "not asr"),
 ])
 def test_without_names_only_analysers(tmp_path, without, message):

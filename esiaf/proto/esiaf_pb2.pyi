@@ -196,7 +196,7 @@ class SslResult(_message.Message):
     def __init__(self, directions: _Optional[_Iterable[_Union[SslDirection, _Mapping]]] = ..., algorithm: _Optional[str] = ..., level_db: _Optional[float] = ...) -> None: ...
 
 class LabelResult(_message.Message):
-    __slots__ = ("label", "probability", "class_probabilities")
+    __slots__ = ("label", "probability", "class_probabilities", "embedding")
     class ClassProbabilitiesEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -207,10 +207,12 @@ class LabelResult(_message.Message):
     LABEL_FIELD_NUMBER: _ClassVar[int]
     PROBABILITY_FIELD_NUMBER: _ClassVar[int]
     CLASS_PROBABILITIES_FIELD_NUMBER: _ClassVar[int]
+    EMBEDDING_FIELD_NUMBER: _ClassVar[int]
     label: str
     probability: float
     class_probabilities: _containers.ScalarMap[str, float]
-    def __init__(self, label: _Optional[str] = ..., probability: _Optional[float] = ..., class_probabilities: _Optional[_Mapping[str, float]] = ...) -> None: ...
+    embedding: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, label: _Optional[str] = ..., probability: _Optional[float] = ..., class_probabilities: _Optional[_Mapping[str, float]] = ..., embedding: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class NoResult(_message.Message):
     __slots__ = ("reason",)

@@ -5,7 +5,8 @@
   window times the direction's probability (0, i.e. unset, counts as 1);
 - labels (emotion, gender, voice_id, and any other kind whose results have labels): the
   overlap-weighted distribution over labels (a result's ``class_probabilities``, or its
-  ``label`` alone if it has none) and its top label;
+  ``label`` alone if it has none; for voice_id its label with its probability, the rest
+  "unknown") and its top label;
 - values (any other kind whose results carry a number): the overlap-weighted mean value.
 """
 from __future__ import annotations
@@ -77,6 +78,9 @@ def label_aggregate(results: Iterable[dict[str, Any]], type_name: str,
         if not payload.get("class_probabilities") and not payload.get("label"):
             continue  # a generic result with a value but no label
         classes = payload.get("class_probabilities") or {payload["label"]: 1.0}
+        if type_name == "voice_id":  # its class_probabilities are every enrolled voice's cosine score
+            classes = {payload["label"]: payload.get("probability", 1.0),
+                       "unknown": 1.0 - payload.get("probability", 1.0)}
         norm = sum(classes.values())
         if norm <= 0:
             continue

@@ -11,6 +11,7 @@ from .api import components, fused, fusions, health, latency, results, streams, 
 from .core import Orchestrator
 from .limits import BodyLimit
 from .settings import OrchestratorSettings
+from .voices import router as voices_router
 
 DESCRIPTION = """\
 Registers ESIAF components, heartbeats them over ZeroMQ, stores every result in SQLite,
@@ -43,5 +44,6 @@ def create_app(settings: OrchestratorSettings, *,
                          lifespan=lifespan)
     for module in (components, topics, streams, results, latency, fused, ws, fusions, health):
         app.include_router(module.router)
+    app.include_router(voices_router)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     return app

@@ -79,10 +79,11 @@ class OrchestratorSettings(StrictModel):
     heartbeat_interval_s: float = Field(default=0.5, gt=0)
     dead_after_s: float = Field(default=2.5, gt=0)
     format_strategy: Strategy = "min_conversions"  # how each topic's wire format is chosen
-    # each recognised utterance with its direction, emotion and gender; a fusion waits only for
-    # live components of a fused type, so without ssl/emotion/gender running nothing waits
+    # each recognised utterance with its direction, emotion, gender and voice; a fusion waits only
+    # for live components of a fused type, so without ssl/emotion/gender/voiceid nothing waits
     fusions: list[FusionSettings] = Field(
-        default_factory=lambda: [FusionSettings(name="speech", anchor="speech", fuse=["ssl", "emotion", "gender"])])
+        default_factory=lambda: [FusionSettings(name="speech", anchor="speech",
+                                                fuse=["ssl", "emotion", "gender", "voice_id"])])
     timeouts: TimeoutSettings = Field(default_factory=TimeoutSettings)
     log_level: str = "INFO"
     max_body_bytes: int = Field(default=1024 * 1024, gt=0)  # HTTP request bodies larger than this get 413

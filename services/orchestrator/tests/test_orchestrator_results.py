@@ -45,9 +45,9 @@ def test_speech_result_is_stored_and_published_fused(orch, component, http):
                    "probability": 0.99}]}]}
     assert {k: v for k, v in fused.items() if k not in ("anchor", "published_ns")} == {
         "type": "fused_result", "id": 1, "revision": 1, "fusion": "speech",
-        # the default fusion fuses ssl, emotion and gender; none is running, so nothing waits
-        "stream_id": "default", "results": {"ssl": [], "emotion": [], "gender": []},
-        "aggregates": {"ssl": None, "emotion": None, "gender": None}, "completion": "complete",
+        # the default fusion fuses ssl, emotion, gender and voice_id; none is running, so nothing waits
+        "stream_id": "default", "results": {"ssl": [], "emotion": [], "gender": [], "voice_id": []},
+        "aggregates": {"ssl": None, "emotion": None, "gender": None, "voice_id": None}, "completion": "complete",
         "missing_components": [], "missing": [], "seq": 1}
     assert isinstance(fused["published_ns"], int)
     assert fused["published_ns"] >= anchor["received_ns"]

@@ -35,7 +35,7 @@ def test_result_json_keeps_int64_as_integers_and_has_one_payload_key():
                        "produced_ns": BIG_NS + 5, "received_ns": BIG_NS + 2_500_000,
                        "latency_ms": 2.5, "sequence": 7,
                        "emotion": {"label": "happy", "probability": 0.0,
-                                   "class_probabilities": {"happy": 0.75}}}
+                                   "class_probabilities": {"happy": 0.75}, "embedding": []}}
 
 
 def test_nothing_payload_fits_any_type():

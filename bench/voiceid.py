@@ -1,0 +1,189 @@
+"""Voiceid: speaker identification on EmoDB, clean and through a simulated room; CPU and latency.
+
+Every EmoDB utterance (10 speakers, 535, acted emotions) is cut to its speech span
+(``esiaf.scenes.speech_bounds``, as a VAD segment would be) and embedded by the numpy encoder.
+
+- closed set: each speaker enrolled from 3 neutral utterances (the first by file name), every
+  other utterance identified among the 10 (``closed_accuracy``);
+- open set: 7 speakers enrolled, 3 kept unknown, for each of 3 rotations of the unknown three;
+  genuine trials = an enrolled speaker's utterance scored against its own voice, impostor
+  trials = an unknown speaker's utterance's best score over the 7. ``open_eer`` is the equal
+  error rate of the pooled trials, ``open_eer_threshold`` the score where it lies;
+- ``neutral_*``: the same with the neutral utterances only (enrolment and trials): the voiceid's
+  default ``threshold`` is ``neutral_open_eer_threshold`` (clean), rounded: a robot hears
+  commands, not acted anger;
+- ``room_*``: the same after a 6×5×3 m room (RT60 0.4 s, pyroomacoustics), speaker 1.5 m and
+  the kitchen noise (doing_the_dishes.wav) 2 m from the microphone, the noise scaled to 10 dB
+  below the speech at the microphone; enrolment and trials both in the room;
+- ``cpu_s_per_speech_s``: encoder CPU time (process time) per second of speech, in this process;
+- ``latency_p50_ms``: with ``--pipeline``, a few utterances played in real time through
+  grabber → vad → voiceid → orchestrator: arrival of the fused result minus (end of the segment's
+  speech + the VAD's hang-over), as bench/emotion.py.
+
+    python bench/voiceid.py [--pipeline]
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import soundfile
+import yaml
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path[0] = str(REPO)  # not bench/: its ssl.py would shadow the standard library's ssl
+
+from esiaf.scenes import speech_bounds  # noqa: E402
+from esiaf.testing import SHARED_DATA  # noqa: E402
+from services.voiceid.encoder import VoiceEncoder  # noqa: E402
+from services.voiceid.scoring import VoiceBook  # noqa: E402
+
+ENROL_UTTERANCES = 3
+UNKNOWN_SPEAKERS = 3
+SNR_DB = 10.0
+
+
+def load_emodb() -> list[tuple[str, str, bool, np.ndarray]]:
+    """(file name, speaker, neutral, speech-span samples) of every utterance."""
+    wavs = SHARED_DATA / "emodb" / "wav"
+    if not wavs.is_dir():
+        raise SystemExit(f"bench: {wavs} is absent (the shared data folder belongs beside the repository)")
+    out = []
+    for path in sorted(wavs.glob("*.wav")):
+        samples, _ = soundfile.read(path, dtype="float32")
+        first, last = speech_bounds(samples)
+        out.append((path.name, path.name[:2], path.name[5] == "N", samples[first:last]))
+    return out
+
+
+def through_room(utterances: list[np.ndarray]) -> list[np.ndarray]:
+    import pyroomacoustics as pra
+    room_m = np.array([6.0, 5.0, 3.0])
+    absorption, max_order = pra.inverse_sabine(0.4, room_m)
+    room = pra.ShoeBox(room_m, fs=16000, materials=pra.Material(absorption), max_order=max_order)
+    mic = np.array([3.0, 2.5, 1.2])
+    room.add_microphone(mic)
+    room.add_source(mic + [1.5, 0.0, 0.3])
+    room.add_source(mic + [-1.0, 1.7, -0.2])
+    room.compute_rir()
+    speech_rir, noise_rir = room.rir[0][0], room.rir[0][1]
+    noise, rate = soundfile.read(SHARED_DATA / "noise" / "speech_commands_bg" / "doing_the_dishes.wav",
+                                 dtype="float32")
+    noise = np.convolve(noise if noise.ndim == 1 else noise[:, 0], noise_rir)
+    rng = np.random.default_rng(0)
+    out = []
+    for samples in utterances:
+        speech = np.convolve(samples, speech_rir)[:samples.size + 1600]
+        start = rng.integers(0, noise.size - speech.size)
+        clip = noise[start:start + speech.size]
+        gain = np.sqrt(np.mean(speech ** 2) / np.mean(clip ** 2) / 10 ** (SNR_DB / 10))
+        out.append((speech + gain * clip).astype(np.float32))
+    return out
+
+
+def eer(genuine: np.ndarray, impostor: np.ndarray) -> tuple[float, float]:
+    """Equal error rate and the threshold where false rejections = false acceptances."""
+    best, rate = (1.0, 0.0), 0.5
+    for threshold in np.unique(np.concatenate([genuine, impostor])):
+        false_reject, false_accept = np.mean(genuine < threshold), np.mean(impostor >= threshold)
+        gap = abs(false_reject - false_accept)
+        if gap < best[0]:
+            best, rate = (gap, threshold), (false_reject + false_accept) / 2
+    return float(rate), float(best[1])
+
+
+def evaluate(names: list[str], speakers: list[str], neutral: list[bool], embeddings: np.ndarray) -> dict[str, float]:
+    ids = sorted(set(speakers))
+    enrol = {s: [i for i, (sp, n) in enumerate(zip(speakers, neutral)) if sp == s and n][:ENROL_UTTERANCES]
+             for s in ids}
+    enrolled = {i for idx in enrol.values() for i in idx}
+    trials = [i for i in range(len(names)) if i not in enrolled]
+    book = VoiceBook({s: embeddings[idx] for s, idx in enrol.items()})
+    correct = [max(book.scores(embeddings[i]).items(), key=lambda kv: kv[1])[0] == speakers[i] for i in trials]
+    genuine, impostor = [], []
+    for rotation in range(3):
+        unknown = set(ids[rotation * UNKNOWN_SPEAKERS:(rotation + 1) * UNKNOWN_SPEAKERS])
+        known = VoiceBook({s: embeddings[idx] for s, idx in enrol.items() if s not in unknown})
+        for i in trials:
+            scores = known.scores(embeddings[i])
+            (impostor.append(max(scores.values())) if speakers[i] in unknown else genuine.append(scores[speakers[i]]))
+    rate, threshold = eer(np.array(genuine), np.array(impostor))
+    return {"closed_accuracy": float(np.mean(correct)), "closed_trials": len(trials),
+            "open_eer": rate, "open_eer_threshold": threshold,
+            "open_genuine_trials": len(genuine), "open_impostor_trials": len(impostor)}
+
+
+def pipeline_latency(files: list[Path]) -> dict[str, float]:
+    from services.emotion.tools.pipeline import EmotionPipeline, build_recording
+    from services.vad.segmenter import SegmenterParams
+
+    class VoicePipeline(EmotionPipeline):  # orchestrator + vad + voiceid, fused on voice_id
+        def __init__(self, workdir: Path):
+            from esiaf.cli import topic_ready
+            from esiaf.launcher import OrchestratorClient, Supervisor, wait_until
+            from esiaf.testing import free_port
+            self.stream_id = "bench"
+            port = free_port()
+            self.url = f"http://127.0.0.1:{port}"
+            config = workdir / "orchestrator.yaml"
+            config.write_text(yaml.safe_dump({"fusions": [{"name": "voice_id", "anchor": "voice_id"}]}))
+            self.supervisor = Supervisor(workdir, env={"ESIAF_ORCHESTRATOR_URL": self.url, "ESIAF_STREAM_ID": "bench"})
+            self.client = OrchestratorClient(self.url)
+            self._start("orchestrator", ["--port", str(port), "--db", str(workdir / "esiaf.db"), "--config",
+                                         str(config)], client_ready=self.client.healthy,
+                        env={"ESIAF_ORCHESTRATOR_CONTROL_PORT": "0", "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"})
+            for service in ("voiceid", "vad"):
+                self._start(service, [])
+            wait_until(lambda: topic_ready(self.client, "vad/speech", 1), self.supervisor,
+                       "voiceid to subscribe to vad/speech", 60.0)
+
+    workdir = Path(tempfile.mkdtemp(prefix="esiaf-bench-voiceid-"))
+    placed = build_recording(files, workdir / "utterances.wav", 1.5)
+    pipeline = VoicePipeline(workdir)
+    try:
+        arrived, _ = pipeline.play(workdir / "utterances.wav", fast=False, timeout_s=placed[-1].end_s + 120)
+    finally:
+        pipeline.close()
+    hangover_ns = int(SegmenterParams().keep_alive_ms * 1_000_000)
+    latencies = [(t - f["anchor"]["span"]["end_ns"] - hangover_ns) / 1e6 for t, f in arrived]
+    return {"pipeline_results": len(latencies), "latency_p50_ms": statistics.median(latencies) if latencies else -1.0}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    parser.add_argument("--pipeline", action="store_true", help="also measure latency through the pipeline")
+    args = parser.parse_args()
+    data = load_emodb()
+    names, speakers, neutral, clips = (list(column) for column in zip(*data))
+    encoder = VoiceEncoder()
+    speech_s = sum(c.size for c in clips) / 16000
+    started = time.process_time()
+    clean = np.stack([encoder.embed(c) for c in clips])
+    figures: dict[str, float | int] = {"utterances": len(clips), "speech_s": speech_s,
+                                       "cpu_s_per_speech_s": (time.process_time() - started) / speech_s}
+    figures.update(evaluate(names, speakers, neutral, clean))
+    show(figures)
+    calm = [i for i, n in enumerate(neutral) if n]  # neutral speech only: enrolment and trials alike
+    show({f"neutral_{k}": v for k, v in evaluate([names[i] for i in calm], [speakers[i] for i in calm],
+                                                 [True] * len(calm), clean[calm]).items()})
+    room = np.stack([encoder.embed(c) for c in through_room(clips)])
+    show({f"room_{k}": v for k, v in evaluate(names, speakers, neutral, room).items()})
+    show({f"room_neutral_{k}": v for k, v in evaluate([names[i] for i in calm], [speakers[i] for i in calm],
+                                                      [True] * len(calm), room[calm]).items()})
+    if args.pipeline:
+        wavs = SHARED_DATA / "emodb" / "wav"
+        show(pipeline_latency([wavs / n for n in names[::60]]))
+
+
+def show(figures: dict[str, float | int]) -> None:
+    for name, value in figures.items():
+        print(f"{name}={value:.4f}" if isinstance(value, float) else f"{name}={value}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

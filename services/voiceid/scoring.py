@@ -1,0 +1,87 @@
+"""Open-set speaker identification by cosine scoring, and anonymous voices per stream.
+
+A voice's score is the mean of its ``top_k`` best cosine similarities between the segment's
+embedding and that voice's enrolled embeddings (``top_k=1`` is the maximum). The best voice
+wins if its score reaches ``threshold`` (calibrated on EmoDB by ``bench/voiceid.py``: the
+equal-error-rate point of the open-set trial); otherwise the segment is unknown and goes to
+:class:`AnonymousVoices`. The reported probability maps the score through a logistic around
+the threshold (0.5 at the threshold; ``SLOPE`` per unit cosine).
+"""
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+SLOPE = 40.0  # logistic slope per unit of cosine: ±0.05 around the threshold is 0.12 … 0.88
+
+
+def probability(score: float, threshold: float) -> float:
+    return 1.0 / (1.0 + math.exp(-SLOPE * (score - threshold)))
+
+
+@dataclass(frozen=True)
+class Match:
+    label: str  # a voice's name, or "" for unknown
+    score: float
+    probability: float
+    scores: dict[str, float]  # every enrolled voice's score
+
+
+class VoiceBook:
+    """Enrolled voices: name → (n, 256) unit embeddings."""
+
+    def __init__(self, voices: dict[str, np.ndarray] | None = None, top_k: int = 3):
+        self.voices = {name: _unit(np.atleast_2d(np.asarray(e, np.float32))) for name, e in (voices or {}).items()}
+        self.top_k = top_k
+
+    def scores(self, embedding: np.ndarray) -> dict[str, float]:
+        result = {}
+        for name, enrolled in self.voices.items():
+            similarities = np.sort(enrolled @ embedding)[::-1]
+            result[name] = float(np.mean(similarities[:self.top_k]))
+        return result
+
+    def identify(self, embedding: np.ndarray, threshold: float) -> Match:
+        scores = self.scores(embedding)
+        if not scores:
+            return Match("", 0.0, 0.0, {})
+        best = max(scores, key=scores.get)
+        p = probability(scores[best], threshold)
+        return Match(best if scores[best] >= threshold else "", scores[best], p, scores)
+
+
+class AnonymousVoices:
+    """Unknown voices of one stream: ``voice-1``, ``voice-2``, … kept by running mean embedding.
+
+    At most ``limit`` voices are remembered; the one heard least recently is forgotten first.
+    """
+
+    def __init__(self, threshold: float, limit: int = 16):
+        self.threshold, self.limit = threshold, limit
+        self.voices: OrderedDict[str, np.ndarray] = OrderedDict()  # id → sum of embeddings
+        self.counter = 0
+
+    def assign(self, embedding: np.ndarray) -> tuple[str, float]:
+        """The id of this unknown voice (new or heard before) and its similarity to it."""
+        best, best_score = "", -1.0
+        for voice_id, total in self.voices.items():
+            score = float(_unit(total) @ embedding)
+            if score > best_score:
+                best, best_score = voice_id, score
+        if best and best_score >= self.threshold:
+            self.voices[best] = self.voices[best] + embedding
+            self.voices.move_to_end(best)
+            return best, best_score
+        self.counter += 1
+        voice_id = f"voice-{self.counter}"
+        self.voices[voice_id] = embedding.astype(np.float32)
+        while len(self.voices) > self.limit:
+            self.voices.popitem(last=False)
+        return voice_id, 1.0
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
