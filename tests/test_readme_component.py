@@ -8,6 +8,7 @@ import sys
 import threading
 
 import numpy as np
+import pytest
 
 from esiaf.testing import REPO, poll
 from esiaf import AudioFormat, Component
@@ -15,7 +16,7 @@ from esiaf import AudioFormat, Component
 
 def readme_component() -> str:
     text = (REPO / "README.md").read_text()
-    return re.search(r"```python\n(# services/loudness/__main__\.py.*?)```", text, re.S).group(1)
+    return re.search(r"```python\n(# my_analysers/loudness/__main__\.py.*?)```", text, re.S).group(1)
 
 
 class SpeechSource(Component):
@@ -28,10 +29,10 @@ class SpeechSource(Component):
 
     def produce(self):
         assert self.wait_for_subscribers("vad/speech", 1, timeout_s=30)
-        loud = np.full(320, 16384, dtype=np.int16)  # half of full scale
+        loud = np.full(16000, 16384, dtype=np.int16)  # a second at half of full scale: 90 dB
         self.publish("vad/speech", np.zeros(320, dtype=np.int16), 1_000, 20_001_000)
-        self.publish("vad/speech", loud, 20_001_000, 40_001_000, segmentation_ended=True,
-                     segment=(20_001_000, 40_001_000))
+        self.publish("vad/speech", loud, 20_001_000, 1_020_001_000, segmentation_ended=True,
+                     segment=(20_001_000, 1_020_001_000))
         while not self.stopping:
             self._service(100)
 
@@ -48,8 +49,9 @@ def test_the_readme_component(orchestrator, tmp_path):
         thread.start()
         results = poll(lambda: orchestrator.http.get("/results", params={"component": "loudness"}).json()["items"],
                        timeout_s=30)
-        assert results[0]["span"] == {"start_ns": 20_001_000, "end_ns": 40_001_000}
-        assert results[0]["vad"]["probability"] == 0.5
+        assert results[0]["span"] == {"start_ns": 20_001_000, "end_ns": 1_020_001_000}
+        assert results[0]["type"] == "loudness"
+        assert results[0]["loudness"]["value"] == pytest.approx(96.0 - 6.02, abs=0.01)
         source.stop()
         thread.join(timeout=10)
     finally:
