@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import socket
 import sys
 import time
@@ -25,6 +26,7 @@ from typing import Any, Sequence
 import httpx
 from websockets.exceptions import ConnectionClosed
 
+from esiaf import auth
 from esiaf.feed import FusedFeed
 from esiaf.launcher import LaunchError, OrchestratorClient, Supervisor, fixed_ports, wait_until
 from esiaf.plugins import resolve as resolve_plugin
@@ -201,6 +203,9 @@ def run(args: argparse.Namespace) -> int:
         args.input.stem if args.input else "mic", datetime.now().strftime("%Y%m%d-%H%M%S"))
     url = f"http://{args.host}:{args.port}"
     workdir = args.workdir.resolve()
+    # one token per run (or the one given): every service presents it, every query needs it
+    os.environ[auth.TOKEN_ENV] = auth.token() or auth.new_token()
+    auth.write_token(workdir / "token", os.environ[auth.TOKEN_ENV])
     supervisor = Supervisor(workdir, env={"ESIAF_ORCHESTRATOR_URL": url, "ESIAF_STREAM_ID": stream_id})
     client = OrchestratorClient(url)
     try:
@@ -255,7 +260,8 @@ def run(args: argparse.Namespace) -> int:
             source = ["--input", str(args.input.resolve())] if args.input else ["--device", args.mic]
             grabber = supervisor.start("grabber", source + (["--fast"] if args.fast else []), env=grabber_env)
             print(f"esiaf: playing {args.input or args.mic} as stream {stream_id}; "
-                  f"orchestrator at {url} (API docs: {url}/docs); logs in {shown_path(workdir / 'logs')}",
+                  f"orchestrator at {url} (API docs: {url}/docs; token in {shown_path(workdir / 'token')}); "
+                  f"logs in {shown_path(workdir / 'logs')}",
                   file=sys.stderr, flush=True)
             return follow(ws, supervisor, client, grabber, args)
     finally:

@@ -28,6 +28,7 @@ from typing import Any, Callable
 import httpx
 import zmq
 
+from esiaf import auth
 from esiaf.transport import STATE_ADDRESS
 
 log = logging.getLogger(__name__)
@@ -78,7 +79,8 @@ def register(url: str, request: dict[str, Any], timeout_s: float,
     while True:
         attempts += 1
         try:
-            response = httpx.post(f"{url.rstrip('/')}/components", json=request, timeout=5.0)
+            response = httpx.post(f"{url.rstrip('/')}/components", json=request, timeout=5.0,
+                                  headers=auth.headers())
         except httpx.HTTPError as exc:
             last_error = str(exc) or type(exc).__name__
         else:
@@ -101,7 +103,7 @@ def register(url: str, request: dict[str, Any], timeout_s: float,
 
 def unregister(url: str, component_id: str) -> None:
     try:
-        httpx.delete(f"{url.rstrip('/')}/components/{component_id}", timeout=2.0)
+        httpx.delete(f"{url.rstrip('/')}/components/{component_id}", timeout=2.0, headers=auth.headers())
     except httpx.HTTPError as exc:
         log.info("could not unregister component_id=%s error=%s", component_id, exc)
 
@@ -110,7 +112,8 @@ def announce_stream(url: str, stream_id: str, start_ns: int, source: str, info: 
     """Tells the orchestrator a stream's capture started (``PUT /streams/{id}``); False if it could not."""
     try:
         response = httpx.put(f"{url.rstrip('/')}/streams/{stream_id}",
-                             json={"start_ns": start_ns, "source": source, "info": info}, timeout=5.0)
+                             json={"start_ns": start_ns, "source": source, "info": info}, timeout=5.0,
+                             headers=auth.headers())
         response.raise_for_status()
     except httpx.HTTPError as exc:
         log.warning("could not announce stream_id=%s start_ns=%d error=%s", stream_id, start_ns, exc)
@@ -125,7 +128,7 @@ def declared_format(url: str, topic: str, timeout_s: float,
     deadline = time.monotonic() + timeout_s
     while True:
         try:
-            items = httpx.get(f"{url.rstrip('/')}/topics", timeout=5.0).json()["items"]
+            items = httpx.get(f"{url.rstrip('/')}/topics", timeout=5.0, headers=auth.headers()).json()["items"]
         except (httpx.HTTPError, ValueError, KeyError) as exc:
             log.info("waiting for orchestrator url=%s error=%s", url, exc)
         else:
@@ -225,6 +228,7 @@ class ControlClient:
 
     def _dealer(self) -> zmq.Socket:
         dealer = self._context.socket(zmq.DEALER)
+        auth.secure_socket(dealer)
         dealer.setsockopt(zmq.LINGER, 0)
         dealer.setsockopt(zmq.IDENTITY, self.component_id.encode())
         dealer.connect(self.registration.control_endpoint)

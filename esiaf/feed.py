@@ -9,6 +9,8 @@ import time
 from websockets.exceptions import ConnectionClosed, InvalidHandshake
 from websockets.sync.client import connect
 
+from esiaf import auth
+
 log = logging.getLogger(__name__)
 
 
@@ -20,7 +22,7 @@ class FusedFeed:
     def __init__(self, url: str) -> None:
         self.url = url
         self.last_seq: int | None = None
-        self.ws = connect(url, open_timeout=10)
+        self.ws = connect(url, open_timeout=10, additional_headers=auth.headers())
 
     def __enter__(self) -> "FusedFeed":
         return self
@@ -33,7 +35,7 @@ class FusedFeed:
         if self.ws is None:
             url = self.url + (f"&after_seq={self.last_seq}" if self.last_seq is not None else "")
             try:
-                self.ws = connect(url, open_timeout=timeout)
+                self.ws = connect(url, open_timeout=timeout, additional_headers=auth.headers())
             except (OSError, TimeoutError, InvalidHandshake):
                 time.sleep(timeout)
                 raise TimeoutError from None

@@ -23,6 +23,8 @@ from typing import Any, Callable
 
 import httpx
 
+from esiaf import auth
+
 log = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -198,7 +200,7 @@ def _any_free_port() -> int:
 class OrchestratorClient:
     def __init__(self, url: str):
         self.url = url.rstrip("/")
-        self._http = httpx.Client(timeout=2.0)
+        self._http = httpx.Client(timeout=2.0, headers=auth.headers())
 
     def healthy(self) -> bool:
         return self._http.get(f"{self.url}/health").status_code == 200

@@ -56,6 +56,7 @@ class Launcher:
     def __init__(self, args: list[str], workdir: Path, env: dict[str, str] | None = None):
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
+        self.workdir = workdir
         cmd = [sys.executable, "-m", "esiaf.cli", "run", "--port", str(self.port), "--workdir", str(workdir), *args]
         self.process = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                         env={**os.environ, "PYTHONPATH": str(REPO), **(env or {})})
@@ -74,6 +75,19 @@ class Launcher:
     def _read_stderr(self) -> None:
         for line in self.process.stderr:
             self.stderr.append(line)
+
+    @property
+    def token(self) -> str:
+        """The token ``esiaf run`` made for this run (in its workdir once it has started)."""
+        return (self.workdir / "token").read_text().strip()
+
+    @property
+    def headers(self) -> dict[str, str]:
+        return {"Authorization": f"Bearer {self.token}"}
+
+    def ws_url(self, path: str) -> str:
+        """A websocket URL of this run's orchestrator, with the token (``path`` may hold a query)."""
+        return self.url.replace("http", "ws") + path + ("&" if "?" in path else "?") + f"token={self.token}"
 
     def wait_for_line(self, predicate, timeout_s: float) -> dict:
         deadline = time.monotonic() + timeout_s

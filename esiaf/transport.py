@@ -20,6 +20,8 @@ from typing import Any, Iterable, Iterator, Sequence
 
 import zmq
 
+from esiaf import auth
+
 log = logging.getLogger(__name__)
 
 STATE_ADDRESS = "inproc://esiaf-control-state"
@@ -93,6 +95,7 @@ class Transport:
         os.set_blocking(self._wake_write, False)
         self._poller.register(self._wake_read, zmq.POLLIN)
         self.push = context.socket(zmq.PUSH)
+        auth.secure_socket(self.push)  # the orchestrator's results socket takes only token holders
         self.push.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
         self.push.setsockopt(zmq.SNDHWM, RESULTS_HWM)
         self._advertised_host = advertise_host or (socket.gethostname() if bind_host in ANY_HOST else bind_host)

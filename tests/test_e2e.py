@@ -16,11 +16,10 @@ SPAN_TOLERANCE_S = 0.150
 sys.path.insert(0, str(REPO / "scripts"))
 
 
-def collect_fused(url: str, stream_id: str, timeout_s: float) -> list[dict]:
+def collect_fused(run, stream_id: str, timeout_s: float) -> list[dict]:
     """Every fused result of a stream, from a websocket client of our own, until its stream_end."""
     fused = []
-    ws_url = url.replace("http", "ws") + f"/ws/fused?stream={stream_id}&after_id=0"
-    with connect(ws_url, open_timeout=10) as ws:
+    with connect(run.ws_url(f"/ws/fused?stream={stream_id}&after_id=0"), open_timeout=10) as ws:
         while True:
             message = json.loads(ws.recv(timeout=timeout_s))
             if message["type"] == "stream_end":
@@ -44,7 +43,7 @@ def test_robocup_questions_in_order_with_spans_where_the_speech_is(launch, tmp_p
 
     run = launch("--input", str(wav), "--grammar", "robocup", "--json", "--serve", "--stream-id", "e2e-questions")
     start = run.wait_for_line(lambda line: line.get("type") == "stream_start", timeout_s=90)
-    fused = collect_fused(run.url, "e2e-questions", timeout_s=60)
+    fused = collect_fused(run, "e2e-questions", timeout_s=60)
 
     assert [normalise(best_text(f)) for f in fused] == [normalise(t.text) for t in truth]
     for f, t in zip(fused, truth):

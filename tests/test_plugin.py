@@ -52,10 +52,10 @@ def test_a_plugin_folder_reaches_fused_results_websocket_and_results(launch, tmp
         assert line["aggregates"]["duration"]["value"] == pytest.approx(result["duration"]["value"])
         assert line["completion"] == "complete"
     # the websocket replays them, and /results holds each one
-    with connect(run.url.replace("http", "ws") + "/ws/fused?stream=plug&after_id=0", open_timeout=10) as ws:
+    with connect(run.ws_url("/ws/fused?stream=plug&after_id=0"), open_timeout=10) as ws:
         replayed = [json.loads(ws.recv(timeout=10)) for _ in fused]
     assert [f["results"]["duration"][0]["id"] for f in replayed] == [f["results"]["duration"][0]["id"] for f in fused]
-    stored = httpx.get(f"{run.url}/results", params={"type": "duration", "stream": "plug"}).json()["items"]
+    stored = httpx.get(f"{run.url}/results", params={"type": "duration", "stream": "plug"}, headers=run.headers).json()["items"]
     assert len(stored) == 5
     assert repository_state() == before
 

@@ -34,10 +34,10 @@ def test_without_leaves_the_analysers_out_and_nothing_waits_for_them(launch, tmp
     run = launch("--input", str(scene), "--array", "respeaker4", "--grammar", "robocup", "--without",
                  "emotion,gender,voiceid", "--fast", "--json", "--serve")
     run.wait_for_line(lambda line: line.get("type") == "stream_end", timeout_s=150)
-    components = {c["name"] for c in httpx.get(f"{run.url}/components").json()["items"]}
+    components = {c["name"] for c in httpx.get(f"{run.url}/components", headers=run.headers).json()["items"]}
     assert {"asr", "vad", "splitter", "ssl"} <= components and not components & {"emotion", "gender", "voiceid"}, \
         components
-    fusions = httpx.get(f"{run.url}/fusions").json()
+    fusions = httpx.get(f"{run.url}/fusions", headers=run.headers).json()
     default = {"ssl", "emotion", "gender", "voice_id"}
     assert any(set(f["fuse"]) == default for f in fusions["items"]), fusions
     fused = fused_results(run)

@@ -7,8 +7,11 @@ from typing import AsyncIterator
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline  # /docs without a CDN: robots are often offline
 
+from esiaf import auth
+
 from .api import components, fused, fusions, health, latency, results, streams, topics, ws
 from .core import Orchestrator
+from .auth import TokenAuth
 from .limits import BodyLimit
 from .settings import OrchestratorSettings
 from .voices import router as voices_router
@@ -46,4 +49,5 @@ def create_app(settings: OrchestratorSettings, *,
         app.include_router(module.router)
     app.include_router(voices_router)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(TokenAuth, token=settings.token or auth.token(), allowed_origins=settings.allowed_origins)
     return app

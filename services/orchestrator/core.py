@@ -9,6 +9,9 @@ from typing import Any
 
 import zmq
 import zmq.asyncio
+from zmq.auth.asyncio import AsyncioAuthenticator
+
+from esiaf import auth
 
 from .control import ControlPlane
 from .fusion import FusionEngine
@@ -48,6 +51,8 @@ class Orchestrator:
         self.control_endpoint = ""
         self.results_endpoint = ""
         self._ctx: zmq.asyncio.Context | None = None
+        self._zap: AsyncioAuthenticator | None = None
+        self._token = ""
         self._tasks: list[asyncio.Task] = []
 
     # lifecycle
@@ -75,6 +80,11 @@ class Orchestrator:
                               live_components=self.registry.live.values,
                               timeouts=settings.timeouts)
         self._ctx = zmq.asyncio.Context()
+        self._token = settings.token or auth.token()
+        if self._token:  # ZAP: the control and results sockets take only peers that know the token
+            self._zap = AsyncioAuthenticator(self._ctx)
+            self._zap.start()
+            self._zap.configure_plain(domain="*", passwords={auth.ZMQ_USER: self._token})
         control_socket, self.control_endpoint = self._bind(zmq.ROUTER, settings.control_port,
                                                            "control", "control_port")
         control_socket.setsockopt(zmq.ROUTER_HANDOVER, 1)
@@ -97,6 +107,8 @@ class Orchestrator:
         host = zmq_host(self.settings.host)
         socket = self._ctx.socket(kind)
         socket.setsockopt(zmq.LINGER, 0)
+        if self._token:
+            socket.plain_server = True
         if host.startswith("["):
             socket.setsockopt(zmq.IPV6, 1)
         address = f"tcp://{host}:{port or '*'}"
@@ -122,6 +134,9 @@ class Orchestrator:
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
+        if self._zap is not None:
+            self._zap.stop()
+            self._zap = None
         if self._ctx is not None:
             self._ctx.destroy(linger=0)
             self._ctx = None

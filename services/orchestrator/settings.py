@@ -87,6 +87,8 @@ class OrchestratorSettings(StrictModel):
     timeouts: TimeoutSettings = Field(default_factory=TimeoutSettings)
     log_level: str = "INFO"
     max_body_bytes: int = Field(default=1024 * 1024, gt=0)  # HTTP request bodies larger than this get 413
+    token: str = ""  # required on every request but /health once set; default ESIAF_TOKEN / ESIAF_TOKEN_FILE
+    allowed_origins: list[str] = Field(default_factory=list)  # browser origins whose websockets are accepted
 
     @field_validator("log_level")
     @classmethod

@@ -17,7 +17,7 @@ import threading
 import httpx
 import numpy as np
 
-from esiaf import SetupError
+from esiaf import SetupError, auth
 from services.emotion.service import UtteranceClassifier, UtteranceSettings
 from services.voiceid.encoder import EncoderError, VoiceEncoder
 from services.voiceid.scoring import AnonymousVoices, VoiceBook, probability
@@ -66,7 +66,7 @@ class VoiceId(UtteranceClassifier):
         super().teardown()
 
     def _poll_voices(self) -> None:
-        with httpx.Client(base_url=self.settings.orchestrator_url, timeout=5.0) as client:
+        with httpx.Client(base_url=self.settings.orchestrator_url, timeout=5.0, headers=auth.headers()) as client:
             while not self._halt.is_set():
                 try:
                     self.refresh_voices(client)

@@ -59,7 +59,7 @@ def test_enrolled_speakers_get_their_names_a_stranger_an_anonymous_id(launch, tm
     deadline = time.monotonic() + 60
     while True:  # enrol while the other services start
         try:
-            if httpx.get(f"{run.url}/health", timeout=2).status_code == 200:
+            if httpx.get(f"{run.url}/health", timeout=2).status_code == 200 and (run.workdir / "token").exists():
                 break
         except httpx.HTTPError:
             pass
@@ -72,10 +72,10 @@ def test_enrolled_speakers_get_their_names_a_stranger_an_anonymous_id(launch, tm
             rate_hz = 44100 if index == 0 else 16000  # another rate is converted, not refused
             if rate_hz != 16000:
                 samples = soxr.resample(samples, 16000, rate_hz)
-            reply = httpx.post(f"{run.url}/voices/{name}", files={"audio": ("a.wav", wav_bytes(samples, rate_hz))},
+            reply = httpx.post(headers=run.headers, url=f"{run.url}/voices/{name}", files={"audio": ("a.wav", wav_bytes(samples, rate_hz))},
                                timeout=30)
             assert reply.status_code == 200, reply.text
-    voices = httpx.get(f"{run.url}/voices").json()["voices"]
+    voices = httpx.get(headers=run.headers, url=f"{run.url}/voices").json()["voices"]
     assert {(v["name"], v["count"]) for v in voices} == {(ANNA, 3), (BEN, 3)}
 
     start = run.wait_for_line(lambda line: line.get("type") == "stream_start", timeout_s=120)
@@ -93,27 +93,27 @@ def test_enrolled_speakers_get_their_names_a_stranger_an_anonymous_id(launch, tm
     assert heard[:4] == [BEN, ANNA, BEN, ANNA], heard
     assert heard[4].startswith("voice-") and heard[5] == heard[4], heard  # the stranger keeps one id
 
-    assert httpx.delete(f"{run.url}/voices/{BEN}").status_code == 200
-    assert httpx.delete(f"{run.url}/voices/{BEN}").status_code == 404
+    assert httpx.delete(headers=run.headers, url=f"{run.url}/voices/{BEN}").status_code == 200
+    assert httpx.delete(headers=run.headers, url=f"{run.url}/voices/{BEN}").status_code == 404
     after = voice_of(fused_over(spans[-1]))
     assert after != BEN and after.startswith("voice-") and after != heard[4], after
 
     stream = start["stream_id"]
     first_ns = origin_ns + int(spans[4][0] * 1e9)
-    reply = httpx.post(f"{run.url}/voices/Carl", json={"stream": stream, "start_ns": first_ns,
+    reply = httpx.post(headers=run.headers, url=f"{run.url}/voices/Carl", json={"stream": stream, "start_ns": first_ns,
                                                        "end_ns": first_ns + 1_000_000_000})
     assert reply.status_code == 200 and reply.json()["added"] >= 1, reply.text
-    reply = httpx.post(f"{run.url}/voices/Dora", json={"stream": stream, "anonymous": heard[4]})
+    reply = httpx.post(headers=run.headers, url=f"{run.url}/voices/Dora", json={"stream": stream, "anonymous": heard[4]})
     assert reply.status_code == 200 and reply.json()["added"] == 2, reply.text
 
     silent = wav_bytes(np.zeros(32000, np.float32), 16000)
-    bad = [httpx.post(f"{run.url}/voices/Eve", files={"other": ("a.wav", b"")}),
-           httpx.post(f"{run.url}/voices/Eve", files={"audio": ("a.wav", silent)}),
-           httpx.post(f"{run.url}/voices/Eve", files={"audio": ("a.wav", b"not a wav")}),
-           httpx.post(f"{run.url}/voices/Eve", json={"stream": stream, "start_ns": origin_ns,
+    bad = [httpx.post(headers=run.headers, url=f"{run.url}/voices/Eve", files={"other": ("a.wav", b"")}),
+           httpx.post(headers=run.headers, url=f"{run.url}/voices/Eve", files={"audio": ("a.wav", silent)}),
+           httpx.post(headers=run.headers, url=f"{run.url}/voices/Eve", files={"audio": ("a.wav", b"not a wav")}),
+           httpx.post(headers=run.headers, url=f"{run.url}/voices/Eve", json={"stream": stream, "start_ns": origin_ns,
                                                      "end_ns": origin_ns + int(LEAD_S * 1e9) - 500_000_000}),
-           httpx.post(f"{run.url}/voices/a%2Fb", files={"audio": ("a.wav", b"")}),
-           httpx.post(f"{run.url}/voices/%20", files={"audio": ("a.wav", b"")})]
+           httpx.post(headers=run.headers, url=f"{run.url}/voices/a%2Fb", files={"audio": ("a.wav", b"")}),
+           httpx.post(headers=run.headers, url=f"{run.url}/voices/%20", files={"audio": ("a.wav", b"")})]
     messages = ["no audio", "no speech", "not a readable WAV", "no speech", "bad voice name", "bad voice name"]
     for reply, message in zip(bad, messages):
         assert 400 <= reply.status_code < 500 and message in reply.json()["detail"], (reply.status_code, reply.text)
