@@ -30,10 +30,16 @@ class ControlPlane:
                 self.counters["errors"] += 1
                 log.exception("event=control_failed frames=%d", len(frames))
 
+    def _bad(self, detail: str) -> None:
+        """Counts a bad control message; logs the first and then every 100th."""
+        self.counters["bad_messages"] += 1
+        count = self.counters["bad_messages"]
+        if count == 1 or count % 100 == 0:
+            log.warning("event=bad_message plane=control count=%d %s", count, detail)
+
     async def handle(self, frames: list[bytes]) -> None:
         if len(frames) != 2:
-            self.counters["bad_messages"] += 1
-            log.warning("event=bad_message plane=control frames=%d", len(frames))
+            self._bad(f"frames={len(frames)}")
             return
         identity, data = frames
         component = self.registry.get(identity.decode("utf-8", errors="replace"))
@@ -46,15 +52,11 @@ class ControlPlane:
         try:
             message = json.loads(data)
             kind = message["type"]
-        except (ValueError, KeyError, TypeError) as exc:
-            self.counters["bad_messages"] += 1
-            log.warning("event=bad_message plane=control component_id=%s reason=%r",
-                        component.component_id, str(exc))
+        except (ValueError, KeyError, TypeError, RecursionError) as exc:
+            self._bad(f"component_id={component.component_id} reason={str(exc)[:200]!r}")
             return
         if kind != "heartbeat":
-            self.counters["bad_messages"] += 1
-            log.warning("event=bad_message plane=control component_id=%s type=%r",
-                        component.component_id, kind)
+            self._bad(f"component_id={component.component_id} type={str(kind)[:50]!r}")
             return
         component.heartbeats += 1
         stats = message.get("stats")
