@@ -52,7 +52,10 @@ def format_line(fused: dict[str, Any], origin_ns: int) -> str:
     what = ""
     if "speech" in anchor and anchor["speech"].get("hypotheses"):
         best = anchor["speech"]["hypotheses"][0]
-        what = f"'{best['text']}' (p={best['probability']:.2f})"
+        if best.get("out_of_set"):
+            what = f"out of set: '{best.get('raw_text', '')}' (match {best.get('match_score', 0):.2f})"
+        else:
+            what = f"'{best['text']}' (p={best['probability']:.2f})"
     else:
         payload = next((k for k in ("vad", "ssl", "emotion", "gender", "voice_id") if k in anchor), "")
         what = f"{payload} {json.dumps(anchor.get(payload, {}))}"
@@ -180,7 +183,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                      "(entry point group esiaf.components) or a module; repeatable")
     run.add_argument("--ssl-algorithm", help="DOA algorithm of the ssl service (default NormMUSIC)")
     run.add_argument("--fast", action="store_true", help="play the file as fast as possible")
-    run.add_argument("--grammar", help="JSGF grammar file for the recogniser, or 'robocup'")
+    run.add_argument("--grammar", help="JSGF grammar file for the recogniser, or 'robocup' (with --asr whisper: "
+                     "the allowed sentences its transcripts are matched to)")
+    run.add_argument("--asr", choices=("pocketsphinx", "whisper"), help="the recogniser (default pocketsphinx)")
     run.add_argument("--serve", action="store_true", help="keep the services up after the file has played")
     run.add_argument("--host", default="127.0.0.1", help="orchestrator address (default 127.0.0.1)")
     run.add_argument("--port", type=int, default=8000, help="orchestrator HTTP port (default 8000)")
@@ -196,8 +201,12 @@ def run(args: argparse.Namespace) -> int:
     array, channels = check_array(args, check_input(args.input) if args.input else 0)
     without = parse_without(args.without)
     wanted_plugins = [resolve_plugin(spec) for spec in args.plugins]  # a bad --with fails before anything starts
-    if args.grammar and args.grammar != "robocup" and not Path(args.grammar).is_file():
-        raise LaunchError(f"grammar file {args.grammar} does not exist")
+    if args.grammar and args.grammar != "robocup":
+        if not Path(args.grammar).is_file():
+            raise LaunchError(f"grammar file {args.grammar} does not exist")
+        args.grammar = str(Path(args.grammar).resolve())  # the services run elsewhere: relative paths would break
+    if args.array and Path(args.array).is_file():
+        args.array = str(Path(args.array).resolve())
     check_port_free(args.host, args.port)
     stream_id = args.stream_id = args.stream_id or "{}-{}".format(
         args.input.stem if args.input else "mic", datetime.now().strftime("%Y%m%d-%H%M%S"))
@@ -218,7 +227,8 @@ def run(args: argparse.Namespace) -> int:
                                              "ESIAF_ORCHESTRATOR_RESULTS_PORT": str(ports["results"])})
         wait_until(client.healthy, supervisor, "the orchestrator to answer", START_TIMEOUT_S, orchestrator)
         # every service at once (their imports and models load in parallel), then each must register
-        services = {"asr": supervisor.start("asr", ["--grammar", args.grammar] if args.grammar else [])}
+        services = {"asr": supervisor.start("asr", (["--grammar", args.grammar] if args.grammar else [])
+                                            + (["--backend", args.asr] if args.asr else []))}
         grabber_env = {"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1", "ESIAF_GRABBER_CHUNK_MS": str(args.chunk_ms)}
         if channels <= 1 and array is None:
             services["vad"] = supervisor.start("vad")

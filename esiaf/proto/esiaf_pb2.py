@@ -25,7 +25,7 @@ _sym_db = _symbol_database.Default()
 from google.protobuf import struct_pb2 as google_dot_protobuf_dot_struct__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x0b\x65siaf.proto\x12\x05\x65siaf\x1a\x1cgoogle/protobuf/struct.proto\"\x86\x01\n\x0b\x41udioFormat\x12\x16\n\x0esample_rate_hz\x18\x01 \x01(\r\x12&\n\x0bsample_type\x18\x02 \x01(\x0e\x32\x11.esiaf.SampleType\x12%\n\nendianness\x18\x03 \x01(\x0e\x32\x11.esiaf.Endianness\x12\x10\n\x08\x63hannels\x18\x04 \x01(\r\"(\n\x04Span\x12\x10\n\x08start_ns\x18\x01 \x01(\x03\x12\x0e\n\x06\x65nd_ns\x18\x02 \x01(\x03\"\x96\x01\n\x0cSslDirection\x12\x11\n\tsource_id\x18\x01 \x01(\t\x12\x13\n\x0b\x61zimuth_deg\x18\x02 \x01(\x01\x12\x15\n\relevation_deg\x18\x03 \x01(\x01\x12\x13\n\x0bprobability\x18\x04 \x01(\x01\x12\x17\n\x0f\x65levation_known\x18\x05 \x01(\x08\x12\x19\n\x11track_azimuth_deg\x18\x06 \x01(\x01\"\x89\x01\n\tAudioMeta\x12\x1a\n\x12segmentation_ended\x18\x01 \x01(\x08\x12\x1c\n\x07segment\x18\x02 \x01(\x0b\x32\x0b.esiaf.Span\x12+\n\x0essl_directions\x18\x03 \x03(\x0b\x32\x13.esiaf.SslDirection\x12\x15\n\rend_of_stream\x18\x04 \x01(\x08\"\xce\x01\n\x0e\x41ugmentedAudio\x12\x11\n\tstream_id\x18\x01 \x01(\t\x12\r\n\x05topic\x18\x02 \x01(\t\x12\x11\n\tpublisher\x18\x03 \x01(\t\x12\x10\n\x08sequence\x18\x04 \x01(\x04\x12\x10\n\x08start_ns\x18\x05 \x01(\x03\x12\x0e\n\x06\x65nd_ns\x18\x06 \x01(\x03\x12\"\n\x06\x66ormat\x18\x07 \x01(\x0b\x32\x12.esiaf.AudioFormat\x12\x0f\n\x07payload\x18\x08 \x01(\x0c\x12\x1e\n\x04meta\x18\t \x01(\x0b\x32\x10.esiaf.AudioMeta\" \n\tVadResult\x12\x13\n\x0bprobability\x18\x01 \x01(\x01\"Q\n\nWordTiming\x12\x0c\n\x04word\x18\x01 \x01(\t\x12\x10\n\x08start_ns\x18\x02 \x01(\x03\x12\x0e\n\x06\x65nd_ns\x18\x03 \x01(\x03\x12\x13\n\x0bprobability\x18\x04 \x01(\x01\"Q\n\nHypothesis\x12\x0c\n\x04text\x18\x01 \x01(\t\x12\x13\n\x0bprobability\x18\x02 \x01(\x01\x12 \n\x05words\x18\x03 \x03(\x0b\x32\x11.esiaf.WordTiming\"5\n\x0cSpeechResult\x12%\n\nhypotheses\x18\x01 \x03(\x0b\x32\x11.esiaf.Hypothesis\"Y\n\tSslResult\x12\'\n\ndirections\x18\x01 \x03(\x0b\x32\x13.esiaf.SslDirection\x12\x11\n\talgorithm\x18\x02 \x01(\t\x12\x10\n\x08level_db\x18\x03 \x01(\x01\"\xc8\x01\n\x0bLabelResult\x12\r\n\x05label\x18\x01 \x01(\t\x12\x13\n\x0bprobability\x18\x02 \x01(\x01\x12G\n\x13\x63lass_probabilities\x18\x03 \x03(\x0b\x32*.esiaf.LabelResult.ClassProbabilitiesEntry\x12\x11\n\tembedding\x18\x04 \x03(\x02\x1a\x39\n\x17\x43lassProbabilitiesEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"\x1a\n\x08NoResult\x12\x0e\n\x06reason\x18\x01 \x01(\t\"\x96\x02\n\rGenericResult\x12\r\n\x05label\x18\x01 \x01(\t\x12\x13\n\x0bprobability\x18\x02 \x01(\x01\x12I\n\x13\x63lass_probabilities\x18\x03 \x03(\x0b\x32,.esiaf.GenericResult.ClassProbabilitiesEntry\x12\r\n\x05value\x18\x04 \x01(\x01\x12\x11\n\thas_value\x18\x05 \x01(\x08\x12\x0c\n\x04text\x18\x06 \x01(\t\x12+\n\nattributes\x18\x07 \x01(\x0b\x32\x17.google.protobuf.Struct\x1a\x39\n\x17\x43lassProbabilitiesEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"\xd5\x03\n\x06Result\x12\x11\n\tcomponent\x18\x01 \x01(\t\x12\x1f\n\x04type\x18\x02 \x01(\x0e\x32\x11.esiaf.ResultType\x12\x11\n\tstream_id\x18\x03 \x01(\t\x12\x19\n\x04span\x18\x04 \x01(\x0b\x32\x0b.esiaf.Span\x12\x13\n\x0bproduced_ns\x18\x05 \x01(\x03\x12\x10\n\x08sequence\x18\x06 \x01(\x04\x12\x0c\n\x04kind\x18\x07 \x01(\t\x12\x1f\n\x03vad\x18\n \x01(\x0b\x32\x10.esiaf.VadResultH\x00\x12%\n\x06speech\x18\x0b \x01(\x0b\x32\x13.esiaf.SpeechResultH\x00\x12\x1f\n\x03ssl\x18\x0c \x01(\x0b\x32\x10.esiaf.SslResultH\x00\x12%\n\x07\x65motion\x18\r \x01(\x0b\x32\x12.esiaf.LabelResultH\x00\x12$\n\x06gender\x18\x0e \x01(\x0b\x32\x12.esiaf.LabelResultH\x00\x12&\n\x08voice_id\x18\x0f \x01(\x0b\x32\x12.esiaf.LabelResultH\x00\x12\"\n\x07nothing\x18\x10 \x01(\x0b\x32\x0f.esiaf.NoResultH\x00\x12\'\n\x07generic\x18\x11 \x01(\x0b\x32\x14.esiaf.GenericResultH\x00\x42\t\n\x07payload\"l\n\x10MissingComponent\x12\x11\n\tcomponent\x18\x01 \x01(\t\x12\x1f\n\x04type\x18\x02 \x01(\x0e\x32\x11.esiaf.ResultType\x12$\n\x06reason\x18\x03 \x01(\x0e\x32\x14.esiaf.MissingReason\"x\n\x0cSslAggregate\x12\x13\n\x0b\x61zimuth_deg\x18\x01 \x01(\x01\x12\x15\n\relevation_deg\x18\x02 \x01(\x01\x12\x15\n\rconcentration\x18\x03 \x01(\x01\x12\x11\n\toverlap_s\x18\x04 \x01(\x01\x12\x12\n\ndirections\x18\x05 \x01(\r\"\xbb\x01\n\x0eLabelAggregate\x12\r\n\x05label\x18\x01 \x01(\t\x12\x13\n\x0bprobability\x18\x02 \x01(\x01\x12=\n\x0c\x64istribution\x18\x03 \x03(\x0b\x32\'.esiaf.LabelAggregate.DistributionEntry\x12\x11\n\toverlap_s\x18\x04 \x01(\x01\x1a\x33\n\x11\x44istributionEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"\xa6\x01\n\nAggregates\x12 \n\x03ssl\x18\x01 \x01(\x0b\x32\x13.esiaf.SslAggregate\x12&\n\x07\x65motion\x18\x02 \x01(\x0b\x32\x15.esiaf.LabelAggregate\x12%\n\x06gender\x18\x03 \x01(\x0b\x32\x15.esiaf.LabelAggregate\x12\'\n\x08voice_id\x18\x04 \x01(\x0b\x32\x15.esiaf.LabelAggregate\"\xc4\x02\n\x0b\x46usedResult\x12\n\n\x02id\x18\x01 \x01(\x04\x12\x10\n\x08revision\x18\x02 \x01(\r\x12\x0e\n\x06\x66usion\x18\x03 \x01(\t\x12\x11\n\tstream_id\x18\x04 \x01(\t\x12\x1d\n\x06\x61nchor\x18\x05 \x01(\x0b\x32\r.esiaf.Result\x12\x1e\n\x07results\x18\x06 \x03(\x0b\x32\r.esiaf.Result\x12%\n\ncompletion\x18\x07 \x01(\x0e\x32\x11.esiaf.Completion\x12\x1a\n\x12missing_components\x18\x08 \x03(\t\x12\x14\n\x0cpublished_ns\x18\t \x01(\x03\x12(\n\x07missing\x18\n \x03(\x0b\x32\x17.esiaf.MissingComponent\x12%\n\naggregates\x18\x0b \x01(\x0b\x32\x11.esiaf.Aggregates\x12\x0b\n\x03seq\x18\x0c \x01(\x04*\x95\x02\n\nSampleType\x12\x1b\n\x17SAMPLE_TYPE_UNSPECIFIED\x10\x00\x12\x14\n\x10SAMPLE_TYPE_INT8\x10\x01\x12\x15\n\x11SAMPLE_TYPE_UINT8\x10\x02\x12\x15\n\x11SAMPLE_TYPE_INT16\x10\x03\x12\x16\n\x12SAMPLE_TYPE_UINT16\x10\x04\x12\x15\n\x11SAMPLE_TYPE_INT24\x10\x05\x12\x16\n\x12SAMPLE_TYPE_UINT24\x10\x06\x12\x15\n\x11SAMPLE_TYPE_INT32\x10\x07\x12\x16\n\x12SAMPLE_TYPE_UINT32\x10\x08\x12\x17\n\x13SAMPLE_TYPE_FLOAT32\x10\t\x12\x17\n\x13SAMPLE_TYPE_FLOAT64\x10\n*S\n\nEndianness\x12\x1a\n\x16\x45NDIANNESS_UNSPECIFIED\x10\x00\x12\x15\n\x11\x45NDIANNESS_LITTLE\x10\x01\x12\x12\n\x0e\x45NDIANNESS_BIG\x10\x02*\xcf\x01\n\nResultType\x12\x1b\n\x17RESULT_TYPE_UNSPECIFIED\x10\x00\x12\x13\n\x0fRESULT_TYPE_VAD\x10\x01\x12\x16\n\x12RESULT_TYPE_SPEECH\x10\x02\x12\x13\n\x0fRESULT_TYPE_SSL\x10\x03\x12\x17\n\x13RESULT_TYPE_EMOTION\x10\x04\x12\x16\n\x12RESULT_TYPE_GENDER\x10\x05\x12\x18\n\x14RESULT_TYPE_VOICE_ID\x10\x06\x12\x17\n\x13RESULT_TYPE_GENERIC\x10\x07*{\n\nCompletion\x12\x1a\n\x16\x43OMPLETION_UNSPECIFIED\x10\x00\x12\x17\n\x13\x43OMPLETION_COMPLETE\x10\x01\x12\x18\n\x14\x43OMPLETION_TIMED_OUT\x10\x02\x12\x1e\n\x1a\x43OMPLETION_COMPONENTS_GONE\x10\x03*f\n\rMissingReason\x12\x1e\n\x1aMISSING_REASON_UNSPECIFIED\x10\x00\x12\x1c\n\x18MISSING_REASON_TIMED_OUT\x10\x01\x12\x17\n\x13MISSING_REASON_GONE\x10\x02\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x0b\x65siaf.proto\x12\x05\x65siaf\x1a\x1cgoogle/protobuf/struct.proto\"\x86\x01\n\x0b\x41udioFormat\x12\x16\n\x0esample_rate_hz\x18\x01 \x01(\r\x12&\n\x0bsample_type\x18\x02 \x01(\x0e\x32\x11.esiaf.SampleType\x12%\n\nendianness\x18\x03 \x01(\x0e\x32\x11.esiaf.Endianness\x12\x10\n\x08\x63hannels\x18\x04 \x01(\r\"(\n\x04Span\x12\x10\n\x08start_ns\x18\x01 \x01(\x03\x12\x0e\n\x06\x65nd_ns\x18\x02 \x01(\x03\"\x96\x01\n\x0cSslDirection\x12\x11\n\tsource_id\x18\x01 \x01(\t\x12\x13\n\x0b\x61zimuth_deg\x18\x02 \x01(\x01\x12\x15\n\relevation_deg\x18\x03 \x01(\x01\x12\x13\n\x0bprobability\x18\x04 \x01(\x01\x12\x17\n\x0f\x65levation_known\x18\x05 \x01(\x08\x12\x19\n\x11track_azimuth_deg\x18\x06 \x01(\x01\"\x89\x01\n\tAudioMeta\x12\x1a\n\x12segmentation_ended\x18\x01 \x01(\x08\x12\x1c\n\x07segment\x18\x02 \x01(\x0b\x32\x0b.esiaf.Span\x12+\n\x0essl_directions\x18\x03 \x03(\x0b\x32\x13.esiaf.SslDirection\x12\x15\n\rend_of_stream\x18\x04 \x01(\x08\"\xce\x01\n\x0e\x41ugmentedAudio\x12\x11\n\tstream_id\x18\x01 \x01(\t\x12\r\n\x05topic\x18\x02 \x01(\t\x12\x11\n\tpublisher\x18\x03 \x01(\t\x12\x10\n\x08sequence\x18\x04 \x01(\x04\x12\x10\n\x08start_ns\x18\x05 \x01(\x03\x12\x0e\n\x06\x65nd_ns\x18\x06 \x01(\x03\x12\"\n\x06\x66ormat\x18\x07 \x01(\x0b\x32\x12.esiaf.AudioFormat\x12\x0f\n\x07payload\x18\x08 \x01(\x0c\x12\x1e\n\x04meta\x18\t \x01(\x0b\x32\x10.esiaf.AudioMeta\" \n\tVadResult\x12\x13\n\x0bprobability\x18\x01 \x01(\x01\"Q\n\nWordTiming\x12\x0c\n\x04word\x18\x01 \x01(\t\x12\x10\n\x08start_ns\x18\x02 \x01(\x03\x12\x0e\n\x06\x65nd_ns\x18\x03 \x01(\x03\x12\x13\n\x0bprobability\x18\x04 \x01(\x01\"\x8c\x01\n\nHypothesis\x12\x0c\n\x04text\x18\x01 \x01(\t\x12\x13\n\x0bprobability\x18\x02 \x01(\x01\x12 \n\x05words\x18\x03 \x03(\x0b\x32\x11.esiaf.WordTiming\x12\x10\n\x08raw_text\x18\x04 \x01(\t\x12\x13\n\x0bmatch_score\x18\x05 \x01(\x01\x12\x12\n\nout_of_set\x18\x06 \x01(\x08\"5\n\x0cSpeechResult\x12%\n\nhypotheses\x18\x01 \x03(\x0b\x32\x11.esiaf.Hypothesis\"Y\n\tSslResult\x12\'\n\ndirections\x18\x01 \x03(\x0b\x32\x13.esiaf.SslDirection\x12\x11\n\talgorithm\x18\x02 \x01(\t\x12\x10\n\x08level_db\x18\x03 \x01(\x01\"\xc8\x01\n\x0bLabelResult\x12\r\n\x05label\x18\x01 \x01(\t\x12\x13\n\x0bprobability\x18\x02 \x01(\x01\x12G\n\x13\x63lass_probabilities\x18\x03 \x03(\x0b\x32*.esiaf.LabelResult.ClassProbabilitiesEntry\x12\x11\n\tembedding\x18\x04 \x03(\x02\x1a\x39\n\x17\x43lassProbabilitiesEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"\x1a\n\x08NoResult\x12\x0e\n\x06reason\x18\x01 \x01(\t\"\x96\x02\n\rGenericResult\x12\r\n\x05label\x18\x01 \x01(\t\x12\x13\n\x0bprobability\x18\x02 \x01(\x01\x12I\n\x13\x63lass_probabilities\x18\x03 \x03(\x0b\x32,.esiaf.GenericResult.ClassProbabilitiesEntry\x12\r\n\x05value\x18\x04 \x01(\x01\x12\x11\n\thas_value\x18\x05 \x01(\x08\x12\x0c\n\x04text\x18\x06 \x01(\t\x12+\n\nattributes\x18\x07 \x01(\x0b\x32\x17.google.protobuf.Struct\x1a\x39\n\x17\x43lassProbabilitiesEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"\xd5\x03\n\x06Result\x12\x11\n\tcomponent\x18\x01 \x01(\t\x12\x1f\n\x04type\x18\x02 \x01(\x0e\x32\x11.esiaf.ResultType\x12\x11\n\tstream_id\x18\x03 \x01(\t\x12\x19\n\x04span\x18\x04 \x01(\x0b\x32\x0b.esiaf.Span\x12\x13\n\x0bproduced_ns\x18\x05 \x01(\x03\x12\x10\n\x08sequence\x18\x06 \x01(\x04\x12\x0c\n\x04kind\x18\x07 \x01(\t\x12\x1f\n\x03vad\x18\n \x01(\x0b\x32\x10.esiaf.VadResultH\x00\x12%\n\x06speech\x18\x0b \x01(\x0b\x32\x13.esiaf.SpeechResultH\x00\x12\x1f\n\x03ssl\x18\x0c \x01(\x0b\x32\x10.esiaf.SslResultH\x00\x12%\n\x07\x65motion\x18\r \x01(\x0b\x32\x12.esiaf.LabelResultH\x00\x12$\n\x06gender\x18\x0e \x01(\x0b\x32\x12.esiaf.LabelResultH\x00\x12&\n\x08voice_id\x18\x0f \x01(\x0b\x32\x12.esiaf.LabelResultH\x00\x12\"\n\x07nothing\x18\x10 \x01(\x0b\x32\x0f.esiaf.NoResultH\x00\x12\'\n\x07generic\x18\x11 \x01(\x0b\x32\x14.esiaf.GenericResultH\x00\x42\t\n\x07payload\"l\n\x10MissingComponent\x12\x11\n\tcomponent\x18\x01 \x01(\t\x12\x1f\n\x04type\x18\x02 \x01(\x0e\x32\x11.esiaf.ResultType\x12$\n\x06reason\x18\x03 \x01(\x0e\x32\x14.esiaf.MissingReason\"x\n\x0cSslAggregate\x12\x13\n\x0b\x61zimuth_deg\x18\x01 \x01(\x01\x12\x15\n\relevation_deg\x18\x02 \x01(\x01\x12\x15\n\rconcentration\x18\x03 \x01(\x01\x12\x11\n\toverlap_s\x18\x04 \x01(\x01\x12\x12\n\ndirections\x18\x05 \x01(\r\"\xbb\x01\n\x0eLabelAggregate\x12\r\n\x05label\x18\x01 \x01(\t\x12\x13\n\x0bprobability\x18\x02 \x01(\x01\x12=\n\x0c\x64istribution\x18\x03 \x03(\x0b\x32\'.esiaf.LabelAggregate.DistributionEntry\x12\x11\n\toverlap_s\x18\x04 \x01(\x01\x1a\x33\n\x11\x44istributionEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"\xa6\x01\n\nAggregates\x12 \n\x03ssl\x18\x01 \x01(\x0b\x32\x13.esiaf.SslAggregate\x12&\n\x07\x65motion\x18\x02 \x01(\x0b\x32\x15.esiaf.LabelAggregate\x12%\n\x06gender\x18\x03 \x01(\x0b\x32\x15.esiaf.LabelAggregate\x12\'\n\x08voice_id\x18\x04 \x01(\x0b\x32\x15.esiaf.LabelAggregate\"\xc4\x02\n\x0b\x46usedResult\x12\n\n\x02id\x18\x01 \x01(\x04\x12\x10\n\x08revision\x18\x02 \x01(\r\x12\x0e\n\x06\x66usion\x18\x03 \x01(\t\x12\x11\n\tstream_id\x18\x04 \x01(\t\x12\x1d\n\x06\x61nchor\x18\x05 \x01(\x0b\x32\r.esiaf.Result\x12\x1e\n\x07results\x18\x06 \x03(\x0b\x32\r.esiaf.Result\x12%\n\ncompletion\x18\x07 \x01(\x0e\x32\x11.esiaf.Completion\x12\x1a\n\x12missing_components\x18\x08 \x03(\t\x12\x14\n\x0cpublished_ns\x18\t \x01(\x03\x12(\n\x07missing\x18\n \x03(\x0b\x32\x17.esiaf.MissingComponent\x12%\n\naggregates\x18\x0b \x01(\x0b\x32\x11.esiaf.Aggregates\x12\x0b\n\x03seq\x18\x0c \x01(\x04*\x95\x02\n\nSampleType\x12\x1b\n\x17SAMPLE_TYPE_UNSPECIFIED\x10\x00\x12\x14\n\x10SAMPLE_TYPE_INT8\x10\x01\x12\x15\n\x11SAMPLE_TYPE_UINT8\x10\x02\x12\x15\n\x11SAMPLE_TYPE_INT16\x10\x03\x12\x16\n\x12SAMPLE_TYPE_UINT16\x10\x04\x12\x15\n\x11SAMPLE_TYPE_INT24\x10\x05\x12\x16\n\x12SAMPLE_TYPE_UINT24\x10\x06\x12\x15\n\x11SAMPLE_TYPE_INT32\x10\x07\x12\x16\n\x12SAMPLE_TYPE_UINT32\x10\x08\x12\x17\n\x13SAMPLE_TYPE_FLOAT32\x10\t\x12\x17\n\x13SAMPLE_TYPE_FLOAT64\x10\n*S\n\nEndianness\x12\x1a\n\x16\x45NDIANNESS_UNSPECIFIED\x10\x00\x12\x15\n\x11\x45NDIANNESS_LITTLE\x10\x01\x12\x12\n\x0e\x45NDIANNESS_BIG\x10\x02*\xcf\x01\n\nResultType\x12\x1b\n\x17RESULT_TYPE_UNSPECIFIED\x10\x00\x12\x13\n\x0fRESULT_TYPE_VAD\x10\x01\x12\x16\n\x12RESULT_TYPE_SPEECH\x10\x02\x12\x13\n\x0fRESULT_TYPE_SSL\x10\x03\x12\x17\n\x13RESULT_TYPE_EMOTION\x10\x04\x12\x16\n\x12RESULT_TYPE_GENDER\x10\x05\x12\x18\n\x14RESULT_TYPE_VOICE_ID\x10\x06\x12\x17\n\x13RESULT_TYPE_GENERIC\x10\x07*{\n\nCompletion\x12\x1a\n\x16\x43OMPLETION_UNSPECIFIED\x10\x00\x12\x17\n\x13\x43OMPLETION_COMPLETE\x10\x01\x12\x18\n\x14\x43OMPLETION_TIMED_OUT\x10\x02\x12\x1e\n\x1a\x43OMPLETION_COMPONENTS_GONE\x10\x03*f\n\rMissingReason\x12\x1e\n\x1aMISSING_REASON_UNSPECIFIED\x10\x00\x12\x1c\n\x18MISSING_REASON_TIMED_OUT\x10\x01\x12\x17\n\x13MISSING_REASON_GONE\x10\x02\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -38,16 +38,16 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_GENERICRESULT_CLASSPROBABILITIESENTRY']._serialized_options = b'8\001'
   _globals['_LABELAGGREGATE_DISTRIBUTIONENTRY']._loaded_options = None
   _globals['_LABELAGGREGATE_DISTRIBUTIONENTRY']._serialized_options = b'8\001'
-  _globals['_SAMPLETYPE']._serialized_start=2982
-  _globals['_SAMPLETYPE']._serialized_end=3259
-  _globals['_ENDIANNESS']._serialized_start=3261
-  _globals['_ENDIANNESS']._serialized_end=3344
-  _globals['_RESULTTYPE']._serialized_start=3347
-  _globals['_RESULTTYPE']._serialized_end=3554
-  _globals['_COMPLETION']._serialized_start=3556
-  _globals['_COMPLETION']._serialized_end=3679
-  _globals['_MISSINGREASON']._serialized_start=3681
-  _globals['_MISSINGREASON']._serialized_end=3783
+  _globals['_SAMPLETYPE']._serialized_start=3042
+  _globals['_SAMPLETYPE']._serialized_end=3319
+  _globals['_ENDIANNESS']._serialized_start=3321
+  _globals['_ENDIANNESS']._serialized_end=3404
+  _globals['_RESULTTYPE']._serialized_start=3407
+  _globals['_RESULTTYPE']._serialized_end=3614
+  _globals['_COMPLETION']._serialized_start=3616
+  _globals['_COMPLETION']._serialized_end=3739
+  _globals['_MISSINGREASON']._serialized_start=3741
+  _globals['_MISSINGREASON']._serialized_end=3843
   _globals['_AUDIOFORMAT']._serialized_start=53
   _globals['_AUDIOFORMAT']._serialized_end=187
   _globals['_SPAN']._serialized_start=189
@@ -62,34 +62,34 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_VADRESULT']._serialized_end=765
   _globals['_WORDTIMING']._serialized_start=767
   _globals['_WORDTIMING']._serialized_end=848
-  _globals['_HYPOTHESIS']._serialized_start=850
-  _globals['_HYPOTHESIS']._serialized_end=931
-  _globals['_SPEECHRESULT']._serialized_start=933
-  _globals['_SPEECHRESULT']._serialized_end=986
-  _globals['_SSLRESULT']._serialized_start=988
-  _globals['_SSLRESULT']._serialized_end=1077
-  _globals['_LABELRESULT']._serialized_start=1080
-  _globals['_LABELRESULT']._serialized_end=1280
-  _globals['_LABELRESULT_CLASSPROBABILITIESENTRY']._serialized_start=1223
-  _globals['_LABELRESULT_CLASSPROBABILITIESENTRY']._serialized_end=1280
-  _globals['_NORESULT']._serialized_start=1282
-  _globals['_NORESULT']._serialized_end=1308
-  _globals['_GENERICRESULT']._serialized_start=1311
-  _globals['_GENERICRESULT']._serialized_end=1589
-  _globals['_GENERICRESULT_CLASSPROBABILITIESENTRY']._serialized_start=1223
-  _globals['_GENERICRESULT_CLASSPROBABILITIESENTRY']._serialized_end=1280
-  _globals['_RESULT']._serialized_start=1592
-  _globals['_RESULT']._serialized_end=2061
-  _globals['_MISSINGCOMPONENT']._serialized_start=2063
-  _globals['_MISSINGCOMPONENT']._serialized_end=2171
-  _globals['_SSLAGGREGATE']._serialized_start=2173
-  _globals['_SSLAGGREGATE']._serialized_end=2293
-  _globals['_LABELAGGREGATE']._serialized_start=2296
-  _globals['_LABELAGGREGATE']._serialized_end=2483
-  _globals['_LABELAGGREGATE_DISTRIBUTIONENTRY']._serialized_start=2432
-  _globals['_LABELAGGREGATE_DISTRIBUTIONENTRY']._serialized_end=2483
-  _globals['_AGGREGATES']._serialized_start=2486
-  _globals['_AGGREGATES']._serialized_end=2652
-  _globals['_FUSEDRESULT']._serialized_start=2655
-  _globals['_FUSEDRESULT']._serialized_end=2979
+  _globals['_HYPOTHESIS']._serialized_start=851
+  _globals['_HYPOTHESIS']._serialized_end=991
+  _globals['_SPEECHRESULT']._serialized_start=993
+  _globals['_SPEECHRESULT']._serialized_end=1046
+  _globals['_SSLRESULT']._serialized_start=1048
+  _globals['_SSLRESULT']._serialized_end=1137
+  _globals['_LABELRESULT']._serialized_start=1140
+  _globals['_LABELRESULT']._serialized_end=1340
+  _globals['_LABELRESULT_CLASSPROBABILITIESENTRY']._serialized_start=1283
+  _globals['_LABELRESULT_CLASSPROBABILITIESENTRY']._serialized_end=1340
+  _globals['_NORESULT']._serialized_start=1342
+  _globals['_NORESULT']._serialized_end=1368
+  _globals['_GENERICRESULT']._serialized_start=1371
+  _globals['_GENERICRESULT']._serialized_end=1649
+  _globals['_GENERICRESULT_CLASSPROBABILITIESENTRY']._serialized_start=1283
+  _globals['_GENERICRESULT_CLASSPROBABILITIESENTRY']._serialized_end=1340
+  _globals['_RESULT']._serialized_start=1652
+  _globals['_RESULT']._serialized_end=2121
+  _globals['_MISSINGCOMPONENT']._serialized_start=2123
+  _globals['_MISSINGCOMPONENT']._serialized_end=2231
+  _globals['_SSLAGGREGATE']._serialized_start=2233
+  _globals['_SSLAGGREGATE']._serialized_end=2353
+  _globals['_LABELAGGREGATE']._serialized_start=2356
+  _globals['_LABELAGGREGATE']._serialized_end=2543
+  _globals['_LABELAGGREGATE_DISTRIBUTIONENTRY']._serialized_start=2492
+  _globals['_LABELAGGREGATE_DISTRIBUTIONENTRY']._serialized_end=2543
+  _globals['_AGGREGATES']._serialized_start=2546
+  _globals['_AGGREGATES']._serialized_end=2712
+  _globals['_FUSEDRESULT']._serialized_start=2715
+  _globals['_FUSEDRESULT']._serialized_end=3039
 # @@protoc_insertion_point(module_scope)

@@ -172,9 +172,12 @@ class WordTiming(BaseModel):
 
 
 class Hypothesis(BaseModel):
-    text: str
+    text: str = Field(description="with a closed set: the matched allowed sentence, empty when out of set")
     probability: float
     words: list[WordTiming]
+    raw_text: str = Field(default="", description="with a closed set: what the recogniser heard")
+    match_score: float = Field(default=0.0, description="with a closed set: 1 - word distance / length")
+    out_of_set: bool = Field(default=False, description="with a closed set: no allowed sentence is near enough")
 
 
 class SpeechPayload(BaseModel):

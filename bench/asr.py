@@ -1,0 +1,110 @@
+"""Both recognisers side by side on real speech: word error, false matches, speed.
+
+    python bench/asr.py
+
+Pocketsphinx (en-us language model, streamed as the service does) and Whisper tiny.en (the
+asr-whisper extra) decode the transcribed clips of ../shared/data/speech (the pocketsphinx folder
+and CMU ARCTIC). Word error is on normalised text (services/asr/matching.py: case, punctuation,
+numbers as words). False matches: each clip's transcript matched against the 50 RoboCup questions
+(none of them is one) and counted when it is not refused as out of set. The time from segment
+end to result is what each backend spends once the segment has closed (pocketsphinx: finishing its
+streamed decode; Whisper: the whole decode). Ends with name=value lines.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path[0] = str(REPO)  # not bench/: its ssl.py would shadow the standard library's
+
+import csv  # noqa: E402
+import os  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+import soundfile  # noqa: E402
+
+from services.asr.matching import SentenceMatcher, normalise, word_distance  # noqa: E402
+from services.asr.recognizer import PocketsphinxRecognizer  # noqa: E402
+from services.asr.service import resolve_grammar  # noqa: E402
+from services.asr.whisper import WhisperRecognizer  # noqa: E402
+
+DATA = Path(os.environ.get("ESIAF_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+def clips() -> list[tuple[str, np.ndarray, str]]:
+    rows = csv.DictReader((DATA / "manifest.tsv").open(), delimiter="\t")
+    out = []
+    for row in rows:
+        if not row["path"].startswith("speech/") or not row["reference_transcript"]:
+            continue
+        path = DATA / row["path"]
+        if path.suffix == ".raw":
+            samples = np.fromfile(path, "<i2").astype(np.float32) / 32768
+        else:
+            samples, rate = soundfile.read(path, dtype="float32")
+            if rate != 16000:
+                continue
+        folder = "cmu_arctic" if "cmu_arctic" in row["path"] else "pocketsphinx"
+        out.append((folder, samples, row["reference_transcript"]))
+    return out
+
+
+def pocketsphinx_decoder():
+    recognizer = PocketsphinxRecognizer()
+
+    def decode(samples: np.ndarray) -> tuple[str, float]:
+        pcm = (np.clip(samples, -1, 1) * 32767).astype("<i2").tobytes()
+        recognizer.start()
+        for i in range(0, len(pcm), 640):  # 20 ms chunks, as the service is fed
+            recognizer.feed(pcm[i:i + 640])
+        started = time.perf_counter()
+        hypotheses = recognizer.finish()
+        return (hypotheses[0].text if hypotheses else ""), time.perf_counter() - started
+    return decode
+
+
+def whisper_decoder():
+    recognizer = WhisperRecognizer()
+
+    def decode(samples: np.ndarray) -> tuple[str, float]:
+        started = time.perf_counter()
+        result = recognizer.recognise(samples)
+        return (result.hypotheses[0].text if result.hypotheses else ""), time.perf_counter() - started
+    return decode
+
+
+def main() -> None:
+    if not (DATA / "manifest.tsv").is_file():
+        raise SystemExit(f"bench/asr.py: no shared data at {DATA} (set ESIAF_SHARED_DATA)")
+    material = clips()
+    audio_s = sum(len(s) for _, s, _ in material) / 16000
+    matcher = SentenceMatcher.from_file(resolve_grammar("robocup"), threshold=0.6)
+    print(f"bench/asr: {len(material)} clips, {audio_s:.0f} s of speech", file=sys.stderr)
+    lines = []
+    for name, make in (("pocketsphinx", pocketsphinx_decoder), ("whisper", whisper_decoder)):
+        decode = make()
+        errors: dict[str, list[int]] = {}
+        after_end_s, busy_s, false_matches = [], 0.0, 0
+        for folder, samples, reference in material:
+            cpu = time.process_time()
+            text, tail_s = decode(samples)
+            busy_s += time.process_time() - cpu
+            after_end_s.append(tail_s)
+            ref = normalise(reference)
+            pair = errors.setdefault(folder, [0, 0])
+            pair[0] += word_distance(ref, normalise(text))
+            pair[1] += len(ref)
+            false_matches += bool(text) and matcher.match(text).in_set
+        for folder, (e, n) in sorted(errors.items()):
+            lines.append(f"{name}_wer_{folder}={e / n:.3f}")
+        lines.append(f"{name}_false_matches={false_matches / len(material):.3f}")
+        lines.append(f"{name}_cpu_rtf={busy_s / audio_s:.3f}")
+        lines.append(f"{name}_after_segment_end_p50_ms={1000 * float(np.median(after_end_s)):.1f}")
+        print(f"bench/asr: {name} done", file=sys.stderr)
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()

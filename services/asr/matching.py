@@ -1,0 +1,161 @@
+"""Closed-set matching: a transcript to the nearest allowed sentence, or "out of set".
+
+The allowed sentences come from a file (one per line) or a finite JSGF grammar expanded into its
+sentences. Both sides are normalised (lower case, no punctuation, numbers as words, "mr." as
+"mister", dotted abbreviations joined: "R.C.M.P." is "rcmp", apostrophes kept: "what's") and
+compared word by word with the Levenshtein distance. The match score is
+``1 - distance / max(len(transcript), len(sentence))`` in words: 1 for the same sentence, 0 for
+nothing in common; below the threshold the transcript is out of set.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+ONES = ["zero", "one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten", "eleven", "twelve",
+        "thirteen", "fourteen", "fifteen", "sixteen", "seventeen", "eighteen", "nineteen"]
+TENS = ["", "", "twenty", "thirty", "forty", "fifty", "sixty", "seventy", "eighty", "ninety"]
+ABBREVIATIONS = {"mr": "mister", "mrs": "missus", "dr": "doctor", "st": "saint", "vs": "versus", "&": "and",
+                 "%": "percent", "what's": "what is", "who's": "who is", "where's": "where is", "how's": "how is",
+                 "it's": "it is", "that's": "that is", "there's": "there is", "when's": "when is"}
+MAX_SENTENCES = 100_000
+
+
+class GrammarError(ValueError):
+    """A grammar that cannot be expanded into a finite list of sentences."""
+
+
+def number_words(n: int) -> str:
+    """0..999,999 in words, years as spoken ("1915": "nineteen fifteen")."""
+    if n < 20:
+        return ONES[n]
+    if n < 100:
+        return TENS[n // 10] + ("" if n % 10 == 0 else " " + ONES[n % 10])
+    if 1100 <= n <= 2099 and n % 100 and not 2000 <= n <= 2009:  # a year: "nineteen fifteen"
+        return number_words(n // 100) + " " + (number_words(n % 100) if n % 100 >= 10 else "oh " + ONES[n % 100])
+    if n < 1000:
+        return ONES[n // 100] + " hundred" + ("" if n % 100 == 0 else " " + number_words(n % 100))
+    return number_words(n // 1000) + " thousand" + ("" if n % 1000 == 0 else " " + number_words(n % 1000))
+
+
+def normalise(text: str) -> list[str]:
+    """The words of ``text`` as they are compared."""
+    text = text.lower().replace("’", "'")
+    text = re.sub(r"\b(?:[a-z]\.){2,}", lambda m: m.group(0).replace(".", "") + " ", text)  # r.c.m.p. -> rcmp
+    text = re.sub(r"(\d),(\d{3})", r"\1\2", text)  # 1,000 -> 1000
+    text = re.sub(r"\d+", lambda m: " " + number_words(int(m.group(0))) + " " if len(m.group(0)) <= 6
+                  else m.group(0), text)
+    words = []
+    for word in re.split(r"[^a-z0-9'&%]+", text):
+        word = word.strip("'")
+        if word:
+            words.extend(ABBREVIATIONS.get(word, word).split())
+    return words
+
+
+def word_distance(a: list[str], b: list[str]) -> int:
+    """Levenshtein distance in words."""
+    previous = list(range(len(b) + 1))
+    for i, word in enumerate(a, 1):
+        current = [i]
+        for j, other in enumerate(b, 1):
+            current.append(min(previous[j] + 1, current[j - 1] + 1, previous[j - 1] + (word != other)))
+        previous = current
+    return previous[-1]
+
+
+@dataclass(frozen=True)
+class Match:
+    sentence: str  # the allowed sentence nearest the transcript ("" if there are none)
+    score: float  # 1 - word distance / the longer one's length
+    in_set: bool  # score >= the threshold
+
+
+class SentenceMatcher:
+    def __init__(self, sentences: list[str], threshold: float = 0.6) -> None:
+        if not sentences:
+            raise GrammarError("no allowed sentences")
+        self.sentences = list(dict.fromkeys(s.strip() for s in sentences if s.strip()))
+        self._normalised = [normalise(s) for s in self.sentences]
+        self.threshold = threshold
+
+    def match(self, transcript: str) -> Match:
+        words = normalise(transcript)
+        best, best_score = 0, -1.0
+        for index, allowed in enumerate(self._normalised):
+            longest = max(len(words), len(allowed)) or 1
+            score = 1.0 - word_distance(words, allowed) / longest
+            if score > best_score:
+                best, best_score = index, score
+        return Match(self.sentences[best], round(max(best_score, 0.0), 4), best_score >= self.threshold)
+
+    @classmethod
+    def from_file(cls, path: Path, threshold: float) -> "SentenceMatcher":
+        text = path.read_text()
+        if path.suffix == ".gram" or text.lstrip().startswith("#JSGF"):
+            return cls(expand_jsgf(text), threshold)
+        return cls([line for line in text.splitlines() if line.strip() and not line.startswith("#")], threshold)
+
+
+def expand_jsgf(text: str) -> list[str]:
+    """Every sentence of a finite JSGF grammar's public rules: alternatives ``|``, sequences,
+    groups ``( )``, optionals ``[ ]`` and rule references ``<name>``. Weights, tags and
+    repetition (``*``, ``+``, which make it infinite) are refused."""
+    text = re.sub(r"/\*.*?\*/", " ", text, flags=re.S)
+    text = re.sub(r"//[^\n]*", " ", text)
+    rules: dict[str, str] = {}
+    public: list[str] = []
+    for match in re.finditer(r"(public\s+)?<([\w.$-]+)>\s*=\s*(.*?);", text, re.S):
+        rules[match.group(2)] = match.group(3)
+        if match.group(1):
+            public.append(match.group(2))
+    if not public:
+        raise GrammarError("the grammar has no public rule")
+    sentences: list[str] = []
+    for name in public:
+        sentences.extend(" ".join(words) for words in _expand_rule(name, rules, ()))
+    return list(dict.fromkeys(sentences))
+
+
+def _expand_rule(name: str, rules: dict[str, str], seen: tuple[str, ...]) -> list[list[str]]:
+    if name in seen:
+        raise GrammarError(f"rule <{name}> refers to itself: its sentences are not finite")
+    if name not in rules:
+        raise GrammarError(f"rule <{name}> is not defined")
+    tokens = re.findall(r"<[\w.$-]+>|[()\[\]|*+]|\{[^}]*\}|/[^/]*/|[^\s()\[\]|<>*+{}/]+", rules[name])
+    expanded, end = _alternatives(tokens, 0, rules, seen + (name,))
+    if end != len(tokens):
+        raise GrammarError(f"rule <{name}>: unexpected {tokens[end]!r}")
+    return expanded
+
+
+def _alternatives(tokens: list[str], i: int, rules, seen) -> tuple[list[list[str]], int]:
+    options, i = _sequence(tokens, i, rules, seen)
+    while i < len(tokens) and tokens[i] == "|":
+        more, i = _sequence(tokens, i + 1, rules, seen)
+        options += more
+    return options, i
+
+
+def _sequence(tokens: list[str], i: int, rules, seen) -> tuple[list[list[str]], int]:
+    result: list[list[str]] = [[]]
+    while i < len(tokens) and tokens[i] not in ("|", ")", "]"):
+        token = tokens[i]
+        if token in ("*", "+") or token.startswith("{") or token.startswith("/"):
+            raise GrammarError(f"{token!r} (repetition, tags or weights) is not supported in closed-set matching")
+        if token in ("(", "["):
+            inner, i = _alternatives(tokens, i + 1, rules, seen)
+            if i >= len(tokens) or tokens[i] != {"(": ")", "[": "]"}[token]:
+                raise GrammarError(f"unbalanced {token!r}")
+            if token == "[":
+                inner = inner + [[]]
+        elif token.startswith("<"):
+            inner = [[]] if token in ("<NULL>",) else _expand_rule(token[1:-1], rules, seen)
+        else:
+            inner = [[token]]
+        result = [left + right for left in result for right in inner]
+        if len(result) > MAX_SENTENCES:
+            raise GrammarError(f"more than {MAX_SENTENCES} sentences")
+        i += 1
+    return result, i
