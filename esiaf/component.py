@@ -295,6 +295,8 @@ class Component:
         waits until the current handler has returned, so callbacks never nest or reorder.
         """
         for kind, event in self._transport.events(timeout_ms, take_audio=not self._handling):
+            if self.stopping and kind == "audio":
+                break  # SIGTERM while a backlog drains: stop now, not after the backlog
             if kind == "state":
                 self._apply_state(event)
             elif kind == "subscription":
