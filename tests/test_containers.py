@@ -190,7 +190,7 @@ def test_compose_up_plays_the_example_and_down_leaves_nothing(project):
     states = json.loads(run("docker", "inspect", *p("ps", "-a", "-q").stdout.split()).stdout)
     by_service = {s["Config"]["Labels"]["com.docker.compose.service"]: s for s in states}
     running = {name: s for name, s in by_service.items() if s["State"]["Running"]}
-    assert set(running) == {"orchestrator", "vad", "asr", "emotion", "gender"}, p.logs()  # splitter, ssl: 0
+    assert set(running) == {"orchestrator", "vad", "asr", "emotion", "gender", "voiceid"}, p.logs()  # splitter, ssl: 0
     assert by_service["grabber"]["State"]["ExitCode"] == 0, p.logs()
     for name, state in running.items():
         assert state["Config"]["User"] == "esiaf", name
