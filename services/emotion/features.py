@@ -2,16 +2,19 @@
 
 The same code serves training (``tools/train.py``) and the running service, so a model sees
 features computed exactly as it was trained on, over the same stretch of audio: the speech span
-as the VAD's segmenter finds it (onset to last loud chunk), without the pre-roll and hang-over
-the VAD forwards around it. Functionals are averages over every frame, so half a second of
+as the VAD's segmenter finds it, without the pre-roll and hang-over the VAD forwards around it
+(``speech_span``; the models are trained on the spans of both VAD backends). Functionals are averages over every frame, so half a second of
 silence more or less changes them enough to flip the label (tried: padding 40 EmoDB utterances with
 the VAD's 650 ms of silence took a 4-class model's accuracy on them from 0.85 to 0.50).
 """
 from __future__ import annotations
 
+import functools
+from typing import Any
+
 import numpy as np
 
-from services.vad.segmenter import Segmenter, SegmenterParams, level_db
+from services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
 
 FEATURE_SETS = ("eGeMAPSv02", "ComParE_2016")
 
@@ -51,13 +54,27 @@ class FeatureExtractor:
         return np.nan_to_num(vector, nan=0.0, posinf=0.0, neginf=0.0)
 
 
-def speech_span(samples: np.ndarray, sample_rate_hz: int, chunk_ms: float = 20.0,
-                params: SegmenterParams = SegmenterParams()) -> tuple[int, int]:
-    """(first, end) sample of what the VAD would call speech in a recording of one utterance
-    (float samples in [-1, 1]): from the first segment's onset to the last segment's end; the
-    whole recording if the VAD would find none."""
+VADS = ("silero", "energy")  # the vad service's backends; silero is its default
+
+
+def speech_span(samples: np.ndarray, sample_rate_hz: int, chunk_ms: float = 20.0, vad: str = "silero") -> tuple[int, int]:
+    """(first, end) sample of what the vad service (backend ``vad``, default settings) would call
+    speech in a recording of one utterance (float samples in [-1, 1]): from the first segment's
+    onset to the last segment's end; the whole recording if the VAD would find none. The two
+    backends cut differently (Silero's span starts a little before the onset and ends after the
+    last speech-like window, the energy segmenter's on its loud chunks), so the bundled models are
+    trained on both spans (``tools/train.py``)."""
+    if vad not in VADS:
+        raise FeatureError(f"unknown VAD {vad!r}; known: {', '.join(VADS)}")
     step = max(1, round(sample_rate_hz * chunk_ms / 1000))
-    segmenter: Segmenter[None] = Segmenter(params)
+    pad = 0
+    if vad == "silero":  # its state starts on half a second of silence, as in a stream between utterances
+        pad = sample_rate_hz // 2
+        samples = np.concatenate([np.zeros(pad, np.float32), samples, np.zeros(pad, np.float32)])
+        segmenter: Any = ProbabilitySegmenter(ProbabilityParams())
+        probability = _silero_model().stream(sample_rate_hz).chunk_probability
+    else:
+        segmenter = Segmenter(SegmenterParams())
     spans = []
 
     def ns(frames: int) -> int:
@@ -65,11 +82,23 @@ def speech_span(samples: np.ndarray, sample_rate_hz: int, chunk_ms: float = 20.0
 
     for offset in range(0, len(samples), step):
         chunk = samples[offset:offset + step]
-        peak = float(np.max(np.abs(chunk))) if chunk.size else 0.0
+        if vad == "silero":
+            score = probability(chunk) if chunk.size else 0.0
+        else:
+            score = level_db(float(np.max(np.abs(chunk))) if chunk.size else 0.0)
         last = offset + step >= len(samples)
-        for forward in segmenter.process(None, ns(offset), ns(offset + len(chunk)), level_db(peak), force_end=last):
+        for forward in segmenter.process(None, ns(offset), ns(offset + len(chunk)), score, force_end=last):
             if forward.ended:
                 spans.append(forward.segment)
+    length = len(samples) - 2 * pad
     if not spans:
-        return 0, len(samples)
-    return (spans[0][0] * sample_rate_hz + 999_999_999) // 1_000_000_000, spans[-1][1] * sample_rate_hz // 1_000_000_000
+        return 0, length
+    first = (spans[0][0] * sample_rate_hz + 999_999_999) // 1_000_000_000 - pad
+    end = spans[-1][1] * sample_rate_hz // 1_000_000_000 - pad
+    return min(max(0, first), length), min(max(0, end), length)
+
+
+@functools.cache
+def _silero_model():
+    from services.vad.silero import SileroModel
+    return SileroModel()

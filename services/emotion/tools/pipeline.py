@@ -50,7 +50,8 @@ def build_recording(files: list[Path], wav: Path, gap_s: float) -> list[Placed]:
 class EmotionPipeline:
     """orchestrator + emotion + gender + vad as processes; ``play`` adds the grabber."""
 
-    def __init__(self, workdir: Path, emotion_model: str, gender_model: str, stream_id: str = "emotion"):
+    def __init__(self, workdir: Path, emotion_model: str, gender_model: str, stream_id: str = "emotion",
+                 vad_backend: str = "silero"):
         self.stream_id = stream_id
         port = free_port()
         self.url = f"http://127.0.0.1:{port}"
@@ -63,8 +64,9 @@ class EmotionPipeline:
             self._start("orchestrator", ["--port", str(port), "--db", str(workdir / "esiaf.db"), "--config",
                                          str(config)], client_ready=self.client.healthy,
                         env={"ESIAF_ORCHESTRATOR_CONTROL_PORT": "0", "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"})
-            for service, model in (("emotion", emotion_model), ("gender", gender_model), ("vad", "")):
-                self._start(service, ["--model", model] if model else [])
+            for service, model in (("emotion", emotion_model), ("gender", gender_model)):
+                self._start(service, ["--model", model])
+            self._start("vad", [], env={"ESIAF_VAD_BACKEND": vad_backend})
             wait_until(lambda: topic_ready(self.client, "vad/speech", 2), self.supervisor,
                        "emotion and gender to subscribe to vad/speech", START_TIMEOUT_S)
         except BaseException:

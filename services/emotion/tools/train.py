@@ -3,9 +3,10 @@
     python -m services.emotion.tools.train [--data ../shared/data/emodb] [--tasks emotion4,emotion7,gender]
 
 For each task it extracts openSMILE ComParE 2016 functionals of every utterance's speech span,
-as the VAD would cut it (``features.speech_span``; cached in
-``.cache/emotion/``, git-ignored), evaluates leave-one-speaker-out (train on 9 speakers, test on
-the 10th, for each speaker), trains the final model on all 10 speakers and writes, in
+as each of the vad service's backends would cut it (``features.speech_span``: Silero, the
+default, and energy; cached in ``.cache/emotion/``, git-ignored), trains on both spans of each
+utterance, evaluates leave-one-speaker-out (train on 9 speakers, test on each VAD's spans of the
+10th, for each speaker), trains the final model on all 10 speakers and writes, in
 ``services/emotion/models/``: ``<task>.onnx`` (standardisation + logistic regression, converted
 with skl2onnx and checked against scikit-learn), ``<task>.json`` (label map and evaluation) and
 ``MODEL_CARD.md``. It also writes ``models/holdout/<task>.onnx``, trained without speakers 03 and
@@ -27,7 +28,7 @@ import soundfile
 
 from esiaf.testing import SHARED_DATA
 from services.emotion.backends import MODELS
-from services.emotion.features import FeatureExtractor, speech_span
+from services.emotion.features import VADS, FeatureExtractor, speech_span
 from services.emotion.tools.model_card import write_card
 
 log = logging.getLogger("train")
@@ -64,10 +65,11 @@ def read_manifest(data: Path) -> list[dict[str, str]]:
     return rows
 
 
-def features(data: Path, rows: list[dict[str, str]]) -> np.ndarray:
-    """(utterances, features), from the cache when it holds exactly these files."""
+def features(data: Path, rows: list[dict[str, str]], vad: str) -> np.ndarray:
+    """(utterances, features) of the speech spans the vad service's backend ``vad`` cuts, from the
+    cache when it holds exactly these files."""
     import opensmile
-    cache = CACHE / f"{FEATURE_SET}-speech-span-opensmile{opensmile.__version__}.npz"
+    cache = CACHE / f"{FEATURE_SET}-speech-span-{vad}-opensmile{opensmile.__version__}.npz"
     paths = np.array([r["path"] for r in rows])
     if cache.is_file():
         stored = np.load(cache)
@@ -80,13 +82,13 @@ def features(data: Path, rows: list[dict[str, str]]) -> np.ndarray:
         samples, rate = soundfile.read(data / row["path"], dtype="float32")
         if rate != extractor.sample_rate_hz:
             raise SystemExit(f"train: {row['path']} is {rate} Hz, expected {extractor.sample_rate_hz}")
-        first, end = speech_span(samples, rate)  # what the VAD forwards as the segment's speech
+        first, end = speech_span(samples, rate, vad=vad)  # what the VAD forwards as the segment's speech
         values.append(extractor(samples[first:end]))
         if (i + 1) % 100 == 0:
             log.info("features: %d/%d", i + 1, len(rows))
     speech_s = sum(float(r["duration_s"]) for r in rows)
-    log.info("features: %s of %d files (%.0f s of speech) in %.1f CPU s", FEATURE_SET, len(rows), speech_s,
-             time.process_time() - started)
+    log.info("features: %s of %d files (%.0f s of speech, %s spans) in %.1f CPU s", FEATURE_SET, len(rows),
+             speech_s, vad, time.process_time() - started)
     CACHE.mkdir(parents=True, exist_ok=True)
     np.savez(cache, paths=paths, features=np.stack(values))
     return np.stack(values)
@@ -113,20 +115,31 @@ def scores(truth: np.ndarray, predicted: np.ndarray, labels: list[str]) -> dict:
             "confusion": confusion_matrix(truth, predicted, labels=labels).tolist()}
 
 
-def leave_one_speaker_out(task: Task, x: np.ndarray, y: np.ndarray, speakers: np.ndarray) -> dict:
+def leave_one_speaker_out(task: Task, x: dict[str, np.ndarray], y: np.ndarray, speakers: np.ndarray) -> dict:
+    """Trained on the spans of every VAD of the other speakers, tested on each VAD's spans of the
+    speaker left out: the figures for the default VAD (the first), and ``by_vad`` for each."""
     labels = sorted(set(y))
-    predicted = np.empty(len(y), dtype=object)
+    predicted = {vad: np.empty(len(y), dtype=object) for vad in x}
     for speaker in sorted(set(speakers)):
         test = speakers == speaker
-        predicted[test] = fit(task, x[~test], y[~test]).predict(x[test])
+        model = fit(task, *both(x, y, ~test))
+        for vad, values in x.items():
+            predicted[vad][test] = model.predict(values[test])
         log.info("%s: fold without speaker %s done", task.name, speaker)
-    predicted = predicted.astype(str)
-    result = {"labels": labels, **scores(y, predicted, labels), "per_speaker": {}}
+    by_vad = {vad: scores(y, p.astype(str), labels) for vad, p in predicted.items()}
+    default = next(iter(x))
+    result = {"labels": labels, "vad": default, **by_vad[default], "per_speaker": {},
+              "by_vad": {vad: {k: v[k] for k in ("uar", "accuracy")} for vad, v in by_vad.items()}}
     for speaker in sorted(set(speakers)):
         mine = speakers == speaker
-        per = scores(y[mine], predicted[mine], labels)
+        per = scores(y[mine], predicted[default][mine].astype(str), labels)
         result["per_speaker"][speaker] = {k: per[k] for k in ("uar", "accuracy", "utterances")}
     return result
+
+
+def both(x: dict[str, np.ndarray], y: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The training set: each utterance of ``rows`` once per VAD's span."""
+    return np.concatenate([values[rows] for values in x.values()]), np.concatenate([y[rows]] * len(x))
 
 
 def export(model, x: np.ndarray, path: Path) -> None:
@@ -151,28 +164,33 @@ def label_map(task: Task, model, **extra) -> dict:
             "classifier": f"StandardScaler + LogisticRegression(C={task.regularisation_c}, L2)", **extra}
 
 
-def train(task: Task, data: Path, rows: list[dict[str, str]], x_all: np.ndarray, out: Path) -> dict:
+def train(task: Task, data: Path, rows: list[dict[str, str]], x_all: dict[str, np.ndarray], out: Path) -> dict:
     keep = np.array([r[task.column] in task.labels for r in rows])
-    x = x_all[keep]
+    x = {vad: values[keep] for vad, values in x_all.items()}
     y = np.array([task.labels.get(r[task.column], "") for r in rows])[keep]
     speakers = np.array([r["speaker"] for r in rows])[keep]
     paths = np.array([r["path"] for r in rows])[keep]
     evaluation = leave_one_speaker_out(task, x, y, speakers)
-    log.info("%s LOSO: UAR %.3f accuracy %.3f", task.name, evaluation["uar"], evaluation["accuracy"])
-    model = fit(task, x, y)
-    export(model, x, out / f"{task.name}.onnx")
-    card = label_map(task, model, data=str(data.name), loso=evaluation,
-                     trained_on={"utterances": int(len(y)), "speakers": sorted(set(speakers))})
+    log.info("%s LOSO: UAR %.3f accuracy %.3f (%s)", task.name, evaluation["uar"], evaluation["accuracy"],
+             ", ".join(f"{vad} spans {v['accuracy']:.3f}" for vad, v in evaluation["by_vad"].items()))
+    everyone = np.ones(len(y), dtype=bool)
+    model = fit(task, *both(x, y, everyone))
+    export(model, both(x, y, everyone)[0], out / f"{task.name}.onnx")
+    card = label_map(task, model, data=str(data.name), loso=evaluation, trained_on={
+        "utterances": int(len(y)), "speakers": sorted(set(speakers)), "spans_of_vads": list(x)})
     (out / f"{task.name}.json").write_text(json.dumps(card, indent=1) + "\n")
 
     held = np.isin(speakers, HOLDOUT_SPEAKERS)
-    holdout = fit(task, x[~held], y[~held])
-    export(holdout, x[~held], out / "holdout" / f"{task.name}.onnx")
-    predicted = holdout.predict(x[held]).astype(str)
+    holdout = fit(task, *both(x, y, ~held))
+    export(holdout, both(x, y, ~held)[0], out / "holdout" / f"{task.name}.onnx")
+    default = next(iter(x))  # the predictions are on the default VAD's spans; predicted_<vad> on the others'
+    predicted = {vad: holdout.predict(values[held]).astype(str) for vad, values in x.items()}
     (out / "holdout" / f"{task.name}.json").write_text(json.dumps(label_map(
-        task, holdout, trained_without_speakers=list(HOLDOUT_SPEAKERS),
-        held_out=scores(y[held], predicted, evaluation["labels"]),
-        predictions={p: {"truth": t, "predicted": q} for p, t, q in zip(paths[held], y[held], predicted)}),
+        task, holdout, trained_without_speakers=list(HOLDOUT_SPEAKERS), vad=default,
+        held_out=scores(y[held], predicted[default], evaluation["labels"]),
+        predictions={p: {"truth": str(t), "predicted": str(predicted[default][i]),
+                         **{f"predicted_{vad}": str(q[i]) for vad, q in predicted.items() if vad != default}}
+                     for i, (p, t) in enumerate(zip(paths[held], y[held]))}),
         indent=1) + "\n")
     return card
 
@@ -188,7 +206,7 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"train: unknown task(s) {', '.join(sorted(unknown))}; known: {', '.join(TASKS)}")
     rows = read_manifest(args.data)
-    x = features(args.data, rows)
+    x = {vad: features(args.data, rows, vad) for vad in VADS}  # the default VAD first
     for name in args.tasks.split(","):
         train(TASKS[name], args.data, rows, x, args.out)
     write_card(args.out)
