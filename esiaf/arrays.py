@@ -161,3 +161,15 @@ def load_array(spec: str) -> ArrayGeometry:
         return from_positions(data["positions"], str(data.get("name") or path.stem))
     raise ArrayError(f"unknown array {spec!r}; give one of {', '.join(PRESETS)}, circular:MICS:RADIUS_M "
                      f"or a YAML file of positions")
+
+
+ARRAY_CHOICES = "pepper4, respeaker4, circular:MICS:RADIUS_M or a YAML file of positions"  # what `array` takes
+
+
+def array_input(spec: str, channels: int, mic_channels: list[int]) -> tuple[ArrayGeometry, list[int], int]:
+    """An array consumer's input from its settings: the geometry, the microphones' channels in array
+    order, and the input's channel count (``channels``, or as many as the microphones need)."""
+    array = load_array(spec)
+    selected = array.select_channels(channels, mic_channels)
+    return array, selected, channels or (max(selected) + 1 if mic_channels else array.mics)
+

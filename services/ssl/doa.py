@@ -33,6 +33,7 @@ class Direction:
     azimuth_deg: float  # [0, 360), counter-clockwise from the array's x axis
     elevation_deg: float  # 0 where the array cannot tell
     confidence: float
+    relative: float = 1.0  # the spatial spectrum at this direction relative to the strongest one
 
 
 def _import_pyroomacoustics():
@@ -74,6 +75,7 @@ class Localiser:
         if algorithm == "FRIDA":
             self._check_frida(positions)
         self.window = np.hanning(nfft)
+        self._peaks_from_grid = algorithm in GRID_3D
         self._frida_bins: np.ndarray | None = None
         self._doa = pra.doa.algorithms[algorithm](positions, sample_rate_hz, nfft, c=SPEED_OF_SOUND_M_S,
                                                   num_src=max_sources, dim=self.dim)
@@ -139,14 +141,39 @@ class Localiser:
             self._frida_bins = bins
         with warnings.catch_warnings():  # pyroomacoustics warns on ill-conditioned bins; the result says enough
             warnings.simplefilter("ignore")
-            self._doa.locate_sources(spectra, num_src=self.max_sources, freq_bins=bins)
+            # subspace methods lose resolution with a larger signal subspace (4 mics, 3 sources: one noise
+            # dimension), so grid searches look for one source and take further peaks of its spectrum
+            self._doa.locate_sources(spectra, num_src=1 if self._peaks_from_grid else self.max_sources,
+                                     freq_bins=bins)
         azimuths = np.degrees(np.atleast_1d(self._doa.azimuth_recon)) % 360.0
         if self.dim == 3:
             elevations = 90.0 - np.degrees(np.atleast_1d(self._doa.colatitude_recon))
         else:
             elevations = np.zeros_like(azimuths)
+        if self._peaks_from_grid and self.max_sources > 1:
+            grid = self._doa.grid
+            peaks = grid.find_peaks(k=self.max_sources)[::-1]  # strongest first
+            azimuths = np.degrees(np.atleast_1d(grid.azimuth[peaks])) % 360.0
+            elevations = (90.0 - np.degrees(np.atleast_1d(grid.colatitude[peaks])) if self.dim == 3
+                          else np.zeros_like(azimuths))
         confidences = self._confidences(len(azimuths))
-        return [Direction(float(a), float(e), float(c)) for a, e, c in zip(azimuths, elevations, confidences)]
+        relative = self._relative(azimuths)
+        found = [Direction(float(a), float(e), float(c * r), float(r))
+                 for a, e, c, r in zip(azimuths, elevations, confidences, relative)]
+        return sorted(found, key=lambda d: -d.relative)
+
+    def _relative(self, azimuths: np.ndarray) -> np.ndarray:
+        """Each direction's spatial-spectrum value relative to the strongest (1 without a grid)."""
+        grid = getattr(self._doa, "grid", None)
+        values = getattr(grid, "values", None) if grid is not None else None
+        grid_azimuths = getattr(grid, "azimuth", None) if grid is not None else None
+        if values is None or grid_azimuths is None or len(azimuths) < 2 or not np.all(np.isfinite(values)):
+            return np.ones(len(azimuths))
+        values = np.asarray(values, dtype=float) - np.min(values)
+        nearest = np.argmin(np.abs(np.angle(np.exp(1j * (np.asarray(grid_azimuths)[None, :]
+                                                         - np.radians(azimuths)[:, None])))), axis=1)
+        strength = values[nearest]
+        return strength / strength.max() if strength.max() > 0 else np.ones(len(azimuths))
 
     def _confidences(self, count: int) -> np.ndarray:
         grid = getattr(self._doa, "grid", None)

@@ -6,7 +6,9 @@ The incoming chunks are cut into frames of ``frame_ms`` on the sample stream. Pe
   ``min_confidence``: a ``nothing`` result (SSL, span = the frame) says "covered, no source here",
   so fusion need not wait for a direction that will never come;
 - otherwise an SSL result with up to ``max_sources`` directions (azimuth, elevation where the
-  array can tell, confidence), each with the id of the tracked source it belongs to.
+  array can tell, confidence; a second or third peak only if at least ``min_relative`` as strong
+  as the first), each with the id of the tracked source it belongs to, and marked ``background``
+  where that track has stayed in one place for ``background_s`` (a loudspeaker, not a talker).
 
 Every chunk is forwarded unchanged on ``output_topic`` once its samples have been localised,
 carrying the directions of the frame it ends in as SSL meta. The end of a stream's last frame,
@@ -21,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError, ssl_direction
-from esiaf.arrays import ArrayError, ArrayGeometry, load_array
+from esiaf.arrays import ARRAY_CHOICES, ArrayError, ArrayGeometry, array_input
 from esiaf.proto import esiaf_pb2 as pb
 from services.ssl.doa import Localiser, LocaliserError, NoiseFloor
 from services.ssl.tracker import Tracker
@@ -42,13 +44,15 @@ class SslSettings(ComponentSettings):
     freq_min_hz: float = 300.0
     freq_max_hz: float = 5000.0
     frame_ms: float = 128.0
-    max_sources: int = 1
+    max_sources: int = 3  # directions per frame (fewer than the microphones)
+    min_relative: float = 0.6  # a second or third peak counts if this strong relative to the first
     min_level_db: float = 50.0  # frame RMS level; quieter frames are "nothing here"
     min_confidence: float = 0.0
     bin_snr_db: float = 6.0  # use only frequency bins this far above the tracked background (0 = all bins)
     floor_rise_db_per_s: float = 3.0  # how fast the background estimate may rise
-    gate_deg: float = 25.0  # tracking: a direction this close to a live track continues it
+    gate_deg: float = 12.0  # tracking: a direction this close to a live track continues it
     hold_ms: float = 1500.0  # tracking: a source unseen this long has ended
+    background_s: float = 8.0  # a track this old is background (0 = never)
 
 
 @dataclass
@@ -67,15 +71,14 @@ class Ssl(Component):
     service = "ssl"
     designation = "ssl"
     Settings = SslSettings
-    options = {"array": "pepper4, respeaker4, circular:MICS:RADIUS_M or a YAML file of positions",
+    options = {"array": ARRAY_CHOICES,
                "algorithm": "DOA algorithm: NormMUSIC (default), MUSIC, SRP, TOPS, CSSM, WAVES, FRIDA"}
 
     def __init__(self, settings: SslSettings):
         super().__init__(settings)
         try:
-            self.array: ArrayGeometry = load_array(settings.array)
-            self.mic_channels = self.array.select_channels(settings.channels, settings.mic_channels)
-            channels = settings.channels or (max(self.mic_channels) + 1 if settings.mic_channels else self.array.mics)
+            self.array, self.mic_channels, channels = array_input(settings.array, settings.channels,
+                                                                  settings.mic_channels)
             self.format = AudioFormat(settings.sample_rate_hz, settings.sample_type, channels=channels)
         except ValueError as exc:
             raise SetupError(f"bad SSL settings: {exc}") from None
@@ -93,7 +96,9 @@ class Ssl(Component):
         try:
             self.localiser = Localiser(self.array, s.sample_rate_hz, algorithm=s.algorithm, nfft=s.nfft,
                                        freq_range_hz=(s.freq_min_hz, s.freq_max_hz), max_sources=s.max_sources)
-            Tracker(s.gate_deg, s.hold_ms)  # validates the tracking settings
+            Tracker(s.gate_deg, s.hold_ms, background_s=s.background_s)  # validates the tracking settings
+            if not 0 <= s.min_relative <= 1:
+                raise ValueError(f"min_relative must be in [0, 1], not {s.min_relative}")
         except (LocaliserError, ValueError) as exc:
             raise SetupError(f"bad SSL settings: {exc}") from None
         if self.frame_frames < self.localiser.min_frames():
@@ -120,7 +125,7 @@ class Ssl(Component):
     def _new_stream(self) -> StreamState:
         s = self.settings
         floor = NoiseFloor(s.frame_ms / 1000, s.bin_snr_db, s.floor_rise_db_per_s) if s.bin_snr_db > 0 else None
-        return StreamState(Tracker(s.gate_deg, s.hold_ms), floor)
+        return StreamState(Tracker(s.gate_deg, s.hold_ms, background_s=s.background_s), floor)
 
     def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
         self.streams.pop(stream_id, None)
@@ -156,7 +161,8 @@ class Ssl(Component):
         elif len(frame) < self.localiser.min_frames():
             reason = f"{len(frame)} samples at the stream's end: too short to localise"
         else:
-            found = [d for d in self.localiser.locate(frame, state.floor) if d.confidence >= s.min_confidence]
+            found = [d for d in self.localiser.locate(frame, state.floor) if d.confidence >= s.min_confidence
+                     and d.relative >= s.min_relative]
             if not found:
                 reason = f"no direction with confidence >= {s.min_confidence:g}"
                 if state.floor is not None:
@@ -173,6 +179,7 @@ class Ssl(Component):
         for direction, track in zip(directions, tracks):
             direction.elevation_known = self.localiser.reports_elevation
             direction.track_azimuth_deg = track.azimuth_deg
+            direction.background = track.background
         self.counts["located"] += 1
         self.info["frames"] = dict(self.counts)
         self.emit("ssl", span, stream_id=stream_id,

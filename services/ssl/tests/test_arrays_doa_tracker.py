@@ -148,3 +148,22 @@ def test_the_microphones_may_be_some_of_the_channels():
     assert ssl.format.channels == 6 and ssl.mic_channels == [1, 2, 3, 4]
     with pytest.raises(SetupError, match="do not exist in audio of 4 channel"):
         Ssl(SslSettings(array="respeaker4", channels=4, mic_channels=[1, 2, 3, 4]))
+
+
+def test_a_track_in_one_place_for_background_s_is_background_and_its_place_is_remembered():
+    from services.ssl.tracker import Tracker
+    tracker = Tracker(gate_deg=12, hold_ms=1000, background_s=8, background_memory_s=60)
+    second = 1_000_000_000
+    for step in range(100):  # a loudspeaker at 60°, every 100 ms for 10 s; a talker at 200° for 2 s of it
+        now = step * second // 10
+        tracks = tracker.update(now, [60.0] + ([200.0] if 30 <= step < 50 else []))
+        assert tracks[0].background == (now >= 8 * second)
+        if len(tracks) > 1:
+            assert not tracks[1].background
+    near = tracker.update(10 * second, [60.0, 69.0])  # someone speaks 9° from the loudspeaker: within the gate
+    assert near[0].background and not near[1].background and near[1].source_id != near[0].source_id
+    tracker.expire(20 * second)  # all ended; the loudspeaker's place is remembered
+    assert tracker.tracks == []
+    again = tracker.update(21 * second, [62.0, 200.0, 72.0])
+    assert again[0].background and not again[1].background and not again[2].background
+    assert again[0].source_id not in ("s1", "s2")  # a new track, background from its first frame

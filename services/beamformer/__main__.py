@@ -1,0 +1,4 @@
+from esiaf import main
+from services.beamformer.service import Beamformer
+
+raise SystemExit(main(Beamformer))
