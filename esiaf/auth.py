@@ -3,12 +3,16 @@
 It comes from ``ESIAF_TOKEN``, or from the file ``ESIAF_TOKEN_FILE`` names (a Docker secret, say);
 with neither, no token is sent and an orchestrator without a token accepts that. ``esiaf run``
 makes a new one per run (``<workdir>/token``) and hands it to every service it starts.
+On ZeroMQ the token is a PLAIN password, in clear text: across hosts, CURVE keys (esiaf/keys.py)
+take its place.
 """
 from __future__ import annotations
 
 import os
 import secrets
 from pathlib import Path
+
+from esiaf.keys import Curve
 
 TOKEN_ENV = "ESIAF_TOKEN"
 TOKEN_FILE_ENV = "ESIAF_TOKEN_FILE"
@@ -51,8 +55,15 @@ def write_token(path: Path, value: str) -> None:
     path.write_text(value + "\n")
 
 
-def secure_socket(socket) -> None:
-    """Makes a ZeroMQ socket that connects to the orchestrator present the token (ZAP PLAIN)."""
+def secure_socket(socket, curve: Curve | None = None, server_key: bytes | None = None) -> None:
+    """Makes a ZeroMQ socket that connects to a server of ours authenticate: with this process's
+    CURVE keys if ``curve`` (the server's public key is the orchestrator's unless ``server_key``
+    is given), else with the token (ZAP PLAIN), if there is one."""
+    if curve is not None:
+        socket.curve_secretkey = curve.secret
+        socket.curve_publickey = curve.public
+        socket.curve_serverkey = server_key or curve.orchestrator
+        return
     value = token()
     if value:
         socket.plain_username = ZMQ_USER.encode()

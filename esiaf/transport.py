@@ -6,6 +6,11 @@
 - a PUSH to the orchestrator's results socket;
 - an inproc PAIR on which the control thread hands over the orchestrator's state.
 
+With CURVE keys (``ESIAF_CURVE_DIR``, esiaf/keys.py) the XPUB is a CURVE server that takes only the
+allowed client keys, the SUB connects to each producer with the public key the orchestrator gave
+with its endpoint (an allowed key, or no connection), and the PUSH to the orchestrator's key;
+without, the PUSH presents the token (PLAIN) and audio is open to anyone who reaches the port.
+
 One thread uses a Transport: the component's data thread.
 """
 from __future__ import annotations
@@ -19,8 +24,10 @@ import time
 from typing import Any, Iterable, Iterator, Sequence
 
 import zmq
+from zmq.auth.thread import ThreadAuthenticator
+from zmq.utils.monitor import recv_monitor_message
 
-from esiaf import auth
+from esiaf import auth, keys
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +63,10 @@ def topic_name(frame: bytes) -> str:
 
 class Transport:
     def __init__(self, context: zmq.Context, *, inputs: Iterable[str], has_outputs: bool,
-                 bind_host: str, audio_port: int = 0, advertise_host: str = ""):
+                 bind_host: str, audio_port: int = 0, advertise_host: str = "", curve: keys.Curve | None = None):
+        self._curve = curve
+        self._authenticator: ThreadAuthenticator | None = None
+        self._refusals: zmq.Socket | None = None  # the XPUB's monitor: subscribers refused at the handshake
         self._poller = zmq.Poller()
         self._connected: set[str] = set()
         self._leaving: dict[str, float] = {}  # producers gone, still to be drained: endpoint -> since (monotonic)
@@ -72,6 +82,13 @@ class Transport:
             self.pub.setsockopt(zmq.SNDHWM, AUDIO_HWM)
             self.pub.setsockopt(zmq.XPUB_VERBOSER, 1)
             self.pub.setsockopt(zmq.XPUB_NODROP, 1)
+            if curve is not None:  # a CURVE server: only consumers with an allowed key may subscribe
+                self._authenticator = ThreadAuthenticator(context)
+                self._authenticator.start()
+                self._authenticator.configure_curve(domain="*", location=str(curve.clients_dir))
+                keys.server(self.pub, curve)
+                self._refusals = self.pub.get_monitor_socket(sum(keys.HANDSHAKE_FAILURES))
+                self._poller.register(self._refusals, zmq.POLLIN)
             try:
                 if audio_port:
                     self.pub.bind(f"tcp://{bind_host}:{audio_port}")
@@ -95,7 +112,7 @@ class Transport:
         os.set_blocking(self._wake_write, False)
         self._poller.register(self._wake_read, zmq.POLLIN)
         self.push = context.socket(zmq.PUSH)
-        auth.secure_socket(self.push)  # the orchestrator's results socket takes only token holders
+        auth.secure_socket(self.push, curve)  # the orchestrator's results socket takes only known peers
         self.push.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
         self.push.setsockopt(zmq.SNDHWM, RESULTS_HWM)
         self._advertised_host = advertise_host or (socket.gethostname() if bind_host in ANY_HOST else bind_host)
@@ -108,9 +125,15 @@ class Transport:
         port = self.pub.getsockopt(zmq.LAST_ENDPOINT).decode().rsplit(":", 1)[1]
         return f"tcp://{self._advertised_host}:{port}"
 
+    @property
+    def audio_public_key(self) -> str | None:
+        """With CURVE keys, the public key consumers need to reach this component's outputs."""
+        return self._curve.public.decode() if self._curve is not None and self.pub is not None else None
+
     def events(self, timeout_ms: float, take_audio: bool = True) -> Iterator[tuple[str, Any]]:
         """What is ready, waiting up to ``timeout_ms`` for the first: ("state", dict),
-        ("subscription", (topic, +1 | -1)) and, if ``take_audio``, ("audio", frames)."""
+        ("subscription", (topic, +1 | -1)), ("refused", reason) for a subscriber refused at the
+        handshake (with CURVE keys) and, if ``take_audio``, ("audio", frames)."""
         if self._leaving and take_audio:
             self._drop_departed()
         if self._leaving:  # departed producers are dropped once their grace period is over
@@ -124,6 +147,9 @@ class Transport:
             if self.pub is not None and self.pub in ready:
                 frame = self.pub.recv()
                 yield "subscription", (topic_name(frame[1:]), 1 if frame[:1] == b"\x01" else -1)
+            if self._refusals is not None and self._refusals in ready:
+                event = recv_monitor_message(self._refusals)
+                yield "refused", keys.HANDSHAKE_FAILURES.get(event["event"], "other")
             if self.sub is not None and self.sub in ready and take_audio:
                 yield "audio", self.sub.recv_multipart()
             ready = dict(self._poller.poll(timeout=0))
@@ -160,8 +186,9 @@ class Transport:
             return False
         return True
 
-    def connect_peers(self, wanted: set[str]) -> None:
-        """Connects the input socket to exactly these producer endpoints.
+    def connect_peers(self, wanted: set[str], peer_keys: dict[str, str] | None = None) -> None:
+        """Connects the input socket to exactly these producer endpoints (with CURVE keys, each
+        with the producer's public key in ``peer_keys``, which must be an allowed client key).
 
         A producer that has gone is disconnected only once its queued messages have been taken
         (no input pending, LEAVE_GRACE_S after it went): a slow consumer keeps the end of a stream,
@@ -174,6 +201,8 @@ class Transport:
             try:
                 if not valid_endpoint(endpoint):
                     raise ValueError("tcp://HOST:PORT expected")
+                if self._curve is not None:
+                    self._secure_input(endpoint, peer_keys.get(endpoint) if isinstance(peer_keys, dict) else None)
                 self.sub.connect(endpoint)
             except (ValueError, zmq.ZMQError) as exc:  # what a peer registered is never fatal here
                 log.error("not connecting to producer endpoint=%.200r: %s", endpoint, exc)
@@ -186,6 +215,12 @@ class Transport:
             self._leaving.setdefault(endpoint, time.monotonic())
         self._connected = set(wanted) | set(self._leaving)
         self._drop_departed()
+
+    def _secure_input(self, endpoint: str, key: object) -> None:
+        """Sets the server key of the next connect: libzmq takes the options at each connect."""
+        if not isinstance(key, str) or key.encode() not in self._curve.clients:
+            raise ValueError(f"its CURVE public key {str(key)[:40]!r} is not one of those in {self._curve.clients_dir}")
+        auth.secure_socket(self.sub, self._curve, key.encode())
 
     def _drop_departed(self) -> None:
         if not self._leaving or self.sub.getsockopt(zmq.EVENTS) & zmq.POLLIN:
@@ -209,9 +244,12 @@ class Transport:
             self._results_endpoint = endpoint
 
     def close(self) -> None:
-        for sock in (self.state, self.sub, self.pub, self.push):
+        for sock in (self.state, self._refusals, self.sub, self.pub, self.push):
             if sock is not None and not sock.closed:
                 sock.close()
+        if self._authenticator is not None:
+            self._authenticator.stop()
+            self._authenticator = None
         for fd in (self._wake_read, self._wake_write):
             try:
                 os.close(fd)

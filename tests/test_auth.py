@@ -13,7 +13,7 @@ import zmq
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
-from esiaf.testing import REPO, free_port, poll
+from esiaf.testing import REPO, free_port, poll, refused_peers
 
 TOKEN = "s3cret-token-for-the-test"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -50,6 +50,16 @@ def test_every_endpoint_but_health_needs_the_token(secured, method, path, kwargs
         response = httpx.request(method.upper(), f"{secured}{path}", headers=headers, **kwargs)
         assert response.status_code == 401, (path, response.text)
     assert httpx.get(f"{secured}/health").status_code == 200
+
+
+def test_the_dashboard_page_loads_without_the_token_and_reads_nothing_without_it(secured):
+    """The page and its files hold no data; what it reads needs the token of its URL."""
+    for path in ("/", "/dashboard/dashboard.js", "/dashboard/dashboard.css"):
+        assert httpx.get(f"{secured}{path}").status_code == 200, path
+    for path in ("/dashboard/../components", "/dashboard/%2e%2e/components", "/metrics?x=/dashboard/"):
+        assert httpx.get(f"{secured}{path}").status_code in (401, 404), path
+    assert httpx.post(f"{secured}/", json=BODY).status_code == 401
+    assert httpx.get(f"{secured}/metrics", params={"token": TOKEN}).status_code == 200
 
 
 def test_with_the_token_they_work(secured):
@@ -96,10 +106,9 @@ def test_results_and_control_sockets_take_only_peers_with_the_token(secured):
             sock.connect(registration["results_endpoint"])
         stranger.send_multipart([b"result", forged.SerializeToString()])
         member.send_multipart([b"result", genuine.SerializeToString()])
-        texts = poll(lambda: [r["speech"]["hypotheses"][0]["text"] for r in
-                              httpx.get(f"{secured}/results", headers=AUTH).json()["items"]], timeout_s=10)
-        # the genuine one is stored; give the forged one time to have arrived if it could
-        poll(lambda: httpx.get(f"{secured}/health").status_code == 200, timeout_s=5)
+        poll(lambda: httpx.get(f"{secured}/results", headers=AUTH).json()["items"], timeout_s=10)
+        # the stranger's handshake was refused (and counted), so its result can never arrive
+        poll(lambda: refused_peers(httpx.get(f"{secured}/metrics", headers=AUTH).text, "results"), timeout_s=10)
         texts = [r["speech"]["hypotheses"][0]["text"] for r in httpx.get(f"{secured}/results", headers=AUTH).json()["items"]]
         assert texts == ["what is a chatbot"]
     finally:

@@ -1,10 +1,11 @@
 """Authentication of HTTP requests and websockets, as ASGI middleware.
 
 Once a token is configured (setting ``token``, or ``ESIAF_TOKEN`` / ``ESIAF_TOKEN_FILE``), every
-request but ``GET /health`` must carry it as ``Authorization: Bearer TOKEN`` or, for browsers,
-``?token=TOKEN``; a missing or wrong one gets 401. A websocket must carry it too, and a browser's
-websocket (one with an ``Origin`` header) must come from the orchestrator's own origin or one in
-``allowed_origins``, so a page elsewhere cannot read the results through the user's browser.
+request but ``GET /health`` and the dashboard's files (``GET /``, ``/dashboard/...``, which hold no
+data) must carry it as ``Authorization: Bearer TOKEN`` or, for browsers, ``?token=TOKEN``; a missing
+or wrong one gets 401. A websocket must carry it too, and a browser's websocket (one with an
+``Origin`` header) must come from the orchestrator's own origin or one in ``allowed_origins``, so a
+page elsewhere cannot read the results through the user's browser.
 Refused websockets are closed before the handshake completes (the client sees HTTP 403).
 """
 from __future__ import annotations
@@ -20,7 +21,17 @@ log = logging.getLogger(__name__)
 Scope = dict[str, Any]
 Receive = Callable[[], Awaitable[dict[str, Any]]]
 Send = Callable[[dict[str, Any]], Awaitable[None]]
-OPEN_PATHS = {"/health"}
+OPEN_PATHS = {"/health", "/"}  # "/": the dashboard's page, which holds no data (it reads the API with the token)
+OPEN_PREFIXES = ("/dashboard/",)  # the dashboard's scripts and styles
+
+
+def is_open(method: str | None, path: str) -> bool:
+    """Whether a request needs no token."""
+    return method in ("GET", "HEAD") and (path in OPEN_PATHS or path.startswith(OPEN_PREFIXES))
+
+
+def _open(scope: Scope) -> bool:
+    return is_open(scope.get("method"), scope["path"])
 
 
 class TokenAuth:
@@ -32,7 +43,7 @@ class TokenAuth:
         self.refused = 0
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] not in ("http", "websocket") or (scope["type"] == "http" and scope["path"] in OPEN_PATHS):
+        if scope["type"] not in ("http", "websocket") or (scope["type"] == "http" and _open(scope)):
             await self.app(scope, receive, send)
             return
         problem = self._problem(scope)
