@@ -1,8 +1,9 @@
 """Aggregates of a fused result's results, weighted by how much of the window each covers.
 
-- SSL: the circular mean of every direction's azimuth (never an arithmetic mean of angles,
-  which would put 350° and 10° at 180°), each weighted by its result's overlap with the
-  window times the direction's probability (0, i.e. unset, counts as 1);
+- SSL: the talker's direction: of the tracked sources heard within the window, the heaviest one
+  not marked background, and the circular mean of its directions' azimuths (never an arithmetic
+  mean of angles, which would put 350° and 10° at 180°), each weighted by its result's overlap
+  with the window times the direction's probability (0, i.e. unset, counts as 1);
 - labels (emotion, gender, voice_id, and any other kind whose results have labels): the
   overlap-weighted distribution over labels (a result's ``class_probabilities``, or its
   ``label`` alone if it has none; for voice_id its label with its probability, the rest
@@ -39,11 +40,17 @@ def _weight(result: dict[str, Any], window: tuple[int, int]) -> float:
 
 def ssl_aggregate(results: Iterable[dict[str, Any]],
                   window: tuple[int, int]) -> dict[str, Any] | None:
-    """``{"azimuth_deg", "elevation_deg", "concentration", "overlap_s", "directions"}`` or None
-    without directions. ``concentration`` is the mean resultant length: 1 when every
-    direction agrees, near 0 when they cancel out."""
-    sin_sum = cos_sum = elevation_sum = total = overlap_total = 0.0
-    count = 0
+    """``{"azimuth_deg", "elevation_deg", "concentration", "overlap_s", "directions", "source_id",
+    "background", "tracks"}`` or None without directions.
+
+    The directions are grouped by the tracked source they belong to (``source_id``); the
+    utterance's direction is that of the talker's track: of the tracks not marked background
+    (loudspeakers, a TV), the one with the most weight within the window (overlap × probability).
+    Only where every track is background is the heaviest background track taken. ``concentration``
+    is the mean resultant length of that track's directions: 1 when they agree, near 0 when they
+    cancel out; ``tracks`` how many tracks were heard within the window."""
+    groups: dict[str, list[float]] = {}  # source id -> [sin, cos, elevation, weight, count, background]
+    overlap_total = 0.0
     for result in results:
         weight = _weight(result, window)
         directions = result.get("ssl", {}).get("directions", [])
@@ -52,17 +59,23 @@ def ssl_aggregate(results: Iterable[dict[str, Any]],
         for direction in directions:
             w = weight * (direction["probability"] or 1.0)
             azimuth = math.radians(direction["azimuth_deg"])
-            sin_sum += w * math.sin(azimuth)
-            cos_sum += w * math.cos(azimuth)
-            elevation_sum += w * direction["elevation_deg"]
-            total += w
-            count += 1
-    if count == 0 or total <= 0:
+            group = groups.setdefault(direction.get("source_id", ""), [0.0, 0.0, 0.0, 0.0, 0, False])
+            group[0] += w * math.sin(azimuth)
+            group[1] += w * math.cos(azimuth)
+            group[2] += w * direction["elevation_deg"]
+            group[3] += w
+            group[4] += 1
+            group[5] = group[5] or bool(direction.get("background"))
+    candidates = [(key, g) for key, g in groups.items() if g[3] > 0]
+    talkers = [(key, g) for key, g in candidates if not g[5]] or candidates
+    if not talkers:
         return None
+    source_id, (sin_sum, cos_sum, elevation_sum, total, count, background) = max(talkers, key=lambda kg: kg[1][3])
     return {"azimuth_deg": round(math.degrees(math.atan2(sin_sum, cos_sum)) % 360.0, 6),
             "elevation_deg": round(elevation_sum / total, 6),
             "concentration": round(math.hypot(sin_sum, cos_sum) / total, 6),
-            "overlap_s": round(overlap_total, 9), "directions": count}
+            "overlap_s": round(overlap_total, 9), "directions": int(count), "source_id": source_id,
+            "background": bool(background), "tracks": len(candidates)}
 
 
 def label_aggregate(results: Iterable[dict[str, Any]], type_name: str,

@@ -5,14 +5,17 @@ from contextlib import asynccontextmanager
 from typing import AsyncIterator
 
 from fastapi import FastAPI
+from starlette.exceptions import HTTPException
 from fastapi_offline import FastAPIOffline  # /docs without a CDN: robots are often offline
 
 from esiaf import auth
 
-from .api import components, fused, fusions, health, latency, results, streams, topics, ws
+from .api import components, dashboard, fused, fusions, health, latency, metrics, results, streams, topics, ws
+from .api.errors import with_allow_header
 from .core import Orchestrator
 from .auth import TokenAuth
 from .limits import BodyLimit
+from .openapi import documented
 from .settings import OrchestratorSettings
 from .voices import router as voices_router
 
@@ -45,9 +48,12 @@ def create_app(settings: OrchestratorSettings, *,
 
     app = FastAPIOffline(title="ESIAF orchestrator", version="0.1.0", description=DESCRIPTION,
                          lifespan=lifespan)
-    for module in (components, topics, streams, results, latency, fused, ws, fusions, health):
+    for module in (components, topics, streams, results, latency, fused, ws, fusions, health, metrics, dashboard):
         app.include_router(module.router)
+    app.mount(dashboard.ASSETS_PREFIX, dashboard.assets(), name="dashboard")
     app.include_router(voices_router)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(TokenAuth, token=settings.token or auth.token(), allowed_origins=settings.allowed_origins)
+    app.add_exception_handler(HTTPException, with_allow_header)
+    app.openapi = documented(app)  # what the two middlewares answer
     return app

@@ -1,6 +1,6 @@
 """Command line: python -m services.orchestrator [--config FILE] [--host H] [--port P]
-[--db PATH] [--fresh]. Exit codes: 0 after SIGINT/SIGTERM, 2 for bad settings or a port
-in use (one line on stderr), 1 if the server failed otherwise."""
+[--db PATH] [--fresh | --recover]. Exit codes: 0 after SIGINT/SIGTERM, 2 for bad settings, a port
+in use or a database that cannot be used (one line on stderr), 1 if the server failed otherwise."""
 from __future__ import annotations
 
 import argparse
@@ -11,6 +11,7 @@ import sys
 from esiaf.settings import SettingsError
 
 from .core import StartupError
+from .recover import RecoveryError, recover
 from .server import serve
 from .settings import load
 
@@ -22,7 +23,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--host", help="where to listen (HTTP, control and results sockets)")
     parser.add_argument("--port", type=int, help="HTTP port")
     parser.add_argument("--db", help="SQLite database file")
-    parser.add_argument("--fresh", action="store_true", help="delete the database first")
+    start = parser.add_mutually_exclusive_group()
+    start.add_argument("--fresh", action="store_true", help="delete the database first")
+    start.add_argument("--recover", action="store_true",
+                       help="if the database is corrupt, copy what can still be read into a new file, keep "
+                            "the damaged one beside it (.corrupt-TIME) and start on the copy")
     return parser.parse_args(argv)
 
 
@@ -36,7 +41,14 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=settings.log_level, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s %(message)s")
     try:
+        if args.recover:
+            recovered = recover(settings.db_path)
+            for line in recovered.lines() if recovered else []:
+                print(f"orchestrator: {line}", file=sys.stderr, flush=True)
         return asyncio.run(serve(settings, fresh=args.fresh))
+    except RecoveryError as exc:
+        print(f"orchestrator: {exc}", file=sys.stderr)
+        return 2
     except StartupError as exc:
         print(f"orchestrator: {exc}", file=sys.stderr)
         return 2

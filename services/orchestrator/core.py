@@ -9,18 +9,19 @@ from typing import Any
 
 import zmq
 import zmq.asyncio
-from zmq.auth.asyncio import AsyncioAuthenticator
 
-from esiaf import auth
+from esiaf import auth, keys
 
 from .control import ControlPlane
 from .fusion import FusionEngine
 from .hub import Hub
 from .ingest import Ingest
+from .metrics import Metrics
 from .negotiation import Format
 from .registry import Component, Registry
 from .settings import OrchestratorSettings
-from .store import Checkpointer, Store, StoreError
+from .store import RECOVER_HINT, Checkpointer, Store, StoreError, is_corrupt_error
+from .zap import Guard
 
 log = logging.getLogger(__name__)
 
@@ -48,11 +49,12 @@ class Orchestrator:
         self.store: Store | None = None
         self.control: ControlPlane | None = None
         self.ingest: Ingest | None = None
+        self.metrics = Metrics()
+        self.metrics.watch(self)
         self.control_endpoint = ""
         self.results_endpoint = ""
         self._ctx: zmq.asyncio.Context | None = None
-        self._zap: AsyncioAuthenticator | None = None
-        self._token = ""
+        self.guard: Guard | None = None
         self._tasks: list[asyncio.Task] = []
 
     # lifecycle
@@ -67,11 +69,12 @@ class Orchestrator:
         self._tasks = [asyncio.create_task(self.control.run(), name="control"),
                        asyncio.create_task(self.ingest.run(), name="ingest"),
                        asyncio.create_task(self._watch_liveness(), name="liveness"),
-                       asyncio.create_task(self._checkpoint(), name="checkpoint")]
+                       asyncio.create_task(self._checkpoint(), name="checkpoint"),
+                       *(asyncio.create_task(watch, name="zap") for watch in self.guard.watchers())]
         for task in self._tasks:
             task.add_done_callback(self._task_done)
-        log.info("event=orchestrator_ready control=%s results=%s db=%s fusions=%s",
-                 self.control_endpoint, self.results_endpoint, self.store.path,
+        log.info("event=orchestrator_ready control=%s results=%s zmq_auth=%s db=%s fusions=%s",
+                 self.control_endpoint, self.results_endpoint, self.guard.mechanism, self.store.path,
                  ",".join(f.name for f in self.settings.fusions) or "-")
 
     def _start(self) -> None:
@@ -79,12 +82,14 @@ class Orchestrator:
         engine = FusionEngine(settings.fusions, allocate_id=lambda: self.store.allocate_fused_id(),
                               live_components=self.registry.live.values,
                               timeouts=settings.timeouts)
+        try:
+            curve = keys.load(orchestrator=True)
+        except keys.KeyFileError as exc:
+            raise StartupError(str(exc)) from None
         self._ctx = zmq.asyncio.Context()
-        self._token = settings.token or auth.token()
-        if self._token:  # ZAP: the control and results sockets take only peers that know the token
-            self._zap = AsyncioAuthenticator(self._ctx)
-            self._zap.start()
-            self._zap.configure_plain(domain="*", passwords={auth.ZMQ_USER: self._token})
+        # ZAP: the control and results sockets take only peers with an allowed key, or the token
+        self.guard = Guard(self._ctx, settings.token or auth.token(), curve)
+        self.guard.start()
         control_socket, self.control_endpoint = self._bind(zmq.ROUTER, settings.control_port,
                                                            "control", "control_port")
         control_socket.setsockopt(zmq.ROUTER_HANDOVER, 1)
@@ -95,20 +100,22 @@ class Orchestrator:
         except StoreError as exc:
             raise StartupError(str(exc)) from None
         self.control = ControlPlane(control_socket, self.registry)
-        self.ingest = Ingest(results_socket, self.store, engine, self.hub, self.registry)
+        self.ingest = Ingest(results_socket, self.store, engine, self.hub, self.registry, metrics=self.metrics,
+                             stream_end_grace_s=self.settings.stream_end_grace_s)
         try:
             self.ingest.restore()
         except (sqlite3.Error, ValueError, KeyError) as exc:
+            way_out = RECOVER_HINT if isinstance(exc, sqlite3.Error) and is_corrupt_error(exc) \
+                else "start with --fresh to begin a new database"
             raise StartupError(f"cannot restore fusion state from {settings.db_path}: {exc} "
-                               "(start with --fresh to begin a new database)") from None
+                               f"({way_out})") from None
 
     def _bind(self, kind: int, port: int, what: str,
               setting: str) -> tuple[zmq.asyncio.Socket, str]:
         host = zmq_host(self.settings.host)
         socket = self._ctx.socket(kind)
         socket.setsockopt(zmq.LINGER, 0)
-        if self._token:
-            socket.plain_server = True
+        self.guard.secure(socket, what)
         if host.startswith("["):
             socket.setsockopt(zmq.IPV6, 1)
         address = f"tcp://{host}:{port or '*'}"
@@ -134,9 +141,8 @@ class Orchestrator:
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
-        if self._zap is not None:
-            self._zap.stop()
-            self._zap = None
+        if self.guard is not None:
+            self.guard.stop()
         if self._ctx is not None:
             self._ctx.destroy(linger=0)
             self._ctx = None
@@ -153,11 +159,12 @@ class Orchestrator:
     async def register(self, *, name: str, designation: str, stream_id: str,
                        inputs: dict[str, Format], outputs: dict[str, Format],
                        audio_endpoint: str | None, host: str, pid: int | None,
-                       info: dict[str, Any]) -> Component:
+                       info: dict[str, Any], audio_public_key: str | None = None) -> Component:
         """Registers a component (raises registry.TopicConflict) and tells the others."""
         component, replaced = self.registry.register(
             name=name, designation=designation, stream_id=stream_id, inputs=inputs,
-            outputs=outputs, audio_endpoint=audio_endpoint, host=host, pid=pid, info=info)
+            outputs=outputs, audio_endpoint=audio_endpoint, host=host, pid=pid, info=info,
+            audio_public_key=audio_public_key)
         if replaced is not None:
             log.info("event=component_replaced component_id=%s name=%s by=%s",
                      replaced.component_id, name, component.component_id)
@@ -193,6 +200,8 @@ class Orchestrator:
                             (component.departed_ns - component.last_seen_ns) / 1e9)
             if dead:
                 await self._after_change(dead)
+            elif self.ingest is not None and self.ingest.streams.pending():
+                self.ingest.check_stream_ends()  # a dead component's grace may have run out
 
     async def _checkpoint(self) -> None:
         checkpointer = Checkpointer(self.store.path)

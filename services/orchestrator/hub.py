@@ -62,6 +62,10 @@ class Hub:
     def __len__(self) -> int:
         return len(self._subscribers)
 
+    def depths(self) -> list[int]:
+        """How many messages each client's queue holds."""
+        return [subscriber.queue.qsize() for subscriber in self._subscribers]
+
     def publish(self, message: Outgoing) -> None:
         """Queues ``message`` for every interested client; never blocks."""
         for subscriber in list(self._subscribers):

@@ -18,6 +18,7 @@ import zmq.asyncio
 from .codec import BadResult, parse_result, result_to_json, type_name
 from .fusion import FusedResult, FusionEngine, StoredResult
 from .hub import Hub, Outgoing
+from .metrics import Metrics
 from .registry import Registry
 from .settings import FusionSettings
 from .store import Store, StoreUnavailable
@@ -38,13 +39,15 @@ def _dumps(value: Any) -> str:
 
 class Ingest:
     def __init__(self, socket: zmq.asyncio.Socket, store: Store, engine: FusionEngine, hub: Hub,
-                 registry: Registry, clock_ns: Callable[[], int] = time.time_ns) -> None:
+                 registry: Registry, clock_ns: Callable[[], int] = time.time_ns,
+                 metrics: Metrics | None = None, stream_end_grace_s: float = 0.0) -> None:
         self.socket = socket
         self.store = store
         self.engine = engine
         self.hub = hub
         self.registry = registry
         self.streams = StreamEnds()
+        self.stream_end_grace_ns = int(stream_end_grace_s * 1e9)
         self.counters: Counter[str] = Counter()
         self._clock_ns = clock_ns
         self._timer: asyncio.TimerHandle | None = None
@@ -55,6 +58,9 @@ class Ingest:
         # timed-out fusions: their deadline -> fused result handed to the websocket clients
         self.timer_lateness_ns: deque[int] = deque(maxlen=OVERHEAD_SAMPLES)
         self._triggers: dict[Outgoing, tuple[deque[int], int]] = {}
+        self.metrics = metrics
+        # latencies (histogram, labels, seconds) of this transaction: observed once it is committed
+        self._observed: list[tuple[Any, tuple[str, ...], float]] = []
         self._stream_reference: OrderedDict[str, int] = OrderedDict()
         self._store_retry: asyncio.TimerHandle | None = None
 
@@ -95,11 +101,13 @@ class Ingest:
         is undone and refused (counted with its reason); its neighbours are stored."""
         mark = self.store.savepoint()
         counters = self.counters.copy()
+        observed = len(self._observed)
         try:
             outgoing = self._handle(frames)
         except Exception as exc:  # a poison message must not take its batch with it
             self.store.rollback_savepoint(mark)
             self.counters = counters
+            del self._observed[observed:]
             self._refuse("handler_error", f"{type(exc).__name__}: {exc}")
             return []
         return outgoing
@@ -133,6 +141,10 @@ class Ingest:
         self._transaction(work, after="components_gone")
         self._publish(self.stream_ends())
 
+    def check_stream_ends(self) -> None:
+        """Publishes the ends of streams that were held for a component that has not come back."""
+        self._publish(self.stream_ends())
+
     def on_timer(self) -> None:
         """The earliest fusion deadline has come: publish what is due."""
         self._timer = None
@@ -156,12 +168,20 @@ class Ingest:
         except Exception:
             self.store.rollback()
             self._triggers.clear()
+            self._observed.clear()
             self.counters = counters
             self.counters["lost_in_db_error"] += lost
             log.exception("event=store_failed after=%s messages=%d", after, lost)
             outgoing = []
+        self._observe()
         self._publish(outgoing)
         self._arm_timer()
+
+    def _observe(self) -> None:
+        if self.metrics is not None:
+            for histogram, labels, seconds in self._observed:
+                histogram.labels(*labels).observe(seconds)
+        self._observed.clear()
 
     def _retry_store_later(self) -> None:
         if self._store_retry is None:
@@ -214,6 +234,10 @@ class Ingest:
                 samples, since_ns = self._triggers.pop(message, (None, 0))
                 if samples is not None:
                     samples.append(now_ns - since_ns)
+                    if self.metrics is not None:
+                        histogram = (self.metrics.fusion_overhead if samples is self.overhead_ns
+                                     else self.metrics.timer_lateness)
+                        histogram.observe((now_ns - since_ns) / 1e9)
 
     def _handle(self, frames: list[bytes]) -> list[Outgoing]:
         kind = frames[0] if frames else b""
@@ -253,6 +277,9 @@ class Ingest:
                               end_ns=result.span.end_ns, json=as_json)
         outgoing = [self._store_fused(fused) for fused in self.engine.on_result(stored, received_ns)]
         self.counters["results"] += 1  # stored and fused: counted once nothing can undo it
+        if self.metrics is not None:
+            self._observed.append((self.metrics.result_latency, (result.component, result.stream_id),
+                                   (received_ns - result.span.end_ns) / 1e9))
         return outgoing
 
     def _store_fused(self, fused: FusedResult) -> Outgoing:
@@ -267,6 +294,10 @@ class Ingest:
                       else "revisions"] += 1
         message = Outgoing(text=text, stream_id=fused.stream_id, fusion=fused.fusion,
                            fused_id=fused.id, revision=fused.revision, seq=seq)
+        anchor_received_ns = fused.json["anchor"].get("received_ns")
+        if self.metrics is not None and fused.revision == 1 and isinstance(anchor_received_ns, int):
+            labels = (fused.fusion, fused.stream_id, fused.json["completion"])
+            self._observed.append((self.metrics.fused_latency, labels, (fused.published_ns - anchor_received_ns) / 1e9))
         if fused.revision == 1 and fused.trigger_received_ns is not None:
             self._triggers[message] = (self.overhead_ns, fused.trigger_received_ns)
         elif fused.revision == 1 and fused.due_ns is not None:
@@ -296,8 +327,16 @@ class Ingest:
         return fused + self.stream_ends()  # the stream's last fused results before its end
 
     def stream_ends(self) -> list[Outgoing]:
-        """``stream_end`` events of the streams that have now ended (call after any change)."""
-        ended = self.streams.finished(c.component_id for c in self.registry.with_inputs())
+        """``stream_end`` events of the streams that have now ended (call after any change): every
+        live component with inputs said so, and so did each one that died (went silent) less than
+        ``stream_end_grace_s`` ago and has no live successor of its name, which may yet come back."""
+        live = self.registry.with_inputs()
+        names = {c.name for c in live}
+        now_ns = self._clock_ns()
+        stalled = [c.component_id for c in self.registry.departed.values()
+                   if c.status == "dead" and c.inputs and c.name not in names
+                   and now_ns - (c.departed_ns or 0) < self.stream_end_grace_ns]
+        ended = self.streams.finished([*(c.component_id for c in live), *stalled])
         for stream_id in ended:
             log.info("event=stream_end stream_id=%s", stream_id)
         return [Outgoing(text=_dumps({"type": "stream_end", "stream_id": stream_id}),

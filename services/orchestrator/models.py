@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, field_validator, model_validator
 
 from esiaf.results import KIND_PATTERN, RESULT_TYPES
 
@@ -17,6 +17,9 @@ Designation = Annotated[str, Field(pattern=KIND_PATTERN, examples=[*RESULT_TYPES
                                                "like 'rate'); other: none")]
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]*$"
 MAX_INFO_BYTES = 64 * 1024  # a registration's info, as JSON
+CURVE_KEY_PATTERN = r"^[0-9A-Za-z.\-:+=^!/*?&<>()\[\]{}@%$#]{40}$"  # a CURVE public key in Z85
+# 1..65535, in the pattern so that the OpenAPI document says it too
+PORT_PATTERN = r"(6553[0-5]|655[0-2][0-9]|65[0-4][0-9]{2}|6[0-4][0-9]{3}|[1-5][0-9]{4}|[1-9][0-9]{0,3})"
 
 
 class Strict(BaseModel):
@@ -24,10 +27,10 @@ class Strict(BaseModel):
 
 
 class AudioFormat(Strict):
-    sample_rate_hz: int = Field(gt=0, examples=[16000])
+    sample_rate_hz: StrictInt = Field(gt=0, examples=[16000])
     sample_type: SampleType
     endianness: Literal["little", "big"] = "little"
-    channels: int = Field(ge=1, description="samples are interleaved")
+    channels: StrictInt = Field(ge=1, description="samples are interleaved")
 
 
 class TopicDeclaration(Strict):
@@ -54,19 +57,15 @@ class RegisterRequest(Strict):
     inputs: list[TopicDeclaration] = Field(default_factory=list)
     outputs: list[TopicDeclaration] = Field(default_factory=list)
     audio_endpoint: str | None = Field(
-        default=None, max_length=300, pattern=r"^tcp://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]{1,253}):[0-9]{1,5}$",
+        default=None, max_length=300, pattern=rf"^tcp://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]{{1,253}}):{PORT_PATTERN}$",
         examples=["tcp://127.0.0.1:40123"],
         description="where its XPUB socket is reached (tcp://HOST:PORT); null without outputs")
+    audio_public_key: str | None = Field(
+        default=None, pattern=CURVE_KEY_PATTERN, description="the Z85 CURVE public key of its audio output "
+        "socket, with CURVE keys (esiaf keys): consumers connect with it")
     host: str = Field(default="", max_length=253)
-    pid: int | None = None
+    pid: StrictInt | None = None
     info: dict[str, Any] = Field(default_factory=dict, description=f"at most {MAX_INFO_BYTES} bytes as JSON")
-
-    @field_validator("audio_endpoint")
-    @classmethod
-    def _port_in_range(cls, value: str | None) -> str | None:
-        if value is not None and not 0 < int(value.rsplit(":", 1)[1]) < 65536:
-            raise ValueError(f"audio_endpoint port must be in 1..65535: {value}")
-        return value
 
     @field_validator("info")
     @classmethod
@@ -101,6 +100,9 @@ class RegisterResponse(BaseModel):
         description="each input topic: the audio endpoints of its live producers")
     formats: dict[str, AudioFormat] = Field(
         description="each input and output topic: the format assigned to it (on the wire)")
+    peer_keys: dict[str, str] = Field(default_factory=dict,
+                                      description="each endpoint of peers: its producer's CURVE public key, "
+                                                  "where it gave one")
 
 
 class ComponentInfo(BaseModel):
@@ -112,6 +114,7 @@ class ComponentInfo(BaseModel):
     inputs: list[TopicDeclaration]
     outputs: list[TopicDeclaration]
     audio_endpoint: str | None
+    audio_public_key: str | None
     host: str
     pid: int | None
     info: dict[str, Any]
@@ -185,10 +188,13 @@ class SpeechPayload(BaseModel):
 
 
 class SslDirection(BaseModel):
-    source_id: str
+    source_id: str = Field(description="the tracked source this direction belongs to")
     azimuth_deg: float
     elevation_deg: float
     probability: float
+    track_azimuth_deg: float = Field(default=0.0, description="the tracked source's smoothed azimuth")
+    background: bool = Field(default=False, description="the track has stayed in one place far longer than an "
+                             "utterance: a loudspeaker, a TV, a dishwasher, not a talker")
 
 
 class SslPayload(BaseModel):
@@ -228,11 +234,15 @@ class Result(BaseModel):
 
 
 class SslAggregate(BaseModel):
-    azimuth_deg: float = Field(description="circular mean, weighted by overlap x probability")
+    azimuth_deg: float = Field(description="the talker's track: circular mean of its directions, weighted by "
+                               "overlap x probability")
     elevation_deg: float
     concentration: float = Field(description="mean resultant length: 1 all agree, 0 cancel out")
     overlap_s: float = Field(description="capture time of the window the results cover")
-    directions: int
+    directions: int = Field(description="directions of the talker's track within the window")
+    source_id: str = Field(default="", description="the talker's track: the heaviest one not marked background")
+    background: bool = Field(default=False, description="every track heard was background")
+    tracks: int = Field(default=1, description="tracked sources heard within the window")
 
 
 class LabelAggregate(BaseModel):

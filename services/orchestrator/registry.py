@@ -36,6 +36,7 @@ class Component:
     host: str
     pid: int | None
     info: dict[str, Any]
+    audio_public_key: str | None = None  # Z85 CURVE key of its audio output (with CURVE keys)
     registered_ns: int = field(default_factory=time.time_ns)
     last_seen_ns: int = field(default_factory=time.time_ns)
     last_seen_mono: float = field(default_factory=time.monotonic)
@@ -67,7 +68,7 @@ class Registry:
     def register(self, *, name: str, designation: str, stream_id: str,
                  inputs: dict[str, Format], outputs: dict[str, Format],
                  audio_endpoint: str | None, host: str, pid: int | None,
-                 info: dict[str, Any]) -> tuple[Component, Component | None]:
+                 info: dict[str, Any], audio_public_key: str | None = None) -> tuple[Component, Component | None]:
         """Adds a component; returns it and the instance of the same name it replaces."""
         previous = self.by_name(name)
         self._check_channels(name, inputs, outputs, exclude=previous)
@@ -76,7 +77,8 @@ class Registry:
         component_id = self._new_id(name)
         component = Component(component_id=component_id, name=name, designation=designation,
                               stream_id=stream_id, inputs=inputs, outputs=outputs,
-                              audio_endpoint=audio_endpoint, host=host, pid=pid, info=info)
+                              audio_endpoint=audio_endpoint, host=host, pid=pid, info=info,
+                              audio_public_key=audio_public_key)
         self.live[component_id] = component
         self.recompute()
         component.pushed_state = self.state_of(component)
@@ -179,13 +181,19 @@ class Registry:
 
     def state_of(self, component: Component,
                  formats: dict[str, Format] | None = None) -> dict[str, Any]:
-        """The full state a component is told: its peers and the formats of its topics."""
+        """The full state a component is told: its peers (with their CURVE keys, where they gave
+        one) and the formats of its topics."""
         formats = self.formats() if formats is None else formats
-        peers = {topic: [p.audio_endpoint for p in self.producers(topic)
-                         if p is not component and p.audio_endpoint]
-                 for topic in component.inputs}
+        producers = {topic: [p for p in self.producers(topic) if p is not component and p.audio_endpoint]
+                     for topic in component.inputs}
+        peers = {topic: [p.audio_endpoint for p in found] for topic, found in producers.items()}
         topics = [*component.inputs, *(t for t in component.outputs if t not in component.inputs)]
-        return {"type": "state", "peers": peers, "formats": {t: formats[t] for t in topics}}
+        state = {"type": "state", "peers": peers, "formats": {t: formats[t] for t in topics}}
+        peer_keys = {p.audio_endpoint: p.audio_public_key for found in producers.values() for p in found
+                     if p.audio_public_key}
+        if peer_keys:
+            state["peer_keys"] = peer_keys
+        return state
 
     def changed_states(self) -> list[tuple[Component, dict[str, Any]]]:
         """Live components whose state differs from what they last got, with the new state."""

@@ -84,6 +84,22 @@ class StoreError(Exception):
     """The database cannot be opened or migrated: the message says why."""
 
 
+CORRUPT_CODES = (sqlite3.SQLITE_CORRUPT, sqlite3.SQLITE_NOTADB)
+RECOVER_HINT = ("start with --recover to copy what SQLite can still read into a new file "
+                "(the damaged one is kept)")
+
+
+def corruption(db: sqlite3.Connection) -> str | None:
+    """The first problem ``PRAGMA quick_check`` finds (it reads every page: 0.3 s for 430 MB cached),
+    or None if the database is sound; raises sqlite3.DatabaseError if the check cannot run."""
+    first = db.execute("PRAGMA quick_check(1)").fetchone()[0]
+    return None if first == "ok" else " ".join(first.replace("*** in database main ***", "").split())
+
+
+def is_corrupt_error(exc: sqlite3.Error) -> bool:
+    return (getattr(exc, "sqlite_errorcode", 0) & 0xFF) in CORRUPT_CODES
+
+
 @dataclass(frozen=True)
 class Page:
     """Stored JSON texts, oldest first, and the id to pass as ``after_id`` for the next page."""
@@ -97,8 +113,8 @@ class Page:
         return '{"items":[' + ",".join(self.items) + '],"next_after_id":' + after + "}"
 
 
-def _remove_db_files(path: Path) -> None:
-    for suffix in ("", "-wal", "-shm"):
+def remove_db_files(path: Path) -> None:
+    for suffix in ("", "-journal", "-wal", "-shm"):
         Path(f"{path}{suffix}").unlink(missing_ok=True)
 
 
@@ -116,7 +132,7 @@ class Store:
         self.error: str | None = None  # why the last commit failed; None while writes succeed
         try:
             if fresh:
-                _remove_db_files(path)
+                remove_db_files(path)
             self._db = sqlite3.connect(path, isolation_level=None)
         except (OSError, sqlite3.Error) as exc:
             raise StoreError(f"cannot open database {path}: {exc}") from None
@@ -126,6 +142,9 @@ class Store:
             # No checkpoint inside a commit (its fsync takes milliseconds): Checkpointer
             # does it off the event loop.
             self._db.execute("PRAGMA wal_autocheckpoint=0")
+            problem = corruption(self._db)
+            if problem is not None:
+                raise StoreError(f"database {path} is corrupt ({problem}); {RECOVER_HINT}")
             self._migrate(path)
             self.next_result_id = self._db.execute(
                 "SELECT COALESCE(MAX(id), 0) + 1 FROM results").fetchone()[0]
@@ -134,8 +153,13 @@ class Store:
             self.next_fused_id = self._db.execute(  # pending fusions hold their ids already
                 "SELECT MAX((SELECT COALESCE(MAX(id), 0) FROM fused),"
                 " (SELECT COALESCE(MAX(fused_id), 0) FROM pending_fusions)) + 1").fetchone()[0]
+        except StoreError:
+            self._db.close()
+            raise
         except sqlite3.Error as exc:
             self._db.close()
+            if is_corrupt_error(exc):
+                raise StoreError(f"database {path} is corrupt ({exc}); {RECOVER_HINT}") from None
             raise StoreError(f"cannot use database {path}: {exc}") from None
         self.path = path
 

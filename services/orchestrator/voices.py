@@ -23,9 +23,12 @@ from math import gcd
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Request, Response
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, TypeAdapter, ValidationError
 
 from .api.deps import get_core
+from .codec import MAX_TIME_NS
 from .core import Orchestrator
+from .models import Problem
 
 router = APIRouter(tags=["voices"])
 EMBEDDING_SIZE = 256
@@ -80,6 +83,29 @@ class VoiceTable:
         self._db.close()
 
 
+class SpanEnrolment(BaseModel):
+    """Every stored voice_id embedding of a stream whose span overlaps [start_ns, end_ns]."""
+    model_config = ConfigDict(extra="forbid")
+    stream: str
+    start_ns: StrictInt = Field(ge=0, le=MAX_TIME_NS)
+    end_ns: StrictInt = Field(ge=0, le=MAX_TIME_NS)
+
+
+class AnonymousEnrolment(BaseModel):
+    """Every stored voice_id embedding of a stream labelled with an anonymous voice."""
+    model_config = ConfigDict(extra="forbid")
+    stream: str
+    anonymous: str = Field(examples=["voice-2"])
+
+
+ENROLMENT = TypeAdapter(SpanEnrolment | AnonymousEnrolment)
+ENROLMENT_BODY = {"required": True, "content": {
+    "application/json": {"schema": {"oneOf": [SpanEnrolment.model_json_schema(),
+                                              AnonymousEnrolment.model_json_schema()]}},
+    "multipart/form-data": {"schema": {"type": "object", "required": ["audio"], "properties": {
+        "audio": {"type": "string", "format": "binary", "description": "a WAV of any rate"}}}}}}
+
+
 def get_voices(request: Request, core: Orchestrator = Depends(get_core)) -> VoiceTable:
     table = getattr(request.app.state, "voices", None)
     if table is None:
@@ -95,7 +121,8 @@ def check_name(name: str) -> str:
     return name
 
 
-@router.get("/voices", summary="enrolled voices (with ?embeddings=1, their embeddings; ETag for polling)")
+@router.get("/voices", summary="enrolled voices (with ?embeddings=1, their embeddings; ETag for polling)",
+            responses={304: {"description": "with ?embeddings=1: If-None-Match is the current ETag"}})
 def list_voices(request: Request, embeddings: bool = False, table: VoiceTable = Depends(get_voices)) -> Response:
     etag = table.etag()
     if embeddings and request.headers.get("if-none-match") == etag:
@@ -104,7 +131,8 @@ def list_voices(request: Request, embeddings: bool = False, table: VoiceTable = 
     return Response(body, media_type="application/json", headers={"ETag": etag})
 
 
-@router.delete("/voices/{name:path}", summary="forget a voice and every embedding of theirs")
+@router.delete("/voices/{name:path}", summary="forget a voice and every embedding of theirs",
+               responses={404: {"model": Problem, "description": "no voice of that name"}})
 def delete_voice(name: str, table: VoiceTable = Depends(get_voices)) -> dict:
     if not table.delete(name):
         raise HTTPException(404, f"no voice named {name!r}")
@@ -112,7 +140,9 @@ def delete_voice(name: str, table: VoiceTable = Depends(get_voices)) -> dict:
 
 
 @router.post("/voices/{name:path}", summary="add to a voice: multipart WAV field 'audio', or JSON naming a "
-             "past utterance {stream, start_ns, end_ns} or an anonymous voice {stream, anonymous}")
+             "past utterance {stream, start_ns, end_ns} or an anonymous voice {stream, anonymous}",
+             openapi_extra={"requestBody": ENROLMENT_BODY},
+             responses={415: {"model": Problem, "description": "neither multipart nor JSON"}})
 async def enrol_voice(name: str, request: Request, core: Orchestrator = Depends(get_core),
                       table: VoiceTable = Depends(get_voices)) -> dict:
     check_name(name)
@@ -127,9 +157,11 @@ async def enrol_voice(name: str, request: Request, core: Orchestrator = Depends(
         source = "wav"
     elif kind.startswith("application/json"):
         try:
-            body = await request.json()
-        except ValueError:
-            raise HTTPException(422, "the body is not valid JSON") from None
+            body = ENROLMENT.validate_json(await request.body())
+        except ValidationError as exc:
+            raise HTTPException(422, "JSON enrolment needs {\"stream\", \"start_ns\", \"end_ns\"} (integers, "
+                                     "start_ns <= end_ns) or {\"stream\", \"anonymous\"}: "
+                                     + "; ".join(e["msg"] for e in exc.errors()[:3])) from None
         embeddings, source = stored_embeddings(core, body)
     else:
         raise HTTPException(415, "no audio: send multipart field 'audio' (a WAV) or JSON {stream, start_ns, end_ns}")
@@ -160,17 +192,16 @@ def embed_wav(data: bytes) -> np.ndarray:
     return shared_encoder().embed(samples)
 
 
-def stored_embeddings(core: Orchestrator, body: object) -> tuple[list[np.ndarray], str]:
-    if not isinstance(body, dict) or not isinstance(body.get("stream"), str):
-        raise HTTPException(422, "JSON enrolment needs \"stream\" and either \"start_ns\"+\"end_ns\" or \"anonymous\"")
-    stream = body["stream"]
-    anonymous = body.get("anonymous")
-    if anonymous is None:
-        start_ns, end_ns = body.get("start_ns"), body.get("end_ns")
-        if not isinstance(start_ns, int) or not isinstance(end_ns, int) or start_ns > end_ns:
+def stored_embeddings(core: Orchestrator, body: SpanEnrolment | AnonymousEnrolment) -> tuple[list[np.ndarray], str]:
+    stream = body.stream
+    if isinstance(body, SpanEnrolment):
+        anonymous = None
+        start_ns, end_ns = body.start_ns, body.end_ns
+        if start_ns > end_ns:
             raise HTTPException(422, "JSON enrolment needs integer \"start_ns\" <= \"end_ns\" (a capture span)")
         what = f"span {start_ns}..{end_ns} of stream {stream!r}"
     else:
+        anonymous = body.anonymous
         start_ns = end_ns = None
         what = f"anonymous voice {anonymous!r} of stream {stream!r}"
     embeddings, after_id = [], None

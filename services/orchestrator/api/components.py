@@ -21,7 +21,7 @@ def component_info(component: Component) -> ComponentInfo:
         designation=component.designation, stream_id=component.stream_id,
         status=component.status, inputs=_declarations(component.inputs),
         outputs=_declarations(component.outputs), audio_endpoint=component.audio_endpoint,
-        host=component.host, pid=component.pid, info=component.info,
+        audio_public_key=component.audio_public_key, host=component.host, pid=component.pid, info=component.info,
         registered_ns=component.registered_ns, last_seen_ns=component.last_seen_ns,
         departed_ns=component.departed_ns, heartbeats=component.heartbeats,
         results_received=component.results_received, stats=component.stats)
@@ -38,7 +38,7 @@ async def register(request: RegisterRequest,
             inputs={d.topic: d.format.model_dump() for d in request.inputs},
             outputs={d.topic: d.format.model_dump() for d in request.outputs},
             audio_endpoint=request.audio_endpoint, host=request.host, pid=request.pid,
-            info=request.info)
+            info=request.info, audio_public_key=request.audio_public_key)
     except TopicConflict as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
     state = component.pushed_state
@@ -46,7 +46,8 @@ async def register(request: RegisterRequest,
         component_id=component.component_id, control_endpoint=core.control_endpoint,
         results_endpoint=core.results_endpoint,
         heartbeat_interval_s=core.settings.heartbeat_interval_s,
-        dead_after_s=core.settings.dead_after_s, peers=state["peers"], formats=state["formats"])
+        dead_after_s=core.settings.dead_after_s, peers=state["peers"], formats=state["formats"],
+        peer_keys=state.get("peer_keys", {}))
 
 
 @router.get("/components", response_model=ComponentList,

@@ -1,9 +1,18 @@
 """What the routers share: the running orchestrator, and query checks."""
 from __future__ import annotations
 
-from fastapi import HTTPException, Request
+from typing import Annotated
 
+from fastapi import HTTPException, Query, Request
+
+from ..codec import MAX_TIME_NS
 from ..core import Orchestrator
+
+# Bounds of numbers that reach SQLite, whose integers end at 2**63 - 1 (past it a query failed: a
+# 500): capture times as results have them (1970..2116), ids and sequence numbers below 2**53 (a
+# JSON number any client reads exactly).
+TimeNs = Annotated[int | None, Query(ge=0, le=MAX_TIME_NS, description="ns since the epoch (1970..2116)")]
+MAX_ID = 2**53
 
 
 def get_core(request: Request) -> Orchestrator:

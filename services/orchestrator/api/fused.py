@@ -4,7 +4,7 @@ from fastapi import APIRouter, Depends, Query, Response
 
 from ..core import Orchestrator
 from ..models import FusedPage
-from .deps import check_range, get_core
+from .deps import MAX_ID, TimeNs, check_range, get_core
 
 router = APIRouter(tags=["fused"])
 
@@ -18,9 +18,9 @@ router = APIRouter(tags=["fused"])
 async def list_fused(
         stream: str | None = Query(None, description="stream_id"),
         fusion: str | None = Query(None, description="fusion name"),
-        start_ns: int | None = None,
-        end_ns: int | None = None,
-        after_id: int | None = Query(None, ge=0, description="only fused results with a larger id"),
+        start_ns: TimeNs = None,
+        end_ns: TimeNs = None,
+        after_id: int | None = Query(None, ge=0, le=MAX_ID, description="only fused results with a larger id"),
         limit: int = Query(100, ge=1, le=1000),
         core: Orchestrator = Depends(get_core)) -> Response:
     check_range(start_ns, end_ns)

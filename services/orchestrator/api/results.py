@@ -5,7 +5,7 @@ from fastapi import APIRouter, Depends, Query, Response
 from ..core import Orchestrator
 from ..models import ResultPage
 from ..settings import ResultTypeName
-from .deps import check_range, get_core
+from .deps import MAX_ID, TimeNs, check_range, get_core
 
 router = APIRouter(tags=["results"])
 
@@ -16,9 +16,9 @@ async def list_results(
         type_name: ResultTypeName | None = Query(None, alias="type"),
         component: str | None = Query(None, description="component name"),
         stream: str | None = Query(None, description="stream_id"),
-        start_ns: int | None = None,
-        end_ns: int | None = None,
-        after_id: int | None = Query(None, ge=0, description="only results with a larger id"),
+        start_ns: TimeNs = None,
+        end_ns: TimeNs = None,
+        after_id: int | None = Query(None, ge=0, le=MAX_ID, description="only results with a larger id"),
         limit: int = Query(100, ge=1, le=1000),
         core: Orchestrator = Depends(get_core)) -> Response:
     check_range(start_ns, end_ns)

@@ -13,7 +13,9 @@ from typing import Any
 from fastapi import APIRouter, Depends, HTTPException, Path
 from pydantic import BaseModel, ConfigDict, Field
 
+from ..codec import MAX_TIME_NS
 from ..core import Orchestrator
+from ..models import Problem
 from .deps import get_core
 
 router = APIRouter(tags=["streams"])
@@ -21,7 +23,7 @@ router = APIRouter(tags=["streams"])
 
 class StreamAnnouncement(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    start_ns: int = Field(gt=0, description="capture time of the stream's first sample (ns since the epoch)")
+    start_ns: int = Field(gt=0, le=MAX_TIME_NS, description="capture time of the stream's first sample (ns since the epoch)")
     source: str = Field(default="", description="the component that captures it")
     info: dict[str, Any] = Field(default_factory=dict, examples=[{"input": "speech.wav"}])
 
@@ -41,7 +43,8 @@ def _stream(row: tuple) -> Stream:
                   info=json.loads(info))
 
 
-@router.put("/streams/{stream_id}", response_model=Stream, summary="announce a stream (sources do this)")
+@router.put("/streams/{stream_id}", response_model=Stream, summary="announce a stream (sources do this)",
+            responses={503: {"model": Problem, "description": "the database cannot be written"}})
 async def announce(body: StreamAnnouncement, stream_id: str = Path(min_length=1),
                    core: Orchestrator = Depends(get_core)) -> Stream:
     try:
@@ -58,7 +61,8 @@ async def list_streams(core: Orchestrator = Depends(get_core)) -> StreamList:
     return StreamList(items=[_stream(row) for row in core.store.streams()])
 
 
-@router.get("/streams/{stream_id}", response_model=Stream, summary="one stream")
+@router.get("/streams/{stream_id}", response_model=Stream, summary="one stream",
+            responses={404: {"model": Problem, "description": "no such stream has been announced"}})
 async def get_stream(stream_id: str, core: Orchestrator = Depends(get_core)) -> Stream:
     rows = core.store.streams(stream_id)
     if not rows:

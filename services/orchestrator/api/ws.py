@@ -9,6 +9,7 @@ from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
 
 from ..core import Orchestrator
 from ..hub import CLOSE_TOO_SLOW, Subscriber
+from .deps import MAX_ID
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["fused"])
@@ -22,10 +23,10 @@ async def ws_fused(websocket: WebSocket,
                    stream: str | None = Query(None, description="stream_id"),
                    fusion: str | None = Query(None, description="fusion name"),
                    after_id: int | None = Query(
-                       None, ge=0, description="first the latest revision of each stored fused "
+                       None, ge=0, le=MAX_ID, description="first the latest revision of each stored fused "
                                                "result with a larger id"),
                    after_seq: int | None = Query(
-                       None, ge=0, description="first every publication (each revision) with a "
+                       None, ge=0, le=MAX_ID, description="first every publication (each revision) with a "
                                                "larger seq: resume without missing revisions "
                                                "(after_id is then ignored)")
                    ) -> None:

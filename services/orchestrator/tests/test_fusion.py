@@ -117,7 +117,9 @@ def test_results_before_and_after_the_anchor(start, fake):
 
 
 def test_out_of_order_results_complete_only_when_coverage_is_contiguous(start, fake):
-    orchestrator = start()
+    # min_s: the ssl's latency is learned from these results (2 s for the late one), and a timeout of
+    # 1.5 x that passed before the gap was filled on a loaded machine (the fusion then timed out)
+    orchestrator = start(timeouts={"initial_s": 10.0, "min_s": 10.0})
     asr, ssl, emo = utterance_components(orchestrator, fake)
     t1 = time.time_ns()
     t0 = t1 - 3 * S

@@ -64,6 +64,23 @@ def test_ssl_aggregate_is_a_circular_mean_weighted_by_overlap():
     assert ssl_aggregate([{"span": {"start_ns": 0, "end_ns": S}, "ssl": {"directions": []}}], window) is None
 
 
+def test_ssl_aggregate_is_the_talkers_track_not_the_loudspeakers():
+    def frame(start, *directions):
+        return {"span": {"start_ns": start * S, "end_ns": (start + 1) * S}, "ssl": {"directions": list(directions)}}
+
+    def on(source_id, azimuth_deg, probability=0.5, background=False):
+        return {**direction(azimuth_deg, probability), "source_id": source_id, "background": background}
+
+    loudspeaker = [frame(t, on("s1", 20, 0.9, background=True)) for t in range(4)]  # louder, all along
+    talker = [frame(1, on("s2", 90)), frame(2, on("s2", 94), on("s3", 200, 0.2))]  # and one stray peak
+    aggregate = ssl_aggregate(loudspeaker + talker, (0, 4 * S))
+    assert aggregate["source_id"] == "s2" and aggregate["azimuth_deg"] == pytest.approx(92, abs=0.01)
+    assert aggregate["tracks"] == 3 and aggregate["directions"] == 2 and not aggregate["background"]
+    # nothing but background: its direction, so marked
+    only = ssl_aggregate(loudspeaker, (0, 4 * S))
+    assert only["source_id"] == "s1" and only["background"] and only["azimuth_deg"] == pytest.approx(20)
+
+
 def test_label_aggregate_is_an_overlap_weighted_distribution():
     results = [{"span": {"start_ns": 0, "end_ns": 3 * S},
                 "emotion": {"label": "sad", "probability": 0.6,

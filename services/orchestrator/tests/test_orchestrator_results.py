@@ -151,6 +151,40 @@ def test_stream_end_stops_waiting_for_a_component_that_left(orch, component, htt
         assert recv_json(ws) == {"type": "stream_end", "stream_id": "s2"}
 
 
+@pytest.mark.parametrize("comes_back", [True, False], ids=["comes-back", "never-comes-back"])
+def test_a_component_that_stalls_holds_the_stream_end_for_its_grace(make_orchestrator, zctx, comes_back):
+    """An analyser silent past dead_after_s (busy in C code on a loaded machine, or being restarted)
+    has not ended the stream: its end waits stream_end_grace_s for it to come back and finish."""
+    import time
+
+    from services.orchestrator.tests.helpers import Heartbeater
+    orch = make_orchestrator(dead_after_s=0.6, stream_end_grace_s=2.0)
+    with httpx.Client(base_url=orch.url, timeout=5.0) as http, connect(f"{orch.ws_url}/ws/fused?stream=s3") as ws:
+        vad = FakeComponent(zctx, http, component_body("vad", designation="vad", inputs=["audio/raw"],
+                                                       outputs=["vad/speech"]))
+        asr = FakeComponent(zctx, http, component_body("asr", designation="speech", inputs=["vad/speech"]))
+        beating = Heartbeater([vad])  # the asr stays silent: it is declared dead
+        try:
+            wait_until(lambda: asr.id not in {c["component_id"] for c in http.get("/components").json()["items"]},
+                       what="the asr dead")
+            dead_at = time.monotonic()
+            vad.end_of_stream("s3")
+            if comes_back:  # registers again (a new instance), sends its backlog, ends the stream
+                asr = FakeComponent(zctx, http, component_body("asr", designation="speech", inputs=["vad/speech"]))
+                asr.send_result(stream_id="s3", start_ns=0, end_ns=10)
+                asr.end_of_stream("s3")
+                assert recv_json(ws)["type"] == "fused_result"  # not lost after a premature stream end
+                assert recv_json(ws) == {"type": "stream_end", "stream_id": "s3"}
+                assert time.monotonic() - dead_at < 2.0
+            else:
+                assert recv_json(ws, timeout_s=5.0) == {"type": "stream_end", "stream_id": "s3"}
+                assert time.monotonic() - dead_at >= 2.0 - 0.5  # held for the grace (less the time to see it dead)
+        finally:
+            beating.stop()
+            vad.close()
+            asr.close()
+
+
 def test_results_survive_a_restart_and_ids_go_on(make_orchestrator, zctx, tmp_path):
     db = str(tmp_path / "kept.db")
     for run, expected_ids in ((1, [1]), (2, [1, 2])):
