@@ -2,10 +2,13 @@
 
     esiaf run --input FILE [--array SPEC] [--fast] [--grammar FILE|robocup] [--serve] [--without emotion,...]
     esiaf run --mic DEVICE [--array SPEC]
+    esiaf eval robocup [--runs N] [--seed S] [--snr LO:HI] [--array SPEC] [-- RUN OPTIONS]
+    esiaf keys DIR [--component NAME ...]      (CURVE key pairs: esiaf/keys.py)
 
 It starts the orchestrator, the recogniser, the VAD, the emotion, gender and voiceid services (on the VAD's
 output, like the recogniser) and the grabber (with a microphone array also the ssl service and the
-channel splitter, the VAD hearing the first microphone), prints each fused result as one line as
+beamformer, the VAD hearing the array steered at the talker; with ``--no-beamformer`` the channel
+splitter instead, the VAD hearing the first microphone), prints each fused result as one line as
 it arrives, and with ``--input`` exits once the file has been played and its last fused result
 printed. ``--without`` leaves analysers out; the orchestrator's default fusion waits only for
 the analysers that are running.
@@ -52,7 +55,9 @@ def format_line(fused: dict[str, Any], origin_ns: int) -> str:
     what = ""
     if "speech" in anchor and anchor["speech"].get("hypotheses"):
         best = anchor["speech"]["hypotheses"][0]
-        if best.get("out_of_set"):
+        if not best.get("text") and not best.get("raw_text"):
+            what = "(speech not understood)"
+        elif best.get("out_of_set"):
             what = f"out of set: '{best.get('raw_text', '')}' (match {best.get('match_score', 0):.2f})"
         else:
             what = f"'{best['text']}' (p={best['probability']:.2f})"
@@ -181,19 +186,29 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     run.add_argument("--with", dest="plugins", action="append", default=[], metavar="FOLDER_OR_NAME",
                      help="also run your own analyser: a folder with a __main__.py, an installed component "
                      "(entry point group esiaf.components) or a module; repeatable")
+    run.add_argument("--no-beamformer", action="store_true", help="with --array: the analysers hear the first "
+                     "microphone instead of the array steered at the talker")
+    run.add_argument("--beamformer", choices=("mvdr", "das"), help="with --array: the beamforming method "
+                     "(default mvdr; das: delay and sum)")
     run.add_argument("--ssl-algorithm", help="DOA algorithm of the ssl service (default NormMUSIC)")
     run.add_argument("--fast", action="store_true", help="play the file as fast as possible")
     run.add_argument("--grammar", help="JSGF grammar file for the recogniser, or 'robocup' (with --asr whisper: "
                      "the allowed sentences its transcripts are matched to)")
+    run.add_argument("--vad", choices=("silero", "energy"), help="the voice activity detector: silero (default, "
+                     "a neural VAD that babble does not fool) or energy (the original double threshold)")
     run.add_argument("--asr", choices=("pocketsphinx", "whisper"), help="the recogniser (default pocketsphinx)")
     run.add_argument("--serve", action="store_true", help="keep the services up after the file has played")
     run.add_argument("--host", default="127.0.0.1", help="orchestrator address (default 127.0.0.1)")
     run.add_argument("--port", type=int, default=8000, help="orchestrator HTTP port (default 8000)")
     run.add_argument("--workdir", type=Path, default=Path(".esiaf"), help="logs and database (default .esiaf)")
+    run.add_argument("--recover", action="store_true", help="if the workdir's database is corrupt, start on a copy "
+                     "of what can still be read (the orchestrator's log says what was lost; the damaged file is kept)")
     run.add_argument("--stream-id", help="name of this capture session (default: input name + time)")
     run.add_argument("--chunk-ms", type=float, default=20.0, help="grabber chunk length (default 20 ms)")
     run.add_argument("--json", action="store_true", help="print each fused result as JSON")
     run.add_argument("-v", "--verbose", action="store_true", help="log what the launcher does")
+    sub.add_parser("eval", help="evaluation harnesses through the real pipeline: esiaf eval robocup --help")
+    sub.add_parser("keys", help="CURVE key pairs for ZeroMQ across hosts: esiaf keys DIR --help")
     return parser.parse_args(argv)
 
 
@@ -222,7 +237,8 @@ def run(args: argparse.Namespace) -> int:
         # within it; the orchestrator waits only for those analysers that are running
         ports = fixed_ports(workdir)  # the same across restarts: components find it again, nothing is lost
         orchestrator = supervisor.start("orchestrator", ["--host", args.host, "--port", str(args.port),
-                                                         "--db", str(workdir / "esiaf.db")],
+                                                         "--db", str(workdir / "esiaf.db")]
+                                        + (["--recover"] if args.recover else []),
                                         env={"ESIAF_ORCHESTRATOR_CONTROL_PORT": str(ports["control"]),
                                              "ESIAF_ORCHESTRATOR_RESULTS_PORT": str(ports["results"])})
         wait_until(client.healthy, supervisor, "the orchestrator to answer", START_TIMEOUT_S, orchestrator)
@@ -230,20 +246,28 @@ def run(args: argparse.Namespace) -> int:
         services = {"asr": supervisor.start("asr", (["--grammar", args.grammar] if args.grammar else [])
                                             + (["--backend", args.asr] if args.asr else []))}
         grabber_env = {"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1", "ESIAF_GRABBER_CHUNK_MS": str(args.chunk_ms)}
+        vad_env = {"ESIAF_VAD_BACKEND": args.vad} if args.vad else {}
+        beamforming = array is not None and "ssl" not in without and not args.no_beamformer
         if channels <= 1 and array is None:
-            services["vad"] = supervisor.start("vad")
+            services["vad"] = supervisor.start("vad", env=vad_env)
+        elif beamforming:  # grabber -> ssl -> beamformer -> vad: the analysers hear the array steered at the talker
+            services["vad"] = supervisor.start("vad", env={"ESIAF_VAD_INPUT_TOPIC": "beamformer/audio", **vad_env})
+            beam_env = array_env("BEAMFORMER", args, channels)
+            if args.beamformer:
+                beam_env["ESIAF_BEAMFORMER_METHOD"] = args.beamformer
+            services["beamformer"] = supervisor.start("beamformer", env=beam_env)
+            grabber_env["ESIAF_GRABBER_CHANNELS"] = str(channels)
         else:  # the recogniser hears the first channel (microphone); ssl hears them all
-            services["vad"] = supervisor.start("vad", env={"ESIAF_VAD_INPUT_TOPIC": "splitter/ch0"})
+            services["vad"] = supervisor.start("vad", env={"ESIAF_VAD_INPUT_TOPIC": "splitter/ch0", **vad_env})
             services["splitter"] = supervisor.start("splitter", env={
                 "ESIAF_SPLITTER_INPUT_CHANNELS": str(channels), "ESIAF_SPLITTER_CHANNELS": "[0]"})
             grabber_env["ESIAF_GRABBER_CHANNELS"] = str(channels)
-            if array is not None and "ssl" not in without:
-                ssl_env = {"ESIAF_SSL_ARRAY": args.array, "ESIAF_SSL_CHANNELS": str(channels)}
-                if args.mic_channels:
-                    ssl_env["ESIAF_SSL_MIC_CHANNELS"] = f"[{args.mic_channels}]"
-                if args.ssl_algorithm:
-                    ssl_env["ESIAF_SSL_ALGORITHM"] = args.ssl_algorithm
-                services["ssl"] = supervisor.start("ssl", env=ssl_env)
+        if array is not None and "ssl" not in without:
+            ssl_env = array_env("SSL", args, channels)
+            if args.ssl_algorithm:
+                ssl_env["ESIAF_SSL_ALGORITHM"] = args.ssl_algorithm
+            services["ssl"] = supervisor.start("ssl", env=ssl_env)
+            if not beamforming:
                 grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"] = "2"
         labellers = [name for name in ("emotion", "gender", "voiceid") if name not in without]
         for name in labellers:  # on the VAD's output, like the recogniser
@@ -261,6 +285,11 @@ def run(args: argparse.Namespace) -> int:
         if "splitter" in services:
             wait_until(lambda: topic_ready(client, "splitter/ch0", 1), supervisor,
                        "vad to subscribe to splitter/ch0", START_TIMEOUT_S, services["vad"])
+        if beamforming:
+            wait_until(lambda: topic_ready(client, "ssl/audio", 1), supervisor,
+                       "the beamformer to subscribe to ssl/audio", START_TIMEOUT_S, services["beamformer"])
+            wait_until(lambda: topic_ready(client, "beamformer/audio", 1), supervisor,
+                       "vad to subscribe to beamformer/audio", START_TIMEOUT_S, services["vad"])
         wait_until(lambda: topic_ready(client, "vad/speech", 1 + len(labellers) + on_speech), supervisor,
                    f"{', '.join(['asr', *labellers])} to subscribe to vad/speech", START_TIMEOUT_S, services["vad"])
         if plugins:
@@ -273,10 +302,20 @@ def run(args: argparse.Namespace) -> int:
                   f"orchestrator at {url} (API docs: {url}/docs; token in {shown_path(workdir / 'token')}); "
                   f"logs in {shown_path(workdir / 'logs')}",
                   file=sys.stderr, flush=True)
+            print(f"esiaf: dashboard at {url}/?token={os.environ[auth.TOKEN_ENV]}", file=sys.stderr, flush=True)
             return follow(ws, supervisor, client, grabber, args)
     finally:
         client.close()
         supervisor.stop()
+
+
+def array_env(service: str, args: argparse.Namespace, channels: int) -> dict[str, str]:
+    """The settings every array consumer (ssl, beamformer) takes: the array, the channel count, the
+    microphones' channels."""
+    env = {f"ESIAF_{service}_ARRAY": args.array, f"ESIAF_{service}_CHANNELS": str(channels)}
+    if args.mic_channels:
+        env[f"ESIAF_{service}_MIC_CHANNELS"] = f"[{args.mic_channels}]"
+    return env
 
 
 def fuse_kinds(client: OrchestratorClient, kinds: list[str]) -> None:
@@ -391,6 +430,13 @@ def show_progress(client: OrchestratorClient) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["eval"]:
+        from esiaf.evaluation import main as evaluate
+        return evaluate(argv[1:])
+    if argv[:1] == ["keys"]:
+        from esiaf.keys import main as make_keys
+        return make_keys(argv[1:])
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(asctime)s %(levelname)s %(name)s %(message)s")

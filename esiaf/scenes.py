@@ -1,7 +1,7 @@
 """Labelled scenes: angle-labelled multi-channel recordings simulated with pyroomacoustics.
 
 A scene is a shoebox room (size, RT60), a microphone array (any spec of :mod:`esiaf.arrays`)
-at a position, speech sources (a clip or a sentence for flite to say; azimuth, distance,
+at a position, speech sources (a clip or a sentence for flite to say; azimuth relative to the array's front, distance,
 onset) and noise sources (a clip, azimuth, distance, SNR relative to the speech). Rendering
 gives the array's signals and the truth: per utterance its text, speaker, azimuth and where the
 speech is (start and end in seconds, the clip's quiet lead and tail (under 2 % of its peak) excluded, plus the travel
@@ -77,6 +77,7 @@ class Scene:
     room_m: tuple[float, float, float] = (6.0, 5.0, 3.0)
     rt60_s: float = 0.4
     array_position_m: tuple[float, float, float] | None = None  # default: room centre, 1.2 m high
+    array_heading_deg: float = 0.0  # where the array's front (0°) points in the room, counter-clockwise from x
     sample_rate_hz: int = 16000
     speech: list[SpeechSource] = field(default_factory=list)
     noise: list[NoiseSource] = field(default_factory=list)
@@ -172,7 +173,10 @@ def render_parts(scene: Scene) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     room_dim = np.array(scene.room_m, dtype=float)
     centre = (np.array(scene.array_position_m, dtype=float) if scene.array_position_m is not None
               else np.array([room_dim[0] / 2, room_dim[1] / 2, 1.2]))
-    mics = centre[:, None] + array.positions_m
+    heading = math.radians(scene.array_heading_deg)
+    turn = np.array([[math.cos(heading), -math.sin(heading), 0.0], [math.sin(heading), math.cos(heading), 0.0],
+                     [0.0, 0.0, 1.0]])
+    mics = centre[:, None] + turn @ array.positions_m
     if np.any(mics < 0) or np.any(mics > room_dim[:, None]):
         raise SceneError("the array lies outside the room")
     try:
@@ -187,8 +191,8 @@ def render_parts(scene: Scene) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
         clip = read_clip(source.clip, fs) if source.clip else speak(source.say, source.voice, fs)
         clip = clip * 10 ** (source.gain_db / 20)
         first, last = speech_bounds(clip)
-        position = _position(centre, source.azimuth_deg, source.elevation_deg, source.distance_m, room_dim,
-                             f"speech source {number + 1}")
+        position = _position(centre, source.azimuth_deg + scene.array_heading_deg, source.elevation_deg,
+                             source.distance_m, room_dim, f"speech source {number + 1}")
         travel_s = source.distance_m / SPEED_OF_SOUND_M_S
         clips.append((position, clip, source.onset_s))
         utterances.append({
@@ -212,8 +216,9 @@ def render_parts(scene: Scene) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
         reps = int(np.ceil(samples / len(noise)))
         noise = np.tile(noise, reps) if reps > 1 else noise
         start = int(rng.integers(0, len(noise) - samples + 1))
-        room.add_source(_position(centre, source.azimuth_deg, source.elevation_deg, source.distance_m, room_dim,
-                                  f"noise source {number + 1}"), signal=noise[start:start + samples])
+        room.add_source(_position(centre, source.azimuth_deg + scene.array_heading_deg, source.elevation_deg,
+                                  source.distance_m, room_dim, f"noise source {number + 1}"),
+                        signal=noise[start:start + samples])
     premix = room.simulate(return_premix=True)[:, :, :samples]  # (sources, mics, samples)
     if premix.shape[2] < samples:
         premix = np.pad(premix, ((0, 0), (0, 0), (0, samples - premix.shape[2])))
@@ -230,6 +235,7 @@ def render_parts(scene: Scene) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     truth = {"array": array.name, "positions_m": array.positions_m.T.round(5).tolist(),
              "sample_rate_hz": fs, "duration_s": round(samples / fs, 4), "room_m": list(map(float, room_dim)),
              "rt60_s": scene.rt60_s, "array_position_m": centre.round(4).tolist(),
+             "array_heading_deg": scene.array_heading_deg % 360.0,
              "noise": [{"clip": Path(n.clip).name, "azimuth_deg": n.azimuth_deg % 360.0, "snr_db": n.snr_db,
                         "distance_m": n.distance_m} for n in scene.noise],
              "utterances": utterances}
