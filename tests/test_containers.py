@@ -145,9 +145,9 @@ def project(docker_images, tmp_path):
 
 
 OPTIONAL = ("fastapi", "uvicorn", "pocketsphinx", "alsaaudio", "pyroomacoustics", "opensmile", "onnxruntime")
-CARRIES = {"orchestrator": {"fastapi", "uvicorn"}, "grabber": {"alsaaudio"}, "vad": set(), "asr": {"pocketsphinx"},
-           "splitter": set(), "ssl": {"pyroomacoustics"}, "emotion": {"opensmile", "onnxruntime"},
-           "gender": {"opensmile", "onnxruntime"}}
+CARRIES = {"orchestrator": {"fastapi", "uvicorn"}, "grabber": {"alsaaudio"}, "vad": {"onnxruntime"},
+           "asr": {"pocketsphinx"}, "splitter": set(), "ssl": {"pyroomacoustics"}, "beamformer": set(),
+           "emotion": {"opensmile", "onnxruntime"}, "gender": {"opensmile", "onnxruntime"}}
 
 
 @pytest.mark.parametrize("service", sorted(CARRIES))
@@ -201,12 +201,16 @@ def test_compose_up_plays_the_example_and_down_leaves_nothing(project):
     assert p.leftovers() == {}
 
 
-def test_compose_with_a_microphone_array_fuses_text_direction_emotion_and_gender(project):
-    """The recipe of docs/deploy.md for an array: splitter and ssl on, the VAD on channel 0."""
+@pytest.mark.parametrize("recipe", [
+    dict(ESIAF_SPLITTER_REPLICAS="1", ESIAF_VAD_INPUT_TOPIC="splitter/ch0"),
+    dict(ESIAF_BEAMFORMER_REPLICAS="1", ESIAF_VAD_INPUT_TOPIC="beamformer/audio"),
+], ids=["splitter", "beamformer"])
+def test_compose_with_a_microphone_array_fuses_text_direction_emotion_and_gender(project, recipe):
+    """The recipes of docs/deploy.md for an array: ssl on, the VAD on channel 0 (splitter) or on
+    the array steered at the talker (beamformer)."""
     truth = json.loads((REPO / "examples" / "robocup_scene.json").read_text())["utterances"]
     p = project(REPO / "examples" / "robocup_scene.flac")
-    p.env.update(ESIAF_SPLITTER_REPLICAS="1", ESIAF_SSL_REPLICAS="1", ESIAF_SSL_ARRAY="respeaker4",
-                 ESIAF_VAD_INPUT_TOPIC="splitter/ch0")
+    p.env.update(ESIAF_SSL_REPLICAS="1", ESIAF_SSL_ARRAY="respeaker4", **recipe)
     p("up", "-d", timeout=600)
     fused = poll(lambda: at_least(len(truth), p.fused()), timeout_s=150)
     assert [normalise(best_text(f)) for f in fused] == [normalise(u["text"]) for u in truth], p.logs()
@@ -245,10 +249,15 @@ def test_killed_asr_is_dead_within_3_s_fusions_stop_waiting_and_it_comes_back(pr
     p("start", "asr")
     poll(lambda: any(c["name"] == "asr" and c["status"] == "alive" and i != asr_id
                      for i, c in p.components().items()), timeout_s=60)
-    resumed = poll(lambda: p.fused("speech")[before:] or None, timeout_s=60)
-    assert best_text(resumed[0]), resumed[0]
-    texts = {normalise(best_text(f)) for f in p.fused("speech")}
-    assert texts <= {normalise(t) for t in TRUTH}, texts
+    truth = {normalise(t) for t in TRUTH}
+    heard_before = {normalise(best_text(f)) for f in p.fused("speech")[:before] if best_text(f)}
+    assert heard_before <= truth, heard_before
+    # recognising again: a sentence of the recording comes back whole. The utterance it restarted in
+    # may come first, as "speech not understood" (an empty text: services/asr/README.md) or as the
+    # words of the part it heard, so results are not required to be right until one is
+    poll(lambda: [f for f in p.fused("speech")[before:] if normalise(best_text(f)) in truth] or None,
+         timeout_s=60)
+    print("after the restart:", [best_text(f) for f in p.fused("speech")[before:]])
     # and segments are fused with its speech again
     poll(lambda: any(f["results"]["speech"] for f in p.fused("segments") if f["id"] > during[0]["id"]), timeout_s=30)
 
@@ -282,7 +291,8 @@ def test_stack_deploy_on_a_single_node_swarm_gives_the_same_sentences(swarm, tmp
            "ESIAF_STREAM_ID": name, "ESIAF_GRABBER_REPLICAS": "0"}
     http = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=5)
     try:
-        run("docker", "stack", "deploy", "-c", str(REPO / "compose.yaml"), name, env=env, cwd=REPO)
+        run("docker", "stack", "deploy", "-c", str(REPO / "compose.yaml"), "-c", str(REPO / "compose.swarm.yaml"),
+            name, env=env, cwd=REPO)
         poll(lambda: _get(http, "/health") == 200, timeout_s=120)
         # Swarm has no start order: play once the analysers are registered and connected
         poll(lambda: {"vad", "asr"} <= {c["name"] for c in http.get("/components").json()["items"]}, timeout_s=120)
