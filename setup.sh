@@ -6,8 +6,9 @@ set -euo pipefail
 cd "$(dirname "$0")"
 
 # flite: speech synthesis for tests and examples; libasound2-dev + gcc: pyalsaaudio
-# (live capture); alsa-utils: arecord -L to list devices; libsndfile1: sound files.
-APT_PACKAGES=(python3 python3-venv python3-dev gcc libasound2-dev alsa-utils libsndfile1 flite sox)
+# (live capture); alsa-utils: arecord -L to list devices; libsndfile1: sound files;
+# chromium + chromium-driver: the dashboard's tests run the page in a headless browser.
+APT_PACKAGES=(python3 python3-venv python3-dev gcc libasound2-dev alsa-utils libsndfile1 flite sox chromium chromium-driver)
 
 missing=()
 for pkg in "${APT_PACKAGES[@]}"; do
@@ -34,5 +35,7 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     .venv/bin/python -m pip install -q -e ".[all,test]"
     # voiceid's speaker encoder weights; the wheel depends on torch, which is never needed (encoder.py)
     .venv/bin/python -m pip install -q --no-deps resemblyzer==0.1.4
+    # the vad's Silero model (ONNX, MIT); the wheel depends on torch, which is never needed (services/vad/silero.py)
+    .venv/bin/python -m pip install -q --no-deps silero-vad==6.2.3
     touch "$stamp"
 fi

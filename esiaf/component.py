@@ -26,6 +26,7 @@ from typing import Any, ClassVar, Iterable, Sequence
 import numpy as np
 import zmq
 
+from esiaf import keys
 from esiaf.audio import Audio
 from esiaf.control import ControlClient, announce_stream
 from esiaf.formats import AudioFormat, FormatError, encode
@@ -106,6 +107,7 @@ class Component:
         self._last_seen: dict[tuple[str, str], int] = {}
         self.refused: dict[str, int] = {}  # audio messages refused, by reason
         self.refused_by_publisher: dict[str, int] = {}  # ... by publisher (the most recent ones)
+        self.refused_subscribers: dict[str, int] = {}  # handshakes refused at the outputs (CURVE), by reason
         self._ended: dict[str, set[str]] = {}
         self._result_sequence = 0
         self._handling = False  # inside a handler: audio input waits, so handlers never nest
@@ -246,23 +248,28 @@ class Component:
                 "outputs": {t: asdict(s) for t, s in list(self.output_stats.items())},
                 "results_sent": self.results_sent, "results_dropped": self.results_dropped,
                 "refused": dict(self.refused), "refused_by_publisher": dict(self.refused_by_publisher),
+                "refused_subscribers": dict(self.refused_subscribers),
                 "info": dict(self.info)}
 
     def run(self) -> int:
         """Set up, register, process until stopped; returns the exit code."""
         self._install_signal_handlers()
+        try:  # before setup(): a bad key file fails at once, not after a model has loaded
+            curve = keys.load(orchestrator=False)
+        except keys.KeyFileError as exc:
+            raise SetupError(str(exc)) from None
         self.setup()
         self._context = zmq.Context()
         try:
             try:
                 self._transport = Transport(self._context, inputs=self.inputs, has_outputs=bool(self.outputs),
                                             bind_host=self.settings.bind_host, audio_port=self.settings.audio_port,
-                                            advertise_host=self.settings.advertise_host)
+                                            advertise_host=self.settings.advertise_host, curve=curve)
             except TransportError as exc:
                 raise SetupError(str(exc)) from None
             self.control = ControlClient(self._context, self.settings.orchestrator_url,
                                          self._registration_request(), self.stats,
-                                         self.settings.register_timeout_s, self.settings.health_file)
+                                         self.settings.register_timeout_s, self.settings.health_file, curve)
             self._output_links = {t: OutputLink(t, f) for t, f in self.outputs.items()}
             registration = self.control.start()
             self._apply_state(registration.state())
@@ -286,7 +293,8 @@ class Component:
             return [{"topic": t, "format": f.to_dict()} for t, f in declared.items()]
         return {"name": self.settings.name, "designation": self.designation, "stream_id": self.settings.stream_id,
                 "inputs": topics(self.inputs), "outputs": topics(self.outputs),
-                "audio_endpoint": self._transport.audio_endpoint, "host": socket.gethostname(), "info": self.info}
+                "audio_endpoint": self._transport.audio_endpoint, "host": socket.gethostname(), "info": self.info,
+                **({"audio_public_key": key} if (key := self._transport.audio_public_key) else {})}
 
     def _service(self, timeout_ms: float) -> None:
         """Handles whatever is ready on the sockets, waiting up to ``timeout_ms`` for the first.
@@ -301,6 +309,8 @@ class Component:
                 self._apply_state(event)
             elif kind == "subscription":
                 self._on_subscription(*event)
+            elif kind == "refused":
+                self._refuse_subscriber(event)
             else:
                 self._on_message(event)
 
@@ -309,7 +319,8 @@ class Component:
             log.error("stopping: %s", state.get("error"))
             self.stop(exit_code=1)
             return
-        self._transport.connect_peers({e for endpoints in state.get("peers", {}).values() for e in endpoints})
+        self._transport.connect_peers({e for endpoints in state.get("peers", {}).values() for e in endpoints},
+                                      state.get("peer_keys", {}))
         self._transport.connect_results(state.get("results_endpoint", ""))
         for topic, fmt in state.get("formats", {}).items():
             assigned = AudioFormat.from_dict(fmt)
@@ -321,6 +332,11 @@ class Component:
                      "" if assigned == declared else " (converted here)")
             if topic in self._output_links:
                 self._output_links[topic].assigned = assigned  # the switch happens at the next chunk
+
+    def _refuse_subscriber(self, reason: str) -> None:
+        count = self.refused_subscribers[reason] = self.refused_subscribers.get(reason, 0) + 1
+        if count == 1 or count % 100 == 0:
+            log.warning("refused a subscriber's handshake reason=%s count=%d", reason, count)
 
     def _on_subscription(self, topic: str, change: int) -> None:
         stats = self.output_stats.get(topic)

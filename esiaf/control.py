@@ -29,6 +29,7 @@ import httpx
 import zmq
 
 from esiaf import auth
+from esiaf.keys import Curve
 from esiaf.transport import STATE_ADDRESS
 
 log = logging.getLogger(__name__)
@@ -54,9 +55,10 @@ class Registration:
     dead_after_s: float
     peers: dict[str, list[str]] = field(default_factory=dict)
     formats: dict[str, dict[str, Any]] = field(default_factory=dict)
+    peer_keys: dict[str, str] = field(default_factory=dict)  # producer endpoint -> its CURVE public key
 
     def state(self) -> dict[str, Any]:
-        return {"type": "state", "peers": self.peers, "formats": self.formats,
+        return {"type": "state", "peers": self.peers, "formats": self.formats, "peer_keys": self.peer_keys,
                 "results_endpoint": self.results_endpoint, "component_id": self.component_id}
 
 
@@ -164,8 +166,10 @@ class ControlClient:
     """Keeps the component registered and alive; runs in its own thread."""
 
     def __init__(self, context: zmq.Context, url: str, request: dict[str, Any],
-                 stats: Callable[[], dict[str, Any]], register_timeout_s: float, health_file: str = ""):
+                 stats: Callable[[], dict[str, Any]], register_timeout_s: float, health_file: str = "",
+                 curve: Curve | None = None):
         self._context = context
+        self._curve = curve
         self._health_file = health_file
         self._url = url
         self._request = dict(request, pid=os.getpid())
@@ -228,7 +232,7 @@ class ControlClient:
 
     def _dealer(self) -> zmq.Socket:
         dealer = self._context.socket(zmq.DEALER)
-        auth.secure_socket(dealer)
+        auth.secure_socket(dealer, self._curve)
         dealer.setsockopt(zmq.LINGER, 0)
         dealer.setsockopt(zmq.IDENTITY, self.component_id.encode())
         dealer.connect(self.registration.control_endpoint)
@@ -273,6 +277,7 @@ class ControlClient:
                 if message.get("type") == "state":
                     self.registration.peers = message.get("peers", {})
                     self.registration.formats = message.get("formats", {})
+                    self.registration.peer_keys = message.get("peer_keys", {})
                     state_out.send(json.dumps(self.registration.state()).encode())
                 elif message.get("type") == "unknown":
                     log.warning("orchestrator does not know component_id=%s: registering again", self.component_id)

@@ -6,7 +6,7 @@ import logging
 import sys
 import time
 
-from websockets.exceptions import ConnectionClosed, InvalidHandshake
+from websockets.exceptions import ConnectionClosed, WebSocketException
 from websockets.sync.client import connect
 
 from esiaf import auth
@@ -36,7 +36,8 @@ class FusedFeed:
             url = self.url + (f"&after_seq={self.last_seq}" if self.last_seq is not None else "")
             try:
                 self.ws = connect(url, open_timeout=timeout, additional_headers=auth.headers())
-            except (OSError, TimeoutError, InvalidHandshake):
+            except (OSError, TimeoutError, WebSocketException) as exc:  # not back yet, or going away again
+                log.debug("websocket not reconnected: %s: %s", type(exc).__name__, exc)
                 time.sleep(timeout)
                 raise TimeoutError from None
             log.info("websocket reconnected after_seq=%s", self.last_seq)

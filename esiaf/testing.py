@@ -102,6 +102,12 @@ class Launcher:
                                          f"stderr={''.join(self.stderr)}")
                 self._new_line.wait(min(remaining, 0.2))
 
+    def describe(self) -> str:
+        """Whether ``esiaf run`` is still running, and the end of what it said on stderr: for failures."""
+        code = self.process.poll()
+        state = "still running" if code is None else f"exited with {code}"
+        return f"esiaf run {state}; its stderr ends:\n{''.join(self.stderr[-30:])}"
+
     def stop(self) -> int:
         if self.process.poll() is None:
             self.process.send_signal(signal.SIGINT)
@@ -128,17 +134,28 @@ def poll(condition, timeout_s: float, interval_s: float = 0.05):
     raise AssertionError(f"condition not met within {timeout_s} s (last error: {last_error})")
 
 
+def refused_peers(metrics_text: str, socket: str, *reasons: str) -> float:
+    """``esiaf_refused_peers_total`` in a ``GET /metrics`` answer: the handshakes one socket refused
+    for these reasons (every reason if none is named)."""
+    from prometheus_client.parser import text_string_to_metric_families
+    return sum(sample.value for family in text_string_to_metric_families(metrics_text) for sample in family.samples
+               if sample.name == "esiaf_refused_peers_total" and sample.labels["socket"] == socket
+               and (not reasons or sample.labels["reason"] in reasons))
+
+
 class Orchestrator:
     """The real orchestrator as a process on random loopback ports, with a real SQLite file."""
 
-    def __init__(self, tmp_path: Path, config: dict | None = None):
-        """``config``: orchestrator settings written to a YAML file (fusions, timeouts, ...)."""
+    def __init__(self, tmp_path: Path, config: dict | None = None, env: dict[str, str] | None = None):
+        """``config``: orchestrator settings written to a YAML file (fusions, timeouts, ...);
+        ``env``: more environment variables for its process (ESIAF_TOKEN, ESIAF_CURVE_DIR, ...)."""
         import httpx
         import yaml
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.ws_url = f"ws://127.0.0.1:{self.port}"
         self.db_path = tmp_path / "o.db"
+        self.env = env or {}
         self.config_args: list[str] = []
         if config is not None:
             config_path = tmp_path / "orchestrator.yaml"
@@ -149,13 +166,14 @@ class Orchestrator:
         self.process: subprocess.Popen | None = None
         self.start()
 
-    def start(self) -> None:
-        """Starts it (again: same HTTP port and database, new random ZeroMQ ports)."""
+    def start(self, *args: str) -> None:
+        """Starts it (again: same HTTP port and database, new random ZeroMQ ports), with more
+        command-line ``args`` (e.g. ``--recover``) if given."""
         env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_CONTROL_PORT": "0",
-               "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"}
+               "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0", **self.env}
         self.process = subprocess.Popen(
             [sys.executable, "-m", "services.orchestrator", "--port", str(self.port), "--db", str(self.db_path),
-             *self.config_args],
+             *self.config_args, *args],
             cwd=REPO, env=env, stdout=self.log, stderr=subprocess.STDOUT)
         poll(lambda: self.http.get("/health").status_code == 200, timeout_s=30)
 

@@ -99,3 +99,9 @@ def test_the_line_ends_with_who_spoke():
     anonymous = {"voice_id": {"label": "voice-2", "probability": 1.0}}
     assert format_line(fused(aggregates=anonymous, results={"voice_id": [{}]}), ORIGIN_NS) == \
         "[12.31–14.05 s] 'go forward ten meters' (p=0.93) by voice-2"
+
+
+def test_speech_not_understood_still_says_from_where():
+    result = fused(aggregates={"ssl": {"azimuth_deg": 91.6}}, results={"ssl": [{}]})
+    result["anchor"]["speech"]["hypotheses"] = [{"text": "", "probability": 0.0}]
+    assert format_line(result, ORIGIN_NS) == "[12.31–14.05 s] (speech not understood) from 92°"

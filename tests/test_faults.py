@@ -39,8 +39,14 @@ def service_pid(launcher, name: str) -> int | None:
 
 
 def fused_texts(launcher) -> list[str]:
-    return [normalise(line["anchor"]["speech"]["hypotheses"][0]["text"]) for line in launcher.lines
-            if line.get("type") == "fused_result" and line.get("anchor", {}).get("speech", {}).get("hypotheses")]
+    """The text of each fused result as it finally stands (its latest revision), in publication order.
+    A revision is not a double: a result later than its timeout (under load, after a restart) revises."""
+    latest = {}
+    for line in launcher.lines:
+        if line.get("type") == "fused_result" and line.get("anchor", {}).get("speech", {}).get("hypotheses"):
+            latest.setdefault(line["id"], {})[line["revision"]] = line["anchor"]["speech"]["hypotheses"][0]["text"]
+    # "speech not understood" (an empty text: services/asr/README.md) is not a sentence heard
+    return [normalise(text) for by_revision in latest.values() if (text := by_revision[max(by_revision)])]
 
 
 @pytest.mark.parametrize("victim", ["asr", "orchestrator"])
@@ -51,7 +57,10 @@ def test_a_service_killed_mid_stream_comes_back_and_the_pipeline_goes_on(launch,
     run.wait_for_line(lambda line: line.get("type") == "fused_result", timeout_s=120)  # the first question
     first_pid = service_pid(run, victim)
     os.kill(first_pid, signal.SIGKILL)
-    poll(lambda: (service_pid(run, victim) or first_pid) != first_pid, timeout_s=30)  # restarted
+    try:
+        poll(lambda: (service_pid(run, victim) or first_pid) != first_pid, timeout_s=30)  # restarted
+    except AssertionError as exc:
+        raise AssertionError(f"{victim} not restarted: {exc}; {run.describe()}") from None
     run.wait_for_line(lambda line: line.get("type") == "stream_end", timeout_s=180)
     assert run.stop() in (0, 130)
     stderr = "".join(run.stderr)

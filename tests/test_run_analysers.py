@@ -35,7 +35,7 @@ def test_without_leaves_the_analysers_out_and_nothing_waits_for_them(launch, tmp
                  "emotion,gender,voiceid", "--fast", "--json", "--serve")
     run.wait_for_line(lambda line: line.get("type") == "stream_end", timeout_s=150)
     components = {c["name"] for c in httpx.get(f"{run.url}/components", headers=run.headers).json()["items"]}
-    assert {"asr", "vad", "splitter", "ssl"} <= components and not components & {"emotion", "gender", "voiceid"}, \
+    assert {"asr", "vad", "beamformer", "ssl"} <= components and not components & {"emotion", "gender", "voiceid", "splitter"}, \
         components
     fusions = httpx.get(f"{run.url}/fusions", headers=run.headers).json()
     default = {"ssl", "emotion", "gender", "voice_id"}
@@ -70,6 +70,24 @@ def test_a_stereo_44_1_khz_float_file_is_converted_and_channel_0_heard(launch, t
     start_ns = next(line for line in run.lines if line.get("type") == "stream_start")["start_ns"]
     for f, t in zip(fused, TRUTH):  # capture times stay those of the file, whatever its rate
         assert abs((f["anchor"]["span"]["start_ns"] - start_ns) / 1e9 - t["start_s"]) < 0.3
+
+
+def test_no_beamformer_and_the_energy_vad_give_the_old_wiring(launch, tmp_path):
+    mics, rate = first_two_questions()
+    scene = tmp_path / "two.flac"
+    soundfile.write(str(scene), mics, rate, subtype="PCM_16")
+    run = launch("--input", str(scene), "--array", "respeaker4", "--grammar", "robocup", "--without",
+                 "emotion,gender,voiceid", "--fast", "--json", "--serve", "--no-beamformer", "--vad", "energy")
+    run.wait_for_line(lambda line: line.get("type") == "stream_end", timeout_s=150)
+    components = httpx.get(f"{run.url}/components", headers=run.headers).json()["items"]
+    names = {c["name"] for c in components}
+    assert {"asr", "vad", "splitter", "ssl"} <= names and "beamformer" not in names, names
+    vad = next(c for c in components if c["name"] == "vad")
+    assert vad["stats"]["info"]["backend"] == "energy" and vad["inputs"][0]["topic"] == "splitter/ch0", vad
+    fused = fused_results(run)
+    assert [normalise(f["anchor"]["speech"]["hypotheses"][0]["text"]) for f in fused] == \
+        [normalise(t["text"]) for t in TRUTH]
+    assert all(f["anchor"]["speech"] and f["aggregates"]["ssl"] for f in fused)
 
 
 @pytest.mark.parametrize("without, message", [

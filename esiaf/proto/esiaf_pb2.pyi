@@ -102,20 +102,22 @@ class Span(_message.Message):
     def __init__(self, start_ns: _Optional[int] = ..., end_ns: _Optional[int] = ...) -> None: ...
 
 class SslDirection(_message.Message):
-    __slots__ = ("source_id", "azimuth_deg", "elevation_deg", "probability", "elevation_known", "track_azimuth_deg")
+    __slots__ = ("source_id", "azimuth_deg", "elevation_deg", "probability", "elevation_known", "track_azimuth_deg", "background")
     SOURCE_ID_FIELD_NUMBER: _ClassVar[int]
     AZIMUTH_DEG_FIELD_NUMBER: _ClassVar[int]
     ELEVATION_DEG_FIELD_NUMBER: _ClassVar[int]
     PROBABILITY_FIELD_NUMBER: _ClassVar[int]
     ELEVATION_KNOWN_FIELD_NUMBER: _ClassVar[int]
     TRACK_AZIMUTH_DEG_FIELD_NUMBER: _ClassVar[int]
+    BACKGROUND_FIELD_NUMBER: _ClassVar[int]
     source_id: str
     azimuth_deg: float
     elevation_deg: float
     probability: float
     elevation_known: bool
     track_azimuth_deg: float
-    def __init__(self, source_id: _Optional[str] = ..., azimuth_deg: _Optional[float] = ..., elevation_deg: _Optional[float] = ..., probability: _Optional[float] = ..., elevation_known: _Optional[bool] = ..., track_azimuth_deg: _Optional[float] = ...) -> None: ...
+    background: bool
+    def __init__(self, source_id: _Optional[str] = ..., azimuth_deg: _Optional[float] = ..., elevation_deg: _Optional[float] = ..., probability: _Optional[float] = ..., elevation_known: _Optional[bool] = ..., track_azimuth_deg: _Optional[float] = ..., background: _Optional[bool] = ...) -> None: ...
 
 class AudioMeta(_message.Message):
     __slots__ = ("segmentation_ended", "segment", "ssl_directions", "end_of_stream")
