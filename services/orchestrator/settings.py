@@ -80,10 +80,8 @@ class OrchestratorSettings(StrictModel):
     dead_after_s: float = Field(default=2.5, gt=0)
     # a component with inputs that died without ending a stream (a stall of 2.5 s on a loaded machine
     # is enough) holds that stream's end this long, for it or a restarted instance of it to come back
-    # and finish its backlog; after it, the stream ends without it. Off (0) by default: a stalled
-    # component that re-registers under a new id is then waited for under that id, and never ends
-    # the stream (its end_of_stream went out under the old id); see issue 13's note
-    stream_end_grace_s: float = Field(default=0.0, ge=0)
+    # and finish its backlog; after it, the stream ends without it. 0: the stream ends without it at once
+    stream_end_grace_s: float = Field(default=10.0, ge=0)
     format_strategy: Strategy = "min_conversions"  # how each topic's wire format is chosen
     # each recognised utterance with its direction, emotion, gender and voice; a fusion waits only
     # for live components of a fused type, so without ssl/emotion/gender/voiceid nothing waits

@@ -1,7 +1,7 @@
 """End of stream: a stream has ended when every live component with inputs said so."""
 from __future__ import annotations
 
-from typing import Iterable
+from typing import Collection, Iterable, Mapping
 
 
 class StreamEnds:
@@ -19,11 +19,15 @@ class StreamEnds:
             self._ended.discard(stream_id)
             self._reported.pop(stream_id, None)
 
-    def finished(self, live_with_inputs: Iterable[str]) -> list[str]:
-        """Streams that have just ended, given the ids of the live components with inputs."""
-        waiting_for = set(live_with_inputs)
+    def finished(self, live_with_inputs: Iterable[str],
+                 predecessors: Mapping[str, Collection[str]] | None = None) -> list[str]:
+        """Streams that have just ended, given the ids of the live components with inputs. A
+        component counts as having said "end" when it did, or when one of its ``predecessors`` (the
+        ids it had before it registered again, or the instances of its name it replaced) did."""
+        predecessors = predecessors or {}
+        waiting_for = [{component_id, *predecessors.get(component_id, ())} for component_id in live_with_inputs]
         done = [stream_id for stream_id, reported in self._reported.items()
-                if waiting_for <= reported]
+                if all(ids & reported for ids in waiting_for)]
         for stream_id in done:
             del self._reported[stream_id]
             self._ended.add(stream_id)

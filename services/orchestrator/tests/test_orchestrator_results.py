@@ -151,7 +151,8 @@ def test_stream_end_stops_waiting_for_a_component_that_left(orch, component, htt
         assert recv_json(ws) == {"type": "stream_end", "stream_id": "s2"}
 
 
-@pytest.mark.parametrize("comes_back", [True, False], ids=["comes-back", "never-comes-back"])
+@pytest.mark.parametrize("comes_back", [True, "ends-under-its-old-id", False],
+                         ids=["comes-back", "ends-under-its-old-id", "never-comes-back"])
 def test_a_component_that_stalls_holds_the_stream_end_for_its_grace(make_orchestrator, zctx, comes_back):
     """An analyser silent past dead_after_s (busy in C code on a loaded machine, or being restarted)
     has not ended the stream: its end waits stream_end_grace_s for it to come back and finish."""
@@ -169,7 +170,18 @@ def test_a_component_that_stalls_holds_the_stream_end_for_its_grace(make_orchest
                        what="the asr dead")
             dead_at = time.monotonic()
             vad.end_of_stream("s3")
-            if comes_back:  # registers again (a new instance), sends its backlog, ends the stream
+            if comes_back == "ends-under-its-old-id":
+                # its heartbeat thread registers again (a new id) while its end_of_stream, sent by the
+                # decoding thread, still carries the old one
+                asr.send_result(stream_id="s3", start_ns=0, end_ns=10)
+                assert recv_json(ws)["type"] == "fused_result"
+                stalled, asr = asr, FakeComponent(zctx, http, component_body("asr", designation="speech",
+                                                                             inputs=["vad/speech"]))
+                stalled.end_of_stream("s3")
+                assert recv_json(ws) == {"type": "stream_end", "stream_id": "s3"}  # not waiting for the new id
+                stalled.close()
+                assert time.monotonic() - dead_at < 2.0
+            elif comes_back:  # registers again (a new instance), sends its backlog, ends the stream
                 asr = FakeComponent(zctx, http, component_body("asr", designation="speech", inputs=["vad/speech"]))
                 asr.send_result(stream_id="s3", start_ns=0, end_ns=10)
                 asr.end_of_stream("s3")

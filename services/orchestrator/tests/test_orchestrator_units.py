@@ -158,6 +158,19 @@ def test_stream_ends_when_all_live_input_components_said_so():
     assert ends.finished({"vad-1"}) == ["s"]  # asr died: nobody else to wait for
 
 
+def test_an_end_said_under_an_earlier_id_counts_for_the_instance_that_replaced_it():
+    """A stalled asr declared dead sends its end_of_stream under its old id, then registers again
+    under a new one: the stream must end, not wait for the new id forever."""
+    ends = StreamEnds()
+    ends.on_end_of_stream("s", "vad-1")
+    ends.on_end_of_stream("s", "asr-old")
+    assert ends.finished({"vad-1", "asr-new"}) == []  # without knowing asr-new replaced asr-old
+    assert ends.finished({"vad-1", "asr-new"}, {"asr-new": {"asr-old"}}) == ["s"]
+    ends.on_result("s")
+    ends.on_end_of_stream("s", "vad-1")
+    assert ends.finished({"vad-1", "asr-new"}, {"asr-new": {"asr-old"}}) == []  # ended again by vad alone
+
+
 # hub
 def test_slow_client_is_dropped_without_blocking_others():
     async def scenario():
