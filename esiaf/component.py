@@ -74,6 +74,9 @@ class InputStats:
     received: int = 0
     lost: int = 0  # sequence numbers skipped: messages that never arrived
     bad: int = 0  # messages that could not be used (undecodable, wrong format, handler error)
+    # the input's queue depth: the most messages found waiting behind another at once (taken back to
+    # back, without waiting) since the last heartbeat; 0 while the component keeps up
+    queued: int = 0
 
 
 @dataclass
@@ -244,7 +247,11 @@ class Component:
 
     # -- running ---------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:
-        return {"inputs": {t: asdict(s) for t, s in list(self.input_stats.items())},
+        """What the heartbeat carries; each input's ``queued`` starts again for the next one."""
+        inputs = {t: asdict(s) for t, s in list(self.input_stats.items())}
+        for stats in list(self.input_stats.values()):
+            stats.queued = 0
+        return {"inputs": inputs,
                 "outputs": {t: asdict(s) for t, s in list(self.output_stats.items())},
                 "results_sent": self.results_sent, "results_dropped": self.results_dropped,
                 "refused": dict(self.refused), "refused_by_publisher": dict(self.refused_by_publisher),
@@ -302,6 +309,7 @@ class Component:
         Called from inside a handler (publish() does), it takes no audio input: the next chunk
         waits until the current handler has returned, so callbacks never nest or reorder.
         """
+        taken: dict[bytes, int] = {}  # audio messages taken back to back, by topic frame: its queue
         for kind, event in self._transport.events(timeout_ms, take_audio=not self._handling):
             if self.stopping and kind == "audio":
                 break  # SIGTERM while a backlog drains: stop now, not after the backlog
@@ -312,7 +320,13 @@ class Component:
             elif kind == "refused":
                 self._refuse_subscriber(event)
             else:
+                if event:
+                    taken[event[0]] = taken.get(event[0], 0) + 1
                 self._on_message(event)
+        for frame, count in taken.items():
+            stats = self.input_stats.get(topic_name(frame))
+            if stats is not None and count - 1 > stats.queued:
+                stats.queued = count - 1
 
     def _apply_state(self, state: dict[str, Any]) -> None:
         if state.get("type") == "fatal":

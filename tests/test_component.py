@@ -171,6 +171,35 @@ def test_a_slow_handler_does_not_make_the_component_look_dead(orchestrator):
         thread.join(timeout=10)
 
 
+def test_a_backlog_shows_as_the_input_queue_depth_in_the_heartbeat(orchestrator):
+    class Busy(Sink):
+        def on_audio(self, audio):
+            if audio.sequence == 1:
+                time.sleep(0.5)  # the rest of the burst waits behind the first message
+            super().on_audio(audio)
+
+    Busy.service = "sink"
+    sink, sink_thread = start(Busy, orchestrator.url)
+    source, source_thread = start(Source, orchestrator.url)
+
+    def queued():
+        return orchestrator.component("sink")["stats"]["inputs"]["source/audio"]["queued"]
+
+    try:
+        poll(lambda: orchestrator.component("sink") and orchestrator.component("sink").get("stats"), timeout_s=10)
+        assert queued() == 0
+        run_on(source, lambda c: (c.wait_for_subscribers("source/audio", 1, 10),
+                                  [c.publish("source/audio", np.zeros(160, dtype=np.int16), i * 10_000_000,
+                                             (i + 1) * 10_000_000) for i in range(20)]))
+        poll(lambda: len(sink.events) == 20, timeout_s=10)
+        poll(lambda: queued() >= 10, timeout_s=5, interval_s=0.02)  # 19 at most, less what came in later
+        poll(lambda: queued() == 0, timeout_s=5)  # caught up: the next heartbeat says so
+    finally:
+        for component, thread in ((source, source_thread), (sink, sink_thread)):
+            component.stop()
+            thread.join(timeout=10)
+
+
 def test_sigterm_stops_a_service_cleanly_and_unregisters_it(orchestrator):
     env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_URL": orchestrator.url}
     vad = subprocess.Popen([sys.executable, "-m", "services.vad"], cwd=REPO, env=env,

@@ -77,7 +77,8 @@ def page_state(driver) -> dict:
         });
         const components = Object.fromEntries([...document.querySelectorAll('#components tbody tr')].map(
             tr => [tr.dataset.component, {id: tr.dataset.componentId,
-                                          status: tr.querySelector('.status').textContent}]));
+                                          status: tr.querySelector('.status').textContent,
+                                          queued: tr.querySelector('.queued').textContent}]));
         return {fused, markers, components, connection: document.getElementById('connection').dataset.state,
                 tracks: document.querySelectorAll('#track-markers g.track').length,
                 directions: document.querySelectorAll('#timeline .directions .dot').length};
@@ -126,6 +127,8 @@ def test_the_demo_scene_on_the_dashboard(launch, browser):
     state = poll(lambda: (s := page_state(browser)) and set(live) <= set(s["components"]) and s, timeout_s=5)
     for name in live:
         assert state["components"][name]["status"] == "alive", (name, state["components"])
+        # the queue depth of a component with inputs: a count (the --fast replay is over: 0 once caught up)
+        assert state["components"][name]["queued"].isdigit() == bool(live[name]["inputs"]), state["components"][name]
 
     screenshot(browser, ARTEFACTS / "dashboard.png")
 
@@ -191,6 +194,8 @@ def assert_metrics_agree(run) -> None:
             if s.labels["outcome"] == "lost"}
     assert lost == {(c["component_id"], topic): float(counts["lost"]) for c in components
                     for topic, counts in ((c["stats"] or {}).get("inputs") or {}).items()}
+    queued = {(s.labels["component_id"], s.labels["topic"]) for s in samples["esiaf_component_input_queue_depth"]}
+    assert queued == set(lost)  # every input's queue depth
 
 
 NETWORK = {"offline": False, "latency": 0, "downloadThroughput": -1, "uploadThroughput": -1}

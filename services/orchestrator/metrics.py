@@ -124,6 +124,9 @@ class StateCollector(Collector):
         inputs = CounterMetricFamily("esiaf_component_input_messages", "audio messages on an input topic, by "
                                      "outcome: received, lost (never arrived), bad (unusable)",
                                      labels=[*COMPONENT_LABELS, "topic", "outcome"])
+        queued = GaugeMetricFamily("esiaf_component_input_queue_depth", "the most audio messages on an input "
+                                   "topic found waiting at once in the component's last heartbeat interval (0: it "
+                                   "keeps up)", labels=[*COMPONENT_LABELS, "topic"])
         outputs = CounterMetricFamily("esiaf_component_output_messages", "audio messages on an output topic, by "
                                       "outcome: published, dropped (high-water mark)",
                                       labels=[*COMPONENT_LABELS, "topic", "outcome"])
@@ -146,6 +149,7 @@ class StateCollector(Collector):
             for topic, counts in sorted(_mapping(stats.get("inputs")).items()):
                 for outcome in ("received", "lost", "bad"):
                     inputs.add_metric([*labels, str(topic), outcome], _count(_mapping(counts).get(outcome)))
+                queued.add_metric([*labels, str(topic)], _count(_mapping(counts).get("queued")))
             for topic, counts in sorted(_mapping(stats.get("outputs")).items()):
                 for outcome in ("published", "dropped"):
                     outputs.add_metric([*labels, str(topic), outcome], _count(_mapping(counts).get(outcome)))
@@ -154,5 +158,5 @@ class StateCollector(Collector):
                 refused.add_metric([*labels, str(reason)], _count(count))
             for reason, count in sorted(_mapping(stats.get("refused_subscribers")).items()):
                 refused_subscribers.add_metric([*labels, str(reason)], _count(count))
-        yield from (up, age, heartbeats, received, sent, not_sent, inputs, outputs, subscribers, refused,
+        yield from (up, age, heartbeats, received, sent, not_sent, inputs, queued, outputs, subscribers, refused,
                     refused_subscribers)

@@ -269,6 +269,7 @@ function drawComponents() {
     const outputs = Object.values(stats.outputs || {});
     const lost = sum(inputs.map((i) => i.lost)) + sum(outputs.map((o) => o.dropped)) + (stats.results_dropped || 0);
     const bad = sum(inputs.map((i) => i.bad));
+    const queued = Math.max(0, ...inputs.map((i) => i.queued || 0));
     const refused = sum(Object.values(stats.refused || {}));
     const latency = state.latency.get(component.name);
     const row = el("tr", {"data-component": component.name, "data-component-id": component.component_id,
@@ -277,6 +278,8 @@ function drawComponents() {
                el("td", {"class": "status", "data-status": component.status}, component.status),
                el("td", {"class": "heartbeat"}, Math.max(0, (nowNs - component.last_seen_ns) / 1e9).toFixed(1) + " s"),
                el("td", {"class": "counters"}, lost + " / " + bad + " / " + refused),
+               el("td", {"class": "queued", "title": "audio messages found waiting at once, last heartbeat"},
+                  inputs.length ? String(queued) : "–"),
                el("td", {"class": "latency"}, latency && latency.p50_ms !== null
                  ? Math.round(latency.p50_ms) + " / " + Math.round(latency.p95_ms) + " ms" : "–"));
     const topics = el("td", {"class": "topics"});

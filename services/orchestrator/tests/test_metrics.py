@@ -8,7 +8,7 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from services.orchestrator.tests.helpers import wait_until
 
-STATS = {"inputs": {"vad/speech": {"received": 40, "lost": 3, "bad": 2}},
+STATS = {"inputs": {"vad/speech": {"received": 40, "lost": 3, "bad": 2, "queued": 6}},
          "outputs": {"asr/echo": {"published": 7, "dropped": 1, "subscribers": 2}},
          "results_sent": 5, "results_dropped": 1, "refused": {"bad_format": 4}, "info": {}}
 
@@ -34,6 +34,7 @@ def test_heartbeat_counters_per_component_and_topic(component, http):
     assert 0 <= value(metrics, "esiaf_component_heartbeat_age_seconds", **ids) < 5
     for outcome, count in (("received", 40), ("lost", 3), ("bad", 2)):
         assert value(metrics, "esiaf_component_input_messages_total", **ids, topic="vad/speech", outcome=outcome) == count
+    assert value(metrics, "esiaf_component_input_queue_depth", **ids, topic="vad/speech") == 6
     for outcome, count in (("published", 7), ("dropped", 1)):
         assert value(metrics, "esiaf_component_output_messages_total", **ids, topic="asr/echo", outcome=outcome) == count
     assert value(metrics, "esiaf_component_output_subscribers", **ids, topic="asr/echo") == 2
