@@ -242,6 +242,8 @@ def run(args: argparse.Namespace) -> int:
                                         env={"ESIAF_ORCHESTRATOR_CONTROL_PORT": str(ports["control"]),
                                              "ESIAF_ORCHESTRATOR_RESULTS_PORT": str(ports["results"])})
         wait_until(client.healthy, supervisor, "the orchestrator to answer", START_TIMEOUT_S, orchestrator)
+        for line in client.recovered() if args.recover else []:
+            print(f"esiaf: --recover: {line}", file=sys.stderr, flush=True)
         # every service at once (their imports and models load in parallel), then each must register
         services = {"asr": supervisor.start("asr", (["--grammar", args.grammar] if args.grammar else [])
                                             + (["--backend", args.asr] if args.asr else []))}

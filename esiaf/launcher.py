@@ -205,6 +205,11 @@ class OrchestratorClient:
     def healthy(self) -> bool:
         return self._http.get(f"{self.url}/health").status_code == 200
 
+    def recovered(self) -> list[str]:
+        """The orchestrator's report of a ``--recover`` that repaired its database (empty if sound)."""
+        response = self._http.get(f"{self.url}/health")
+        return [str(line) for line in response.json().get("recovered") or []] if response.status_code == 200 else []
+
     def health_problem(self) -> str:
         """'' while healthy, else what /health says is wrong."""
         response = self._http.get(f"{self.url}/health")

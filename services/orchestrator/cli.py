@@ -41,11 +41,13 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=settings.log_level, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s %(message)s")
     try:
+        report: list[str] = []
         if args.recover:
             recovered = recover(settings.db_path)
-            for line in recovered.lines() if recovered else []:
+            report = recovered.lines() if recovered else []
+            for line in report:
                 print(f"orchestrator: {line}", file=sys.stderr, flush=True)
-        return asyncio.run(serve(settings, fresh=args.fresh))
+        return asyncio.run(serve(settings, fresh=args.fresh, recovered=report))
     except RecoveryError as exc:
         print(f"orchestrator: {exc}", file=sys.stderr)
         return 2

@@ -44,6 +44,7 @@ class Orchestrator:
     def __init__(self, settings: OrchestratorSettings, *, fresh: bool = False) -> None:
         self.settings = settings
         self.fresh = fresh
+        self.recovered: list[str] = []  # the report of a --recover that repaired the database at start-up
         self.registry = Registry(settings.format_strategy)
         self.hub = Hub()
         self.store: Store | None = None

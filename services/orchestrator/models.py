@@ -332,6 +332,8 @@ class LatencyList(BaseModel):
 
 class Health(BaseModel):
     status: Literal["ok"]
+    # what --recover copied from a corrupt database at this start, a line each; empty when it was sound
+    recovered: list[str] = []
 
 
 class Problem(BaseModel):

@@ -53,10 +53,12 @@ class _Server(uvicorn.Server):
         yield
 
 
-async def serve(settings: OrchestratorSettings, *, fresh: bool = False) -> int:
-    """Binds every port, then serves until SIGINT or SIGTERM; returns the exit code."""
+async def serve(settings: OrchestratorSettings, *, fresh: bool = False, recovered: list[str] | None = None) -> int:
+    """Binds every port, then serves until SIGINT or SIGTERM; returns the exit code. ``recovered``:
+    the report of a ``--recover`` that repaired the database, served by ``GET /health``."""
     sock = listen_socket(settings.host, settings.port)
     core = Orchestrator(settings, fresh=fresh)
+    core.recovered = list(recovered or [])
     try:
         await core.start()
     except BaseException:

@@ -16,4 +16,4 @@ async def health(request: Request):
     store = request.app.state.core.store
     if store.error is not None:
         return JSONResponse(status_code=503, content={"status": "unhealthy", "detail": store.error})
-    return Health(status="ok")
+    return Health(status="ok", recovered=request.app.state.core.recovered)

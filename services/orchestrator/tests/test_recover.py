@@ -103,6 +103,9 @@ def test_a_corrupt_database_is_refused_and_recover_starts_on_what_survived(damag
         said = re.search(r"orchestrator: recovered results: (\d+) rows; lost: (.+)", log)
         assert said and int(said.group(1)) == len(survived), log
         assert "event=db_table_recovered table=results" in log
+        served = orchestrator.http.get("/health").json()["recovered"]  # what esiaf run --recover shows
+        assert served[0].startswith(f"database {orchestrator.db_path} was corrupt") and said.group(0).split(
+            "orchestrator: ")[1] in served, served
 
         asr = FakeComponent(zctx, orchestrator.http, component_body("asr", designation="speech"))
         send(asr, range(SENT + 1, SENT + 11))  # the recovered database takes new results
@@ -156,8 +159,7 @@ def test_exactly_the_rows_of_a_damaged_leaf_are_lost(which, tmp_path):
     assert recovery.kept.exists()
 
 
-def test_esiaf_run_on_a_corrupt_workdir_names_recover(tmp_path):
-    """The launcher stops at the orchestrator (nothing else is started) and shows its one line."""
+def corrupt_workdir(tmp_path) -> None:
     path = tmp_path / "esiaf.db"
     with sqlite3.connect(path) as db:
         db.execute("CREATE TABLE t (x TEXT)")
@@ -165,8 +167,30 @@ def test_esiaf_run_on_a_corrupt_workdir_names_recover(tmp_path):
     with path.open("r+b") as out:  # a page in the middle
         out.seek(4 * PAGE)
         out.write(random.Random(SEED).randbytes(PAGE))
-    run = subprocess.run([sys.executable, "-m", "esiaf.cli", "run", "--input", str(REPO / "examples/robocup_questions.wav"),
-                          "--port", str(free_port()), "--workdir", str(tmp_path)],
-                         cwd=REPO, env=orchestrator_env(), capture_output=True, text=True, timeout=60)
+
+
+def esiaf_run(tmp_path, *options: str, timeout_s: float) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "esiaf.cli", "run", "--input", str(REPO / "examples/robocup_questions.wav"),
+                           "--port", str(free_port()), "--workdir", str(tmp_path), *options],
+                          cwd=REPO, env=orchestrator_env(), capture_output=True, text=True, timeout=timeout_s)
+
+
+def test_esiaf_run_on_a_corrupt_workdir_names_recover(tmp_path):
+    """The launcher stops at the orchestrator (nothing else is started) and shows its one line."""
+    corrupt_workdir(tmp_path)
+    run = esiaf_run(tmp_path, timeout_s=60)
     assert run.returncode != 0 and "service orchestrator exited with code 2" in run.stderr, run.stderr
     assert "is corrupt" in run.stderr and "--recover" in run.stderr
+
+
+@pytest.mark.e2e
+def test_esiaf_run_recover_says_what_it_recovered_and_runs(tmp_path):
+    corrupt_workdir(tmp_path)
+    run = esiaf_run(tmp_path, "--recover", "--fast", "--grammar", "robocup", "--without", "emotion,gender,voiceid",
+                    timeout_s=300)
+    assert run.returncode == 0, run.stderr
+    said = [line for line in run.stderr.splitlines() if line.startswith("esiaf: --recover: ")]
+    assert said[0].startswith(f"esiaf: --recover: database {tmp_path / 'esiaf.db'} was corrupt"), run.stderr
+    assert any(re.match(r"esiaf: --recover: recovered t: \d+ rows; lost: ", line) for line in said), said
+    assert list(tmp_path.glob("esiaf.db.corrupt-*")), "the damaged file is kept"
+    assert "how big is the rcmp" in run.stdout.lower(), run.stdout  # the run went on: a recognised question
