@@ -149,8 +149,8 @@ def test_the_demo_scene_on_the_dashboard(launch, browser):
     os.kill(asr["pid"], signal.SIGSTOP)
     stopped_at = time.monotonic()
     try:
-        poll(lambda: page_state(browser)["components"]["asr"] == {"id": asr["component_id"], "status": "dead"},
-             timeout_s=DEAD_WITHIN_S + 2)
+        poll(lambda: (row := page_state(browser)["components"]["asr"])["id"] == asr["component_id"]
+             and row["status"] == "dead", timeout_s=DEAD_WITHIN_S + 2)
         assert time.monotonic() - stopped_at <= DEAD_WITHIN_S
         screenshot(browser, ARTEFACTS / "dashboard-asr-dead.png")
     finally:
