@@ -189,22 +189,28 @@ class SpeechPayload(BaseModel):
 
 class SslDirection(BaseModel):
     source_id: str = Field(description="the tracked source this direction belongs to")
-    azimuth_deg: float
-    elevation_deg: float
-    probability: float
+    azimuth_deg: float = Field(description="this frame's, counter-clockwise from the array's x axis")
+    elevation_deg: float = Field(description="meaningful only where elevation_known")
+    probability: float = Field(description="the localiser's confidence in this direction, 0..1")
+    elevation_known: bool = Field(default=False, description="the array can tell elevation (microphones off one "
+                                  "plane) and the algorithm searched it")
     track_azimuth_deg: float = Field(default=0.0, description="the tracked source's smoothed azimuth")
     background: bool = Field(default=False, description="the track has stayed in one place far longer than an "
                              "utterance: a loudspeaker, a TV, a dishwasher, not a talker")
 
 
 class SslPayload(BaseModel):
-    directions: list[SslDirection]
+    directions: list[SslDirection] = Field(description="best first")
+    algorithm: str = Field(default="", description='the localiser, e.g. "NormMUSIC"')
+    level_db: float = Field(default=0.0, description="the frame's level, 96 dB = full-scale RMS")
 
 
 class LabelPayload(BaseModel):
     label: str
     probability: float
     class_probabilities: dict[str, float]
+    embedding: list[float] = Field(default_factory=list, description="voice_id only: the segment's speaker "
+                                   "embedding (unit length), from which a voice can be enrolled")
 
 
 class NoResultPayload(BaseModel):
