@@ -30,7 +30,6 @@ import argparse
 import json
 import os
 import signal
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -103,7 +102,8 @@ def baseline(path: Path, grammar: str) -> tuple[dict[str, list[float]], list[str
                 latencies["asr"].append((time.time_ns() - speech_end_ns - HANGOVER_NS) / 1e6)
                 first_ns = forwarded[0][0]  # the speech span only, as the services cut it
                 samples = np.concatenate([item for _, item in forwarded])[:, 0].astype(np.float32) / 32768
-                cut = samples[(forward.segment[0] - first_ns) * rate // 10**9:(speech_end_ns - first_ns) * rate // 10**9]
+                cut = samples[(forward.segment[0] - first_ns) * rate // 10**9:
+                              (speech_end_ns - first_ns) * rate // 10**9]
                 if cut.size >= rate // 2:  # the services' min_speech_ms
                     for labeller in labellers:
                         labeller.classify(cut)

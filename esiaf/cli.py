@@ -22,9 +22,10 @@ import os
 import socket
 import sys
 import time
+from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import httpx
 from websockets.exceptions import ConnectionClosed
@@ -274,10 +275,11 @@ def run(args: argparse.Namespace) -> int:
             services[name] = supervisor.start(name)
         plugins = {plugin.name: supervisor.start(plugin.name, target=plugin.target) for plugin in wanted_plugins}
         for name, child in services.items():
-            wait_until(lambda: client.component(name), supervisor, f"the {name} service to register",
+            wait_until(lambda name=name: client.component(name), supervisor, f"the {name} service to register",
                        START_TIMEOUT_S, child)
-        registered = [wait_until(lambda: client.by_pid(child.process.pid), supervisor,
-                                 f"{name} (--with) to register", START_TIMEOUT_S, child) for name, child in plugins.items()]
+        registered = [wait_until(lambda child=child: client.by_pid(child.process.pid), supervisor,
+                                 f"{name} (--with) to register", START_TIMEOUT_S, child)
+                      for name, child in plugins.items()]
         kinds = [component["designation"] for component in registered]
         fuse_kinds(client, [kind for kind in kinds if kind != "other"])
         on_speech = sum(any(i["topic"] == "vad/speech" for i in c["inputs"]) for c in registered)
@@ -293,7 +295,8 @@ def run(args: argparse.Namespace) -> int:
         wait_until(lambda: topic_ready(client, "vad/speech", 1 + len(labellers) + on_speech), supervisor,
                    f"{', '.join(['asr', *labellers])} to subscribe to vad/speech", START_TIMEOUT_S, services["vad"])
         if plugins:
-            print(f"esiaf: with {', '.join(f'{n} ({k})' for n, k in zip(plugins, kinds))}", file=sys.stderr)
+            with_kinds = ", ".join(f"{n} ({k})" for n, k in zip(plugins, kinds, strict=True))
+            print(f"esiaf: with {with_kinds}", file=sys.stderr)
         log.info("services: %s", ", ".join(services))
         with FusedFeed(f"ws://{args.host}:{args.port}/ws/fused?stream={stream_id}") as ws:
             source = ["--input", str(args.input.resolve())] if args.input else ["--device", args.mic]

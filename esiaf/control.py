@@ -17,13 +17,15 @@ healthcheck (``python -m esiaf.health``) that the component is registered and he
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import httpx
 import zmq
@@ -201,10 +203,8 @@ class ControlClient:
         self._wake()
 
     def _wake(self) -> None:
-        try:
+        with contextlib.suppress(OSError):  # BlockingIOError: the pipe is full, the thread is woken already
             os.write(self._wake_write, b"!")
-        except (BlockingIOError, OSError):
-            pass  # the pipe is full: the thread is woken already
 
     def stop(self, unregister_too: bool = True) -> None:
         self._stop.set()
@@ -214,10 +214,8 @@ class ControlClient:
         if unregister_too and self.registration:
             unregister(self._url, self.component_id)
         for fd in (self._wake_read, self._wake_write):
-            try:
+            with contextlib.suppress(OSError):
                 os.close(fd)
-            except OSError:
-                pass
 
     def _heard(self) -> None:
         """The orchestrator answered: freshens the health file, if there is one."""

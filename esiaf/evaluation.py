@@ -39,9 +39,10 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -121,6 +122,7 @@ def read_questions_and_answers(data: Path) -> list[tuple[str, str]]:
 def babble_clip(rng: np.random.Generator, answers: list[str], out: Path, seconds: float = 40.0) -> Path:
     """Four flite voices saying answers at once, one after the other, to ``out`` (16 kHz WAV)."""
     import soundfile
+
     from esiaf.scenes import speak
     total = int(seconds * 16000)
     mix = np.zeros(total)
@@ -187,14 +189,14 @@ def run_pipeline(audio: Path, array: str, options: list[str], work: Path, port: 
     if done.returncode != 0:
         tail = (work / "launcher.log").read_text().strip().splitlines()[-3:]
         raise EvalError(f"{name}: esiaf run exited with {done.returncode}: {' / '.join(tail)}")
-    origin, first_at, fused = None, None, {}
+    origin, fused = None, {}
     for line in done.stdout.splitlines():
         message = json.loads(line)
         if message.get("type") == "stream_start":
-            origin, first_at = message["start_ns"], time.monotonic()
-        elif message.get("type") == "fused_result":
-            if message["id"] not in fused or message["revision"] >= fused[message["id"]]["revision"]:
-                fused[message["id"]] = message
+            origin = message["start_ns"]
+        elif message.get("type") == "fused_result" and (
+                message["id"] not in fused or message["revision"] >= fused[message["id"]]["revision"]):
+            fused[message["id"]] = message
     if origin is None:
         raise EvalError(f"{name}: esiaf run printed no stream start")
     results = sorted(fused.values(), key=lambda m: m["anchor"]["span"]["start_ns"])
@@ -291,6 +293,7 @@ def check(args: argparse.Namespace) -> None:
 
 def evaluate(args: argparse.Namespace, options: list[str]) -> list[RunScore]:
     import soundfile
+
     from esiaf.scenes import render
     pipeline = options if "--without" in options else DEFAULT_PIPELINE + options
     questions = read_questions_and_answers(DATA)
@@ -316,7 +319,7 @@ def evaluate(args: argparse.Namespace, options: list[str]) -> list[RunScore]:
             soundfile.write(str(audio), np.round(signals * 32767).astype(np.int16), scene.sample_rate_hz)
             (run_dir / "scene.json").write_text(json.dumps(truth, indent=2) + "\n")
             asked = [Question(game, u["text"], u["azimuth_deg"], u["start_s"], u["end_s"])
-                     for game, u in zip(games, truth["utterances"])]
+                     for game, u in zip(games, truth["utterances"], strict=True)]
             try:
                 fused, wall_s = run_pipeline(audio, array, pipeline, run_dir, args.port, name)
             except EvalError as exc:  # scored as a run that answered nothing; the others go on

@@ -24,7 +24,7 @@ class FusedFeed:
         self.last_seq: int | None = None
         self.ws = connect(url, open_timeout=10, additional_headers=auth.headers())
 
-    def __enter__(self) -> "FusedFeed":
+    def __enter__(self) -> FusedFeed:
         return self
 
     def __exit__(self, *exc) -> None:

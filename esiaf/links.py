@@ -74,7 +74,7 @@ class OutputLink:
             chunk = Converted(bytes(payload), start_ns, end_ns)
         else:
             chunk = self._converter.convert(bytes(payload), start_ns, end_ns, last=last)
-        return out + [Outgoing(self.wire, chunk, stream_id, main=True)]
+        return [*out, Outgoing(self.wire, chunk, stream_id, main=True)]
 
     def _flush(self) -> list[Outgoing]:
         tail = self._converter.flush() if self._converter is not None else None

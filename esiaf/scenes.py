@@ -28,11 +28,12 @@ import json
 import logging
 import math
 import sys
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from esiaf.arrays import ArrayError, load_array
 from esiaf.settings import SettingsError, read_yaml_file
 
@@ -86,7 +87,7 @@ class Scene:
     seed: int = 0  # where in a long noise clip the scene's noise starts
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "Scene":
+    def from_dict(cls, data: dict[str, Any]) -> Scene:
         known = set(cls.__dataclass_fields__)
         unknown = set(data) - known
         if unknown:
@@ -203,7 +204,7 @@ def render_parts(scene: Scene) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
             "start_s": round(source.onset_s + first / fs + travel_s, 4),
             "end_s": round(source.onset_s + last / fs + travel_s, 4)})
     duration = max(onset + len(clip) / fs for _, clip, onset in clips) + scene.tail_s
-    samples = int(round(duration * fs))
+    samples = round(duration * fs)
 
     room = pra.ShoeBox(room_dim, fs=fs, materials=pra.Material(absorption), max_order=max_order,
                        air_absorption=False)
@@ -228,7 +229,7 @@ def render_parts(scene: Scene) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
         active[int(u["start_s"] * fs):int(u["end_s"] * fs)] = True
     speech_power = float(np.mean(speech[0, active] ** 2))
     noise_sum = np.zeros_like(speech)
-    for source, noise in zip(scene.noise, premix[len(clips):]):
+    for source, noise in zip(scene.noise, premix[len(clips):], strict=True):
         noise_power = float(np.mean(noise[0] ** 2)) or 1e-20
         noise_sum += noise * math.sqrt(speech_power / noise_power * 10 ** (-source.snr_db / 10))
     gain = 10 ** (scene.peak_dbfs / 20) / np.max(np.abs(speech + noise_sum))

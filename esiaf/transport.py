@@ -15,13 +15,15 @@ One thread uses a Transport: the component's data thread.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import re
 import socket
 import time
-from typing import Any, Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
+from typing import Any
 
 import zmq
 from zmq.auth.thread import ThreadAuthenticator
@@ -96,7 +98,8 @@ class Transport:
                     self.pub.bind_to_random_port(f"tcp://{bind_host}")
             except zmq.ZMQError as exc:
                 self.close()
-                raise TransportError(f"cannot bind audio output on {bind_host}:{audio_port or 'any port'}: {exc}")
+                where = f"{bind_host}:{audio_port or 'any port'}"
+                raise TransportError(f"cannot bind audio output on {where}: {exc}") from None
             self._poller.register(self.pub, zmq.POLLIN)
         topics = list(inputs)
         if topics:
@@ -158,10 +161,8 @@ class Transport:
 
     def wake(self) -> None:
         """Ends a wait in :meth:`events` now (safe from any thread and from signal handlers)."""
-        try:
+        with contextlib.suppress(OSError):  # full (already woken) or closed
             os.write(self._wake_write, b"!")
-        except OSError:  # full (already woken) or closed
-            pass
 
     def _drain_wake(self) -> None:
         try:
@@ -251,8 +252,6 @@ class Transport:
             self._authenticator.stop()
             self._authenticator = None
         for fd in (self._wake_read, self._wake_write):
-            try:
+            with contextlib.suppress(OSError):
                 os.close(fd)
-            except OSError:
-                pass
         self._wake_read = self._wake_write = -1

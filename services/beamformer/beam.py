@@ -68,7 +68,7 @@ class BeamCore:
         lead_s = lead_s - lead_s[self.reference]
         return np.exp(2j * np.pi * self.freqs[:, None] * lead_s[None, :])
 
-    def stream(self) -> "BeamStream":
+    def stream(self) -> BeamStream:
         return BeamStream(self)
 
 

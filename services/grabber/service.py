@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
+from typing import ClassVar
 
 from esiaf import AudioFormat, Component, ComponentSettings, SampleClock, SetupError
 from services.grabber.sources import AlsaSource, FileSource
@@ -38,9 +39,9 @@ class Grabber(Component):
     designation = "other"
     Settings = GrabberSettings
 
-    options = {"input": "sound file to play (WAV, FLAC, ... or headerless .raw)",
-               "device": "ALSA capture device (see arecord -L)",
-               "fast": "play as fast as possible"}
+    options: ClassVar[dict[str, str]] = {"input": "sound file to play (WAV, FLAC, ... or headerless .raw)",
+                                         "device": "ALSA capture device (see arecord -L)",
+                                         "fast": "play as fast as possible"}
 
     def __init__(self, settings: GrabberSettings):
         super().__init__(settings)
@@ -66,10 +67,9 @@ class Grabber(Component):
     def produce(self) -> None:
         s = self.settings
         if s.wait_for_subscribers and not self.wait_for_subscribers(s.topic, s.wait_for_subscribers,
-                                                                     s.wait_timeout_s):
-            if not self.stopping:
-                log.warning("topic=%s has fewer than %d subscribers after %g s; playing anyway",
-                            s.topic, s.wait_for_subscribers, s.wait_timeout_s)
+                                                                     s.wait_timeout_s) and not self.stopping:
+            log.warning("topic=%s has fewer than %d subscribers after %g s; playing anyway",
+                        s.topic, s.wait_for_subscribers, s.wait_timeout_s)
         fmt = self.source.format
         live = isinstance(self.source, AlsaSource)
         chunk_ns = fmt.duration_ns(self.source.chunk_frames)

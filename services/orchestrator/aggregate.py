@@ -13,7 +13,8 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Iterable
+from collections.abc import Iterable
+from typing import Any
 
 from esiaf.results import LABEL_PAYLOADS, RESULT_TYPES
 

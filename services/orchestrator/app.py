@@ -1,19 +1,19 @@
 """The FastAPI application factory. Nothing is built at import: state lives in the lifespan."""
 from __future__ import annotations
 
+from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from typing import AsyncIterator
 
 from fastapi import FastAPI
-from starlette.exceptions import HTTPException
 from fastapi_offline import FastAPIOffline  # /docs without a CDN: robots are often offline
+from starlette.exceptions import HTTPException
 
 from esiaf import auth
 
 from .api import components, dashboard, fused, fusions, health, latency, metrics, results, streams, topics, ws
 from .api.errors import with_allow_header
-from .core import Orchestrator
 from .auth import TokenAuth
+from .core import Orchestrator
 from .limits import BodyLimit
 from .openapi import documented
 from .settings import OrchestratorSettings

@@ -10,7 +10,8 @@ import json
 import logging
 import time
 from collections import Counter, OrderedDict, deque
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import zmq
 import zmq.asyncio

@@ -79,7 +79,7 @@ class RegisterRequest(Strict):
         return value
 
     @model_validator(mode="after")
-    def _consistent(self) -> "RegisterRequest":
+    def _consistent(self) -> RegisterRequest:
         for side in ("inputs", "outputs"):
             topics = [d.topic for d in getattr(self, side)]
             repeated = sorted({t for t in topics if topics.count(t) > 1})

@@ -172,6 +172,7 @@ async def enrol_voice(name: str, request: Request, core: Orchestrator = Depends(
 def embed_wav(data: bytes) -> np.ndarray:
     from scipy.io import wavfile
     from scipy.signal import resample_poly
+
     from services.voiceid.encoder import shared_encoder
     try:
         rate_hz, samples = wavfile.read(io.BytesIO(data))

@@ -9,6 +9,9 @@ end of stream).
 from __future__ import annotations
 
 import logging
+from typing import ClassVar
+
+from pydantic import Field
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
 from esiaf.control import declared_format
@@ -18,7 +21,7 @@ log = logging.getLogger(__name__)
 
 class SplitterSettings(ComponentSettings):
     input_topic: str = "grabber/audio"
-    channels: list[int] = []  # input channels to publish (0-based); empty = all
+    channels: list[int] = Field(default_factory=list)  # input channels to publish (0-based); empty = all
     input_channels: int = 0  # 0 = as declared by the input topic's producer (asked from the orchestrator)
     sample_rate_hz: int = 16000  # with input_channels: the input's rate
     sample_type: str = "int16"  # with input_channels: the input's sample type
@@ -34,8 +37,9 @@ class Splitter(Component):
     service = "splitter"
     designation = "other"
     Settings = SplitterSettings
-    options = {"input_topic": "multi-channel topic to split",
-               "input_channels": "channel count of the input (default: as its producer declares)"}
+    options: ClassVar[dict[str, str]] = {
+        "input_topic": "multi-channel topic to split",
+        "input_channels": "channel count of the input (default: as its producer declares)"}
 
     def setup(self) -> None:
         s = self.settings

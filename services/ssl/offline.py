@@ -6,9 +6,10 @@ scene's truth.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -98,7 +99,7 @@ def accuracy_scene(array: str, data: Path) -> Scene:
     ``data`` is the shared data folder."""
     import soundfile
     speech, onset = [], 0.5
-    for angle, name in zip(ANGLES, CLIPS):
+    for angle, name in zip(ANGLES, CLIPS, strict=True):
         clip = data / "speech" / "cmu_arctic" / f"{name}.wav"
         speech.append(SpeechSource(clip=str(clip), azimuth_deg=angle, distance_m=1.5, onset_s=onset, speaker=name))
         onset += soundfile.info(str(clip)).duration + 0.3

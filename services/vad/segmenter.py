@@ -80,8 +80,8 @@ class Segmenter(Generic[T]):
             out = [Forward(chunk) for chunk, _, _ in self._pre_roll]
             self._pre_roll.clear()
             if force_end:
-                return out + [self._end(item, end_ns)]
-            return out + [Forward(item)]
+                return [*out, self._end(item, end_ns)]
+            return [*out, Forward(item)]
         if level > p.db_keep_alive:
             self._last_loud_end_ns = end_ns
         quiet_ns = end_ns - self._last_loud_end_ns
@@ -178,8 +178,8 @@ class ProbabilitySegmenter(Generic[T]):
         out = [Forward(c.item) for c in self._held]
         self._held.clear()
         if ended:
-            return out + [self._end(item, self._last_speech_end_ns)]
-        return out + [Forward(item)]
+            return [*out, self._end(item, self._last_speech_end_ns)]
+        return [*out, Forward(item)]
 
     def _idle(self, chunk: _Chunk[T], force_end: bool) -> list[Forward[T]]:
         p = self.params
@@ -213,8 +213,8 @@ class ProbabilitySegmenter(Generic[T]):
         self._pre_roll.clear()
         self._candidate = []
         if force_end:
-            return out + [self._end(last.item, self._last_speech_end_ns)]
-        return out + [Forward(last.item)]
+            return [*out, self._end(last.item, self._last_speech_end_ns)]
+        return [*out, Forward(last.item)]
 
     def _cut(self) -> list[Forward[T]]:
         held, self._held = self._held, []

@@ -14,7 +14,9 @@ The VAD result of a segment carries its mean speech probability (1 with ``energy
 from __future__ import annotations
 
 import logging
-from typing import Any
+from typing import Any, ClassVar
+
+from pydantic import Field
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
 from services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
@@ -52,7 +54,8 @@ class Vad(Component):
     service = "vad"
     designation = "vad"
     Settings = VadSettings
-    options = {"backend": "silero (default: a neural VAD, robust to noise) or energy (the original)"}
+    options: ClassVar[dict[str, str]] = {
+        "backend": "silero (default: a neural VAD, robust to noise) or energy (the original)"}
 
     def __init__(self, settings: VadSettings):
         super().__init__(settings)
@@ -75,7 +78,7 @@ class Vad(Component):
         self.add_input(settings.input_topic, fmt)
         self.add_output(settings.output_topic, fmt)
         self.model: SileroModel | None = None
-        self.segmenters: dict[str, Any] = {}  # per stream: (segmenter, Silero state or None)
+        self.segmenters: dict[str, Any] = Field(default_factory=dict)  # per stream: (segmenter, Silero state or None)
         self.segments = 0
         self._ended_on_chunk: set[str] = set()  # streams whose end was forwarded with their last segment
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from typing import ClassVar
 
 import httpx
 import numpy as np
@@ -41,7 +42,8 @@ class VoiceId(UtteranceClassifier):
     service = "voiceid"
     kind = "voice_id"
     Settings = VoiceIdSettings
-    options = {"threshold": "cosine score an enrolled voice needs", "min_speech_ms": "shortest segment judged"}
+    options: ClassVar[dict[str, str]] = {"threshold": "cosine score an enrolled voice needs",
+                                         "min_speech_ms": "shortest segment judged"}
 
     def __init__(self, settings: VoiceIdSettings):
         super().__init__(settings)

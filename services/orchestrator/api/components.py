@@ -3,8 +3,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, HTTPException, Query, Response, status
 
 from ..core import Orchestrator
-from ..models import (ComponentInfo, ComponentList, Problem, RegisterRequest, RegisterResponse,
-                      TopicDeclaration)
+from ..models import ComponentInfo, ComponentList, Problem, RegisterRequest, RegisterResponse, TopicDeclaration
 from ..registry import Component, TopicConflict
 from .deps import get_core
 

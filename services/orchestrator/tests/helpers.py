@@ -8,7 +8,8 @@ import json
 import socket
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import httpx
 import uvicorn
@@ -53,7 +54,7 @@ class RunningOrchestrator:
         self._thread = threading.Thread(
             target=lambda: asyncio.run(self.server.serve(sockets=[self._sock])), daemon=True)
 
-    def start(self) -> "RunningOrchestrator":
+    def start(self) -> RunningOrchestrator:
         self._thread.start()
         wait_until(lambda: self.server.started or not self._thread.is_alive(), START_TIMEOUT_S,
                    "the orchestrator to start")

@@ -165,7 +165,8 @@ def test_esiaf_run_on_a_corrupt_workdir_names_recover(tmp_path):
     with path.open("r+b") as out:  # a page in the middle
         out.seek(4 * PAGE)
         out.write(random.Random(SEED).randbytes(PAGE))
-    run = subprocess.run([sys.executable, "-m", "esiaf.cli", "run", "--input", str(REPO / "examples/robocup_questions.wav"),
+    run = subprocess.run([sys.executable, "-m", "esiaf.cli", "run",
+                          "--input", str(REPO / "examples/robocup_questions.wav"),
                           "--port", str(free_port()), "--workdir", str(tmp_path)],
                          cwd=REPO, env=orchestrator_env(), capture_output=True, text=True, timeout=60)
     assert run.returncode != 0 and "service orchestrator exited with code 2" in run.stderr, run.stderr
