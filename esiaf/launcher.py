@@ -33,6 +33,7 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 _PR_SET_PDEATHSIG = 1
 MAX_RESTARTS = 5  # a service that died this often is not restarted again: the run ends
 RESTART_BACKOFF_S = 0.5  # before the first restart; doubles with each, up to 10 s
+START_TIMEOUT_S = 60.0  # esiaf run: how long a service may take to answer, register, subscribe or start playing
 
 
 class LaunchError(Exception):
