@@ -94,6 +94,13 @@ class Component:
         self._input_links = self._receiver.links  # per topic and publisher
         self._last_seen = self._receiver.last_seen
 
+    @property
+    def _wire(self) -> Transport:
+        """The sockets: made by run() before it registers, closed when it returns."""
+        if self._transport is None:
+            raise RuntimeError(f"{type(self).__name__}: the sockets are used before run() made them")
+        return self._transport
+
     # -- declaration -----------------------------------------------------------------
     def add_input(self, topic: str, fmt: AudioFormat) -> None:
         self.inputs[topic] = fmt
@@ -169,7 +176,7 @@ class Component:
         sequence = self._sequences.get(topic, 0) + 1
         msg.publisher, msg.sequence = self.instance_id, sequence
         stats = self.output_stats[topic]
-        if not self._transport.send_audio(topic, msg.SerializeToString()):
+        if not self._wire.send_audio(topic, msg.SerializeToString()):
             stats.dropped += 1
             log.warning("audio dropped at high-water mark topic=%s sequence=%d dropped=%d",
                         topic, sequence, stats.dropped)
@@ -269,8 +276,8 @@ class Component:
             return [{"topic": t, "format": f.to_dict()} for t, f in declared.items()]
         return {"name": self.settings.name, "designation": self.designation, "stream_id": self.settings.stream_id,
                 "inputs": topics(self.inputs), "outputs": topics(self.outputs),
-                "audio_endpoint": self._transport.audio_endpoint, "host": socket.gethostname(), "info": self.info,
-                **({"audio_public_key": key} if (key := self._transport.audio_public_key) else {})}
+                "audio_endpoint": self._wire.audio_endpoint, "host": socket.gethostname(), "info": self.info,
+                **({"audio_public_key": key} if (key := self._wire.audio_public_key) else {})}
 
     def _service(self, timeout_ms: float) -> None:
         """Handles whatever is ready on the sockets, waiting up to ``timeout_ms`` for the first.
@@ -278,7 +285,7 @@ class Component:
         Called from inside a handler (publish() does), it takes no audio input: the next chunk
         waits until the current handler has returned, so callbacks never nest or reorder.
         """
-        for kind, event in self._transport.events(timeout_ms, take_audio=not self._handling):
+        for kind, event in self._wire.events(timeout_ms, take_audio=not self._handling):
             if self.stopping and kind == "audio":
                 break  # SIGTERM while a backlog drains: stop now, not after the backlog
             if kind == "state":
@@ -295,9 +302,9 @@ class Component:
             log.error("stopping: %s", state.get("error"))
             self.stop(exit_code=1)
             return
-        self._transport.connect_peers({e for endpoints in state.get("peers", {}).values() for e in endpoints},
+        self._wire.connect_peers({e for endpoints in state.get("peers", {}).values() for e in endpoints},
                                       state.get("peer_keys", {}))
-        self._transport.connect_results(state.get("results_endpoint", ""))
+        self._wire.connect_results(state.get("results_endpoint", ""))
         for topic, fmt in state.get("formats", {}).items():
             assigned = AudioFormat.from_dict(fmt)
             if self._assigned.get(topic) == assigned:
@@ -365,7 +372,7 @@ class Component:
         log.info("end of stream stream_id=%s", audio.stream_id)
 
     def _send_results(self, frames: Sequence[bytes]) -> None:
-        if self._transport.send_results(frames):
+        if self._wire.send_results(frames):
             self.results_sent += frames[0] == b"result"
         else:
             self.results_dropped += 1

@@ -40,6 +40,7 @@ import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -141,7 +142,8 @@ def run_pipeline(audio: Path, array: str, options: list[str], work: Path, port: 
     if done.returncode != 0:
         tail = (work / "launcher.log").read_text().strip().splitlines()[-3:]
         raise EvalError(f"{name}: esiaf run exited with {done.returncode}: {' / '.join(tail)}")
-    origin, fused = None, {}
+    origin: int | None = None
+    fused: dict[int, dict[str, Any]] = {}
     for line in done.stdout.splitlines():
         message = json.loads(line)
         if message.get("type") == "stream_start":

@@ -18,7 +18,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -81,7 +81,7 @@ class Supervisor:
     env: dict[str, str] = field(default_factory=dict)
     children: list[Child] = field(default_factory=list)
 
-    def start(self, name: str, args: list[str] = (), env: dict[str, str] | None = None,
+    def start(self, name: str, args: Sequence[str] = (), env: dict[str, str] | None = None,
               target: list[str] | None = None) -> Child:
         """Starts ``python -m services.<name>`` (or ``python <target...>``, a plug-in) with ``args``."""
         logs = self.workdir / "logs"

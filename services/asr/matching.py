@@ -62,7 +62,7 @@ def normalise(text: str) -> list[str]:
     text = re.sub(r"(\d),(\d{3})", r"\1\2", text)  # 1,000 -> 1000
     text = re.sub(r"\d+", lambda m: " " + number_words(int(m.group(0))) + " " if len(m.group(0)) <= 6
                   else m.group(0), text)
-    words = []
+    words: list[str] = []
     for word in re.split(r"[^a-z0-9'&%]+", text):
         word = word.strip("'")
         if word:

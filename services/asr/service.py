@@ -65,6 +65,7 @@ class Asr(Component):
     service = "asr"
     designation = "speech"
     Settings = AsrSettings
+    settings: AsrSettings  # an instance of Settings: its fields, for type checkers
 
     options: ClassVar[dict[str, str]] = {"grammar": "JSGF grammar file, or a bundled grammar name (robocup)",
                                          "backend": "pocketsphinx (default) or whisper"}
@@ -156,6 +157,7 @@ class Asr(Component):
             hypotheses = state.recognizer.finish()
         else:
             pcm, state.chunks = b"".join(state.chunks), []
+            assert self.whisper is not None  # setup() loads it for the whisper backend
             decoded = self.whisper.recognise(np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0,
                                              self.settings.sample_rate_hz, self.prompt)
             hypotheses, nothing = decoded.hypotheses, decoded.nothing or nothing

@@ -103,6 +103,7 @@ class BeamStream:
         self.weights = None if self.target is None else self._weights()
 
     def _weights(self) -> np.ndarray:
+        assert self.target is not None  # weights are for a direction
         d = self.core.steering(self.target)
         if self.core.method == "das" or self.noise_frames == 0:
             return d / self.core.array.mics

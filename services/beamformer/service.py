@@ -74,6 +74,7 @@ class Beamformer(Component):
     service = "beamformer"
     designation = "other"
     Settings = BeamformerSettings
+    settings: BeamformerSettings  # an instance of Settings: its fields, for type checkers
     options: ClassVar[dict[str, str]] = {"array": ARRAY_CHOICES,
                                          "method": "mvdr (default) or das (delay and sum)"}
 

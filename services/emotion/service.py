@@ -33,6 +33,7 @@ class UtteranceClassifier(UtteranceComponent):
     """Base of the emotion and gender services: one label result per VAD segment, from a model."""
 
     Settings = UtteranceSettings
+    settings: UtteranceSettings  # an instance of Settings: its fields, for type checkers
     options: ClassVar[dict[str, str]] = {
         "model": "bundled model name, .onnx file, or package.module:Class for the python backend",
         "backend": "onnx (default) or python"}
@@ -54,8 +55,9 @@ class UtteranceClassifier(UtteranceComponent):
         log.info("model=%s backend=%s labels=%s", s.model, s.backend, ",".join(self.classifier.labels))
 
     def analyse(self, samples: np.ndarray, rate: int) -> dict[str, Any]:
+        assert self.classifier is not None  # setup() loads it
         probabilities = self.classifier.classify(samples)
-        label = max(probabilities, key=probabilities.get)
+        label = max(probabilities, key=probabilities.__getitem__)
         return {"label": label, "probability": probabilities[label], "class_probabilities": probabilities}
 
 

@@ -54,6 +54,8 @@ def create_app(settings: OrchestratorSettings, *,
     app.include_router(voices_router)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(TokenAuth, token=settings.token or auth.token(), allowed_origins=settings.allowed_origins)
-    app.add_exception_handler(HTTPException, with_allow_header)
-    app.openapi = documented(app)  # what the two middlewares answer
+    # Starlette types a handler as taking any Exception; this one is registered for HTTPException only
+    app.add_exception_handler(HTTPException, with_allow_header)  # type: ignore[arg-type]
+    # replacing app.openapi is FastAPI's documented way to extend the schema
+    app.openapi = documented(app)  # type: ignore[method-assign]  # what the two middlewares answer
     return app

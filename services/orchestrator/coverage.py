@@ -66,9 +66,12 @@ class Coverage:
 
 
 class Spanned(Protocol):
-    id: int
-    start_ns: int
-    end_ns: int
+    @property
+    def id(self) -> int: ...
+    @property
+    def start_ns(self) -> int: ...
+    @property
+    def end_ns(self) -> int: ...
 
 
 class SpanIndex:

@@ -195,6 +195,8 @@ def embed_wav(data: bytes) -> np.ndarray:
 
 def stored_embeddings(core: Orchestrator, body: SpanEnrolment | AnonymousEnrolment) -> tuple[list[np.ndarray], str]:
     stream = body.stream
+    start_ns: int | None
+    end_ns: int | None
     if isinstance(body, SpanEnrolment):
         anonymous = None
         start_ns, end_ns = body.start_ns, body.end_ns

@@ -9,7 +9,7 @@ end of stream).
 from __future__ import annotations
 
 import logging
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from pydantic import Field
 
@@ -37,6 +37,7 @@ class Splitter(Component):
     service = "splitter"
     designation = "other"
     Settings = SplitterSettings
+    settings: SplitterSettings  # an instance of Settings: its fields, for type checkers
     options: ClassVar[dict[str, str]] = {
         "input_topic": "multi-channel topic to split",
         "input_channels": "channel count of the input (default: as its producer declares)"}
@@ -67,7 +68,7 @@ class Splitter(Component):
 
     def on_audio(self, audio: Audio) -> None:
         segment = audio.meta.segment
-        meta = dict(stream_id=audio.stream_id, segmentation_ended=audio.segmentation_ended,
+        meta: dict[str, Any] = dict(stream_id=audio.stream_id, segmentation_ended=audio.segmentation_ended,
                     segment=(segment.start_ns, segment.end_ns) if audio.meta.HasField("segment") else None,
                     ssl_directions=audio.ssl_directions, end_of_stream=audio.end_of_stream)
         samples = audio.samples

@@ -136,7 +136,7 @@ class Localiser:
             bins = bins[floor.update(power)[bins]]
             if len(bins) < floor.min_bins:
                 return []
-        if self.algorithm == "FRIDA" and not np.array_equal(bins, self._frida_bins):
+        if self.algorithm == "FRIDA" and (self._frida_bins is None or not np.array_equal(bins, self._frida_bins)):
             self._doa.G = None  # FRIDA keeps its mapping for the bins it saw first: rebuild it for these
             self._frida_bins = bins
         with warnings.catch_warnings():  # pyroomacoustics warns on ill-conditioned bins; the result says enough

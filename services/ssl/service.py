@@ -74,6 +74,7 @@ class Ssl(Component):
     service = "ssl"
     designation = "ssl"
     Settings = SslSettings
+    settings: SslSettings  # an instance of Settings: its fields, for type checkers
     options: ClassVar[dict[str, str]] = {
         "array": ARRAY_CHOICES,
         "algorithm": "DOA algorithm: NormMUSIC (default), MUSIC, SRP, TOPS, CSSM, WAVES, FRIDA"}
@@ -158,6 +159,7 @@ class Ssl(Component):
     def _directions(self, state: StreamState, frame: np.ndarray, span: tuple[int, int],
                     stream_id: str) -> list[pb.SslDirection]:
         s = self.settings
+        assert self.localiser is not None  # setup() makes it
         level_db = 96.0 + 10 * math.log10(float(np.mean(frame ** 2)) + 1e-20)
         reason = ""
         if level_db < s.min_level_db:

@@ -54,6 +54,7 @@ class Vad(Component):
     service = "vad"
     designation = "vad"
     Settings = VadSettings
+    settings: VadSettings  # an instance of Settings: its fields, for type checkers
     options: ClassVar[dict[str, str]] = {
         "backend": "silero (default: a neural VAD, robust to noise) or energy (the original)"}
 

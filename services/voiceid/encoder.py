@@ -42,7 +42,7 @@ def weights_path() -> Path:
                            "pip install --no-deps resemblyzer==0.1.4 (setup.sh does)")
 
 
-def _hz_to_mel(hz: np.ndarray) -> np.ndarray:  # slaney: linear below 1 kHz, logarithmic above
+def _hz_to_mel(hz: float | np.ndarray) -> np.ndarray:  # slaney: linear below 1 kHz, logarithmic above
     hz = np.asarray(hz, float)
     mel = hz / (200.0 / 3)
     log_part = hz >= 1000.0

@@ -42,6 +42,7 @@ class VoiceId(UtteranceClassifier):
     service = "voiceid"
     kind = "voice_id"
     Settings = VoiceIdSettings
+    settings: VoiceIdSettings  # an instance of Settings: its fields, for type checkers
     options: ClassVar[dict[str, str]] = {"threshold": "cosine score an enrolled voice needs",
                                          "min_speech_ms": "shortest segment judged"}
 
@@ -90,6 +91,7 @@ class VoiceId(UtteranceClassifier):
 
     def analyse(self, samples: np.ndarray, rate: int) -> dict:
         stream_id = self.utterance_stream_id
+        assert self.encoder is not None  # setup() loads it
         embedding = self.encoder.embed(samples)
         s = self.settings
         match = self.book.identify(embedding, s.threshold)

@@ -34,7 +34,8 @@ def text_of(n: int) -> str:
 
 def stored_results(orchestrator: Orchestrator) -> dict[int, str]:
     """sequence -> text of every stored result of stream s, paged through."""
-    found, after_id = {}, 0
+    found: dict[int, str] = {}
+    after_id = 0
     while True:
         page = orchestrator.http.get("/results", params={"stream": "s", "limit": 1000, "after_id": after_id}).json()
         if not page["items"]:
