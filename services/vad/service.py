@@ -16,8 +16,6 @@ from __future__ import annotations
 import logging
 from typing import Any, ClassVar
 
-from pydantic import Field
-
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
 from services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
 from services.vad.silero import RATES_HZ, SileroError, SileroModel
@@ -79,7 +77,7 @@ class Vad(Component):
         self.add_input(settings.input_topic, fmt)
         self.add_output(settings.output_topic, fmt)
         self.model: SileroModel | None = None
-        self.segmenters: dict[str, Any] = Field(default_factory=dict)  # per stream: (segmenter, Silero state or None)
+        self.segmenters: dict[str, Any] = {}  # per stream: (segmenter, Silero state or None)
         self.segments = 0
         self._ended_on_chunk: set[str] = set()  # streams whose end was forwarded with their last segment
 
