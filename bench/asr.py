@@ -80,7 +80,9 @@ def main() -> None:
         raise SystemExit(f"bench/asr.py: no shared data at {DATA} (set ESIAF_SHARED_DATA)")
     material = clips()
     audio_s = sum(len(s) for _, s, _ in material) / 16000
-    matcher = SentenceMatcher.from_file(resolve_grammar("robocup"), threshold=0.6)
+    grammar = resolve_grammar("robocup")
+    assert grammar is not None  # bundled
+    matcher = SentenceMatcher.from_file(grammar, threshold=0.6)
     print(f"bench/asr: {len(material)} clips, {audio_s:.0f} s of speech", file=sys.stderr)
     lines = []
     for name, make in (("pocketsphinx", pocketsphinx_decoder), ("whisper", whisper_decoder)):

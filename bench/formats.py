@@ -25,9 +25,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from esiaf.audio import SampleClock  # noqa: E402
-from esiaf.convert import StreamConverter, convert  # noqa: E402
-from esiaf.formats import AudioFormat, encode  # noqa: E402
+from esiaf.audio import SampleClock
+from esiaf.convert import StreamConverter, convert
+from esiaf.formats import AudioFormat, encode
 
 PATHS = {
     "48k_int32_to_16k_int16": (AudioFormat(48000, "int32"), AudioFormat(16000, "int16")),
@@ -54,7 +54,7 @@ def streamed_cpu_s(src: AudioFormat, dst: AudioFormat, payload: bytes, chunk_ms:
     pieces = [payload[i:i + step] for i in range(0, len(payload), step)]
     spans = [clock.advance(len(p) // src.bytes_per_frame) for p in pieces]
     started = time.process_time()
-    for index, (piece, span) in enumerate(zip(pieces, spans)):
+    for index, (piece, span) in enumerate(zip(pieces, spans, strict=True)):
         converter.convert(piece, *span, last=index == len(pieces) - 1)
     return time.process_time() - started, len(pieces)
 

@@ -30,7 +30,6 @@ import argparse
 import json
 import os
 import signal
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -82,7 +81,8 @@ def baseline(path: Path, grammar: str) -> tuple[dict[str, list[float]], list[str
     origin_ns, started = time.time_ns(), time.monotonic()
     clock = SampleClock(origin_ns, rate)
     latencies: dict[str, list[float]] = {"asr": [], "full": []}
-    texts, forwarded = [], []
+    texts: list[str] = []
+    forwarded: list[tuple[int, np.ndarray]] = []
     for offset in range(0, len(audio), step):
         chunk = audio[offset:offset + step]
         start_ns, end_ns = clock.advance(len(chunk))
@@ -97,13 +97,15 @@ def baseline(path: Path, grammar: str) -> tuple[dict[str, list[float]], list[str
             forwarded.append(forward.item)
             recognizer.feed(forward.item[1].tobytes())
             if forward.ended:
+                assert forward.segment is not None  # an ended segment has its span
                 hypotheses = recognizer.finish()
                 texts.append(hypotheses[0].text if hypotheses else "")
                 speech_end_ns = forward.segment[1]
                 latencies["asr"].append((time.time_ns() - speech_end_ns - HANGOVER_NS) / 1e6)
                 first_ns = forwarded[0][0]  # the speech span only, as the services cut it
                 samples = np.concatenate([item for _, item in forwarded])[:, 0].astype(np.float32) / 32768
-                cut = samples[(forward.segment[0] - first_ns) * rate // 10**9:(speech_end_ns - first_ns) * rate // 10**9]
+                cut = samples[(forward.segment[0] - first_ns) * rate // 10**9:
+                              (speech_end_ns - first_ns) * rate // 10**9]
                 if cut.size >= rate // 2:  # the services' min_speech_ms
                     for labeller in labellers:
                         labeller.classify(cut)
@@ -127,6 +129,7 @@ def pipeline(path: Path, grammar: str, port: int, extra: list[str]):
     stderr_lines: list[str] = []
 
     def read_stdout() -> None:
+        assert launcher.stdout is not None  # stdout=PIPE
         for line in launcher.stdout:
             arrived_ns = time.time_ns()
             fused = json.loads(line)
@@ -143,6 +146,7 @@ def pipeline(path: Path, grammar: str, port: int, extra: list[str]):
             texts.append(hyps[0]["text"] if hyps else "")
 
     def read_stderr() -> None:
+        assert launcher.stderr is not None  # stderr=PIPE
         for line in launcher.stderr:
             stderr_lines.append(line)
             if "stream ended" in line:

@@ -68,11 +68,11 @@ def through_room(utterances: list[np.ndarray]) -> list[np.ndarray]:
     room = pra.ShoeBox(room_m, fs=16000, materials=pra.Material(absorption), max_order=max_order)
     mic = np.array([3.0, 2.5, 1.2])
     room.add_microphone(mic)
-    room.add_source(mic + [1.5, 0.0, 0.3])
-    room.add_source(mic + [-1.0, 1.7, -0.2])
+    room.add_source([*mic, 1.5, 0.0, 0.3])
+    room.add_source([*mic, -1.0, 1.7, -0.2])
     room.compute_rir()
     speech_rir, noise_rir = room.rir[0][0], room.rir[0][1]
-    noise, rate = soundfile.read(SHARED_DATA / "noise" / "speech_commands_bg" / "doing_the_dishes.wav",
+    noise, _rate = soundfile.read(SHARED_DATA / "noise" / "speech_commands_bg" / "doing_the_dishes.wav",
                                  dtype="float32")
     noise = np.convolve(noise if noise.ndim == 1 else noise[:, 0], noise_rir)
     rng = np.random.default_rng(0)
@@ -99,7 +99,7 @@ def eer(genuine: np.ndarray, impostor: np.ndarray) -> tuple[float, float]:
 
 def evaluate(names: list[str], speakers: list[str], neutral: list[bool], embeddings: np.ndarray) -> dict[str, float]:
     ids = sorted(set(speakers))
-    enrol = {s: [i for i, (sp, n) in enumerate(zip(speakers, neutral)) if sp == s and n][:ENROL_UTTERANCES]
+    enrol = {s: [i for i, (sp, n) in enumerate(zip(speakers, neutral, strict=True)) if sp == s and n][:ENROL_UTTERANCES]
              for s in ids}
     enrolled = {i for idx in enrol.values() for i in idx}
     trials = [i for i in range(len(names)) if i not in enrolled]
@@ -159,7 +159,7 @@ def main() -> None:
     parser.add_argument("--pipeline", action="store_true", help="also measure latency through the pipeline")
     args = parser.parse_args()
     data = load_emodb()
-    names, speakers, neutral, clips = (list(column) for column in zip(*data))
+    names, speakers, neutral, clips = (list(column) for column in zip(*data, strict=True))
     encoder = VoiceEncoder()
     speech_s = sum(c.size for c in clips) / 16000
     started = time.process_time()

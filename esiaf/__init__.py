@@ -21,14 +21,20 @@ _EXPORTS = {
 }
 __all__ = sorted(_EXPORTS)
 
-if TYPE_CHECKING:
-    from esiaf.audio import Audio, SampleClock
-    from esiaf.component import Component, SetupError
-    from esiaf.formats import AudioFormat
-    from esiaf.results import hypothesis, ssl_direction
-    from esiaf.runner import main
-    from esiaf.settings import ComponentSettings, SettingsError, load_settings
-    from esiaf.utterance import UtteranceComponent, UtteranceSettings
+if TYPE_CHECKING:  # `X as X`: re-exported names, for type checkers and linters
+    from esiaf.audio import Audio as Audio
+    from esiaf.audio import SampleClock as SampleClock
+    from esiaf.component import Component as Component
+    from esiaf.component import SetupError as SetupError
+    from esiaf.formats import AudioFormat as AudioFormat
+    from esiaf.results import hypothesis as hypothesis
+    from esiaf.results import ssl_direction as ssl_direction
+    from esiaf.runner import main as main
+    from esiaf.settings import ComponentSettings as ComponentSettings
+    from esiaf.settings import SettingsError as SettingsError
+    from esiaf.settings import load_settings as load_settings
+    from esiaf.utterance import UtteranceComponent as UtteranceComponent
+    from esiaf.utterance import UtteranceSettings as UtteranceSettings
 
 
 def __getattr__(name: str):

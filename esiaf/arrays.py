@@ -110,7 +110,7 @@ def circular(mics: int, radius_m: float, name: str = "") -> ArrayGeometry:
         raise ArrayError(f"a circular array needs a positive radius in metres, not {radius_m}")
     angles = 2 * np.pi * np.arange(mics) / mics
     return _planar(name or f"circular:{mics}:{radius_m:g}",
-                   list(zip(radius_m * np.cos(angles), radius_m * np.sin(angles))))
+                   list(zip(radius_m * np.cos(angles), radius_m * np.sin(angles), strict=True)))
 
 
 PRESETS = {

@@ -25,7 +25,7 @@ class Audio:
     meta: pb.AudioMeta = field(default_factory=pb.AudioMeta)
 
     @classmethod
-    def from_message(cls, msg: pb.AugmentedAudio) -> "Audio":
+    def from_message(cls, msg: pb.AugmentedAudio) -> Audio:
         return cls(topic=msg.topic, stream_id=msg.stream_id, publisher=msg.publisher, sequence=msg.sequence,
                    start_ns=msg.start_ns, end_ns=msg.end_ns, format=AudioFormat.from_proto(msg.format),
                    payload=msg.payload, meta=msg.meta)

@@ -10,6 +10,9 @@ then SSL meta, then VAD end, then end of stream) and shutdown on SIGTERM/SIGINT.
 
 All handlers run on one thread, in order; the heartbeat runs on another, so a
 long computation in a handler never makes the component look dead.
+
+The input side (bounds on what peers send, loss counting, per-publisher conversion) is
+esiaf/receiving.py.
 """
 from __future__ import annotations
 
@@ -20,8 +23,9 @@ import socket
 import threading
 import time
 import uuid
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
-from typing import Any, ClassVar, Iterable, Sequence
+from typing import Any, ClassVar
 
 import numpy as np
 import zmq
@@ -29,54 +33,21 @@ import zmq
 from esiaf import keys
 from esiaf.audio import Audio
 from esiaf.control import ControlClient, announce_stream
-from esiaf.formats import AudioFormat, FormatError, encode
-from esiaf.links import InputLink, OutputLink
+from esiaf.formats import AudioFormat, encode
+from esiaf.links import OutputLink
 from esiaf.proto import esiaf_pb2 as pb
+from esiaf.receiving import InputStats, Receiver
 from esiaf.results import make_result
 from esiaf.settings import ComponentSettings
 from esiaf.transport import Transport, TransportError, topic_name
 
 log = logging.getLogger(__name__)
 
-
-# Bounds on what a peer may send (docs/reliability.md)
-MAX_MESSAGE_BYTES = 16 * 1024 * 1024  # one AugmentedAudio message
-MAX_CHUNK_S = 10.0  # audio in one message
-MIN_RATE_HZ, MAX_RATE_HZ = 8_000, 192_000
-MAX_CHANNELS = 64
-MAX_PUBLISHERS = 256  # publishers (topic, instance) whose state is kept
-MAX_TIME_NS = 2**62  # capture times after 2116 are refused: sums never overflow
 IDLE_WAIT_MS = 5_000  # a consumer's longest sleep in one poll (input, control and stop() wake it)
-
-
-def check_audio(audio: Audio) -> None:
-    """Raises ValueError if a received chunk is out of bounds: rate, channels, size, times."""
-    fmt = audio.format
-    if not MIN_RATE_HZ <= fmt.sample_rate_hz <= MAX_RATE_HZ:
-        raise ValueError(f"sample rate {fmt.sample_rate_hz} Hz outside {MIN_RATE_HZ}..{MAX_RATE_HZ}")
-    if fmt.channels > MAX_CHANNELS:
-        raise ValueError(f"{fmt.channels} channels, more than {MAX_CHANNELS}")
-    frames = fmt.frames_in(audio.payload)  # FormatError (a ValueError) if not whole frames
-    if frames > MAX_CHUNK_S * fmt.sample_rate_hz:
-        raise ValueError(f"{frames / fmt.sample_rate_hz:.1f} s of audio in one message, more than {MAX_CHUNK_S:g}")
-    if not 0 <= audio.start_ns <= audio.end_ns < MAX_TIME_NS:
-        raise ValueError(f"capture span {audio.start_ns}..{audio.end_ns} is not ordered within 1970..2116")
-    if len(audio.stream_id) > 200 or len(audio.publisher) > 200:
-        raise ValueError("stream or publisher name over 200 characters")
 
 
 class SetupError(Exception):
     """A component could not be configured (model missing, device unknown...)."""
-
-
-@dataclass
-class InputStats:
-    received: int = 0
-    lost: int = 0  # sequence numbers skipped: messages that never arrived
-    bad: int = 0  # messages that could not be used (undecodable, wrong format, handler error)
-    # the input's queue depth: the most messages found waiting behind another at once (taken back to
-    # back, without waiting) since the last heartbeat; 0 while the component keeps up
-    queued: int = 0
 
 
 @dataclass
@@ -99,7 +70,6 @@ class Component:
         self.inputs: dict[str, AudioFormat] = {}
         self.outputs: dict[str, AudioFormat] = {}
         self.instance_id = f"{settings.name}-{uuid.uuid4().hex[:8]}"
-        self.input_stats: dict[str, InputStats] = {}
         self.output_stats: dict[str, OutputStats] = {}
         self.info: dict[str, Any] = {}  # reported with every heartbeat
         self.results_sent = 0
@@ -107,19 +77,29 @@ class Component:
         self._stop = threading.Event()
         self._exit_code = 0
         self._sequences: dict[str, int] = {}
-        self._last_seen: dict[tuple[str, str], int] = {}
-        self.refused: dict[str, int] = {}  # audio messages refused, by reason
-        self.refused_by_publisher: dict[str, int] = {}  # ... by publisher (the most recent ones)
         self.refused_subscribers: dict[str, int] = {}  # handshakes refused at the outputs (CURVE), by reason
         self._ended: dict[str, set[str]] = {}
         self._result_sequence = 0
         self._handling = False  # inside a handler: audio input waits, so handlers never nest
         self._assigned: dict[str, AudioFormat] = {}
         self._output_links: dict[str, OutputLink] = {}  # made in run(): setup() may still declare topics
-        self._input_links: dict[tuple[str, str], InputLink] = {}  # per topic and publisher
         self._context: zmq.Context | None = None
         self._transport: Transport | None = None
         self.control: ControlClient | None = None
+        # the input side (esiaf/receiving.py); its counters and state, under their names of old too
+        self._receiver = Receiver(self.inputs, on_loss=self._poke_control)
+        self.input_stats = self._receiver.stats
+        self.refused = self._receiver.refused  # audio messages refused, by reason
+        self.refused_by_publisher = self._receiver.refused_by_publisher  # ... by publisher (the most recent ones)
+        self._input_links = self._receiver.links  # per topic and publisher
+        self._last_seen = self._receiver.last_seen
+
+    @property
+    def _wire(self) -> Transport:
+        """The sockets: made by run() before it registers, closed when it returns."""
+        if self._transport is None:
+            raise RuntimeError(f"{type(self).__name__}: the sockets are used before run() made them")
+        return self._transport
 
     # -- declaration -----------------------------------------------------------------
     def add_input(self, topic: str, fmt: AudioFormat) -> None:
@@ -196,7 +176,7 @@ class Component:
         sequence = self._sequences.get(topic, 0) + 1
         msg.publisher, msg.sequence = self.instance_id, sequence
         stats = self.output_stats[topic]
-        if not self._transport.send_audio(topic, msg.SerializeToString()):
+        if not self._wire.send_audio(topic, msg.SerializeToString()):
             stats.dropped += 1
             log.warning("audio dropped at high-water mark topic=%s sequence=%d dropped=%d",
                         topic, sequence, stats.dropped)
@@ -300,8 +280,8 @@ class Component:
             return [{"topic": t, "format": f.to_dict()} for t, f in declared.items()]
         return {"name": self.settings.name, "designation": self.designation, "stream_id": self.settings.stream_id,
                 "inputs": topics(self.inputs), "outputs": topics(self.outputs),
-                "audio_endpoint": self._transport.audio_endpoint, "host": socket.gethostname(), "info": self.info,
-                **({"audio_public_key": key} if (key := self._transport.audio_public_key) else {})}
+                "audio_endpoint": self._wire.audio_endpoint, "host": socket.gethostname(), "info": self.info,
+                **({"audio_public_key": key} if (key := self._wire.audio_public_key) else {})}
 
     def _service(self, timeout_ms: float) -> None:
         """Handles whatever is ready on the sockets, waiting up to ``timeout_ms`` for the first.
@@ -310,7 +290,7 @@ class Component:
         waits until the current handler has returned, so callbacks never nest or reorder.
         """
         taken: dict[bytes, int] = {}  # audio messages taken back to back, by topic frame: its queue
-        for kind, event in self._transport.events(timeout_ms, take_audio=not self._handling):
+        for kind, event in self._wire.events(timeout_ms, take_audio=not self._handling):
             if self.stopping and kind == "audio":
                 break  # SIGTERM while a backlog drains: stop now, not after the backlog
             if kind == "state":
@@ -333,9 +313,9 @@ class Component:
             log.error("stopping: %s", state.get("error"))
             self.stop(exit_code=1)
             return
-        self._transport.connect_peers({e for endpoints in state.get("peers", {}).values() for e in endpoints},
+        self._wire.connect_peers({e for endpoints in state.get("peers", {}).values() for e in endpoints},
                                       state.get("peer_keys", {}))
-        self._transport.connect_results(state.get("results_endpoint", ""))
+        self._wire.connect_results(state.get("results_endpoint", ""))
         for topic, fmt in state.get("formats", {}).items():
             assigned = AudioFormat.from_dict(fmt)
             if self._assigned.get(topic) == assigned:
@@ -358,67 +338,28 @@ class Component:
             return
         stats.subscribers = max(0, stats.subscribers + change)
         log.info("subscribers topic=%s count=%d", topic, stats.subscribers)
+        self._poke_control()
+
+    def _poke_control(self) -> None:
+        """A heartbeat now, if registered: something worth reporting changed."""
         if self.control is not None:
             self.control.poke()
 
     def _on_message(self, frames: list[bytes]) -> None:
-        topic = topic_name(frames[0]) if frames else ""
-        stats = self.input_stats.get(topic)
-        if stats is None:
-            return  # a topic this component did not subscribe to (a SUB filters by prefix)
-        if len(frames) != 2:
-            self._refuse(stats, "frames", "", f"{len(frames)} frames, not 2")
-            return
-        try:
-            if len(frames[1]) > MAX_MESSAGE_BYTES:
-                raise ValueError(f"message of {len(frames[1])} bytes, more than {MAX_MESSAGE_BYTES}")
-            audio = Audio.from_message(pb.AugmentedAudio.FromString(frames[1]))
-            check_audio(audio)
-        except Exception as exc:  # a peer's bytes: DecodeError, FormatError, bounds... never fatal
-            self._refuse(stats, "undecodable", "", f"{type(exc).__name__}: {exc}")
-            return
-        stats.received += 1
-        self._count_gap(audio, stats)
-        link = self._input_link(topic, audio.publisher)
-        try:
-            chunks = link.receive(audio)
-        except FormatError as exc:  # a channel count this component does not take
-            self._refuse(stats, "format", audio.publisher, str(exc))
-            return
+        received = self._receiver.receive(frames)
+        if received is None:
+            return  # refused (counted and logged), or a topic this component did not subscribe to
         self._handling = True
         try:
-            for chunk in chunks:
+            for chunk in received.chunks:
                 self._dispatch(chunk)
         except Exception:  # a handler bug must not kill the component: count, log, go on
-            stats.bad += 1
-            log.exception("handler failed topic=%s sequence=%d start_ns=%d", topic, audio.sequence, audio.start_ns)
+            received.stats.bad += 1
+            audio = received.audio
+            log.exception("handler failed topic=%s sequence=%d start_ns=%d", received.topic, audio.sequence,
+                          audio.start_ns)
         finally:
             self._handling = False
-
-    def _input_link(self, topic: str, publisher: str) -> InputLink:
-        """The conversion state of one publisher on one topic; the least recently heard of more
-        than MAX_PUBLISHERS are forgotten (10,000 forged names must not grow the process)."""
-        key = (topic, publisher)
-        link = self._input_links.pop(key, None) or InputLink(self.inputs[topic])
-        self._input_links[key] = link  # most recent last
-        while len(self._input_links) > MAX_PUBLISHERS:
-            oldest = next(iter(self._input_links))
-            del self._input_links[oldest]
-            self._last_seen.pop(oldest, None)
-        return link
-
-    def _refuse(self, stats: InputStats, reason: str, publisher: str, detail: str) -> None:
-        """Counts a refused message (per reason, per publisher) and logs the first and every 100th."""
-        stats.bad += 1
-        self.refused[reason] = self.refused.get(reason, 0) + 1
-        if publisher:
-            by_peer = self.refused_by_publisher
-            by_peer[publisher] = by_peer.pop(publisher, 0) + 1
-            if len(by_peer) > MAX_PUBLISHERS:
-                del by_peer[next(iter(by_peer))]
-        if self.refused[reason] == 1 or self.refused[reason] % 100 == 0:
-            log.error("refused audio reason=%s publisher=%s count=%d detail=%.300s",
-                      reason, publisher or "?", self.refused[reason], detail)
 
     def _dispatch(self, audio: Audio) -> None:
         self.on_audio(audio)
@@ -428,20 +369,6 @@ class Component:
             self.on_segment_end(audio)
         if audio.meta.end_of_stream:
             self._on_input_ended(audio)
-
-    def _count_gap(self, audio: Audio, stats: InputStats) -> None:
-        key = (audio.topic, audio.publisher)
-        last = self._last_seen.get(key)
-        if last is not None and audio.sequence > last + 1:
-            missing = audio.sequence - last - 1
-            stats.lost += missing
-            log.warning("lost audio topic=%s publisher=%s missing=%d lost_total=%d",
-                        audio.topic, audio.publisher, missing, stats.lost)
-            if self.control is not None:
-                self.control.poke()
-        elif last is None and audio.sequence > 1:
-            log.info("joined topic=%s publisher=%s at sequence=%d", audio.topic, audio.publisher, audio.sequence)
-        self._last_seen[key] = audio.sequence
 
     def _on_input_ended(self, audio: Audio) -> None:
         ended = self._ended.setdefault(audio.stream_id, set())
@@ -456,7 +383,7 @@ class Component:
         log.info("end of stream stream_id=%s", audio.stream_id)
 
     def _send_results(self, frames: Sequence[bytes]) -> None:
-        if self._transport.send_results(frames):
+        if self._wire.send_results(frames):
             self.results_sent += frames[0] == b"result"
         else:
             self.results_dropped += 1

@@ -17,13 +17,15 @@ healthcheck (``python -m esiaf.health``) that the component is registered and he
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import httpx
 import zmq
@@ -134,7 +136,7 @@ def declared_format(url: str, topic: str, timeout_s: float,
         except (httpx.HTTPError, ValueError, KeyError) as exc:
             log.info("waiting for orchestrator url=%s error=%s", url, exc)
         else:
-            producers = next((t["producers"] for t in items if t["topic"] == topic), [])
+            producers: list[dict[str, Any]] = next((t["producers"] for t in items if t["topic"] == topic), [])
             if producers:
                 return producers[0]["format"]
         if time.monotonic() >= deadline or stopping():
@@ -187,6 +189,13 @@ class ControlClient:
     def component_id(self) -> str:
         return self.registration.component_id if self.registration else ""
 
+    @property
+    def _registered(self) -> Registration:
+        """The registration: start() makes it (before the heartbeat thread starts), re-registering renews it."""
+        if self.registration is None:
+            raise RuntimeError("the control client is used before start() registered")
+        return self.registration
+
     def start(self) -> Registration:
         """Registers (blocking, with retries) and starts the heartbeat thread."""
         self.registration = register(self._url, self._request, self._register_timeout_s, self._stop.is_set)
@@ -201,10 +210,8 @@ class ControlClient:
         self._wake()
 
     def _wake(self) -> None:
-        try:
+        with contextlib.suppress(OSError):  # BlockingIOError: the pipe is full, the thread is woken already
             os.write(self._wake_write, b"!")
-        except (BlockingIOError, OSError):
-            pass  # the pipe is full: the thread is woken already
 
     def stop(self, unregister_too: bool = True) -> None:
         self._stop.set()
@@ -214,10 +221,8 @@ class ControlClient:
         if unregister_too and self.registration:
             unregister(self._url, self.component_id)
         for fd in (self._wake_read, self._wake_write):
-            try:
+            with contextlib.suppress(OSError):
                 os.close(fd)
-            except OSError:
-                pass
 
     def _heard(self) -> None:
         """The orchestrator answered: freshens the health file, if there is one."""
@@ -235,7 +240,7 @@ class ControlClient:
         auth.secure_socket(dealer, self._curve)
         dealer.setsockopt(zmq.LINGER, 0)
         dealer.setsockopt(zmq.IDENTITY, self.component_id.encode())
-        dealer.connect(self.registration.control_endpoint)
+        dealer.connect(self._registered.control_endpoint)
         return dealer
 
     def _run(self) -> None:
@@ -250,7 +255,7 @@ class ControlClient:
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
-                if now - last_heard > self.registration.dead_after_s:
+                if now - last_heard > self._registered.dead_after_s:
                     log.warning("orchestrator silent for %.1f s: registering again", now - last_heard)
                     dealer.close()
                     self._register_again(state_out)
@@ -260,9 +265,9 @@ class ControlClient:
                 if now >= next_beat or poked:
                     beat = {"type": "heartbeat", "component_id": self.component_id, "stats": self._stats()}
                     dealer.send(json.dumps(beat, default=_jsonable).encode())
-                    next_beat = now + self.registration.heartbeat_interval_s
+                    next_beat = now + self._registered.heartbeat_interval_s
                 # sleep until the next beat (or the orchestrator's silence deadline), a message or a poke
-                wait_s = max(0.0, min(next_beat, last_heard + self.registration.dead_after_s) - time.monotonic())
+                wait_s = max(0.0, min(next_beat, last_heard + self._registered.dead_after_s) - time.monotonic())
                 if poller is None or dealer not in poller:
                     poller = self._poller(dealer)
                 ready = dict(poller.poll(timeout=max(1, round(wait_s * 1000))))
@@ -275,10 +280,10 @@ class ControlClient:
                 last_heard = time.monotonic()
                 self._heard()
                 if message.get("type") == "state":
-                    self.registration.peers = message.get("peers", {})
-                    self.registration.formats = message.get("formats", {})
-                    self.registration.peer_keys = message.get("peer_keys", {})
-                    state_out.send(json.dumps(self.registration.state()).encode())
+                    self._registered.peers = message.get("peers", {})
+                    self._registered.formats = message.get("formats", {})
+                    self._registered.peer_keys = message.get("peer_keys", {})
+                    state_out.send(json.dumps(self._registered.state()).encode())
                 elif message.get("type") == "unknown":
                     log.warning("orchestrator does not know component_id=%s: registering again", self.component_id)
                     dealer.close()
@@ -313,5 +318,5 @@ class ControlClient:
                 log.error("%s; still trying", exc)
                 continue
             log.info("registered again component_id=%s", self.component_id)
-            state_out.send(json.dumps(self.registration.state()).encode())
+            state_out.send(json.dumps(self._registered.state()).encode())
             return

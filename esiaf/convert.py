@@ -127,14 +127,16 @@ class StreamConverter:
 
     def flush(self) -> Converted | None:
         """Ends the current stretch: what the resampler held back, or None if nothing is pending."""
-        if not self.pending:
+        if not self.pending or self.next_start_ns is None:  # pending: a chunk was converted, next_start_ns set
             return None
         return self.convert(b"", self.next_start_ns, self.next_start_ns, last=True)
 
     def _time_at(self, frames: int) -> int:
+        assert self._origin_ns is not None  # within a stretch
         return self._origin_ns + frames * 1_000_000_000 // self.dst.sample_rate_hz
 
     def _restart(self) -> None:
+        assert self._resampler is not None  # only a resampling converter has stretches
         self._resampler.clear()
         self._origin_ns = None
         self._frames_out = 0

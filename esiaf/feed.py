@@ -7,7 +7,7 @@ import sys
 import time
 
 from websockets.exceptions import ConnectionClosed, WebSocketException
-from websockets.sync.client import connect
+from websockets.sync.client import ClientConnection, connect
 
 from esiaf import auth
 
@@ -22,16 +22,16 @@ class FusedFeed:
     def __init__(self, url: str) -> None:
         self.url = url
         self.last_seq: int | None = None
-        self.ws = connect(url, open_timeout=10, additional_headers=auth.headers())
+        self.ws: ClientConnection | None = connect(url, open_timeout=10, additional_headers=auth.headers())
 
-    def __enter__(self) -> "FusedFeed":
+    def __enter__(self) -> FusedFeed:
         return self
 
     def __exit__(self, *exc) -> None:
         if self.ws is not None:
             self.ws.close()
 
-    def recv(self, timeout: float) -> str:
+    def recv(self, timeout: float) -> str | bytes:
         if self.ws is None:
             url = self.url + (f"&after_seq={self.last_seq}" if self.last_seq is not None else "")
             try:

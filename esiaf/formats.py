@@ -7,8 +7,9 @@ samples are interleaved. ``decode`` turns a payload into an array of shape
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -64,7 +65,7 @@ class AudioFormat:
     @property
     def full_scale(self) -> float:
         """Magnitude of a full-scale sample (1.0 for floats)."""
-        size, kind, signed = _TYPES[self.sample_type]
+        size, kind, _signed = _TYPES[self.sample_type]
         if kind[0] == "f":
             return 1.0
         return float(2 ** (8 * size - 1))
@@ -87,7 +88,7 @@ class AudioFormat:
                               endianness=_PB_ENDIAN[self.endianness], channels=self.channels)
 
     @classmethod
-    def from_proto(cls, msg: pb.AudioFormat) -> "AudioFormat":
+    def from_proto(cls, msg: pb.AudioFormat) -> AudioFormat:
         if msg.sample_type not in _PB_TYPE_NAME:
             raise FormatError(f"unknown sample type {msg.sample_type} in message")
         return cls(sample_rate_hz=msg.sample_rate_hz, sample_type=_PB_TYPE_NAME[msg.sample_type],
@@ -99,7 +100,7 @@ class AudioFormat:
                 "endianness": self.endianness, "channels": self.channels}
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "AudioFormat":
+    def from_dict(cls, data: Mapping[str, Any]) -> AudioFormat:
         return cls(**data)
 
 
@@ -156,7 +157,7 @@ def peak(samples: np.ndarray, fmt: AudioFormat) -> float:
     """Largest magnitude of the chunk relative to full scale (0..1)."""
     if samples.size == 0:
         return 0.0
-    size, kind, signed = _TYPES[fmt.sample_type]
+    _size, kind, signed = _TYPES[fmt.sample_type]
     if kind[0] != "f" and signed:
         return float(np.max(np.abs(samples.astype(np.int64)))) / fmt.full_scale
     return float(np.max(np.abs(to_float(samples, fmt))))

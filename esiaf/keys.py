@@ -21,9 +21,9 @@ import argparse
 import os
 import shutil
 import sys
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import zmq
 import zmq.auth
@@ -38,8 +38,9 @@ KEY_CHARS = 40  # a CURVE key in Z85
 # Why a server socket refused a peer's handshake, as its socket monitor says: auth, the ZAP handler
 # said no (a key or token not allowed); protocol, another mechanism (e.g. no keys at all); other, it
 # ended mid-handshake (a peer without keys, at times).
-HANDSHAKE_FAILURES = {zmq.EVENT_HANDSHAKE_FAILED_AUTH: "auth", zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL: "protocol",
-                      zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL: "other"}
+HANDSHAKE_FAILURES: dict[int, str] = {zmq.EVENT_HANDSHAKE_FAILED_AUTH: "auth",
+                                      zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL: "protocol",
+                                      zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL: "other"}
 
 
 class KeyFileError(Exception):

@@ -8,6 +8,7 @@ itself dies (PR_SET_PDEATHSIG), so no process is left orphaned.
 """
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import json
 import logging
@@ -17,9 +18,10 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import httpx
 
@@ -31,6 +33,7 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 _PR_SET_PDEATHSIG = 1
 MAX_RESTARTS = 5  # a service that died this often is not restarted again: the run ends
 RESTART_BACKOFF_S = 0.5  # before the first restart; doubles with each, up to 10 s
+START_TIMEOUT_S = 60.0  # esiaf run: how long a service may take to answer, register, subscribe or start playing
 
 
 class LaunchError(Exception):
@@ -38,10 +41,8 @@ class LaunchError(Exception):
 
 
 def _die_with_parent() -> None:
-    try:
+    with contextlib.suppress(OSError):
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
-    except OSError:
-        pass
 
 
 @dataclass
@@ -80,7 +81,7 @@ class Supervisor:
     env: dict[str, str] = field(default_factory=dict)
     children: list[Child] = field(default_factory=list)
 
-    def start(self, name: str, args: list[str] = (), env: dict[str, str] | None = None,
+    def start(self, name: str, args: Sequence[str] = (), env: dict[str, str] | None = None,
               target: list[str] | None = None) -> Child:
         """Starts ``python -m services.<name>`` (or ``python <target...>``, a plug-in) with ``args``."""
         logs = self.workdir / "logs"

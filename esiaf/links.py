@@ -74,7 +74,7 @@ class OutputLink:
             chunk = Converted(bytes(payload), start_ns, end_ns)
         else:
             chunk = self._converter.convert(bytes(payload), start_ns, end_ns, last=last)
-        return out + [Outgoing(self.wire, chunk, stream_id, main=True)]
+        return [*out, Outgoing(self.wire, chunk, stream_id, main=True)]
 
     def _flush(self) -> list[Outgoing]:
         tail = self._converter.flush() if self._converter is not None else None
@@ -111,7 +111,8 @@ class InputLink:
             chunk = self._converter.convert(audio.payload, audio.start_ns, audio.end_ns, last=last)
         chunks = []
         if tail is not None and tail.payload:
-            if previous is not None and self._continues(audio, previous, tail.end_ns):
+            assert previous is not None  # a tail is audio of an earlier message
+            if self._continues(audio, previous, tail.end_ns):
                 chunk = Converted(tail.payload + chunk.payload, tail.start_ns, max(chunk.end_ns, tail.end_ns))
             else:
                 chunks.append(dataclasses.replace(previous, format=self.declared, payload=tail.payload,
@@ -128,6 +129,7 @@ class InputLink:
         if audio.sequence != previous.sequence + 1 or audio.stream_id != previous.stream_id:
             return False
         if end_ns is None:
+            assert self._converter is not None  # asked (without end_ns) only while converting
             return self._converter.continues(audio.start_ns)
         slowest = min(audio.format.sample_rate_hz, previous.format.sample_rate_hz, self.declared.sample_rate_hz)
         return abs(audio.start_ns - end_ns) <= 1_000_000_000 // slowest + 1

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import re
 import time
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 from esiaf.proto import esiaf_pb2 as pb
 
@@ -12,7 +13,7 @@ from esiaf.proto import esiaf_pb2 as pb
 # RESULT_TYPE_GENERIC, Result.kind naming it, a GenericResult payload.
 _PAYLOAD_FIELDS = [f.name for f in pb.Result.DESCRIPTOR.oneofs_by_name["payload"].fields]
 RESULT_TYPES = tuple(name for name in _PAYLOAD_FIELDS if name not in ("nothing", "generic"))
-DESIGNATIONS = RESULT_TYPES + ("other",)
+DESIGNATIONS = (*RESULT_TYPES, "other")
 PB_RESULT_TYPE = {name: pb.ResultType.Value(f"RESULT_TYPE_{name.upper()}") for name in RESULT_TYPES}
 RESULT_TYPE_NAME = {value: name for name, value in PB_RESULT_TYPE.items()}
 KIND_PATTERN = r"^[a-z][a-z0-9_]{0,39}$"  # any kind's name: "rate", "duration", "voice_id"

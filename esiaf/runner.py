@@ -9,7 +9,8 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 from esiaf.component import Component, SetupError
 from esiaf.control import RegistrationError
@@ -50,7 +51,7 @@ def main(component_cls: type[Component], argv: Sequence[str] | None = None) -> i
                                      description=doc_lines[0] if doc_lines else f"the {service} component",
                                      epilog=settings_help(component_cls.Settings, service),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--config", help="YAML settings file (also ESIAF_%s_CONFIG)" % service.upper())
+    parser.add_argument("--config", help=f"YAML settings file (also ESIAF_{service.upper()}_CONFIG)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one setting (repeatable; the value is read as YAML, e.g. 3 or [1, 2])")
     for name, help_text in component_cls.options.items():

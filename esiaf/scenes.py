@@ -28,11 +28,12 @@ import json
 import logging
 import math
 import sys
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from esiaf.arrays import ArrayError, load_array
 from esiaf.settings import SettingsError, read_yaml_file
 
@@ -86,7 +87,7 @@ class Scene:
     seed: int = 0  # where in a long noise clip the scene's noise starts
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "Scene":
+    def from_dict(cls, data: dict[str, Any]) -> Scene:
         known = set(cls.__dataclass_fields__)
         unknown = set(data) - known
         if unknown:
@@ -184,7 +185,8 @@ def render_parts(scene: Scene) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     except ValueError as exc:
         raise SceneError(f"RT60 {scene.rt60_s:g} s is impossible in this room: {exc}") from None
 
-    clips, utterances = [], []
+    clips: list[tuple[np.ndarray, np.ndarray, float]] = []
+    utterances: list[dict[str, Any]] = []
     for number, source in enumerate(scene.speech):
         if bool(source.clip) == bool(source.say):
             raise SceneError(f"speech source {number + 1}: give exactly one of clip or say")
@@ -203,7 +205,7 @@ def render_parts(scene: Scene) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
             "start_s": round(source.onset_s + first / fs + travel_s, 4),
             "end_s": round(source.onset_s + last / fs + travel_s, 4)})
     duration = max(onset + len(clip) / fs for _, clip, onset in clips) + scene.tail_s
-    samples = int(round(duration * fs))
+    samples = round(duration * fs)
 
     room = pra.ShoeBox(room_dim, fs=fs, materials=pra.Material(absorption), max_order=max_order,
                        air_absorption=False)
@@ -211,13 +213,14 @@ def render_parts(scene: Scene) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     for position, clip, onset in clips:
         room.add_source(position, signal=clip, delay=onset)
     rng = np.random.default_rng(scene.seed)
-    for number, source in enumerate(scene.noise):
-        noise = read_clip(source.clip, fs)
+    for number, noise_source in enumerate(scene.noise):
+        noise = read_clip(noise_source.clip, fs)
         reps = int(np.ceil(samples / len(noise)))
         noise = np.tile(noise, reps) if reps > 1 else noise
         start = int(rng.integers(0, len(noise) - samples + 1))
-        room.add_source(_position(centre, source.azimuth_deg + scene.array_heading_deg, source.elevation_deg,
-                                  source.distance_m, room_dim, f"noise source {number + 1}"),
+        room.add_source(_position(centre, noise_source.azimuth_deg + scene.array_heading_deg,
+                                  noise_source.elevation_deg, noise_source.distance_m, room_dim,
+                                  f"noise source {number + 1}"),
                         signal=noise[start:start + samples])
     premix = room.simulate(return_premix=True)[:, :, :samples]  # (sources, mics, samples)
     if premix.shape[2] < samples:
@@ -228,9 +231,9 @@ def render_parts(scene: Scene) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
         active[int(u["start_s"] * fs):int(u["end_s"] * fs)] = True
     speech_power = float(np.mean(speech[0, active] ** 2))
     noise_sum = np.zeros_like(speech)
-    for source, noise in zip(scene.noise, premix[len(clips):]):
+    for noise_source, noise in zip(scene.noise, premix[len(clips):], strict=True):
         noise_power = float(np.mean(noise[0] ** 2)) or 1e-20
-        noise_sum += noise * math.sqrt(speech_power / noise_power * 10 ** (-source.snr_db / 10))
+        noise_sum += noise * math.sqrt(speech_power / noise_power * 10 ** (-noise_source.snr_db / 10))
     gain = 10 ** (scene.peak_dbfs / 20) / np.max(np.abs(speech + noise_sum))
     truth = {"array": array.name, "positions_m": array.positions_m.T.round(5).tolist(),
              "sample_rate_hz": fs, "duration_s": round(samples / fs, 4), "room_m": list(map(float, room_dim)),

@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping, TypeVar
+from typing import Any, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
@@ -65,13 +66,26 @@ def parse_value(raw: str) -> Any:
 
 
 def _from_env(model: type[BaseModel], service: str, env: Mapping[str, str]) -> dict[str, Any]:
-    fields = set(model.model_fields)
-    common = set(ComponentSettings.model_fields) & fields
-    service_prefix = f"{ENV_PREFIX}{service.upper()}_"
+    """The settings the environment gives: ``ESIAF_<FIELD>`` for the common ones, overridden by
+    ``ESIAF_<SERVICE>_<FIELD>``; an unknown ``ESIAF_<SERVICE>_...`` is an error."""
+    return {**_common_from_env(model, env), **_service_from_env(model, service, env)}
+
+
+def _common_from_env(model: type[BaseModel], env: Mapping[str, str]) -> dict[str, Any]:
+    """``ESIAF_<FIELD>`` for the fields every component has (those ``model`` has too)."""
+    common = set(ComponentSettings.model_fields) & set(model.model_fields)
     values: dict[str, Any] = {}
     for key, raw in env.items():
         if key.startswith(ENV_PREFIX) and key[len(ENV_PREFIX):].lower() in common:
             values.setdefault(key[len(ENV_PREFIX):].lower(), parse_value(raw))
+    return values
+
+
+def _service_from_env(model: type[BaseModel], service: str, env: Mapping[str, str]) -> dict[str, Any]:
+    """``ESIAF_<SERVICE>_<FIELD>``; SettingsError for a field ``model`` does not have."""
+    fields = set(model.model_fields)
+    service_prefix = f"{ENV_PREFIX}{service.upper()}_"
+    values: dict[str, Any] = {}
     for key, raw in env.items():
         if not key.startswith(service_prefix):
             continue
@@ -110,30 +124,37 @@ def load_settings(model: type[S], service: str, /, *, config: str | Path | None 
     """
     env = os.environ if env is None else env
     config = config or env.get(f"{ENV_PREFIX}{service.upper()}_CONFIG")
-    values: dict[str, Any] = {}
-    origin: dict[str, str] = {}  # where each value came from, the last source that gave it
     given = [(f"config file {config}", read_yaml_file(Path(config)) if config else {}),
              ("environment", _from_env(model, service, env)),
              ("command line", {k: v for k, v in overrides.items() if v is not None})]
+    values: dict[str, Any] = {}
+    origin: dict[str, str] = {}  # where each value came from, the last source that gave it
     for source, given_values in given:
         values.update(given_values)
         origin.update(dict.fromkeys(given_values, source))
     try:
         settings = model(**values)
     except ValidationError as exc:
-        problems, blamed = [], []
-        for err in exc.errors():
-            key = str(err["loc"][0]) if err["loc"] else ""
-            if key in origin:  # a bad value: the source it came from
-                sources = [origin[key]]
-            elif key:  # a value missing (or a default that does not fit)
-                sources = ["defaults"]
-            else:  # a check across values: every source that gave some
-                sources = [source for source, given_values in given if given_values]
-            blamed.extend(s for s in sources if s not in blamed)
-            problems.append(f"{'.'.join(str(p) for p in err['loc']) or '(root)'}: {err['msg']}")
-        where = " and ".join(blamed) or "defaults"
-        raise SettingsError(f"bad {service} settings (from {where}): {'; '.join(problems)}") from None
+        raise _settings_error(exc, service, origin, given) from None
     if isinstance(settings, ComponentSettings) and not settings.name:
         settings.name = service
     return settings
+
+
+def _settings_error(exc: ValidationError, service: str, origin: Mapping[str, str],
+                    given: list[tuple[str, dict[str, Any]]]) -> SettingsError:
+    """One line: every problem pydantic found, and the sources to blame for them."""
+    problems: list[str] = []
+    blamed: list[str] = []
+    for err in exc.errors():
+        key = str(err["loc"][0]) if err["loc"] else ""
+        if key in origin:  # a bad value: the source it came from
+            sources = [origin[key]]
+        elif key:  # a value missing (or a default that does not fit)
+            sources = ["defaults"]
+        else:  # a check across values: every source that gave some
+            sources = [source for source, given_values in given if given_values]
+        blamed.extend(s for s in sources if s not in blamed)
+        problems.append(f"{'.'.join(str(p) for p in err['loc']) or '(root)'}: {err['msg']}")
+    where = " and ".join(blamed) or "defaults"
+    return SettingsError(f"bad {service} settings (from {where}): {'; '.join(problems)}")

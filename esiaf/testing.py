@@ -19,7 +19,6 @@ import threading
 import time
 from pathlib import Path
 
-
 REPO = Path(__file__).resolve().parent.parent  # the repository (tests run from a checkout)
 # ../shared/data beside the repository; ESIAF_SHARED_DATA points elsewhere (e.g. from a git worktree)
 SHARED_DATA = Path(os.environ.get("ESIAF_SHARED_DATA") or REPO.parent / "shared" / "data")
@@ -67,12 +66,14 @@ class Launcher:
         threading.Thread(target=self._read_stderr, daemon=True).start()
 
     def _read_stdout(self) -> None:
+        assert self.process.stdout is not None  # stdout=PIPE
         for line in self.process.stdout:
             with self._new_line:
                 self.lines.append(json.loads(line) if line.startswith("{") else {"text": line.rstrip("\n")})
                 self._new_line.notify_all()
 
     def _read_stderr(self) -> None:
+        assert self.process.stderr is not None  # stderr=PIPE
         for line in self.process.stderr:
             self.stderr.append(line)
 
@@ -163,7 +164,7 @@ class Orchestrator:
             self.config_args = ["--config", str(config_path)]
         self.log = (tmp_path / "orchestrator.log").open("ab")
         self.http = httpx.Client(base_url=self.url, timeout=5)
-        self.process: subprocess.Popen | None = None
+        self.process: subprocess.Popen  # start() makes it
         self.start()
 
     def start(self, *args: str) -> None:

@@ -15,13 +15,15 @@ One thread uses a Transport: the component's data thread.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import re
 import socket
 import time
-from typing import Any, Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
+from typing import Any, cast
 
 import zmq
 from zmq.auth.thread import ThreadAuthenticator
@@ -45,7 +47,7 @@ _ENDPOINT = re.compile(r"^tcp://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]{1,253}):(\d{1
 def valid_endpoint(endpoint: str) -> bool:
     """``tcp://HOST:PORT`` with a port in 1..65535: the only endpoints components exchange."""
     match = _ENDPOINT.match(endpoint) if isinstance(endpoint, str) else None
-    return bool(match) and 0 < int(match.group(2)) < 65536
+    return match is not None and 0 < int(match.group(2)) < 65536
 
 
 class TransportError(Exception):
@@ -75,7 +77,8 @@ class Transport:
         self.state.setsockopt(zmq.LINGER, 0)
         self.state.bind(STATE_ADDRESS)
         self._poller.register(self.state, zmq.POLLIN)
-        self.pub = self.sub = None
+        self.pub: zmq.Socket | None = None
+        self.sub: zmq.Socket | None = None
         if has_outputs:
             self.pub = context.socket(zmq.XPUB)
             self.pub.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
@@ -96,7 +99,8 @@ class Transport:
                     self.pub.bind_to_random_port(f"tcp://{bind_host}")
             except zmq.ZMQError as exc:
                 self.close()
-                raise TransportError(f"cannot bind audio output on {bind_host}:{audio_port or 'any port'}: {exc}")
+                where = f"{bind_host}:{audio_port or 'any port'}"
+                raise TransportError(f"cannot bind audio output on {where}: {exc}") from None
             self._poller.register(self.pub, zmq.POLLIN)
         topics = list(inputs)
         if topics:
@@ -122,7 +126,7 @@ class Transport:
         """Where consumers reach this component's outputs (None without outputs)."""
         if self.pub is None:
             return None
-        port = self.pub.getsockopt(zmq.LAST_ENDPOINT).decode().rsplit(":", 1)[1]
+        port = self.pub.getsockopt_string(zmq.LAST_ENDPOINT).rsplit(":", 1)[1]
         return f"tcp://{self._advertised_host}:{port}"
 
     @property
@@ -138,7 +142,7 @@ class Transport:
             self._drop_departed()
         if self._leaving:  # departed producers are dropped once their grace period is over
             timeout_ms = min(timeout_ms, LEAVE_GRACE_S * 1000)
-        ready = dict(self._poller.poll(timeout=timeout_ms))
+        ready = dict(self._poller.poll(timeout=int(timeout_ms)))  # what pyzmq makes of a float
         while ready:
             if ready.pop(self._wake_read, None):
                 self._drain_wake()
@@ -158,10 +162,8 @@ class Transport:
 
     def wake(self) -> None:
         """Ends a wait in :meth:`events` now (safe from any thread and from signal handlers)."""
-        try:
+        with contextlib.suppress(OSError):  # full (already woken) or closed
             os.write(self._wake_write, b"!")
-        except OSError:  # full (already woken) or closed
-            pass
 
     def _drain_wake(self) -> None:
         try:
@@ -172,6 +174,7 @@ class Transport:
 
     def send_audio(self, topic: str, message: bytes) -> bool:
         """False if refused at the high-water mark."""
+        assert self.pub is not None, "audio sent without a declared output"
         try:
             self.pub.send_multipart([topic_frame(topic), message], flags=zmq.NOBLOCK)
         except zmq.Again:
@@ -202,7 +205,8 @@ class Transport:
                 if not valid_endpoint(endpoint):
                     raise ValueError("tcp://HOST:PORT expected")
                 if self._curve is not None:
-                    self._secure_input(endpoint, peer_keys.get(endpoint) if isinstance(peer_keys, dict) else None)
+                    self._secure_input(self.sub, self._curve,
+                                       peer_keys.get(endpoint) if isinstance(peer_keys, dict) else None)
                 self.sub.connect(endpoint)
             except (ValueError, zmq.ZMQError) as exc:  # what a peer registered is never fatal here
                 log.error("not connecting to producer endpoint=%.200r: %s", endpoint, exc)
@@ -216,14 +220,15 @@ class Transport:
         self._connected = set(wanted) | set(self._leaving)
         self._drop_departed()
 
-    def _secure_input(self, endpoint: str, key: object) -> None:
+    @staticmethod
+    def _secure_input(sub: zmq.Socket, curve: keys.Curve, key: object) -> None:
         """Sets the server key of the next connect: libzmq takes the options at each connect."""
-        if not isinstance(key, str) or key.encode() not in self._curve.clients:
-            raise ValueError(f"its CURVE public key {str(key)[:40]!r} is not one of those in {self._curve.clients_dir}")
-        auth.secure_socket(self.sub, self._curve, key.encode())
+        if not isinstance(key, str) or key.encode() not in curve.clients:
+            raise ValueError(f"its CURVE public key {str(key)[:40]!r} is not one of those in {curve.clients_dir}")
+        auth.secure_socket(sub, curve, key.encode())
 
     def _drop_departed(self) -> None:
-        if not self._leaving or self.sub.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+        if self.sub is None or not self._leaving or cast(int, self.sub.getsockopt(zmq.EVENTS)) & zmq.POLLIN:
             return
         now = time.monotonic()
         for endpoint, since in list(self._leaving.items()):
@@ -251,8 +256,6 @@ class Transport:
             self._authenticator.stop()
             self._authenticator = None
         for fd in (self._wake_read, self._wake_write):
-            try:
+            with contextlib.suppress(OSError):
                 os.close(fd)
-            except OSError:
-                pass
         self._wake_read = self._wake_write = -1

@@ -53,6 +53,7 @@ class UtteranceComponent(Component):
 
     kind: ClassVar[str] = "other"  # the kind of result it produces, e.g. "emotion" or "rate"
     Settings: ClassVar[type[ComponentSettings]] = UtteranceSettings
+    settings: UtteranceSettings  # an instance of Settings: its fields, for type checkers
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)

@@ -39,7 +39,7 @@ def test_each_service_on_its_own_address(tmp_path):
         poll(lambda: http.get("/health").status_code == 200, timeout_s=30)
         for service in ("asr", "vad"):
             start(service, ESIAF_BIND_HOST=HOSTS[service])
-            poll(lambda: any(c["name"] == service for c in http.get("/components").json()["items"]), 60)
+            poll(lambda service=service: any(c["name"] == service for c in http.get("/components").json()["items"]), 60)
         start("grabber", "--input", str(raw), "--fast", ESIAF_BIND_HOST="0.0.0.0",
               ESIAF_ADVERTISE_HOST=HOSTS["grabber"], ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS="1")
 

@@ -68,6 +68,7 @@ def test_live_capture_from_a_four_channel_array(launch, tmp_path):
     import json
 
     import soundfile
+
     from esiaf.testing import REPO
     from services.ssl.tracker import angle_difference_deg
     scene = REPO / "examples" / "robocup_scene.flac"

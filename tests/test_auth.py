@@ -109,7 +109,8 @@ def test_results_and_control_sockets_take_only_peers_with_the_token(secured):
         poll(lambda: httpx.get(f"{secured}/results", headers=AUTH).json()["items"], timeout_s=10)
         # the stranger's handshake was refused (and counted), so its result can never arrive
         poll(lambda: refused_peers(httpx.get(f"{secured}/metrics", headers=AUTH).text, "results"), timeout_s=10)
-        texts = [r["speech"]["hypotheses"][0]["text"] for r in httpx.get(f"{secured}/results", headers=AUTH).json()["items"]]
+        results = httpx.get(f"{secured}/results", headers=AUTH).json()["items"]
+        texts = [r["speech"]["hypotheses"][0]["text"] for r in results]
         assert texts == ["what is a chatbot"]
     finally:
         context.destroy(linger=0)

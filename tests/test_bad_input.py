@@ -7,7 +7,6 @@ import subprocess
 import sys
 
 import httpx
-import pytest
 
 from esiaf.testing import REPO, free_port, poll
 

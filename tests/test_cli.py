@@ -67,10 +67,10 @@ def _follow_a_played_file_that_never_ends(monkeypatch, serve):
     import argparse
     import types
 
-    from esiaf import cli
+    from esiaf import cli, cli_follow
     from esiaf.launcher import LaunchError
 
-    monkeypatch.setattr(cli, "DRAIN_TIMEOUT_S", 0.0)
+    monkeypatch.setattr(cli_follow, "DRAIN_TIMEOUT_S", 0.0)  # where follow() reads it
     grabber = types.SimpleNamespace(process=types.SimpleNamespace(returncode=0))
     supervisor = types.SimpleNamespace(exited=lambda: [grabber])
     client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS})

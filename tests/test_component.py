@@ -1,6 +1,7 @@
 """The SDK over real ZeroMQ sockets against the real orchestrator."""
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 import subprocess
@@ -11,9 +12,9 @@ import time
 import numpy as np
 import pytest
 
-from esiaf.testing import REPO, poll
 from esiaf import Audio, AudioFormat, Component, SampleClock, ssl_direction
 from esiaf.links import OutputLink
+from esiaf.testing import REPO, poll
 
 FMT = AudioFormat(16000, "int16")
 
@@ -99,7 +100,7 @@ def test_audio_arrives_with_capture_times_and_contiguous_sequence_numbers(pair, 
     poll(lambda: len(sink.events) >= 50, timeout_s=10)
     assert [e[1] for e in sink.events] == list(range(1, 51))
     assert sink.events[0][2:] == (1_700_000_000_000_000_000, 1_700_000_000_020_000_000)
-    assert all(a[3] == b[2] for a, b in zip(sink.events, sink.events[1:]))
+    assert all(a[3] == b[2] for a, b in itertools.pairwise(sink.events))
     assert sink.input_stats["source/audio"].lost == 0
 
 

@@ -33,7 +33,8 @@ BUILD_TIMEOUT_S = 45 * 60
 def run(*cmd: str, timeout: float = 300, check: bool = True, **kwargs) -> subprocess.CompletedProcess:
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, stdin=subprocess.DEVNULL, **kwargs)
     if check and result.returncode != 0:
-        raise AssertionError(f"{' '.join(cmd)} exited {result.returncode}:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}")
+        raise AssertionError(f"{' '.join(cmd)} exited {result.returncode}:\n"
+                             f"{result.stdout[-3000:]}\n{result.stderr[-3000:]}")
     return result
 
 
@@ -214,7 +215,7 @@ def test_compose_with_a_microphone_array_fuses_text_direction_emotion_and_gender
     p("up", "-d", timeout=600)
     fused = poll(lambda: at_least(len(truth), p.fused()), timeout_s=150)
     assert [normalise(best_text(f)) for f in fused] == [normalise(u["text"]) for u in truth], p.logs()
-    for f, utterance in zip(fused, truth):
+    for f, utterance in zip(fused, truth, strict=True):
         assert f["completion"] == "complete", f
         error = abs((f["aggregates"]["ssl"]["azimuth_deg"] - utterance["azimuth_deg"] + 180) % 360 - 180)
         assert error <= 15, (utterance, f["aggregates"]["ssl"])
@@ -307,7 +308,8 @@ def test_stack_deploy_on_a_single_node_swarm_gives_the_same_sentences(swarm, tmp
              .stdout.strip(), timeout_s=60)
         poll(lambda: not run("docker", "ps", "-aq", "--filter", f"label=com.docker.stack.namespace={name}")
              .stdout.strip(), timeout_s=60)
-        for volume in run("docker", "volume", "ls", "-q", "--filter", f"label=com.docker.stack.namespace={name}").stdout.split():
+        volumes = run("docker", "volume", "ls", "-q", "--filter", f"label=com.docker.stack.namespace={name}")
+        for volume in volumes.stdout.split():
             run("docker", "volume", "rm", volume, check=False)
 
 

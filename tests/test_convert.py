@@ -1,6 +1,8 @@
 """Format conversion: quality, exact round trips, streaming equals one-shot, switches lose nothing."""
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -97,7 +99,7 @@ def test_streaming_over_random_chunk_sizes_equals_one_shot_within_2_lsb(src, dst
     difference = np.abs(decode(streamed, dst).astype(np.int64) - decode(one_shot, dst).astype(np.int64))
     assert difference.max() <= 2
     # stamped from output sample counts: contiguous, and the last chunk ends with the signal
-    assert all(a[1] == b[0] for a, b in zip(spans, spans[1:]))
+    assert all(a[1] == b[0] for a, b in itertools.pairwise(spans))
     assert spans[0][0] == 1_000_000_000
     assert abs(spans[-1][1] - 2_000_000_000) <= 1_000_000_000 // dst.sample_rate_hz
 
@@ -138,7 +140,7 @@ def test_a_switch_at_a_message_boundary_loses_and_duplicates_nothing():
     assert sequence == 61  # 60 chunks and the resampler tail sent at the switch away from 16 kHz
     assert [a.sequence for a in received] == list(range(1, 62))
     assert all(a.format == fmt16 for a in received)
-    assert all(a.end_ns == b.start_ns for a, b in zip(received, received[1:]))
+    assert all(a.end_ns == b.start_ns for a, b in itertools.pairwise(received))
     frames = sum(a.frames for a in received)
     assert frames == 16000 * 1.2 == (received[-1].end_ns - received[0].start_ns) * 16000 // 10 ** 9
     got = np.concatenate([decode(a.payload, fmt16)[:, 0] for a in received]) / 32768

@@ -160,8 +160,8 @@ def test_audio_goes_only_between_allowed_keys(curve_dir):
                 recv_monitor_message(monitor)
                 monitor.close(linger=0)
         events = []
-        poll(lambda: events.extend(producer.events(100)) or ("subscription", ("", 1)) in events
-             and [kind for kind, _ in events].count("refused") >= 2, timeout_s=10)
+        poll(lambda: events.extend(producer.events(100)) or (("subscription", ("", 1)) in events
+             and [kind for kind, _ in events].count("refused") >= 2), timeout_s=10)
         assert [e for e in events if e[0] == "subscription"] == [("subscription", ("", 1))]  # the member alone
         assert "auth" in {reason for kind, reason in events if kind == "refused"}  # the rogue's key
         assert producer.audio_public_key == source_keys.public.decode()

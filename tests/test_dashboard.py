@@ -138,7 +138,8 @@ def test_the_demo_scene_on_the_dashboard(launch, browser):
     assert not errors, errors
 
     orchestrator = (run.url.replace("http", "ws", 1), run.url)
-    outside = [url for url in requested_urls(browser) if not url.startswith(orchestrator) and not url.startswith("data:")]
+    outside = [url for url in requested_urls(browser)
+               if not url.startswith(orchestrator) and not url.startswith("data:")]
     assert not outside, outside
 
     assert_metrics_agree(run)
@@ -190,8 +191,8 @@ def assert_metrics_agree(run) -> None:
     fused_count = sum(s.value for s in samples["esiaf_fused_latency_seconds_count"])
     assert fused_count == sum(by_completion.values())
     assert samples["esiaf_fusion_overhead_seconds_count"][0].value == stats["overhead_samples"]
-    lost = {(s.labels["component_id"], s.labels["topic"]): s.value for s in samples["esiaf_component_input_messages_total"]
-            if s.labels["outcome"] == "lost"}
+    lost = {(s.labels["component_id"], s.labels["topic"]): s.value
+            for s in samples["esiaf_component_input_messages_total"] if s.labels["outcome"] == "lost"}
     assert lost == {(c["component_id"], topic): float(counts["lost"]) for c in components
                     for topic, counts in ((c["stats"] or {}).get("inputs") or {}).items()}
     queued = {(s.labels["component_id"], s.labels["topic"]) for s in samples["esiaf_component_input_queue_depth"]}
@@ -203,6 +204,7 @@ NETWORK = {"offline": False, "latency": 0, "downloadThroughput": -1, "uploadThro
 
 def test_after_an_orchestrator_restart_the_page_reconnects_and_replays_what_it_missed(orchestrator, browser):
     import zmq
+
     from services.orchestrator.tests.helpers import FakeComponent, component_body
     context = zmq.Context()
     try:
@@ -266,7 +268,7 @@ def test_a_revision_replaces_its_older_version_and_the_stream_filter_filters(tmp
         streams = Select(browser.find_element("id", "stream-filter"))
         for stream, texts in (("s2", ["turn left"]), ("s1", ["go forward"]), ("", ["turn left", "go forward"])):
             streams.select_by_value(stream)
-            poll(lambda: [f["text"] for f in page_state(browser)["fused"]] == texts, timeout_s=5)
+            poll(lambda texts=texts: [f["text"] for f in page_state(browser)["fused"]] == texts, timeout_s=5)
         beating.stop()
         asr.close()
         ssl.close()

@@ -46,7 +46,7 @@ def test_robocup_questions_in_order_with_spans_where_the_speech_is(launch, tmp_p
     fused = collect_fused(run, "e2e-questions", timeout_s=60)
 
     assert [normalise(best_text(f)) for f in fused] == [normalise(t.text) for t in truth]
-    for f, t in zip(fused, truth):
+    for f, t in zip(fused, truth, strict=True):
         span = f["anchor"]["span"]
         assert abs((span["start_ns"] - start["start_ns"]) / 1e9 - t.start_s) < SPAN_TOLERANCE_S, (f, t)
         assert abs((span["end_ns"] - start["start_ns"]) / 1e9 - t.end_s) < SPAN_TOLERANCE_S, (f, t)
@@ -57,7 +57,7 @@ def test_robocup_questions_in_order_with_spans_where_the_speech_is(launch, tmp_p
 
     children = psutil.Process(run.process.pid).children(recursive=True)
     assert run.stop() in (0, 130)
-    gone, alive = psutil.wait_procs(children, timeout=10)
+    _gone, alive = psutil.wait_procs(children, timeout=10)
     assert not alive, f"orphaned: {alive}"
 
 

@@ -2,6 +2,7 @@
 and the audio a consumer gets stays continuous. And a channel mismatch ends the newcomer."""
 from __future__ import annotations
 
+import itertools
 import os
 import subprocess
 import sys
@@ -88,7 +89,7 @@ def test_a_newcomer_switches_the_topic_and_the_consumer_hears_no_seam(orchestrat
     assert [c.sequence for c in chunks] == list(range(1, len(chunks) + 1))
     assert asr.input_stats["mic/audio"].lost == 0 and asr.input_stats["mic/audio"].bad == 0
     # ... none in capture time, and the sample count matches the time covered
-    assert all(a.end_ns == b.start_ns for a, b in zip(chunks, chunks[1:]))
+    assert all(a.end_ns == b.start_ns for a, b in itertools.pairwise(chunks))
     frames = sum(c.frames for c in chunks)
     assert abs(frames - (chunks[-1].end_ns - chunks[0].start_ns) * 16000 / 1e9) <= 1
     # and the tone goes on through the switch: every sample where it should be
@@ -98,7 +99,7 @@ def test_a_newcomer_switches_the_topic_and_the_consumer_hears_no_seam(orchestrat
     assert np.median(error) < 1e-3 and np.mean(error > 0.05) < 0.01
     # the late joiner got 48 kHz untouched, and it too saw no gap
     late = recorder.chunks
-    assert all(a.end_ns == b.start_ns for a, b in zip(late, late[1:]))
+    assert all(a.end_ns == b.start_ns for a, b in itertools.pairwise(late))
     assert [c.sequence for c in late] == list(range(late[0].sequence, late[0].sequence + len(late)))
     for component in (mic, asr, recorder):
         component.stop()

@@ -1,3 +1,5 @@
+import itertools
+
 import numpy as np
 import pytest
 
@@ -57,5 +59,5 @@ def test_sample_clock_stamps_from_sample_counts_without_drift():
     clock = SampleClock(origin_ns=1_000, sample_rate_hz=44100)
     spans = [clock.advance(441) for _ in range(1000)]  # 1000 chunks of 10 ms
     assert spans[0] == (1_000, 1_000 + 10_000_000)
-    assert all(a[1] == b[0] for a, b in zip(spans, spans[1:]))  # contiguous
+    assert all(a[1] == b[0] for a, b in itertools.pairwise(spans))  # contiguous
     assert spans[-1][1] == 1_000 + 10_000_000_000  # exactly 10 s, no rounding drift

@@ -5,16 +5,14 @@ from __future__ import annotations
 
 import random
 
-import httpx
 import numpy as np
 import zmq
+from test_component import run_on
+from test_hostile_input import forged, pair  # noqa: F401  (pair is a fixture)
 
-from esiaf.proto import esiaf_pb2 as pb
 from esiaf.results import make_result
 from esiaf.testing import poll
 from esiaf.transport import topic_frame
-from test_hostile_input import forged, pair  # noqa: F401  (pair is a fixture)
-from test_component import run_on
 
 SEED = 20261123
 BASE_NS = 1_763_720_000_000_000_000

@@ -3,16 +3,14 @@ defect found against ESIAF over real sockets (a 3-byte frame killed asr, emotion
 registration with ``foo://x`` as its endpoint killed every consumer of its topic)."""
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import pytest
 import zmq
+from test_component import Sink, Source, run_on, start
 
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf.testing import poll
 from esiaf.transport import Transport, topic_frame, valid_endpoint
-from test_component import Sink, Source, run_on, start
 
 
 @pytest.fixture
@@ -116,7 +114,7 @@ def test_oversized_registrations_are_refused(orchestrator):
 
 def test_numpy_numbers_in_info_travel_with_heartbeats_and_the_component_stays_registered(pair, orchestrator):
     # issue 14: a numpy float in self.info killed the heartbeat thread; the component ran on unregistered
-    source, sink, sink_thread = pair
+    _source, sink, sink_thread = pair
     sink.info.update(peak=np.float32(0.5), levels=np.array([1, 2]))
     sink.control.poke()
     info = poll(lambda: orchestrator.component("sink")["stats"]["info"].get("levels") and

@@ -55,7 +55,8 @@ def test_a_plugin_folder_reaches_fused_results_websocket_and_results(launch, tmp
     with connect(run.ws_url("/ws/fused?stream=plug&after_id=0"), open_timeout=10) as ws:
         replayed = [json.loads(ws.recv(timeout=10)) for _ in fused]
     assert [f["results"]["duration"][0]["id"] for f in replayed] == [f["results"]["duration"][0]["id"] for f in fused]
-    stored = httpx.get(f"{run.url}/results", params={"type": "duration", "stream": "plug"}, headers=run.headers).json()["items"]
+    stored = httpx.get(f"{run.url}/results", params={"type": "duration", "stream": "plug"},
+                       headers=run.headers).json()["items"]
     assert len(stored) == 5
     assert repository_state() == before
 
@@ -72,7 +73,8 @@ def test_with_something_that_is_no_component_is_one_line(tmp_path):
     empty = tmp_path / "empty"
     empty.mkdir()
     for spec, complaint in ((str(empty), "no __main__.py"), ("no_such_analyser_xyz", "not a folder")):
-        result = subprocess.run([sys.executable, "-m", "esiaf.cli", "run", "--input", str(REPO / "examples/robocup_questions.wav"),
+        result = subprocess.run([sys.executable, "-m", "esiaf.cli", "run",
+                                 "--input", str(REPO / "examples/robocup_questions.wav"),
                                  "--with", spec, "--workdir", str(tmp_path / "w")], cwd=REPO, capture_output=True,
                                 text=True, timeout=60)
         assert result.returncode == 2 and complaint in result.stderr and "Traceback" not in result.stderr

@@ -10,8 +10,8 @@ import threading
 import numpy as np
 import pytest
 
-from esiaf.testing import REPO, poll
 from esiaf import AudioFormat, Component
+from esiaf.testing import REPO, poll
 
 
 def readme_component() -> str:

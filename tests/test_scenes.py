@@ -90,5 +90,5 @@ def test_bad_scenes_are_refused_with_one_clear_line(tmp_path, yaml_text, message
 
 
 def test_an_impossible_rt60_is_a_scene_error():
-    with pytest.raises(SceneError, match="RT60 0.01 s is impossible"):
+    with pytest.raises(SceneError, match=r"RT60 0\.01 s is impossible"):
         render(Scene(rt60_s=0.01, speech=[SpeechSource(clip="unused.wav", azimuth_deg=0)]))

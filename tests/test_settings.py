@@ -1,11 +1,12 @@
 import pytest
+from pydantic import Field
 
 from esiaf.settings import ComponentSettings, SettingsError, load_settings
 
 
 class DemoSettings(ComponentSettings):
     threshold_db: float = 65.0
-    topics: list[str] = ["a"]
+    topics: list[str] = Field(default_factory=lambda: ["a"])
 
 
 def test_defaults_then_yaml_then_environment(tmp_path):

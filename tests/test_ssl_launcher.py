@@ -79,7 +79,7 @@ def test_a_six_channel_recording_with_the_microphones_on_channels_1_to_4(launch,
     fused = [line for line in run.lines if line.get("type") == "fused_result"]
     assert [normalise(f["anchor"]["speech"]["hypotheses"][0]["text"]) for f in fused] == \
         [normalise(t["text"]) for t in truth]
-    for f, t in zip(fused, truth):
+    for f, t in zip(fused, truth, strict=True):
         assert angle_difference_deg(f["aggregates"]["ssl"]["azimuth_deg"], t["azimuth_deg"]) <= 15
 
 
@@ -92,7 +92,7 @@ def test_each_question_of_the_demo_scene_comes_with_its_text_direction_emotion_a
     start_ns = next(line for line in run.lines if line.get("type") == "stream_start")["start_ns"]
     fused = [line for line in run.lines if line.get("type") == "fused_result"]
     assert len(fused) == len(truth), fused
-    for f, t in zip(fused, truth):
+    for f, t in zip(fused, truth, strict=True):
         assert normalise(f["anchor"]["speech"]["hypotheses"][0]["text"]) == normalise(t["text"])
         assert abs((f["anchor"]["span"]["start_ns"] - start_ns) / 1e9 - t["start_s"]) < 0.3, (f["anchor"], t)
         azimuth = f["aggregates"]["ssl"]["azimuth_deg"]

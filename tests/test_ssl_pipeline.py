@@ -1,11 +1,10 @@
 """The ssl service as a process on a real 4-channel recording: orchestrator, grabber, ssl, real sockets."""
 from __future__ import annotations
 
+import itertools
 import os
 import subprocess
 import sys
-
-import pytest
 
 from esiaf.testing import REPO, poll, shared_data
 
@@ -50,7 +49,7 @@ def test_respeaker_recording_runs_through_ssl_every_frame_covered(orchestrator):
 
     spans = [(r["span"]["start_ns"] - stream["start_ns"], r["span"]["end_ns"] - stream["start_ns"]) for r in results]
     assert spans[0][0] == 0 and abs(spans[-1][1] - 63184 * NS // 16000) < NS // 1000  # the whole file
-    assert all(a[1] == b[0] for a, b in zip(spans, spans[1:])), "ssl results leave gaps or overlap"
+    assert all(a[1] == b[0] for a, b in itertools.pairwise(spans)), "ssl results leave gaps or overlap"
     located = [r for r in results if "ssl" in r]
     assert len(located) >= len(results) // 2, "most frames of this recording hold a source"
     assert all("nothing" in r or r["ssl"]["directions"] for r in results)

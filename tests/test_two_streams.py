@@ -7,8 +7,9 @@ import subprocess
 import sys
 
 import pytest
-from esiaf.testing import REPO, need_flite, normalise, shared_data
 from test_e2e import best_text, collect_fused
+
+from esiaf.testing import REPO, need_flite, normalise, shared_data
 
 pytestmark = pytest.mark.e2e
 sys.path.insert(0, str(REPO / "scripts"))

@@ -22,10 +22,10 @@ BUNDLED_LANGUAGE_MODEL = BUNDLED_MODEL_DIR / "en-us.lm.bin"
 BUNDLED_DICT = BUNDLED_MODEL_DIR / "cmudict-en-us.dict"
 
 # The 39 CMUdict phones (without stress marks): the phone set of the bundled acoustic model.
-CMU_PHONES = frozenset(
-    "AA AE AH AO AW AY B CH D DH EH ER EY F G HH IH IY JH K L M N NG "
-    "OW OY P R S SH T TH UH UW V W Y Z ZH".split()
-)
+CMU_PHONES = frozenset([
+    "AA", "AE", "AH", "AO", "AW", "AY", "B", "CH", "D", "DH", "EH", "ER", "EY", "F", "G", "HH", "IH", "IY", "JH", "K",
+    "L", "M", "N", "NG", "OW", "OY", "P", "R", "S", "SH", "T", "TH", "UH", "UW", "V", "W", "Y", "Z", "ZH",
+])
 
 _ALTERNATIVE_SUFFIX = re.compile(r"\(\d+\)$")
 _NOT_WORD_CHARACTER = re.compile(r"[^a-z0-9' ]+")

@@ -62,7 +62,7 @@ def normalise(text: str) -> list[str]:
     text = re.sub(r"(\d),(\d{3})", r"\1\2", text)  # 1,000 -> 1000
     text = re.sub(r"\d+", lambda m: " " + number_words(int(m.group(0))) + " " if len(m.group(0)) <= 6
                   else m.group(0), text)
-    words = []
+    words: list[str] = []
     for word in re.split(r"[^a-z0-9'&%]+", text):
         word = word.strip("'")
         if word:
@@ -101,7 +101,7 @@ class SentenceMatcher:
         words = normalise(transcript)
         letters = "".join(words)
         best, best_key = 0, (-1.0, -1.0)
-        for index, (allowed, allowed_letters) in enumerate(zip(self._normalised, self._letters)):
+        for index, (allowed, allowed_letters) in enumerate(zip(self._normalised, self._letters, strict=True)):
             word_score = 1.0 - word_distance(words, allowed) / (max(len(words), len(allowed)) or 1)
             key = (difflib.SequenceMatcher(None, letters, allowed_letters, autojunk=False).ratio() if letters
                    else 0.0, word_score)
@@ -120,7 +120,7 @@ class SentenceMatcher:
         return rare[:max_words]
 
     @classmethod
-    def from_file(cls, path: Path, threshold: float, char_threshold: float = 0.7) -> "SentenceMatcher":
+    def from_file(cls, path: Path, threshold: float, char_threshold: float = 0.7) -> SentenceMatcher:
         text = path.read_text()
         if path.suffix == ".gram" or text.lstrip().startswith("#JSGF"):
             return cls(expand_jsgf(text), threshold, char_threshold)
@@ -154,7 +154,7 @@ def _expand_rule(name: str, rules: dict[str, str], seen: tuple[str, ...]) -> lis
     if name not in rules:
         raise GrammarError(f"rule <{name}> is not defined")
     tokens = re.findall(r"<[\w.$-]+>|[()\[\]|*+]|\{[^}]*\}|/[^/]*/|[^\s()\[\]|<>*+{}/]+", rules[name])
-    expanded, end = _alternatives(tokens, 0, rules, seen + (name,))
+    expanded, end = _alternatives(tokens, 0, rules, (*seen, name))
     if end != len(tokens):
         raise GrammarError(f"rule <{name}>: unexpected {tokens[end]!r}")
     return expanded
@@ -179,7 +179,7 @@ def _sequence(tokens: list[str], i: int, rules, seen) -> tuple[list[list[str]], 
             if i >= len(tokens) or tokens[i] != {"(": ")", "[": "]"}[token]:
                 raise GrammarError(f"unbalanced {token!r}")
             if token == "[":
-                inner = inner + [[]]
+                inner = [*inner, []]
         elif token.startswith("<"):
             inner = [[]] if token in ("<NULL>",) else _expand_rule(token[1:-1], rules, seen)
         else:

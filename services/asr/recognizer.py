@@ -209,6 +209,7 @@ class PocketsphinxRecognizer:
         return self._hypotheses()
 
     def _finish_first_utterance(self) -> list[Hypothesis]:
+        assert self._first_utterance is not None  # called while it is buffered
         pcm, self._first_utterance = b"".join(self._first_utterance), None
         self._in_utterance = False
         self._decoder.end_utt()  # nothing was fed to it

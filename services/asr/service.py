@@ -7,6 +7,7 @@ import logging
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -64,9 +65,10 @@ class Asr(Component):
     service = "asr"
     designation = "speech"
     Settings = AsrSettings
+    settings: AsrSettings  # an instance of Settings: its fields, for type checkers
 
-    options = {"grammar": "JSGF grammar file, or a bundled grammar name (robocup)",
-               "backend": "pocketsphinx (default) or whisper"}
+    options: ClassVar[dict[str, str]] = {"grammar": "JSGF grammar file, or a bundled grammar name (robocup)",
+                                         "backend": "pocketsphinx (default) or whisper"}
 
     def __init__(self, settings: AsrSettings):
         super().__init__(settings)
@@ -87,7 +89,8 @@ class Asr(Component):
                 self.info["model"] = str(self.whisper.path)
             else:
                 self.streams[s.stream_id] = StreamState(self._new_decoder())  # ready for the usual stream
-            closed_set = s.sentences or (str(resolve_grammar(s.grammar)) if s.grammar and s.backend == "whisper" else "")
+            closed_set = s.sentences or (str(resolve_grammar(s.grammar)) if s.grammar and s.backend == "whisper"
+                                         else "")
             if closed_set:
                 self.matcher = SentenceMatcher.from_file(Path(closed_set), s.match_threshold, s.char_threshold)
                 if self.whisper is not None and s.prompt_vocabulary:
@@ -102,7 +105,8 @@ class Asr(Component):
     def _new_decoder(self) -> PocketsphinxRecognizer:
         s = self.settings
         return PocketsphinxRecognizer(
-            sample_rate_hz=s.sample_rate_hz, grammar=resolve_grammar(s.grammar) if s.backend == "pocketsphinx" else None,
+            sample_rate_hz=s.sample_rate_hz,
+            grammar=resolve_grammar(s.grammar) if s.backend == "pocketsphinx" else None,
             extra_dictionary=s.extra_dictionary or None, language_weight=s.language_weight, nbest=s.nbest)
 
     def _stream(self, stream_id: str) -> StreamState:
@@ -153,6 +157,7 @@ class Asr(Component):
             hypotheses = state.recognizer.finish()
         else:
             pcm, state.chunks = b"".join(state.chunks), []
+            assert self.whisper is not None  # setup() loads it for the whisper backend
             decoded = self.whisper.recognise(np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0,
                                              self.settings.sample_rate_hz, self.prompt)
             hypotheses, nothing = decoded.hypotheses, decoded.nothing or nothing

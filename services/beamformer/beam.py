@@ -68,7 +68,7 @@ class BeamCore:
         lead_s = lead_s - lead_s[self.reference]
         return np.exp(2j * np.pi * self.freqs[:, None] * lead_s[None, :])
 
-    def stream(self) -> "BeamStream":
+    def stream(self) -> BeamStream:
         return BeamStream(self)
 
 
@@ -103,6 +103,7 @@ class BeamStream:
         self.weights = None if self.target is None else self._weights()
 
     def _weights(self) -> np.ndarray:
+        assert self.target is not None  # weights are for a direction
         d = self.core.steering(self.target)
         if self.core.method == "das" or self.noise_frames == 0:
             return d / self.core.array.mics

@@ -23,11 +23,13 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
+from pydantic import Field
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
-from esiaf.arrays import ARRAY_CHOICES, ArrayError, ArrayGeometry, array_input
+from esiaf.arrays import ARRAY_CHOICES, ArrayError, array_input
 from services.beamformer.beam import BeamCore, BeamformerError, BeamStream
 
 log = logging.getLogger(__name__)
@@ -41,7 +43,8 @@ class BeamformerSettings(ComponentSettings):
     sample_rate_hz: int = 16000
     sample_type: str = "int16"
     channels: int = 0  # of the input; 0 = as many as mic_channels names, or the array's microphones
-    mic_channels: list[int] = []  # input channels that are the array's microphones, in array order; [] = all
+    # input channels that are the array's microphones, in array order; [] = all
+    mic_channels: list[int] = Field(default_factory=list)
     method: str = "mvdr"  # mvdr | das
     nfft: int = 512
     reference_mic: int = 0  # passed through where no talker is tracked
@@ -71,8 +74,9 @@ class Beamformer(Component):
     service = "beamformer"
     designation = "other"
     Settings = BeamformerSettings
-    options = {"array": ARRAY_CHOICES,
-               "method": "mvdr (default) or das (delay and sum)"}
+    settings: BeamformerSettings  # an instance of Settings: its fields, for type checkers
+    options: ClassVar[dict[str, str]] = {"array": ARRAY_CHOICES,
+                                         "method": "mvdr (default) or das (delay and sum)"}
 
     def __init__(self, settings: BeamformerSettings):
         super().__init__(settings)

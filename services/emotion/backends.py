@@ -17,8 +17,9 @@ from __future__ import annotations
 import importlib
 import json
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -101,7 +102,7 @@ class OnnxClassifier(Classifier):
 
     def classify(self, samples: np.ndarray) -> dict[str, float]:
         probabilities = self._run(self.features(samples))
-        return dict(zip(self.labels, probabilities.tolist()))
+        return dict(zip(self.labels, probabilities.tolist(), strict=True))
 
 
 def python_classifier(model: str, **options: Any) -> Classifier:

@@ -3,9 +3,10 @@
 The same code serves training (``tools/train.py``) and the running service, so a model sees
 features computed exactly as it was trained on, over the same stretch of audio: the speech span
 as the VAD's segmenter finds it, without the pre-roll and hang-over the VAD forwards around it
-(``speech_span``; the models are trained on the spans of both VAD backends). Functionals are averages over every frame, so half a second of
-silence more or less changes them enough to flip the label (tried: padding 40 EmoDB utterances with
-the VAD's 650 ms of silence took a 4-class model's accuracy on them from 0.85 to 0.50).
+(``speech_span``; the models are trained on the spans of both VAD backends). Functionals are
+averages over every frame, so half a second of silence more or less changes them enough to flip
+the label (tried: padding 40 EmoDB utterances with the VAD's 650 ms of silence took a 4-class
+model's accuracy on them from 0.85 to 0.50).
 """
 from __future__ import annotations
 
@@ -57,7 +58,8 @@ class FeatureExtractor:
 VADS = ("silero", "energy")  # the vad service's backends; silero is its default
 
 
-def speech_span(samples: np.ndarray, sample_rate_hz: int, chunk_ms: float = 20.0, vad: str = "silero") -> tuple[int, int]:
+def speech_span(samples: np.ndarray, sample_rate_hz: int, chunk_ms: float = 20.0,
+                vad: str = "silero") -> tuple[int, int]:
     """(first, end) sample of what the vad service (backend ``vad``, default settings) would call
     speech in a recording of one utterance (float samples in [-1, 1]): from the first segment's
     onset to the last segment's end; the whole recording if the VAD would find none. The two

@@ -9,9 +9,10 @@ The gender service is the same component with another result type and model.
 from __future__ import annotations
 
 import logging
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
+from pydantic import Field
 
 from esiaf import SetupError
 from esiaf.utterance import UtteranceComponent
@@ -24,15 +25,18 @@ log = logging.getLogger(__name__)
 class UtteranceSettings(BaseUtteranceSettings):
     backend: str = "onnx"  # onnx | python (see backends.py)
     model: str = "emotion4"  # bundled model name, an .onnx file, or package.module:Class (python)
-    model_options: dict[str, Any] = {}  # onnx: label_map, threads; python: the class's keyword arguments
+    # onnx: label_map, threads; python: the class's keyword arguments
+    model_options: dict[str, Any] = Field(default_factory=dict)
 
 
 class UtteranceClassifier(UtteranceComponent):
     """Base of the emotion and gender services: one label result per VAD segment, from a model."""
 
     Settings = UtteranceSettings
-    options = {"model": "bundled model name, .onnx file, or package.module:Class for the python backend",
-               "backend": "onnx (default) or python"}
+    settings: UtteranceSettings  # an instance of Settings: its fields, for type checkers
+    options: ClassVar[dict[str, str]] = {
+        "model": "bundled model name, .onnx file, or package.module:Class for the python backend",
+        "backend": "onnx (default) or python"}
 
     def __init__(self, settings: UtteranceSettings):
         super().__init__(settings)
@@ -51,8 +55,9 @@ class UtteranceClassifier(UtteranceComponent):
         log.info("model=%s backend=%s labels=%s", s.model, s.backend, ",".join(self.classifier.labels))
 
     def analyse(self, samples: np.ndarray, rate: int) -> dict[str, Any]:
+        assert self.classifier is not None  # setup() loads it
         probabilities = self.classifier.classify(samples)
-        label = max(probabilities, key=probabilities.get)
+        label = max(probabilities, key=probabilities.__getitem__)
         return {"label": label, "probability": probabilities[label], "class_probabilities": probabilities}
 
 

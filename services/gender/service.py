@@ -18,3 +18,4 @@ class Gender(UtteranceClassifier):
     service = "gender"
     kind = "gender"
     Settings = GenderSettings
+    settings: GenderSettings  # an instance of Settings: its fields, for type checkers

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
+from typing import ClassVar
 
 from esiaf import AudioFormat, Component, ComponentSettings, SampleClock, SetupError
 from services.grabber.sources import AlsaSource, FileSource
@@ -37,10 +38,11 @@ class Grabber(Component):
     service = "grabber"
     designation = "other"
     Settings = GrabberSettings
+    settings: GrabberSettings  # an instance of Settings: its fields, for type checkers
 
-    options = {"input": "sound file to play (WAV, FLAC, ... or headerless .raw)",
-               "device": "ALSA capture device (see arecord -L)",
-               "fast": "play as fast as possible"}
+    options: ClassVar[dict[str, str]] = {"input": "sound file to play (WAV, FLAC, ... or headerless .raw)",
+                                         "device": "ALSA capture device (see arecord -L)",
+                                         "fast": "play as fast as possible"}
 
     def __init__(self, settings: GrabberSettings):
         super().__init__(settings)
@@ -66,13 +68,14 @@ class Grabber(Component):
     def produce(self) -> None:
         s = self.settings
         if s.wait_for_subscribers and not self.wait_for_subscribers(s.topic, s.wait_for_subscribers,
-                                                                     s.wait_timeout_s):
-            if not self.stopping:
-                log.warning("topic=%s has fewer than %d subscribers after %g s; playing anyway",
-                            s.topic, s.wait_for_subscribers, s.wait_timeout_s)
-        fmt = self.source.format
-        live = isinstance(self.source, AlsaSource)
-        chunk_ns = fmt.duration_ns(self.source.chunk_frames)
+                                                                     s.wait_timeout_s) and not self.stopping:
+            log.warning("topic=%s has fewer than %d subscribers after %g s; playing anyway",
+                        s.topic, s.wait_for_subscribers, s.wait_timeout_s)
+        source = self.source
+        assert source is not None  # __init__ opens a file, setup() a device
+        fmt = source.format
+        live = isinstance(source, AlsaSource)
+        chunk_ns = fmt.duration_ns(source.chunk_frames)
         origin_ns = time.time_ns() - (chunk_ns if live else 0)
         started = time.monotonic()
         clock = SampleClock(origin_ns, fmt.sample_rate_hz)
@@ -84,9 +87,9 @@ class Grabber(Component):
         overruns = 0
         total_frames = getattr(self.source, "total_frames", None)
         ended = False
-        for samples in self.source.chunks():
-            if live and self.source.overruns != overruns:  # audio was lost: re-anchor on the wall clock
-                overruns = self.source.overruns
+        for samples in source.chunks():
+            if isinstance(source, AlsaSource) and source.overruns != overruns:  # audio was lost: re-anchor
+                overruns = source.overruns
                 clock = SampleClock(time.time_ns() - chunk_ns, fmt.sample_rate_hz)
             start_ns, end_ns = clock.advance(len(samples))
             if not (s.fast or live):

@@ -5,8 +5,9 @@ A source yields (frames, channels) arrays of a fixed format, one chunk at a time
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
+from typing import ClassVar
 
 import numpy as np
 
@@ -73,7 +74,8 @@ class FileSource:
 class AlsaSource:
     """Live capture from a named ALSA device (``arecord -L`` lists them)."""
 
-    _FORMATS = {"int16": "PCM_FORMAT_S16_LE", "int32": "PCM_FORMAT_S32_LE", "float32": "PCM_FORMAT_FLOAT_LE"}
+    _FORMATS: ClassVar[dict[str, str]] = {"int16": "PCM_FORMAT_S16_LE", "int32": "PCM_FORMAT_S32_LE",
+                                          "float32": "PCM_FORMAT_FLOAT_LE"}
 
     def __init__(self, device: str, fmt: AudioFormat, chunk_ms: float):
         try:

@@ -5,4 +5,4 @@ Run it with ``python -m services.orchestrator``; build the app with :func:`creat
 from .app import create_app
 from .settings import OrchestratorSettings
 
-__all__ = ["create_app", "OrchestratorSettings"]
+__all__ = ["OrchestratorSettings", "create_app"]

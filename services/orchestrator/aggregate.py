@@ -13,7 +13,8 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Iterable
+from collections.abc import Iterable
+from typing import Any
 
 from esiaf.results import LABEL_PAYLOADS, RESULT_TYPES
 
@@ -136,10 +137,10 @@ def generic_aggregate(results: list[dict[str, Any]], type_name: str,
     mean of their values where they have values (both, where both)."""
     labels = label_aggregate(results, type_name, window)
     values = value_aggregate(results, type_name, window)
-    if labels is None and values is None:
+    either = labels or values
+    if either is None:
         return None
-    return {**(labels or {}), **({"value": values["value"]} if values else {}),
-            "overlap_s": (labels or values)["overlap_s"]}
+    return {**(labels or {}), **({"value": values["value"]} if values else {}), "overlap_s": either["overlap_s"]}
 
 
 def aggregates(results: dict[str, list[dict[str, Any]]],

@@ -5,7 +5,7 @@ import asyncio
 import errno
 import logging
 import sqlite3
-from typing import Any
+from typing import Any, TypeVar
 
 import zmq
 import zmq.asyncio
@@ -34,6 +34,17 @@ class StartupError(Exception):
     """The orchestrator cannot start: one line that says why and what to do."""
 
 
+T = TypeVar("T")
+
+
+def _running(part: T | None, name: str) -> T:
+    """One of the parts the orchestrator makes at start(): there only while it runs."""
+    if part is None:
+        raise RuntimeError(f"the orchestrator's {name} is used while it is not running "
+                           "(before start() or after stop())")
+    return part
+
+
 def zmq_host(host: str) -> str:
     if host in ANY_HOST:
         return "*"
@@ -47,16 +58,34 @@ class Orchestrator:
         self.recovered: list[str] = []  # the report of a --recover that repaired the database at start-up
         self.registry = Registry(settings.format_strategy)
         self.hub = Hub()
-        self.store: Store | None = None
-        self.control: ControlPlane | None = None
-        self.ingest: Ingest | None = None
+        # made by start(), until stop(): read them through the properties below
+        self._store: Store | None = None
+        self._control: ControlPlane | None = None
+        self._ingest: Ingest | None = None
         self.metrics = Metrics()
         self.metrics.watch(self)
         self.control_endpoint = ""
         self.results_endpoint = ""
         self._ctx: zmq.asyncio.Context | None = None
-        self.guard: Guard | None = None
+        self._guard: Guard | None = None
         self._tasks: list[asyncio.Task] = []
+
+    # the parts start() makes; the REST API, the metrics and the tasks use them only while running
+    @property
+    def store(self) -> Store:
+        return _running(self._store, "store")
+
+    @property
+    def control(self) -> ControlPlane:
+        return _running(self._control, "control")
+
+    @property
+    def ingest(self) -> Ingest:
+        return _running(self._ingest, "ingest")
+
+    @property
+    def guard(self) -> Guard:
+        return _running(self._guard, "guard")
 
     # lifecycle
     async def start(self) -> None:
@@ -89,7 +118,7 @@ class Orchestrator:
             raise StartupError(str(exc)) from None
         self._ctx = zmq.asyncio.Context()
         # ZAP: the control and results sockets take only peers with an allowed key, or the token
-        self.guard = Guard(self._ctx, settings.token or auth.token(), curve)
+        self._guard = Guard(self._ctx, settings.token or auth.token(), curve)
         self.guard.start()
         control_socket, self.control_endpoint = self._bind(zmq.ROUTER, settings.control_port,
                                                            "control", "control_port")
@@ -97,11 +126,11 @@ class Orchestrator:
         results_socket, self.results_endpoint = self._bind(zmq.PULL, settings.results_port,
                                                            "results", "results_port")
         try:
-            self.store = Store(settings.db_path, fresh=self.fresh)
+            self._store = Store(settings.db_path, fresh=self.fresh)
         except StoreError as exc:
             raise StartupError(str(exc)) from None
-        self.control = ControlPlane(control_socket, self.registry)
-        self.ingest = Ingest(results_socket, self.store, engine, self.hub, self.registry, metrics=self.metrics,
+        self._control = ControlPlane(control_socket, self.registry)
+        self._ingest = Ingest(results_socket, self.store, engine, self.hub, self.registry, metrics=self.metrics,
                              stream_end_grace_s=self.settings.stream_end_grace_s)
         try:
             self.ingest.restore()
@@ -114,6 +143,7 @@ class Orchestrator:
     def _bind(self, kind: int, port: int, what: str,
               setting: str) -> tuple[zmq.asyncio.Socket, str]:
         host = zmq_host(self.settings.host)
+        assert self._ctx is not None  # _start() makes it first
         socket = self._ctx.socket(kind)
         socket.setsockopt(zmq.LINGER, 0)
         self.guard.secure(socket, what)
@@ -142,14 +172,14 @@ class Orchestrator:
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
-        if self.guard is not None:
-            self.guard.stop()
+        if self._guard is not None:
+            self._guard.stop()
         if self._ctx is not None:
             self._ctx.destroy(linger=0)
             self._ctx = None
-        if self.store is not None:
-            self.store.close()
-            self.store = None
+        if self._store is not None:
+            self._store.close()
+            self._store = None
             log.info("event=orchestrator_stopped")
 
     def _task_done(self, task: asyncio.Task) -> None:
@@ -196,12 +226,13 @@ class Orchestrator:
             await asyncio.sleep(LIVENESS_CHECK_S)
             dead = self.registry.expire(self.settings.dead_after_s)
             for component in dead:
+                assert component.departed_ns is not None  # expire() sets it
                 log.warning("event=component_dead component_id=%s name=%s silent_s=%.2f",
                             component.component_id, component.name,
                             (component.departed_ns - component.last_seen_ns) / 1e9)
             if dead:
                 await self._after_change(dead)
-            elif self.ingest is not None and self.ingest.streams.pending():
+            elif self._ingest is not None and self._ingest.streams.pending():
                 self.ingest.check_stream_ends()  # a dead component's grace may have run out
 
     async def _checkpoint(self) -> None:

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import bisect
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any, Iterator, Protocol
+from typing import Any, Protocol
 
 from .aggregate import overlaps
 
@@ -24,7 +25,7 @@ class StoredResult:
     json: dict[str, Any]
 
     @classmethod
-    def from_json(cls, value: dict[str, Any]) -> "StoredResult":
+    def from_json(cls, value: dict[str, Any]) -> StoredResult:
         return cls(id=value["id"], component=value["component"], type=value["type"],
                    stream_id=value["stream_id"], start_ns=value["span"]["start_ns"],
                    end_ns=value["span"]["end_ns"], json=value)
@@ -65,9 +66,12 @@ class Coverage:
 
 
 class Spanned(Protocol):
-    id: int
-    start_ns: int
-    end_ns: int
+    @property
+    def id(self) -> int: ...
+    @property
+    def start_ns(self) -> int: ...
+    @property
+    def end_ns(self) -> int: ...
 
 
 class SpanIndex:

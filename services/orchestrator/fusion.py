@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import heapq
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Protocol
+from typing import Any, Protocol
 
 from .aggregate import aggregates, overlaps
 from .coverage import Coverage, SpanIndex, StoredResult
@@ -200,7 +201,7 @@ class FusionEngine:
         now_ns = self._clock_ns() if now_ns is None else now_ns
         fused = []
         while self._revisions and self._revisions[0][0] <= now_ns:
-            due, fused_id = heapq.heappop(self._revisions)
+            _due, fused_id = heapq.heappop(self._revisions)
             fusion = self._revising.pop(fused_id, None)
             if fusion is not None:
                 fusion.revision_due_ns = None

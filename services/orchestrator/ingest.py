@@ -10,7 +10,8 @@ import json
 import logging
 import time
 from collections import Counter, OrderedDict, deque
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any, cast
 
 import zmq
 import zmq.asyncio
@@ -87,7 +88,7 @@ class Ingest:
         self._arm_timer()  # fusions restored from the database may be due
         while True:
             batch = [await self.socket.recv_multipart()]
-            while len(batch) < MAX_BATCH and self.socket.get(zmq.EVENTS) & zmq.POLLIN:
+            while len(batch) < MAX_BATCH and cast(int, self.socket.get(zmq.EVENTS)) & zmq.POLLIN:
                 batch.append(await self.socket.recv_multipart())
             self.handle_batch(batch)
 

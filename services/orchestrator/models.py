@@ -38,8 +38,8 @@ class TopicDeclaration(Strict):
     format: AudioFormat = Field(description="the format this component wants (external format)")
 
 
-_EXAMPLE_FORMAT = {"sample_rate_hz": 16000, "sample_type": "int16", "endianness": "little",
-                   "channels": 1}
+_EXAMPLE_FORMAT: dict[str, Any] = {"sample_rate_hz": 16000, "sample_type": "int16", "endianness": "little",
+                                    "channels": 1}
 
 
 class RegisterRequest(Strict):
@@ -79,7 +79,7 @@ class RegisterRequest(Strict):
         return value
 
     @model_validator(mode="after")
-    def _consistent(self) -> "RegisterRequest":
+    def _consistent(self) -> RegisterRequest:
         for side in ("inputs", "outputs"):
             topics = [d.topic for d in getattr(self, side)]
             repeated = sorted({t for t in topics if topics.count(t) > 1})

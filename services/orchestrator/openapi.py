@@ -6,7 +6,8 @@ rule JSON Schema cannot state (``start_ns`` after ``end_ns``, a fusion that fuse
 schemathesis checks every answer against this document (tests/test_openapi_fuzz.py)."""
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from fastapi import FastAPI
 
@@ -15,7 +16,8 @@ from .models import Problem
 
 SCHEMES = {
     "bearer": {"type": "http", "scheme": "bearer",
-               "description": "the token (setting token, ESIAF_TOKEN or ESIAF_TOKEN_FILE; esiaf run makes one per run)"},
+               "description": "the token (setting token, ESIAF_TOKEN or ESIAF_TOKEN_FILE; "
+                              "esiaf run makes one per run)"},
     "query": {"type": "apiKey", "in": "query", "name": "token", "description": "the token, for browsers"},
 }
 

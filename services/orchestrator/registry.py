@@ -188,7 +188,7 @@ class Registry:
                      for topic in component.inputs}
         peers = {topic: [p.audio_endpoint for p in found] for topic, found in producers.items()}
         topics = [*component.inputs, *(t for t in component.outputs if t not in component.inputs)]
-        state = {"type": "state", "peers": peers, "formats": {t: formats[t] for t in topics}}
+        state: dict[str, Any] = {"type": "state", "peers": peers, "formats": {t: formats[t] for t in topics}}
         peer_keys = {p.audio_endpoint: p.audio_public_key for found in producers.values() for p in found
                      if p.audio_public_key}
         if peer_keys:

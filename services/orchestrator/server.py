@@ -7,7 +7,7 @@ import errno
 import logging
 import signal
 import socket
-from typing import Iterator
+from collections.abc import Iterator
 
 import uvicorn
 

@@ -2,8 +2,9 @@
 from __future__ import annotations
 
 import socket
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Annotated, Any, Literal, Mapping
+from typing import Annotated, Any
 
 from pydantic import Field, field_validator, model_validator
 
@@ -32,7 +33,7 @@ class FusionSettings(StrictModel):
     stream: str | None = Field(default=None, description="only anchor results of this stream")
 
     @model_validator(mode="after")
-    def _consistent(self) -> "FusionSettings":
+    def _consistent(self) -> FusionSettings:
         if self.anchor in self.fuse:
             raise ValueError(f"fusion {self.name!r}: the anchor type {self.anchor} cannot also be "
                              "fused with itself (each anchor has its own window)")
@@ -60,7 +61,7 @@ class TimeoutSettings(StrictModel):
                                                    "late results that come sooner are coalesced")
 
     @model_validator(mode="after")
-    def _bounds(self) -> "TimeoutSettings":
+    def _bounds(self) -> TimeoutSettings:
         if self.min_s > self.max_s:
             raise ValueError(f"min_s ({self.min_s}) must not exceed max_s ({self.max_s})")
         bad = sorted(name for name, factor in self.factors.items() if factor <= 0)
@@ -103,7 +104,7 @@ class OrchestratorSettings(StrictModel):
         return level
 
     @model_validator(mode="after")
-    def _consistent(self) -> "OrchestratorSettings":
+    def _consistent(self) -> OrchestratorSettings:
         names = [f.name for f in self.fusions]
         duplicates = sorted({n for n in names if names.count(n) > 1})
         if duplicates:

@@ -1,7 +1,7 @@
 """End of stream: a stream has ended when every live component with inputs said so."""
 from __future__ import annotations
 
-from typing import Collection, Iterable, Mapping
+from collections.abc import Collection, Iterable, Mapping
 
 
 class StreamEnds:

@@ -172,6 +172,7 @@ async def enrol_voice(name: str, request: Request, core: Orchestrator = Depends(
 def embed_wav(data: bytes) -> np.ndarray:
     from scipy.io import wavfile
     from scipy.signal import resample_poly
+
     from services.voiceid.encoder import shared_encoder
     try:
         rate_hz, samples = wavfile.read(io.BytesIO(data))
@@ -194,6 +195,8 @@ def embed_wav(data: bytes) -> np.ndarray:
 
 def stored_embeddings(core: Orchestrator, body: SpanEnrolment | AnonymousEnrolment) -> tuple[list[np.ndarray], str]:
     stream = body.stream
+    start_ns: int | None
+    end_ns: int | None
     if isinstance(body, SpanEnrolment):
         anonymous = None
         start_ns, end_ns = body.start_ns, body.end_ns

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
-from typing import Any, Coroutine
+from collections.abc import Coroutine
+from typing import Any
 
 import zmq.asyncio
 from zmq.auth.asyncio import AsyncioAuthenticator

@@ -9,6 +9,9 @@ end of stream).
 from __future__ import annotations
 
 import logging
+from typing import Any, ClassVar
+
+from pydantic import Field
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
 from esiaf.control import declared_format
@@ -18,7 +21,7 @@ log = logging.getLogger(__name__)
 
 class SplitterSettings(ComponentSettings):
     input_topic: str = "grabber/audio"
-    channels: list[int] = []  # input channels to publish (0-based); empty = all
+    channels: list[int] = Field(default_factory=list)  # input channels to publish (0-based); empty = all
     input_channels: int = 0  # 0 = as declared by the input topic's producer (asked from the orchestrator)
     sample_rate_hz: int = 16000  # with input_channels: the input's rate
     sample_type: str = "int16"  # with input_channels: the input's sample type
@@ -34,8 +37,10 @@ class Splitter(Component):
     service = "splitter"
     designation = "other"
     Settings = SplitterSettings
-    options = {"input_topic": "multi-channel topic to split",
-               "input_channels": "channel count of the input (default: as its producer declares)"}
+    settings: SplitterSettings  # an instance of Settings: its fields, for type checkers
+    options: ClassVar[dict[str, str]] = {
+        "input_topic": "multi-channel topic to split",
+        "input_channels": "channel count of the input (default: as its producer declares)"}
 
     def setup(self) -> None:
         s = self.settings
@@ -63,7 +68,7 @@ class Splitter(Component):
 
     def on_audio(self, audio: Audio) -> None:
         segment = audio.meta.segment
-        meta = dict(stream_id=audio.stream_id, segmentation_ended=audio.segmentation_ended,
+        meta: dict[str, Any] = dict(stream_id=audio.stream_id, segmentation_ended=audio.segmentation_ended,
                     segment=(segment.start_ns, segment.end_ns) if audio.meta.HasField("segment") else None,
                     ssl_directions=audio.ssl_directions, end_of_stream=audio.end_of_stream)
         samples = audio.samples

@@ -119,7 +119,7 @@ class Localiser:
     def min_frames(self) -> int:
         return 2 * self.nfft  # three snapshots at hop nfft/2
 
-    def locate(self, frame: np.ndarray, floor: "NoiseFloor | None" = None) -> list[Direction]:
+    def locate(self, frame: np.ndarray, floor: NoiseFloor | None = None) -> list[Direction]:
         """Directions of up to ``max_sources`` sources in a (frames, mics) float frame, best first.
 
         With a ``floor``, only the frequency bins that stand above the background it tracks are
@@ -136,7 +136,7 @@ class Localiser:
             bins = bins[floor.update(power)[bins]]
             if len(bins) < floor.min_bins:
                 return []
-        if self.algorithm == "FRIDA" and not np.array_equal(bins, self._frida_bins):
+        if self.algorithm == "FRIDA" and (self._frida_bins is None or not np.array_equal(bins, self._frida_bins)):
             self._doa.G = None  # FRIDA keeps its mapping for the bins it saw first: rebuild it for these
             self._frida_bins = bins
         with warnings.catch_warnings():  # pyroomacoustics warns on ill-conditioned bins; the result says enough
@@ -159,7 +159,7 @@ class Localiser:
         confidences = self._confidences(len(azimuths))
         relative = self._relative(azimuths)
         found = [Direction(float(a), float(e), float(c * r), float(r))
-                 for a, e, c, r in zip(azimuths, elevations, confidences, relative)]
+                 for a, e, c, r in zip(azimuths, elevations, confidences, relative, strict=False)]
         return sorted(found, key=lambda d: -d.relative)
 
     def _relative(self, azimuths: np.ndarray) -> np.ndarray:

@@ -6,9 +6,10 @@ scene's truth.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -53,8 +54,9 @@ def localise(signals: np.ndarray, sample_rate_hz: int, chunk_ms: float = 20.0,
             best = payload["ssl"].directions[0]
             frames.append(Frame(start_s, end_s, best.azimuth_deg, best.probability, best.source_id))
 
-    ssl.emit = emit
-    ssl.forward = on_forward or (lambda *args, **kwargs: 0)
+    # the offline run keeps what the service would send to the orchestrator and the beamformer
+    ssl.emit = emit  # type: ignore[method-assign]
+    ssl.forward = on_forward or (lambda *args, **kwargs: 0)  # type: ignore[method-assign]
     fmt = AudioFormat(sample_rate_hz, "int16", channels=signals.shape[1])
     ints = np.round(np.clip(signals, -1, 1 - 1 / 32768) * 32768).astype(np.int16)
     step = max(1, round(sample_rate_hz * chunk_ms / 1000))
@@ -79,7 +81,8 @@ def score(frames: list[Frame], utterances: list[dict[str, Any]]) -> dict[str, An
         inside = [f for f in frames if f.start_s >= u["start_s"] and f.end_s <= u["end_s"]]
         speech_frames += len(inside)
         located = [f for f in inside if f.azimuth_deg is not None]
-        errs = [angle_difference_deg(f.azimuth_deg, u["azimuth_deg"]) for f in located]
+        errs = [angle_difference_deg(f.azimuth_deg, u["azimuth_deg"]) for f in located
+                if f.azimuth_deg is not None]  # all of them: located ones have a direction
         errors += errs
         per_utterance.append({"azimuth_deg": u["azimuth_deg"], "frames": len(inside), "located": len(located),
                               "median_error_deg": float(np.median(errs)) if errs else None,
@@ -98,7 +101,7 @@ def accuracy_scene(array: str, data: Path) -> Scene:
     ``data`` is the shared data folder."""
     import soundfile
     speech, onset = [], 0.5
-    for angle, name in zip(ANGLES, CLIPS):
+    for angle, name in zip(ANGLES, CLIPS, strict=True):
         clip = data / "speech" / "cmu_arctic" / f"{name}.wav"
         speech.append(SpeechSource(clip=str(clip), azimuth_deg=angle, distance_m=1.5, onset_s=onset, speaker=name))
         onset += soundfile.info(str(clip)).duration + 0.3

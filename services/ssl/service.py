@@ -19,11 +19,13 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
+from pydantic import Field
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError, ssl_direction
-from esiaf.arrays import ARRAY_CHOICES, ArrayError, ArrayGeometry, array_input
+from esiaf.arrays import ARRAY_CHOICES, array_input
 from esiaf.proto import esiaf_pb2 as pb
 from services.ssl.doa import Localiser, LocaliserError, NoiseFloor
 from services.ssl.tracker import Tracker
@@ -38,7 +40,8 @@ class SslSettings(ComponentSettings):
     sample_rate_hz: int = 16000
     sample_type: str = "int16"
     channels: int = 0  # of the input; 0 = as many as mic_channels names, or the array's microphones
-    mic_channels: list[int] = []  # input channels that are the array's microphones, in array order; [] = all
+    # input channels that are the array's microphones, in array order; [] = all
+    mic_channels: list[int] = Field(default_factory=list)
     algorithm: str = "NormMUSIC"  # MUSIC, NormMUSIC, SRP, TOPS, CSSM, WAVES, FRIDA
     nfft: int = 256
     freq_min_hz: float = 300.0
@@ -71,8 +74,10 @@ class Ssl(Component):
     service = "ssl"
     designation = "ssl"
     Settings = SslSettings
-    options = {"array": ARRAY_CHOICES,
-               "algorithm": "DOA algorithm: NormMUSIC (default), MUSIC, SRP, TOPS, CSSM, WAVES, FRIDA"}
+    settings: SslSettings  # an instance of Settings: its fields, for type checkers
+    options: ClassVar[dict[str, str]] = {
+        "array": ARRAY_CHOICES,
+        "algorithm": "DOA algorithm: NormMUSIC (default), MUSIC, SRP, TOPS, CSSM, WAVES, FRIDA"}
 
     def __init__(self, settings: SslSettings):
         super().__init__(settings)
@@ -154,6 +159,7 @@ class Ssl(Component):
     def _directions(self, state: StreamState, frame: np.ndarray, span: tuple[int, int],
                     stream_id: str) -> list[pb.SslDirection]:
         s = self.settings
+        assert self.localiser is not None  # setup() makes it
         level_db = 96.0 + 10 * math.log10(float(np.mean(frame ** 2)) + 1e-20)
         reason = ""
         if level_db < s.min_level_db:
@@ -175,8 +181,8 @@ class Ssl(Component):
             return []
         tracks = state.tracker.update(span[1], [d.azimuth_deg for d in found])
         directions = [ssl_direction(d.azimuth_deg, d.elevation_deg, d.confidence, source_id=t.source_id)
-                      for d, t in zip(found, tracks)]
-        for direction, track in zip(directions, tracks):
+                      for d, t in zip(found, tracks, strict=True)]
+        for direction, track in zip(directions, tracks, strict=True):
             direction.elevation_known = self.localiser.reports_elevation
             direction.track_azimuth_deg = track.azimuth_deg
             direction.background = track.background

@@ -71,7 +71,7 @@ class Segmenter(Generic[T]):
                 force_end: bool = False) -> list[Forward[T]]:
         """One chunk in, what to forward out. ``force_end`` closes an open segment on this chunk."""
         p = self.params
-        if not self.active:
+        if self._speech_start_ns is None:  # not active
             if level <= p.db_min:
                 self._remember(item, start_ns, end_ns)
                 return []
@@ -80,8 +80,8 @@ class Segmenter(Generic[T]):
             out = [Forward(chunk) for chunk, _, _ in self._pre_roll]
             self._pre_roll.clear()
             if force_end:
-                return out + [self._end(item, end_ns)]
-            return out + [Forward(item)]
+                return [*out, self._end(item, end_ns)]
+            return [*out, Forward(item)]
         if level > p.db_keep_alive:
             self._last_loud_end_ns = end_ns
         quiet_ns = end_ns - self._last_loud_end_ns
@@ -92,6 +92,7 @@ class Segmenter(Generic[T]):
         return [Forward(item)]
 
     def _end(self, item: T, speech_end_ns: int) -> Forward[T]:
+        assert self._speech_start_ns is not None  # it ends an open segment
         segment = (self._speech_start_ns, speech_end_ns)
         self._speech_start_ns = None
         return Forward(item, ended=True, segment=segment)
@@ -178,8 +179,8 @@ class ProbabilitySegmenter(Generic[T]):
         out = [Forward(c.item) for c in self._held]
         self._held.clear()
         if ended:
-            return out + [self._end(item, self._last_speech_end_ns)]
-        return out + [Forward(item)]
+            return [*out, self._end(item, self._last_speech_end_ns)]
+        return [*out, Forward(item)]
 
     def _idle(self, chunk: _Chunk[T], force_end: bool) -> list[Forward[T]]:
         p = self.params
@@ -213,10 +214,11 @@ class ProbabilitySegmenter(Generic[T]):
         self._pre_roll.clear()
         self._candidate = []
         if force_end:
-            return out + [self._end(last.item, self._last_speech_end_ns)]
-        return out + [Forward(last.item)]
+            return [*out, self._end(last.item, self._last_speech_end_ns)]
+        return [*out, Forward(last.item)]
 
     def _cut(self) -> list[Forward[T]]:
+        assert self._start_ns is not None  # it cuts an open segment
         held, self._held = self._held, []
         at = min(range(len(held)), key=lambda i: (held[i].probability, -i))
         speech_end_ns = held[at].end_ns if held[at].probability >= self.params.threshold_off else held[at].start_ns
@@ -226,6 +228,7 @@ class ProbabilitySegmenter(Generic[T]):
         return out
 
     def _end(self, item: T, speech_end_ns: int) -> Forward[T]:
+        assert self._start_ns is not None  # it ends an open segment
         segment = (self._start_ns, speech_end_ns)
         within = [p for end_ns, p in self._probabilities if end_ns <= speech_end_ns]
         probability = sum(within) / len(within) if within else 0.0

@@ -14,7 +14,7 @@ The VAD result of a segment carries its mean speech probability (1 with ``energy
 from __future__ import annotations
 
 import logging
-from typing import Any
+from typing import Any, ClassVar
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
 from services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
@@ -52,7 +52,9 @@ class Vad(Component):
     service = "vad"
     designation = "vad"
     Settings = VadSettings
-    options = {"backend": "silero (default: a neural VAD, robust to noise) or energy (the original)"}
+    settings: VadSettings  # an instance of Settings: its fields, for type checkers
+    options: ClassVar[dict[str, str]] = {
+        "backend": "silero (default: a neural VAD, robust to noise) or energy (the original)"}
 
     def __init__(self, settings: VadSettings):
         super().__init__(settings)

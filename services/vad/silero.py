@@ -27,7 +27,7 @@ def default_model_path() -> Path:
     if spec is None or not spec.submodule_search_locations:
         raise SileroError("the Silero VAD model comes from the silero-vad wheel, which is not installed: "
                           "pip install --no-deps silero-vad==6.2.3 (setup.sh does), or set model_path")
-    return Path(list(spec.submodule_search_locations)[0]) / "data" / "silero_vad.onnx"
+    return Path(next(iter(spec.submodule_search_locations))) / "data" / "silero_vad.onnx"
 
 
 class SileroModel:
@@ -54,7 +54,7 @@ class SileroModel:
                               f"expected input, state, sr)")
         self.path = path
 
-    def stream(self, sample_rate_hz: int) -> "SileroStream":
+    def stream(self, sample_rate_hz: int) -> SileroStream:
         return SileroStream(self, sample_rate_hz)
 
 

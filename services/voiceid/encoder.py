@@ -37,12 +37,12 @@ class EncoderError(RuntimeError):
 def weights_path() -> Path:
     spec = importlib.util.find_spec("resemblyzer")  # not imported: its __init__ imports torch
     if spec is not None and spec.submodule_search_locations:
-        return Path(list(spec.submodule_search_locations)[0]) / "pretrained.pt"
+        return Path(next(iter(spec.submodule_search_locations))) / "pretrained.pt"
     raise EncoderError("the resemblyzer package is not installed: "
                            "pip install --no-deps resemblyzer==0.1.4 (setup.sh does)")
 
 
-def _hz_to_mel(hz: np.ndarray) -> np.ndarray:  # slaney: linear below 1 kHz, logarithmic above
+def _hz_to_mel(hz: float | np.ndarray) -> np.ndarray:  # slaney: linear below 1 kHz, logarithmic above
     hz = np.asarray(hz, float)
     mel = hz / (200.0 / 3)
     log_part = hz >= 1000.0

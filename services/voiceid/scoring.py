@@ -48,7 +48,7 @@ class VoiceBook:
         scores = self.scores(embedding)
         if not scores:
             return Match("", 0.0, 0.0, {})
-        best = max(scores, key=scores.get)
+        best = max(scores, key=scores.__getitem__)
         p = probability(scores[best], threshold)
         return Match(best if scores[best] >= threshold else "", scores[best], p, scores)
 

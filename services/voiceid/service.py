@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from typing import ClassVar
 
 import httpx
 import numpy as np
@@ -41,7 +42,9 @@ class VoiceId(UtteranceClassifier):
     service = "voiceid"
     kind = "voice_id"
     Settings = VoiceIdSettings
-    options = {"threshold": "cosine score an enrolled voice needs", "min_speech_ms": "shortest segment judged"}
+    settings: VoiceIdSettings  # an instance of Settings: its fields, for type checkers
+    options: ClassVar[dict[str, str]] = {"threshold": "cosine score an enrolled voice needs",
+                                         "min_speech_ms": "shortest segment judged"}
 
     def __init__(self, settings: VoiceIdSettings):
         super().__init__(settings)
@@ -88,6 +91,7 @@ class VoiceId(UtteranceClassifier):
 
     def analyse(self, samples: np.ndarray, rate: int) -> dict:
         stream_id = self.utterance_stream_id
+        assert self.encoder is not None  # setup() loads it
         embedding = self.encoder.embed(samples)
         s = self.settings
         match = self.book.identify(embedding, s.threshold)

@@ -48,6 +48,7 @@ class _Tensor:
 
     def array(self) -> np.ndarray:
         data = self.storage.data
+        assert data is not None  # the storages are read before the tensors are resolved
         itemsize = data.itemsize
         view = np.lib.stride_tricks.as_strided(data[self.offset:], shape=self.shape,
                                                strides=tuple(s * itemsize for s in self.strides))

@@ -80,7 +80,7 @@ def test_goforward_decodes_with_language_model(language_model_recogniser: Pocket
     assert [word.word for word in hypotheses[0].words] == ["go", "forward", "ten", "meters"]
     duration_s = GOFORWARD_RAW.stat().st_size / 2 / 16000
     times_s = [time_s for word in hypotheses[0].words for time_s in (word.start_s, word.end_s)]
-    assert times_s == sorted(times_s) and 0.0 <= times_s[0] and times_s[-1] <= duration_s + 0.01
+    assert times_s == sorted(times_s) and times_s[0] >= 0.0 and times_s[-1] <= duration_s + 0.01
 
 
 @needs_goforward

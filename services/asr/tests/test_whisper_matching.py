@@ -4,7 +4,6 @@ from __future__ import annotations
 import csv
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -41,7 +40,7 @@ def test_speech_outside_the_set_is_out_of_set(robocup, heard):
 def test_normalisation_and_word_distance():
     assert normalise("Mr. Smith paid $1,000 in 1999!") == ["mister", "smith", "paid", "one", "thousand", "in",
                                                            "nineteen", "ninety", "nine"]
-    assert word_distance("a b c".split(), "a x c d".split()) == 2
+    assert word_distance(["a", "b", "c"], ["a", "x", "c", "d"]) == 2
 
 
 def test_a_finite_jsgf_grammar_expands_and_an_infinite_one_is_refused():
@@ -69,7 +68,7 @@ def test_whisper_decodes_real_speech_close_to_its_transcripts(whisper):
     manifest = shared_data("manifest.tsv")
     rows = [r for r in csv.DictReader(manifest.open(), delimiter="\t") if r["path"].startswith("speech/cmu_arctic/")]
     errors = words = 0
-    for row in rows + [{"path": "speech/pocketsphinx/goforward.raw", "reference_transcript": "go forward ten meters"}]:
+    for row in [*rows, {"path": "speech/pocketsphinx/goforward.raw", "reference_transcript": "go forward ten meters"}]:
         path = manifest.parent / row["path"]
         if path.suffix == ".raw":
             samples = np.fromfile(path, "<i2").astype(np.float32) / 32768

@@ -3,7 +3,6 @@ every way a model can be unusable giving one clear line."""
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 import sys
 
@@ -73,7 +72,7 @@ def test_corrupt_model_file(tmp_path):
 
 def test_label_map_that_does_not_fit_the_model(tmp_path):
     model = copy_model(tmp_path, card={"labels": ["a", "b", "c"], "features": "eGeMAPSv02"})
-    with pytest.raises(BackendError, match="gives 2 probabilities but its label map .* names 3 labels"):
+    with pytest.raises(BackendError, match=r"gives 2 probabilities but its label map .* names 3 labels"):
         OnnxClassifier(str(model))
     copy_model(tmp_path, card={"labels": ["a", "b"], "features": "ComParE_2016"})
     with pytest.raises(BackendError, match="takes 88 features but ComParE_2016 has 6373"):

@@ -29,7 +29,7 @@ def test_held_out_speakers_through_the_pipeline_agree_with_offline_accuracy(tmp_
     relative = sorted(cards["emotion"]["predictions"])  # the 4-class utterances of speakers 03 and 08
     files = [shared_data(f"emodb/{p}") for p in relative]
     placed = build_recording(files, tmp_path / "heldout.wav", GAP_S)
-    name = {str(f): p for f, p in zip(files, relative)}
+    name = {str(f): p for f, p in zip(files, relative, strict=True)}
 
     pipeline = EmotionPipeline(tmp_path, str(HOLDOUT / "emotion4.onnx"), str(HOLDOUT / "gender.onnx"), "heldout",
                                vad_backend=vad)

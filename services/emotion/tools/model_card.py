@@ -98,8 +98,9 @@ def task_section(card: dict) -> str:
                      ["accuracy"] + [f"{v['accuracy']:.2f}" for v in per.values()],
                      ["UAR"] + [f"{v['uar']:.2f}" for v in per.values()]]), "",
              "Confusion matrix (rows: truth, columns: predicted):", "",
-             _table([["truth \\ predicted"] + labels] +
-                    [[label] + [str(n) for n in row] for label, row in zip(labels, loso["confusion"])]), ""]
+             _table([["truth \\ predicted", *labels]] +
+                    [[label, *(str(n) for n in row)]
+                     for label, row in zip(labels, loso["confusion"], strict=True)]), ""]
     return "\n".join(lines)
 
 

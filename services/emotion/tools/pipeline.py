@@ -102,7 +102,9 @@ class EmotionPipeline:
                 if message["type"] == "stream_end":
                     break
                 fused.append((time.time_ns(), message))
-        return fused, self.client.stream(self.stream_id)["start_ns"]
+        stream = self.client.stream(self.stream_id)
+        assert stream is not None  # it ended: it was announced
+        return fused, stream["start_ns"]
 
     def close(self) -> None:
         self.client.close()

@@ -111,7 +111,7 @@ def scores(truth: np.ndarray, predicted: np.ndarray, labels: list[str]) -> dict:
     from sklearn.metrics import accuracy_score, confusion_matrix, recall_score
     present = [label for label in labels if label in set(truth)]
     return {"uar": round(float(recall_score(truth, predicted, labels=present, average="macro")), 4),
-            "accuracy": round(float(accuracy_score(truth, predicted)), 4), "utterances": int(len(truth)),
+            "accuracy": round(float(accuracy_score(truth, predicted)), 4), "utterances": len(truth),
             "confusion": confusion_matrix(truth, predicted, labels=labels).tolist()}
 
 
@@ -177,7 +177,7 @@ def train(task: Task, data: Path, rows: list[dict[str, str]], x_all: dict[str, n
     model = fit(task, *both(x, y, everyone))
     export(model, both(x, y, everyone)[0], out / f"{task.name}.onnx")
     card = label_map(task, model, data=str(data.name), loso=evaluation, trained_on={
-        "utterances": int(len(y)), "speakers": sorted(set(speakers)), "spans_of_vads": list(x)})
+        "utterances": len(y), "speakers": sorted(set(speakers)), "spans_of_vads": list(x)})
     (out / f"{task.name}.json").write_text(json.dumps(card, indent=1) + "\n")
 
     held = np.isin(speakers, HOLDOUT_SPEAKERS)
@@ -190,7 +190,7 @@ def train(task: Task, data: Path, rows: list[dict[str, str]], x_all: dict[str, n
         held_out=scores(y[held], predicted[default], evaluation["labels"]),
         predictions={p: {"truth": str(t), "predicted": str(predicted[default][i]),
                          **{f"predicted_{vad}": str(q[i]) for vad, q in predicted.items() if vad != default}}
-                     for i, (p, t) in enumerate(zip(paths[held], y[held]))}),
+                     for i, (p, t) in enumerate(zip(paths[held], y[held], strict=True))}),
         indent=1) + "\n")
     return card
 

@@ -1,6 +1,7 @@
 """The grabber as a process: any channel count, chunk size, capture times from sample counts, pacing."""
 from __future__ import annotations
 
+import itertools
 import os
 import subprocess
 import sys
@@ -55,7 +56,7 @@ def test_four_channels_in_64_ms_chunks_stamped_from_sample_counts(orchestrator, 
     origin = chunks[0].start_ns
     frames = np.cumsum([0] + [c.frames for c in chunks])
     assert [c.start_ns for c in chunks] == [origin + f * 1_000_000_000 // 16000 for f in frames[:-1]]
-    assert all(a.end_ns == b.start_ns for a, b in zip(chunks, chunks[1:]))
+    assert all(a.end_ns == b.start_ns for a, b in itertools.pairwise(chunks))
     assert chunks[-1].end_ns - origin == 2_000_000_000
     assert [c.end_of_stream for c in chunks].count(True) == 1
 
@@ -79,7 +80,7 @@ def test_a_44k1_file_reaches_a_16k_consumer_converted_and_whole(orchestrator, tm
     chunks = [c for c, _ in recorder.chunks]
     assert all(c.format == AudioFormat(16000, "int16") for c in chunks)
     assert sum(c.frames for c in chunks) == 16000 * seconds  # flushed at the end of the stream
-    assert all(a.end_ns == b.start_ns for a, b in zip(chunks, chunks[1:]))
+    assert all(a.end_ns == b.start_ns for a, b in itertools.pairwise(chunks))
     assert abs(chunks[-1].end_ns - chunks[0].start_ns - seconds * 1e9) <= 1e9 / 16000
     heard = np.concatenate([c.samples[:, 0] for c in chunks]) / 32768
     expected = 0.5 * np.sin(2 * np.pi * 440 * np.arange(len(heard)) / 16000)

@@ -3,8 +3,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, HTTPException, Query, Response, status
 
 from ..core import Orchestrator
-from ..models import (ComponentInfo, ComponentList, Problem, RegisterRequest, RegisterResponse,
-                      TopicDeclaration)
+from ..models import ComponentInfo, ComponentList, Problem, RegisterRequest, RegisterResponse, TopicDeclaration
 from ..registry import Component, TopicConflict
 from .deps import get_core
 
@@ -42,6 +41,7 @@ async def register(request: RegisterRequest,
     except TopicConflict as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
     state = component.pushed_state
+    assert state is not None  # register() gives a new component its state
     return RegisterResponse(
         component_id=component.component_id, control_endpoint=core.control_endpoint,
         results_endpoint=core.results_endpoint,

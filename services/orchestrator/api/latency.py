@@ -1,6 +1,8 @@
 """Per-component latency statistics (time received − end of the audio a result covers)."""
 from __future__ import annotations
 
+from typing import overload
+
 from fastapi import APIRouter, Depends, Query
 
 from ..core import Orchestrator
@@ -13,6 +15,10 @@ router = APIRouter(tags=["results"])
 PERCENTILE_RESULTS = 1000  # p50 and p95 are over each component's last 1000 results
 
 
+@overload
+def _ms(value_ns: float) -> float: ...
+@overload
+def _ms(value_ns: None) -> None: ...
 def _ms(value_ns: float | None) -> float | None:
     return None if value_ns is None else round(value_ns / 1e6, 3)
 

@@ -23,7 +23,8 @@ router = APIRouter(tags=["streams"])
 
 class StreamAnnouncement(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    start_ns: int = Field(gt=0, le=MAX_TIME_NS, description="capture time of the stream's first sample (ns since the epoch)")
+    start_ns: int = Field(gt=0, le=MAX_TIME_NS,
+                          description="capture time of the stream's first sample (ns since the epoch)")
     source: str = Field(default="", description="the component that captures it")
     info: dict[str, Any] = Field(default_factory=dict, examples=[{"input": "speech.wav"}])
 

@@ -3,6 +3,7 @@ stream events."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 
 from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
@@ -52,12 +53,10 @@ async def ws_fused(websocket: WebSocket,
             if isinstance(outcome, Exception) and not isinstance(outcome, WebSocketDisconnect):
                 log.warning("event=ws_failed client=%s reason=%r", client, outcome)
     if subscriber.dropped.is_set():
-        try:
+        with contextlib.suppress(Exception):  # the client is gone or stuck: nothing more to tell it
             await asyncio.wait_for(
                 websocket.close(code=CLOSE_TOO_SLOW, reason=subscriber.close_reason),
                 CLOSE_TIMEOUT_S)
-        except Exception:  # the client is gone or stuck: nothing more to tell it
-            pass
     log.info("event=ws_disconnected client=%s", client)
 
 

@@ -1,7 +1,8 @@
 """Fixtures: the real app on a random loopback port, a ZeroMQ context, fake components."""
 from __future__ import annotations
 
-from typing import Any, Callable, Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import httpx
 import pytest

@@ -8,7 +8,8 @@ import json
 import socket
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import httpx
 import uvicorn
@@ -53,7 +54,7 @@ class RunningOrchestrator:
         self._thread = threading.Thread(
             target=lambda: asyncio.run(self.server.serve(sockets=[self._sock])), daemon=True)
 
-    def start(self) -> "RunningOrchestrator":
+    def start(self) -> RunningOrchestrator:
         self._thread.start()
         wait_until(lambda: self.server.started or not self._thread.is_alive(), START_TIMEOUT_S,
                    "the orchestrator to start")
@@ -73,8 +74,8 @@ class RunningOrchestrator:
 _ports = itertools.count(41000)  # fake audio endpoints: nothing connects to them
 
 
-def component_body(name: str, designation: str = "other", inputs: list[str] = (),
-                   outputs: list[str] = (), fmt: dict = FMT16, endpoint: str | None = None,
+def component_body(name: str, designation: str = "other", inputs: Sequence[str] = (),
+                   outputs: Sequence[str] = (), fmt: dict = FMT16, endpoint: str | None = None,
                    **extra: Any) -> dict:
     return {"name": name, "designation": designation,
             "inputs": [{"topic": t, "format": fmt} for t in inputs],
@@ -141,7 +142,7 @@ class FakeComponent:
 
     def send_result(self, stream_id: str = "default", start_ns: int = 1_000_000_000,
                     end_ns: int = 2_000_000_000, text: str = "go forward",
-                    type_: int = pb.RESULT_TYPE_SPEECH) -> pb.Result:
+                    type_: pb.ResultType = pb.RESULT_TYPE_SPEECH) -> pb.Result:
         self.sequence += 1
         result = pb.Result(component=self.name, type=type_, stream_id=stream_id,
                            produced_ns=time.time_ns(), sequence=self.sequence)

@@ -8,11 +8,9 @@ from __future__ import annotations
 
 import json
 import time
-from typing import Iterator
+from collections.abc import Iterator
 
-import httpx
 import pytest
-import zmq
 from websockets.sync.client import connect
 
 from esiaf.results import ssl_direction

@@ -33,10 +33,12 @@ def test_heartbeat_counters_per_component_and_topic(component, http):
     assert value(metrics, "esiaf_component_up", **ids) == 1
     assert 0 <= value(metrics, "esiaf_component_heartbeat_age_seconds", **ids) < 5
     for outcome, count in (("received", 40), ("lost", 3), ("bad", 2)):
-        assert value(metrics, "esiaf_component_input_messages_total", **ids, topic="vad/speech", outcome=outcome) == count
+        assert value(metrics, "esiaf_component_input_messages_total", **ids, topic="vad/speech",
+                     outcome=outcome) == count
     assert value(metrics, "esiaf_component_input_queue_depth", **ids, topic="vad/speech") == 6
     for outcome, count in (("published", 7), ("dropped", 1)):
-        assert value(metrics, "esiaf_component_output_messages_total", **ids, topic="asr/echo", outcome=outcome) == count
+        assert value(metrics, "esiaf_component_output_messages_total", **ids, topic="asr/echo",
+                     outcome=outcome) == count
     assert value(metrics, "esiaf_component_output_subscribers", **ids, topic="asr/echo") == 2
     assert value(metrics, "esiaf_component_refused_messages_total", **ids, reason="bad_format") == 4
     assert value(metrics, "esiaf_component_results_sent_total", **ids) == 5

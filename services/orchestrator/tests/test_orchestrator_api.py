@@ -115,7 +115,8 @@ def test_name_takeover_replaces_old_instance(component, http):
 
 def test_fusions_listed(http):
     assert http.get("/fusions").json() == {
-        "items": [{"name": "speech", "anchor": "speech", "fuse": ["ssl", "emotion", "gender", "voice_id"], "stream": None}]}
+        "items": [{"name": "speech", "anchor": "speech", "fuse": ["ssl", "emotion", "gender", "voice_id"],
+                   "stream": None}]}
 
 
 def test_fusions_are_replaced_over_rest_and_bad_ones_refused(component, http):

@@ -205,7 +205,7 @@ def test_results_survive_a_restart_and_ids_go_on(make_orchestrator, zctx, tmp_pa
             asr = FakeComponent(zctx, http, component_body("asr", designation="speech",
                                                            inputs=["vad/speech"]))
             asr.send_result(start_ns=run, end_ns=run + 1)
-            wait_until(lambda: stored_count(http) == run, what=f"run {run}'s result")
+            wait_until(lambda run=run: stored_count(http) == run, what=f"run {run}'s result")
             assert [r["id"] for r in http.get("/results").json()["items"]] == expected_ids
             assert [f["id"] for f in http.get("/fused").json()["items"]] == expected_ids
             asr.close()

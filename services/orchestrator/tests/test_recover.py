@@ -34,7 +34,8 @@ def text_of(n: int) -> str:
 
 def stored_results(orchestrator: Orchestrator) -> dict[int, str]:
     """sequence -> text of every stored result of stream s, paged through."""
-    found, after_id = {}, 0
+    found: dict[int, str] = {}
+    after_id = 0
     while True:
         page = orchestrator.http.get("/results", params={"stream": "s", "limit": 1000, "after_id": after_id}).json()
         if not page["items"]:
@@ -170,7 +171,8 @@ def corrupt_workdir(tmp_path) -> None:
 
 
 def esiaf_run(tmp_path, *options: str, timeout_s: float) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "esiaf.cli", "run", "--input", str(REPO / "examples/robocup_questions.wav"),
+    return subprocess.run([sys.executable, "-m", "esiaf.cli", "run",
+                           "--input", str(REPO / "examples/robocup_questions.wav"),
                            "--port", str(free_port()), "--workdir", str(tmp_path), *options],
                           cwd=REPO, env=orchestrator_env(), capture_output=True, text=True, timeout=timeout_s)
 

@@ -71,7 +71,7 @@ def test_selected_channels_become_mono_topics_with_times_and_meta(orchestrator):
     assert sorted(splitter.outputs) == ["splitter/ch1", "splitter/ch3"]
     array.go.set()
     for channel, recorder in recorders.items():
-        poll(lambda: recorder.chunks and recorder.chunks[-1].end_of_stream, timeout_s=10)
+        poll(lambda recorder=recorder: recorder.chunks and recorder.chunks[-1].end_of_stream, timeout_s=10)
         chunks = recorder.chunks
         assert [c.sequence for c in chunks] == list(range(1, 11))
         assert [c.start_ns for c in chunks] == [1_000_000_000 + 20_000_000 * i for i in range(10)]

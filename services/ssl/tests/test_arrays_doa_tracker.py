@@ -94,7 +94,7 @@ def test_frida_is_refused_where_it_is_singular(spec, tmp_path):
     if spec.endswith(".yaml"):
         spec = str(tmp_path / spec)
         (tmp_path / "collinear.yaml").write_text("positions: [[0, 0], [0.03, 0], [0.06, 0], [0.09, 0]]\n")
-    with pytest.raises(LocaliserError, match="FRIDA cannot localise .* singular; choose another algorithm"):
+    with pytest.raises(LocaliserError, match=r"FRIDA cannot localise .* singular; choose another algorithm"):
         Localiser(load_array(spec), RATE, algorithm="FRIDA")
 
 

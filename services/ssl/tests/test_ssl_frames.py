@@ -2,6 +2,8 @@
 forwarded chunks carrying the directions (a real Ssl component, its sends captured; no sockets)."""
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from esiaf.arrays import load_array
@@ -21,7 +23,7 @@ def test_frames_cover_the_stream_and_silence_is_covered_with_nothing():
 
     duration_s = len(signals) / RATE
     assert frames[0].start_s == 0 and abs(frames[-1].end_s - duration_s) < 1e-6
-    assert all(abs(a.end_s - b.start_s) < 1e-6 for a, b in zip(frames, frames[1:])), "frames overlap or leave gaps"
+    assert all(abs(a.end_s - b.start_s) < 1e-6 for a, b in itertools.pairwise(frames)), "frames overlap or leave gaps"
     assert all(abs((f.end_s - f.start_s) - 0.128) < 1e-6 for f in frames[:-1])
     in_quiet = [f for f in frames if f.end_s <= 1.0]
     in_burst = [f for f in frames if f.start_s >= 1.0 + 0.128 and f.end_s <= 2.0]

@@ -53,7 +53,7 @@ def test_max_length_cuts_and_a_new_segment_starts():
 
 def test_force_end_closes_an_open_segment_on_that_chunk():
     segmenter = Segmenter(SegmenterParams(pre_roll_ms=0))
-    forwarded, ended = feed(segmenter, [SILENT, LOUD, LOUD, LOUD], force_end_last=True)
+    _forwarded, ended = feed(segmenter, [SILENT, LOUD, LOUD, LOUD], force_end_last=True)
     assert ended == [(3, (1 * CHUNK_NS, 4 * CHUNK_NS))]
     assert not segmenter.active
 

@@ -54,12 +54,12 @@ def test_silero_in_noise_finds_the_energy_vads_clean_segments_within_200_ms():
                                                                  for i in chunks])
     assert len(reference) == 4, reference
     assert len(found) == 4, (found, reference)
-    for (start, end), (ref_start, ref_end) in zip(found, reference):
+    for (start, end), (ref_start, ref_end) in zip(found, reference, strict=True):
         assert abs(start - ref_start) <= 0.2 and abs(end - ref_end) <= 0.2, (found, reference)
     # the energy VAD on the same noisy audio does not find them: the noise keeps it open
     energy = segments(Segmenter(SegmenterParams()), [level_db(np.max(np.abs(noisy[i:i + CHUNK]))) for i in chunks])
     assert len(energy) != 4 or any(abs(a[0] - b[0]) > 0.2 or abs(a[1] - b[1]) > 0.2
-                                   for a, b in zip(energy, reference))
+                                   for a, b in zip(energy, reference, strict=False))
 
 
 def test_silero_hears_no_speech_in_kitchen_noise():

@@ -31,7 +31,7 @@ def clip(wavs, name: str) -> np.ndarray:
 
 def build_input(wavs, path) -> list[tuple[float, float]]:
     pieces, spans, t = [np.zeros(int(LEAD_S * 16000), np.float32)], [], LEAD_S
-    for index, name in enumerate(PLAYED + [AFTER_DELETE]):
+    for index, name in enumerate([*PLAYED, AFTER_DELETE]):
         gap = PAUSE_S if index == len(PLAYED) else GAP_S
         samples = clip(wavs, name)
         spans.append((t, t + samples.size / 16000))
@@ -72,8 +72,8 @@ def test_enrolled_speakers_get_their_names_a_stranger_an_anonymous_id(launch, tm
             rate_hz = 44100 if index == 0 else 16000  # another rate is converted, not refused
             if rate_hz != 16000:
                 samples = soxr.resample(samples, 16000, rate_hz)
-            reply = httpx.post(headers=run.headers, url=f"{run.url}/voices/{name}", files={"audio": ("a.wav", wav_bytes(samples, rate_hz))},
-                               timeout=30)
+            reply = httpx.post(headers=run.headers, url=f"{run.url}/voices/{name}",
+                               files={"audio": ("a.wav", wav_bytes(samples, rate_hz))}, timeout=30)
             assert reply.status_code == 200, reply.text
     voices = httpx.get(headers=run.headers, url=f"{run.url}/voices").json()["voices"]
     assert {(v["name"], v["count"]) for v in voices} == {(ANNA, 3), (BEN, 3)}
@@ -103,7 +103,8 @@ def test_enrolled_speakers_get_their_names_a_stranger_an_anonymous_id(launch, tm
     reply = httpx.post(headers=run.headers, url=f"{run.url}/voices/Carl", json={"stream": stream, "start_ns": first_ns,
                                                        "end_ns": first_ns + 1_000_000_000})
     assert reply.status_code == 200 and reply.json()["added"] >= 1, reply.text
-    reply = httpx.post(headers=run.headers, url=f"{run.url}/voices/Dora", json={"stream": stream, "anonymous": heard[4]})
+    reply = httpx.post(headers=run.headers, url=f"{run.url}/voices/Dora",
+                       json={"stream": stream, "anonymous": heard[4]})
     assert reply.status_code == 200 and reply.json()["added"] == 2, reply.text
 
     silent = wav_bytes(np.zeros(32000, np.float32), 16000)
@@ -115,5 +116,5 @@ def test_enrolled_speakers_get_their_names_a_stranger_an_anonymous_id(launch, tm
            httpx.post(headers=run.headers, url=f"{run.url}/voices/a%2Fb", files={"audio": ("a.wav", b"")}),
            httpx.post(headers=run.headers, url=f"{run.url}/voices/%20", files={"audio": ("a.wav", b"")})]
     messages = ["no audio", "no speech", "not a readable WAV", "no speech", "bad voice name", "bad voice name"]
-    for reply, message in zip(bad, messages):
+    for reply, message in zip(bad, messages, strict=True):
         assert 400 <= reply.status_code < 500 and message in reply.json()["detail"], (reply.status_code, reply.text)

@@ -61,7 +61,7 @@ def test_the_legacy_reader_refuses_other_files(tmp_path):
     evil = tmp_path / "evil.pt"
     evil.write_bytes(pickle.dumps(torch_legacy.MAGIC_NUMBER) + pickle.dumps(1001) + pickle.dumps({})
                      + b"cos\nsystem\n(S'true'\ntR.")
-    with pytest.raises(torch_legacy.LegacyFormatError, match="refusing to load os.system"):
+    with pytest.raises(torch_legacy.LegacyFormatError, match=r"refusing to load os\.system"):
         torch_legacy.load(evil)
 
 

@@ -1,0 +1,138 @@
+"""``esiaf run``'s command line: its arguments, and the checks made before anything starts
+(the input file, the microphone array, --without, the orchestrator's port)."""
+from __future__ import annotations
+
+import argparse
+import socket
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from esiaf.launcher import LaunchError
+
+if TYPE_CHECKING:
+    from esiaf.arrays import ArrayGeometry
+
+ANALYSERS = ("ssl", "emotion", "gender", "voiceid")  # what --without can leave out (the recogniser anchors every line)
+
+
+def check_input(path: Path) -> int:
+    """Checks the input file; returns its channel count. Any rate and sample type is fine: the
+    grabber sends the file as it is and the SDK converts it to what each consumer takes."""
+    if not path.exists():
+        raise LaunchError(f"input file {path} does not exist")
+    if not path.is_file():
+        raise LaunchError(f"input {path} is not a file")
+    try:
+        path.open("rb").close()
+    except OSError as exc:
+        raise LaunchError(f"cannot read input file {path}: {exc.strerror}") from None
+    if path.suffix.lower() in (".raw", ".pcm"):
+        return 1  # headerless: read as 16 kHz int16 mono
+    import soundfile
+    try:
+        info = soundfile.info(str(path))
+    except Exception as exc:  # libsndfile's own error types vary by version
+        raise LaunchError(f"cannot read input file {path}: {exc}") from None
+    if info.frames == 0:
+        raise LaunchError(f"input file {path} holds no audio")
+    return info.channels
+
+
+def check_array(args: argparse.Namespace, channels: int) -> tuple[ArrayGeometry | None, int]:
+    """The array geometry and the audio's channel count (None, channels for mono without --array)."""
+    from esiaf.arrays import ArrayError, load_array
+    mic_channels = parse_channels(args.mic_channels)
+    if args.array is None:
+        if mic_channels or args.channels:
+            raise LaunchError("--mic-channels and --channels describe a microphone array: give --array too")
+        if channels > 1:
+            print(f"esiaf: {args.input} has {channels} channels and no --array: the analysers hear channel 0 "
+                  f"(name the microphone array with --array, e.g. respeaker4, to localise the speakers too)",
+                  file=sys.stderr, flush=True)
+        return None, channels
+    try:
+        array = load_array(args.array)
+        if not channels:  # live capture: as many channels as asked, or as the microphones need
+            channels = args.channels or (max(mic_channels) + 1 if mic_channels else array.mics)
+        array.select_channels(channels, mic_channels)
+    except ArrayError as exc:
+        raise LaunchError(str(exc)) from None
+    return array, channels
+
+
+def parse_channels(text: str | None) -> list[int]:
+    if not text:
+        return []
+    try:
+        return [int(part) for part in text.split(",")]
+    except ValueError:
+        raise LaunchError(f"--mic-channels takes channel numbers separated by commas (e.g. 1,2,3,4), "
+                          f"not {text!r}") from None
+
+
+def parse_without(text: str | None) -> set[str]:
+    """The analysers ``--without`` leaves out."""
+    names = {part.strip() for part in (text or "").split(",") if part.strip()}
+    unknown = sorted(names - set(ANALYSERS))
+    if unknown:
+        raise LaunchError(f"--without takes analysers separated by commas ({', '.join(ANALYSERS)}), "
+                          f"not {', '.join(unknown)}")
+    return names
+
+
+def check_port_free(host: str, port: int) -> None:
+    with socket.socket() as probe:
+        # as the orchestrator will (uvicorn): connections of an earlier run in TIME_WAIT do not count
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            raise LaunchError(f"cannot listen on {host}:{port}: {exc.strerror} (another orchestrator running? "
+                              f"use --port)") from None
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="esiaf", description="ESIAF speech-analysis pipeline")
+    sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="run every service as a local process")
+    source = run.add_mutually_exclusive_group(required=True)
+    source.add_argument("--input", type=Path, help="sound file to play (WAV/FLAC/... of any rate and sample type, "
+                        "or .raw: 16 kHz s16le mono)")
+    source.add_argument("--mic", metavar="DEVICE", help="ALSA capture device (see arecord -L)")
+    run.add_argument("--array", help="microphone array of a multi-channel input or --mic: pepper4, respeaker4, "
+                     "circular:MICS:RADIUS_M or a YAML file; starts sound source localisation")
+    run.add_argument("--mic-channels", help="with --array: the channels that are the microphones, in the array's "
+                     "order, where the audio has others too (ReSpeaker 6-channel firmware: 1,2,3,4)")
+    run.add_argument("--channels", type=int, help="with --mic and --array: channels to capture "
+                     "(default: as the microphones need)")
+    run.add_argument("--without", metavar="ANALYSERS", help="analysers to leave out, separated by commas: "
+                     "emotion, gender, voiceid, ssl (e.g. --without emotion,gender on a slow robot)")
+    run.add_argument("--with", dest="plugins", action="append", default=[], metavar="FOLDER_OR_NAME",
+                     help="also run your own analyser: a folder with a __main__.py, an installed component "
+                     "(entry point group esiaf.components) or a module; repeatable")
+    run.add_argument("--no-beamformer", action="store_true", help="with --array: the analysers hear the first "
+                     "microphone instead of the array steered at the talker")
+    run.add_argument("--beamformer", choices=("mvdr", "das"), help="with --array: the beamforming method "
+                     "(default mvdr; das: delay and sum)")
+    run.add_argument("--ssl-algorithm", help="DOA algorithm of the ssl service (default NormMUSIC)")
+    run.add_argument("--fast", action="store_true", help="play the file as fast as possible")
+    run.add_argument("--grammar", help="JSGF grammar file for the recogniser, or 'robocup' (with --asr whisper: "
+                     "the allowed sentences its transcripts are matched to)")
+    run.add_argument("--vad", choices=("silero", "energy"), help="the voice activity detector: silero (default, "
+                     "a neural VAD that babble does not fool) or energy (the original double threshold)")
+    run.add_argument("--asr", choices=("pocketsphinx", "whisper"), help="the recogniser (default pocketsphinx)")
+    run.add_argument("--serve", action="store_true", help="keep the services up after the file has played")
+    run.add_argument("--host", default="127.0.0.1", help="orchestrator address (default 127.0.0.1)")
+    run.add_argument("--port", type=int, default=8000, help="orchestrator HTTP port (default 8000)")
+    run.add_argument("--workdir", type=Path, default=Path(".esiaf"), help="logs and database (default .esiaf)")
+    run.add_argument("--recover", action="store_true", help="if the workdir's database is corrupt, start on a copy "
+                     "of what can still be read (the orchestrator's log says what was lost; the damaged file is kept)")
+    run.add_argument("--stream-id", help="name of this capture session (default: input name + time)")
+    run.add_argument("--chunk-ms", type=float, default=20.0, help="grabber chunk length (default 20 ms)")
+    run.add_argument("--json", action="store_true", help="print each fused result as JSON")
+    run.add_argument("-v", "--verbose", action="store_true", help="log what the launcher does")
+    sub.add_parser("eval", help="evaluation harnesses through the real pipeline: esiaf eval robocup --help")
+    sub.add_parser("keys", help="CURVE key pairs for ZeroMQ across hosts: esiaf keys DIR --help")
+    return parser.parse_args(argv)
