@@ -228,10 +228,7 @@ class Component:
     # -- running ---------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:
         """What the heartbeat carries; each input's ``queued`` starts again for the next one."""
-        inputs = {t: asdict(s) for t, s in list(self.input_stats.items())}
-        for stats in list(self.input_stats.values()):
-            stats.queued = 0
-        return {"inputs": inputs,
+        return {"inputs": {t: s.heartbeat() for t, s in list(self.input_stats.items())},
                 "outputs": {t: asdict(s) for t, s in list(self.output_stats.items())},
                 "results_sent": self.results_sent, "results_dropped": self.results_dropped,
                 "refused": dict(self.refused), "refused_by_publisher": dict(self.refused_by_publisher),
@@ -304,9 +301,8 @@ class Component:
                     taken[event[0]] = taken.get(event[0], 0) + 1
                 self._on_message(event)
         for frame, count in taken.items():
-            stats = self.input_stats.get(topic_name(frame))
-            if stats is not None and count - 1 > stats.queued:
-                stats.queued = count - 1
+            if (stats := self.input_stats.get(topic_name(frame))) is not None:
+                stats.took_back_to_back(count)
 
     def _apply_state(self, state: dict[str, Any]) -> None:
         if state.get("type") == "fatal":

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 from esiaf.audio import Audio
 from esiaf.formats import AudioFormat, FormatError
@@ -53,6 +53,15 @@ class InputStats:
     # the input's queue depth: the most messages found waiting behind another at once (taken back to
     # back, without waiting) since the last heartbeat; 0 while the component keeps up
     queued: int = 0
+
+    def took_back_to_back(self, count: int) -> None:
+        """``count`` messages were taken without waiting: all but the first had queued."""
+        self.queued = max(self.queued, count - 1)
+
+    def heartbeat(self) -> dict[str, int]:
+        """The counts for a heartbeat; the queue depth starts again for the next one."""
+        counts, self.queued = asdict(self), 0
+        return counts
 
 
 @dataclass
