@@ -20,6 +20,8 @@ from esiaf.cli_follow import follow
 from esiaf.feed import FusedFeed
 from esiaf.launcher import START_TIMEOUT_S, Child, LaunchError, OrchestratorClient, Supervisor, fixed_ports, wait_until
 from esiaf.plugins import resolve as resolve_plugin
+from esiaf.runner import known_services
+from esiaf.settings import unknown_variables
 
 if TYPE_CHECKING:
     from esiaf.arrays import ArrayGeometry
@@ -40,6 +42,10 @@ def run(args: argparse.Namespace) -> int:
     array, channels = check_array(args, check_input(args.input) if args.input else 0)
     without = parse_without(args.without)
     wanted_plugins = [resolve_plugin(spec) for spec in args.plugins]  # a bad --with fails before anything starts
+    services = known_services() | {p.name for p in wanted_plugins}
+    for name in unknown_variables(os.environ, services):
+        print(f"esiaf: {name} names no service ({', '.join(sorted(services))}) and no common setting: "
+              "ignored; a typo?", file=sys.stderr, flush=True)
     resolve_paths(args)
     check_port_free(args.host, args.port)
     stream_id = args.stream_id = args.stream_id or "{}-{}".format(

@@ -7,14 +7,18 @@ exit code 2 and one line on stderr naming what is wrong; no traceback.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import logging
+import os
 import sys
 from collections.abc import Sequence
+from importlib.metadata import entry_points
+from pathlib import Path
 from typing import Any
 
 from esiaf.component import Component, SetupError
 from esiaf.control import RegistrationError
-from esiaf.settings import ComponentSettings, SettingsError, load_settings, parse_value
+from esiaf.settings import ComponentSettings, SettingsError, load_settings, parse_value, unknown_variables
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s [{service}] %(message)s"
 
@@ -44,6 +48,15 @@ def settings_help(model: type[ComponentSettings], service: str) -> str:
     return "\n".join(lines)
 
 
+def known_services() -> set[str]:
+    """The built-in services (services/*/ with a __main__.py) and the installed plug-ins (entry
+    point group esiaf.components)."""
+    spec = importlib.util.find_spec("services")
+    folders = [Path(p) for p in (spec.submodule_search_locations or [])] if spec else []
+    built_in = {d.name for folder in folders for d in folder.iterdir() if (d / "__main__.py").is_file()}
+    return built_in | {ep.name for ep in entry_points(group="esiaf.components")}
+
+
 def main(component_cls: type[Component], argv: Sequence[str] | None = None) -> int:
     service = component_cls.service
     doc_lines = (component_cls.__doc__ or "").strip().splitlines()
@@ -70,6 +83,10 @@ def main(component_cls: type[Component], argv: Sequence[str] | None = None) -> i
         print(f"{service}: {exc}", file=sys.stderr)
         return 2
     configure_logging(service, settings.log_level)
+    for name in unknown_variables(os.environ, known_services() | {service}):
+        logging.getLogger(service).warning(
+            "%s names no service (%s) and no common setting: ignored; a typo? (a plug-in folder's own "
+            "settings are not known here)", name, ", ".join(sorted(known_services())))
     try:
         component = component_cls(settings)
         return component.run()

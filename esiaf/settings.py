@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -98,6 +98,21 @@ def _service_from_env(model: type[BaseModel], service: str, env: Mapping[str, st
                 + ", ".join(sorted(service_prefix + f.upper() for f in fields)))
         values[field] = parse_value(raw)
     return values
+
+
+# ESIAF_* variables that name no service: read by the SDK, the tools or compose.yaml
+GLOBAL_VARIABLES = {"TOKEN", "TOKEN_FILE", "CURVE_DIR", "CURVE_KEY", "SHARED_DATA", "TAG", "BASE_TAG",
+                    "REBUILD_BASE", "HTTP_BIND", "HTTP_PORT", "INPUT_FILE", "INPUT_DIR", "SERVICE"}
+
+
+def unknown_variables(env: Mapping[str, str], services: Iterable[str]) -> list[str]:
+    """The ``ESIAF_*`` variables of ``env`` that name none of ``services`` (``ESIAF_<SERVICE>_...``),
+    no setting every component has and no global one: a typo (``ESIAF_VDA_DB_MIN``), reported
+    rather than silently ignored."""
+    prefixes = tuple(f"{ENV_PREFIX}{service.upper()}_" for service in services)
+    known = {ENV_PREFIX + name for name in GLOBAL_VARIABLES | {f.upper() for f in ComponentSettings.model_fields}}
+    return sorted(key for key in env if key.startswith(ENV_PREFIX) and key not in known
+                  and not key.startswith(prefixes))
 
 
 def read_yaml_file(path: Path) -> dict[str, Any]:

@@ -105,3 +105,20 @@ def test_speech_not_understood_still_says_from_where():
     result = fused(aggregates={"ssl": {"azimuth_deg": 91.6}}, results={"ssl": [{}]})
     result["anchor"]["speech"]["hypotheses"] = [{"text": "", "probability": 0.0}]
     assert format_line(result, ORIGIN_NS) == "[12.31–14.05 s] (speech not understood) from 92°"
+
+
+def test_esiaf_run_names_a_misspelt_variable_before_it_starts_anything():
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    from esiaf.testing import REPO
+    with socket.socket() as taken:  # the port in use stops the run right after the check
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        done = subprocess.run([sys.executable, "-m", "esiaf.cli", "run", "--input", "examples/robocup_questions.wav",
+                               "--port", str(taken.getsockname()[1])], cwd=REPO, capture_output=True, text=True,
+                              env={**os.environ, "ESIAF_VDA_DB_MIN": "3"}, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.startswith("esiaf: ESIAF_VDA_DB_MIN names no service ("), done.stderr

@@ -1,7 +1,7 @@
 import pytest
 from pydantic import Field
 
-from esiaf.settings import ComponentSettings, SettingsError, load_settings
+from esiaf.settings import ComponentSettings, SettingsError, load_settings, unknown_variables
 
 
 class DemoSettings(ComponentSettings):
@@ -113,3 +113,27 @@ def test_a_bad_log_level_is_one_line_and_exit_2(capsys):
     assert main(Quiet, ["--set", "log_level=verbose"]) == 2
     err = capsys.readouterr().err
     assert "unknown log level 'verbose'" in err and "Traceback" not in err
+
+
+def test_variables_that_name_no_service_are_found():
+    from esiaf.runner import known_services
+    env = {"ESIAF_VDA_DB_MIN": "3", "ESIAF_VAD_DB_MIN": "3", "ESIAF_STREAM_ID": "s", "ESIAF_TOKEN": "t",
+           "ESIAF_ORCHESTRATOR_URL": "u", "ESIAF_GRABBER_REPLICAS": "1", "ESIAF_RATE_WINDOW": "2", "HOME": "/"}
+    services = known_services()
+    assert {"vad", "asr", "orchestrator", "voiceid"} <= services
+    assert unknown_variables(env, services) == ["ESIAF_RATE_WINDOW", "ESIAF_VDA_DB_MIN"]
+    assert unknown_variables(env, services | {"rate"}) == ["ESIAF_VDA_DB_MIN"]  # a plug-in's own
+
+
+def test_a_service_started_with_a_misspelt_variable_says_so(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    from esiaf.testing import REPO
+    env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_VDA_DB_MIN": "3", "ESIAF_ORCHESTRATOR_URL": "http://127.0.0.1:9",
+           "ESIAF_REGISTER_TIMEOUT_S": "0.5", "ESIAF_VAD_BACKEND": "energy"}
+    done = subprocess.run([sys.executable, "-m", "services.vad"], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 2  # no orchestrator: it gives up, but said first what it ignored
+    assert "WARNING vad [vad] ESIAF_VDA_DB_MIN names no service" in done.stderr, done.stderr

@@ -6,14 +6,18 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import os
 import sys
 
-from esiaf.settings import SettingsError
+from esiaf.runner import known_services
+from esiaf.settings import SettingsError, unknown_variables
 
 from .core import StartupError
 from .recover import RecoveryError, recover
 from .server import serve
 from .settings import load
+
+log = logging.getLogger("services.orchestrator")
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -40,6 +44,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     logging.basicConfig(level=settings.log_level, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s %(message)s")
+    for name in unknown_variables(os.environ, known_services()):
+        log.warning("%s names no service and no common setting: ignored; a typo?", name)
     try:
         report: list[str] = []
         if args.recover:
