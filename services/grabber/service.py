@@ -81,7 +81,8 @@ class Grabber(Component):
         clock = SampleClock(origin_ns, fmt.sample_rate_hz)
         self.info.update(stream_start_ns=origin_ns, input=s.input or s.device, played_s=0.0,
                          duration_s=getattr(self.source, "total_frames", 0) / fmt.sample_rate_hz or None)
-        self.announce_stream(origin_ns, input=s.input or s.device, format=fmt.to_dict(), chunk_ms=s.chunk_ms)
+        self.announce_stream(origin_ns, input=s.input or s.device, format=fmt.to_dict(), chunk_ms=s.chunk_ms,
+                             realtime=not s.fast or live)  # a --fast replay's capture times run ahead of the clock
         log.info("playing source=%s format=%s chunk_ms=%g realtime=%s", s.input or s.device, fmt, s.chunk_ms,
                  not (s.fast or live))
         overruns = 0

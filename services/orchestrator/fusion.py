@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import heapq
 import time
+from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -29,6 +30,7 @@ from .settings import FusionSettings, TimeoutSettings
 __all__ = ["FusedResult", "Fusion", "FusionEngine", "StoredResult"]
 
 PRUNE_EVERY = 64  # results per stream between two prunings of its memory
+MAX_REPLAYED_STREAMS = 10_000  # replayed streams remembered (whose latencies are not learnt)
 COMPLETE, TIMED_OUT, COMPONENTS_GONE = "complete", "timed_out", "components_gone"
 
 
@@ -126,6 +128,9 @@ class FusionEngine:
         self.timeouts = timeouts or TimeoutSettings()
         self.memory_ns = int(self.timeouts.memory_s * 1e9)
         self.latencies = Latencies(self.timeouts)
+        # streams played faster than real time (a file replayed with --fast): their capture times run
+        # ahead of the clock, so their latencies say nothing of a real-time run's and are not learnt
+        self.replayed: OrderedDict[str, None] = OrderedDict()
         self.streams: dict[str, StreamMemory] = {}
         self.open: dict[int, Fusion] = {}  # by fused id
         self.changes = Changes()
@@ -143,10 +148,18 @@ class FusionEngine:
         for fusion in self.fusions:
             self._by_anchor.setdefault(fusion.anchor, []).append(fusion)
 
+    def mark_replayed(self, stream_id: str) -> None:
+        """``stream_id`` is played faster than real time: its latencies are not learnt."""
+        self.replayed[stream_id] = None
+        self.replayed.move_to_end(stream_id)
+        while len(self.replayed) > MAX_REPLAYED_STREAMS:
+            self.replayed.popitem(last=False)
+
     # events
     def on_result(self, result: StoredResult, received_ns: int) -> list[FusedResult]:
         """Fused results that ``result`` completes or revises, to store and publish in order."""
-        self.latencies.add(result.component, received_ns - result.end_ns)
+        if result.stream_id not in self.replayed and received_ns >= result.end_ns:  # < 0: clocks disagree
+            self.latencies.add(result.component, received_ns - result.end_ns)
         memory = self._remember(result)
         fused: list[FusedResult] = []
         if not result.is_nothing:

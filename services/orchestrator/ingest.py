@@ -70,7 +70,10 @@ class Ingest:
         results of each stream (for late results), and the fusions that were still waiting."""
         engine = self.engine
         for component, count, mean_ns in self.store.latencies():
-            engine.latencies.restore(component, count, mean_ns)
+            if mean_ns >= 0:  # a negative mean: learnt from replays by an older version; start again
+                engine.latencies.restore(component, count, mean_ns)
+        for stream_id, _start_ns, _source, _announced_ns, info in self.store.streams():
+            self.on_stream_announced(stream_id, json.loads(info))
         results, fused = self.store.recent(engine.memory_ns)
         for text in results:
             engine.restore_result(StoredResult.from_json(json.loads(text)))
@@ -112,6 +115,12 @@ class Ingest:
             self._refuse("handler_error", f"{type(exc).__name__}: {exc}")
             return []
         return outgoing
+
+    def on_stream_announced(self, stream_id: str, info: dict[str, Any]) -> None:
+        """A source said what it plays: a replay faster than real time (``"realtime": false``) does
+        not teach the fusion its components' latencies."""
+        if isinstance(info, dict) and info.get("realtime") is False:
+            self.engine.mark_replayed(stream_id)
 
     def _stream_reference_ns(self, stream_id: str) -> int | None:
         return self._stream_reference.get(stream_id)

@@ -195,3 +195,18 @@ def test_late_results_within_the_revision_interval_make_one_revision():
     clock.now = S + 2 * S
     [third] = engine.on_result(result(5000, "ssl2", "ssl", 0, S, ssl={"directions": [direction(80)]}), 3 * S)
     assert third.revision == 3
+
+
+def test_latencies_are_learnt_from_real_time_streams_only():
+    """A --fast replay's capture times run ahead of the clock: its (negative) latencies must not set a
+    later real-time run's timeouts; nor may a result from a clock that runs ahead."""
+    engine, _ = engine_with(("asr", "speech"))
+    engine.on_result(result(1, "asr", "nothing", 0, S), received_ns=S + 200 * MS)
+    assert engine.latencies.by_component["asr"].mean_ns == 200 * MS
+    engine.mark_replayed("s")
+    engine.on_result(result(2, "asr", "nothing", 100 * S, 101 * S), received_ns=2 * S)  # 99 s "early"
+    engine.on_result(result(3, "asr", "nothing", 102 * S, 103 * S), received_ns=2 * S)
+    assert engine.latencies.by_component["asr"].count == 1
+    engine.replayed.clear()
+    engine.on_result(result(4, "asr", "nothing", 5 * S, 6 * S), received_ns=4 * S)  # a clock 2 s ahead
+    assert engine.latencies.by_component["asr"].count == 1 and engine.latencies.by_component["asr"].mean_ns == 200 * MS

@@ -151,6 +151,22 @@ def test_stream_end_stops_waiting_for_a_component_that_left(orch, component, htt
         assert recv_json(ws) == {"type": "stream_end", "stream_id": "s2"}
 
 
+def test_a_replayed_stream_does_not_teach_latencies(orch, component, http):
+    """A stream announced as faster than real time (the grabber's --fast: "realtime": false): its
+    capture times run ahead of the clock, so its results must not set the timeouts of a later
+    real-time stream."""
+    import time
+    now = time.time_ns()
+    assert http.put("/streams/replay", json={"start_ns": now, "source": "grabber",
+                                            "info": {"realtime": False}}).status_code == 200
+    asr = component("asr", designation="speech", inputs=["vad/speech"])
+    asr.send_result(stream_id="replay", start_ns=now - 51 * 10**9, end_ns=now - 50 * 10**9)  # "50 s" late
+    asr.send_result(stream_id="live", start_ns=now - 2 * 10**9, end_ns=now - 10**9)
+    wait_until(lambda: stored_count(http) == 2, what="both results")
+    [latency] = http.get("/latency", params={"component": "asr"}).json()["items"]
+    assert latency["count"] == 1 and 1000 <= latency["mean_ms"] < 10_000, latency  # the live stream's only
+
+
 @pytest.mark.parametrize("comes_back", [True, "ends-under-its-old-id", False],
                          ids=["comes-back", "ends-under-its-old-id", "never-comes-back"])
 def test_a_component_that_stalls_holds_the_stream_end_for_its_grace(make_orchestrator, zctx, comes_back):
