@@ -87,10 +87,12 @@ def normalize_volume(samples: np.ndarray) -> np.ndarray:
     return samples if change_db < 0 else samples * np.float32(10 ** (change_db / 20))
 
 
-def partial_starts(n_samples: int) -> list[int]:
+def partial_starts(n_samples: int, partials_per_s: float = PARTIALS_PER_S) -> list[int]:
     """First mel frame of each partial utterance (resemblyzer's compute_partial_slices)."""
     n_frames = int(np.ceil((n_samples + 1) / HOP_SAMPLES))
-    step = int(np.round(SAMPLE_RATE_HZ / PARTIALS_PER_S / HOP_SAMPLES))
+    step = int(np.round(SAMPLE_RATE_HZ / partials_per_s / HOP_SAMPLES))
+    if not 0 < step <= PARTIAL_FRAMES:
+        raise ValueError(f"partials_per_s {partials_per_s} gives a step of {step} frames (1 … {PARTIAL_FRAMES})")
     starts = list(range(0, max(1, n_frames - PARTIAL_FRAMES + step + 1), step))
     coverage = (n_samples - starts[-1] * HOP_SAMPLES) / (PARTIAL_FRAMES * HOP_SAMPLES)
     if coverage < MIN_COVERAGE and len(starts) > 1:
@@ -137,10 +139,16 @@ class VoiceEncoder:
         raw = np.maximum(0, hidden @ self.linear_weight + self.linear_bias)
         return raw / np.maximum(np.linalg.norm(raw, axis=1, keepdims=True), 1e-12)
 
-    def embed(self, samples: np.ndarray) -> np.ndarray:
-        """Embedding of a 16 kHz float utterance (its speech span)."""
+    def embed(self, samples: np.ndarray, partials_per_s: float = PARTIALS_PER_S, whole: bool = False) -> np.ndarray:
+        """Embedding of a 16 kHz float utterance (its speech span).
+
+        As resemblyzer: the normalised mean of 1.6 s partials, ``partials_per_s`` of them a second;
+        ``whole``: the LSTM run once over the whole utterance instead (its final state).
+        """
         samples = normalize_volume(np.asarray(samples, np.float32))
-        starts = partial_starts(samples.size)
+        if whole:
+            return self.embed_mels(mel_spectrogram(samples)[None])[0].astype(np.float32)
+        starts = partial_starts(samples.size, partials_per_s)
         needed = (starts[-1] + PARTIAL_FRAMES) * HOP_SAMPLES
         if needed >= samples.size:
             samples = np.pad(samples, (0, needed - samples.size))

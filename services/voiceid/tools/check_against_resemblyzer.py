@@ -28,7 +28,9 @@ For ``--files`` EmoDB utterances spread over the corpus it prints, stage by stag
   ``VoiceEncoder().embed_utterance(preprocess_wav(path))``, i.e. what the service computes against
   what resemblyzer computes from the file.
 
-Embeddings are compared by cosine and max absolute difference.
+Embeddings are compared by cosine and max absolute difference. With ``--bench``, it also embeds
+every EmoDB utterance as resemblyzer does (``embed_utterance(preprocess_wav(file))``, its own
+trimming instead of the speech span) and prints ``bench/voiceid.py``'s clean figures for them.
 """
 from __future__ import annotations
 
@@ -52,9 +54,9 @@ except ImportError as exc:  # pragma: no cover - the point is to say where it ru
     sys.exit(f"check_against_resemblyzer: {exc}. Run it from a venv with torch and resemblyzer "
              f"(see this file's docstring), never the project's.")
 
-from esiaf.scenes import speech_bounds  # noqa: E402
-from esiaf.testing import SHARED_DATA  # noqa: E402
-from services.voiceid import encoder as np_encoder  # noqa: E402
+from esiaf.scenes import speech_bounds
+from esiaf.testing import SHARED_DATA
+from services.voiceid import encoder as np_encoder
 
 
 def cosine(a: np.ndarray, b: np.ndarray) -> float:
@@ -78,6 +80,8 @@ def slices_agree(lengths: range) -> int:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     parser.add_argument("--files", type=int, default=10, help="EmoDB utterances compared (spread over the corpus)")
+    parser.add_argument("--bench", action="store_true", help="bench/voiceid.py's clean figures of resemblyzer's "
+                                                                 "own embeddings of all of EmoDB")
     args = parser.parse_args()
     torch.set_num_threads(1)
     wavs = sorted((SHARED_DATA / "emodb" / "wav").glob("*.wav"))
@@ -134,6 +138,20 @@ def main() -> None:
           f"({values[:, 9].max():.2e} with reflect padding); as used: cosine mean {values[:, 10].mean():.4f} "
           f"min {values[:, 10].min():.4f}, max |diff| {values[:, 11].max():.3f}; "
           f"lstm max |diff| {values[:, 6].max():.2e}")
+    if args.bench:
+        bench_resemblyzer(reference, wavs)
+
+
+def bench_resemblyzer(reference: TorchEncoder, wavs: list[Path]) -> None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
+    from bench.voiceid import evaluate, show
+    names = [p.name for p in wavs]
+    speakers, neutral = [n[:2] for n in names], [n[5] == "N" for n in names]
+    embeddings = np.stack([reference.embed_utterance(preprocess_wav(p)) for p in wavs])
+    show({f"resemblyzer_{k}": v for k, v in evaluate(names, speakers, neutral, embeddings).items()})
+    calm = [i for i, n in enumerate(neutral) if n]
+    show({f"resemblyzer_neutral_{k}": v for k, v in evaluate([names[i] for i in calm], [speakers[i] for i in calm],
+                                                             [True] * len(calm), embeddings[calm]).items()})
 
 
 if __name__ == "__main__":
