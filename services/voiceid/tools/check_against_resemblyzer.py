@@ -28,7 +28,8 @@ For ``--files`` EmoDB utterances spread over the corpus it prints, stage by stag
   ``VoiceEncoder().embed_utterance(preprocess_wav(path))``, i.e. what the service computes against
   what resemblyzer computes from the file.
 
-Embeddings are compared by cosine and max absolute difference. With ``--bench``, it also embeds
+Embeddings are compared by cosine and max absolute difference. The numpy encoder is run at
+resemblyzer's 1.3 partials a second (its own default is denser, 2.5: that is a choice, not a port). With ``--bench``, it also embeds
 every EmoDB utterance as resemblyzer does (``embed_utterance(preprocess_wav(file))``, its own
 trimming instead of the speech span) and prints ``bench/voiceid.py``'s clean figures for them.
 """
@@ -122,8 +123,8 @@ def main() -> None:
         with torch.no_grad():  # the same with the reflect padding of resemblyzer's day
             partials = reference(torch.from_numpy(np.stack([mel_reflect[s] for s in mel_slices]))).numpy()
         reflect_torch = partials.mean(axis=0) / np.linalg.norm(partials.mean(axis=0))
-        same_numpy = ours.embed(trimmed)
-        used_numpy = ours.embed(span)
+        same_numpy = ours.embed(trimmed, partials_per_s=np_encoder.RESEMBLYZER_PARTIALS_PER_S)
+        used_numpy = ours.embed(span, partials_per_s=np_encoder.RESEMBLYZER_PARTIALS_PER_S)
         row = (path.name, volume, raw.size / 16000, span.size / 16000, trimmed.size / 16000,
                rel_diff(mel_ours, mel_now), rel_diff(mel_ours, mel_reflect),
                float(np.max(np.abs(partial_numpy - partial_torch))),
