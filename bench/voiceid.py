@@ -21,11 +21,14 @@ Every EmoDB utterance (10 speakers, 535, acted emotions) is cut to its speech sp
   windows or the whole utterance, cohort centring, adaptive s-norm, perturbed enrolment copies.
   The cohort is ``services/voiceid/cohort.py``'s: the shared data's real non-EmoDB speech and
   flite voices, none of them an EmoDB speaker;
+- with ``--room-enrolment``, the room's trials against a clean enrolment (as a WAV enrolment would
+  be made), without and with reverberant noisy copies of each enrolment utterance in rooms unlike
+  the test room (``ROOM_COPIES``);
 - ``latency_p50_ms``: with ``--pipeline``, a few utterances played in real time through
   grabber → vad → voiceid → orchestrator: arrival of the fused result minus (end of the segment's
   speech + the VAD's hang-over), as bench/emotion.py.
 
-    python bench/voiceid.py [--pipeline] [--variants]
+    python bench/voiceid.py [--pipeline] [--variants] [--room-enrolment]
 """
 from __future__ import annotations
 
@@ -111,14 +114,17 @@ def enrolment(speakers: list[str], neutral: list[bool]) -> dict[str, list[int]]:
 
 def evaluate(names: list[str], speakers: list[str], neutral: list[bool], embeddings: np.ndarray,
              book: Callable[[dict[str, np.ndarray]], VoiceBook] = VoiceBook,
-             extra: dict[int, np.ndarray] | None = None) -> dict[str, float]:
+             extra: dict[int, np.ndarray] | None = None, enrol_from: np.ndarray | None = None) -> dict[str, float]:
     """Closed- and open-set figures; ``book`` makes the scorer from the enrolled embeddings, ``extra``
-    adds embeddings (e.g. of perturbed copies) to an enrolment utterance's, by its index."""
+    adds embeddings (e.g. of perturbed copies) to an enrolment utterance's, by its index;
+    ``enrol_from``: the enrolment utterances' embeddings are taken from there (e.g. clean) rather
+    than from ``embeddings`` (e.g. in the room)."""
     ids = sorted(set(speakers))
     enrol = enrolment(speakers, neutral)
     enrolled = {i for idx in enrol.values() for i in idx}
     trials = [i for i in range(len(names)) if i not in enrolled]
-    voices = {s: np.concatenate([embeddings[idx]] + [extra[i] for i in idx if extra and i in extra]) for s, idx
+    source = embeddings if enrol_from is None else enrol_from
+    voices = {s: np.concatenate([source[idx]] + [extra[i] for i in idx if extra and i in extra]) for s, idx
               in enrol.items()}
     closed = book(voices)
     correct = [max(closed.scores(embeddings[i]).items(), key=lambda kv: kv[1])[0] == speakers[i] for i in trials]
@@ -175,6 +181,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     parser.add_argument("--pipeline", action="store_true", help="also measure latency through the pipeline")
     parser.add_argument("--variants", action="store_true", help="also evaluate the variants of VARIANTS (a table)")
+    parser.add_argument("--room-enrolment", action="store_true",
+                        help="also room trials against clean enrolment, with and without reverberant copies")
     args = parser.parse_args()
     data = load_emodb()
     names, speakers, neutral, clips = (list(column) for column in zip(*data))
@@ -194,6 +202,8 @@ def main() -> None:
     show({f"room_{k}": v for k, v in evaluate(names, speakers, neutral, room).items()})
     show({f"room_neutral_{k}": v for k, v in evaluate([names[i] for i in calm], [speakers[i] for i in calm],
                                                       [True] * len(calm), room[calm]).items()})
+    if args.room_enrolment:
+        clean_enrolment_in_room(encoder, names, speakers, neutral, clips, clean, room)
     if args.variants:
         compare_variants(encoder, names, speakers, neutral, {"clean": clips, "room": room_clips},
                          {("clean", "dense"): clean, ("room", "dense"): room})  # the default: VoiceEncoder.embed
@@ -282,6 +292,37 @@ def compare_variants(encoder: VoiceEncoder, names: list[str], speakers: list[str
                 cells.append(f"{100 * figures['closed_accuracy']:.1f} %")
                 cells.append(f"{100 * figures['open_eer']:.1f} % ({figures['open_eer_threshold']:.2f})"
                              if condition == "clean" else f"{100 * figures['open_eer']:.1f} %")
+        print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
+
+
+# reverberant noisy copies of clean enrolment utterances: rooms unlike the test room (RT60 0.4 s,
+# 6×5×3 m, 1.5 m, kitchen noise at 10 dB): (RT60 s, room m, distance m, pink noise SNR dB)
+ROOM_COPIES = ((0.3, (4.0, 5.0, 2.8), 1.0, 20.0), (0.6, (7.0, 6.0, 3.0), 2.0, 5.0))
+
+
+def clean_enrolment_in_room(encoder: VoiceEncoder, names: list[str], speakers: list[str], neutral: list[bool],
+                            clips: list[np.ndarray], clean: np.ndarray, room: np.ndarray) -> None:
+    """Room trials against a clean enrolment (as a WAV enrolment would be), without and with
+    reverberant noisy copies of each enrolment utterance (services/voiceid/augment.py)."""
+    from services.voiceid.augment import reverberant
+    enrolled = sorted(i for idx in enrolment(speakers, neutral).values() for i in idx)
+    copies = {i: np.stack([encoder.embed(reverberant(clips[i], *copy, seed=n)) for n, copy in enumerate(ROOM_COPIES)])
+              for i in enrolled}
+    calm = [i for i, n in enumerate(neutral) if n]
+    position = {i: n for n, i in enumerate(calm)}
+    print("| room trials | closed, all | EER, all (threshold) | closed, neutral | EER, neutral (threshold) |")
+    print("|---|---|---|---|---|")
+    for name, enrol_from, extra in (("room enrolment (the room rows above)", None, None),
+                                    ("clean enrolment", clean, None),
+                                    ("clean enrolment + 2 reverberant noisy copies", clean, copies)):
+        cells = []
+        whole = evaluate(names, speakers, neutral, room, extra=extra, enrol_from=enrol_from)
+        only = evaluate([names[i] for i in calm], [speakers[i] for i in calm], [True] * len(calm), room[calm],
+                        extra=extra and {position[i]: e for i, e in extra.items() if i in position},
+                        enrol_from=None if enrol_from is None else enrol_from[calm])
+        for figures in (whole, only):
+            cells.append(f"{100 * figures['closed_accuracy']:.1f} %")
+            cells.append(f"{100 * figures['open_eer']:.1f} % ({figures['open_eer_threshold']:.2f})")
         print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
 
 

@@ -164,6 +164,26 @@ def test_the_tilt_brightens_or_darkens_at_the_same_level():
         tilted(noise, 1.0)
 
 
+def test_reverberant_copies_have_the_tail_the_noise_level_and_the_seed():
+    pytest.importorskip("pyroomacoustics")
+    from services.voiceid.augment import pink_noise, reverberant
+    rng = np.random.default_rng(3)
+    noise = pink_noise(64000, rng)
+    power = np.abs(np.fft.rfft(noise)) ** 2
+    low, high = power[100:200].mean(), power[10000:20000].mean()  # 25-50 Hz against 2.5-5 kHz
+    assert np.sqrt(np.mean(noise ** 2)) == pytest.approx(1.0) and low > 20 * high
+    t = np.arange(16000) / 16000
+    speech = (0.1 * np.sin(2 * np.pi * 220 * t)).astype(np.float32)
+    quiet = reverberant(speech, 0.3, (4.0, 5.0, 2.8), 1.0, snr_db=60.0)
+    noisy = reverberant(speech, 0.3, (4.0, 5.0, 2.8), 1.0, snr_db=0.0)
+    assert quiet.size == noisy.size == 16000 + 1600 and quiet.dtype == np.float32
+    assert np.sqrt(np.mean(quiet[-1600:] ** 2)) > 0  # the reverberant tail
+    added = noisy - quiet  # the noise alone, at the speech's level for 0 dB
+    assert np.sqrt(np.mean(added ** 2)) == pytest.approx(np.sqrt(np.mean(quiet ** 2)), rel=0.02)
+    np.testing.assert_array_equal(noisy, reverberant(speech, 0.3, (4.0, 5.0, 2.8), 1.0, snr_db=0.0))
+    assert not np.array_equal(noisy, reverberant(speech, 0.3, (4.0, 5.0, 2.8), 1.0, snr_db=0.0, seed=1))
+
+
 def test_partial_windows_and_the_whole_utterance_mode():
     from services.voiceid.encoder import PARTIAL_FRAMES, partial_starts
     assert partial_starts(16000 * 3) == [0, 77, 154]  # resemblyzer's 1.3 a second: a step of 77 frames
