@@ -14,6 +14,10 @@ the installed resemblyzer's ``pretrained.pt``.
 
 For ``--files`` EmoDB utterances spread over the corpus it prints, stage by stage:
 
+- ``resample``: a 44.1 kHz copy of the file (made with soxr) brought back to 16 kHz as the
+  orchestrator's WAV enrolment does (``scipy.signal.resample_poly``, ``services/orchestrator/voices.py``)
+  and as ``preprocess_wav`` does (``librosa.resample``): relative max difference of the samples, and
+  cosine between the numpy embeddings of the two;
 - ``volume``: the -30 dBFS raise (``normalize_volume``) against ``resemblyzer.audio.normalize_volume``;
 - ``trim``: what resemblyzer's webrtcvad trimming keeps (``preprocess_wav``) against the speech
   span the project embeds (``esiaf.scenes.speech_bounds``, as ``bench/voiceid.py``), in samples;
@@ -47,7 +51,9 @@ warnings.filterwarnings("ignore")  # webrtcvad's pkg_resources, scipy's ndimage.
 
 try:
     import librosa
+    import soxr
     import torch
+    from scipy.signal import resample_poly
     from resemblyzer import VoiceEncoder as TorchEncoder
     from resemblyzer import audio as res_audio
     from resemblyzer import preprocess_wav
@@ -96,13 +102,20 @@ def main() -> None:
     print(f"mel filterbank: max |numpy - librosa| = {np.max(np.abs(np_encoder.mel_filters() - filters)):.2e} "
           f"(filters up to {filters.max():.2e})")
     print(f"partial windows: {slices_agree(range(400, 160000, 37))} of {len(range(400, 160000, 37))} lengths differ")
-    columns = ("file", "volume", "raw s", "span s", "trimmed s", "mel now", "mel reflect", "lstm max", "same cos",
+    columns = ("file", "resample", "resample cos", "volume", "raw s", "span s", "trimmed s", "mel now", "mel reflect", "lstm max", "same cos",
                "same max", "reflect max", "used cos", "used max")
     print("\t".join(columns))
     rows = []
     for path in chosen:
         raw, rate = soundfile.read(path, dtype="float32")
         assert rate == 16000
+        high = soxr.resample(raw, 16000, 44100)
+        ours_16k = resample_poly(high, 160, 441).astype(np.float32)  # gcd(44100, 16000) = 100, as voices.py
+        theirs_16k = librosa.resample(high, orig_sr=44100, target_sr=16000)
+        n = min(ours_16k.size, theirs_16k.size)
+        resample = rel_diff(ours_16k[:n], theirs_16k[:n])
+        resample_cos = cosine(ours.embed(ours_16k, partials_per_s=np_encoder.RESEMBLYZER_PARTIALS_PER_S),
+                              ours.embed(theirs_16k, partials_per_s=np_encoder.RESEMBLYZER_PARTIALS_PER_S))
         volume = float(np.max(np.abs(np_encoder.normalize_volume(raw) -
                                      res_audio.normalize_volume(raw, -30, increase_only=True))))
         first, last = speech_bounds(raw)
@@ -125,20 +138,22 @@ def main() -> None:
         reflect_torch = partials.mean(axis=0) / np.linalg.norm(partials.mean(axis=0))
         same_numpy = ours.embed(trimmed, partials_per_s=np_encoder.RESEMBLYZER_PARTIALS_PER_S)
         used_numpy = ours.embed(span, partials_per_s=np_encoder.RESEMBLYZER_PARTIALS_PER_S)
-        row = (path.name, volume, raw.size / 16000, span.size / 16000, trimmed.size / 16000,
+        row = (path.name, resample, resample_cos, volume, raw.size / 16000, span.size / 16000, trimmed.size / 16000,
                rel_diff(mel_ours, mel_now), rel_diff(mel_ours, mel_reflect),
                float(np.max(np.abs(partial_numpy - partial_torch))),
                cosine(same_numpy, same_torch), float(np.max(np.abs(same_numpy - same_torch))),
                float(np.max(np.abs(same_numpy - reflect_torch))),
                cosine(used_numpy, same_torch), float(np.max(np.abs(used_numpy - same_torch))))
         rows.append(row)
-        print("\t".join([row[0]] + [f"{v:.2e}" if i in (1, 5, 6, 7, 9, 10, 12) else f"{v:.4f}" if i in (8, 11)
-                                    else f"{v:.2f}" for i, v in enumerate(row) if i]), flush=True)
-    values = np.array([r[1:] for r in rows], float)
+        print("\t".join([row[0]] + [f"{v:.2e}" if i in (1, 3, 7, 8, 9, 11, 12, 14) else
+                                    f"{v:.6f}" if i in (2, 10, 13) else f"{v:.2f}" for i, v in enumerate(row) if i]),
+              flush=True)
+    values = np.array([r[3:] for r in rows], float)
     print(f"same input: cosine min {values[:, 7].min():.6f}, max |diff| {values[:, 8].max():.2e} "
           f"({values[:, 9].max():.2e} with reflect padding); as used: cosine mean {values[:, 10].mean():.4f} "
           f"min {values[:, 10].min():.4f}, max |diff| {values[:, 11].max():.3f}; "
-          f"lstm max |diff| {values[:, 6].max():.2e}")
+          f"lstm max |diff| {values[:, 6].max():.2e}; resampling: samples differ by {max(r[1] for r in rows):.2e} "
+          f"of the peak at most, embeddings' cosine min {min(r[2] for r in rows):.6f}")
     if args.bench:
         bench_resemblyzer(reference, wavs)
 
