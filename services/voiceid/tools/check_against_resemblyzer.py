@@ -53,10 +53,10 @@ try:
     import librosa
     import soxr
     import torch
-    from scipy.signal import resample_poly
     from resemblyzer import VoiceEncoder as TorchEncoder
     from resemblyzer import audio as res_audio
     from resemblyzer import preprocess_wav
+    from scipy.signal import resample_poly
 except ImportError as exc:  # pragma: no cover - the point is to say where it runs
     sys.exit(f"check_against_resemblyzer: {exc}. Run it from a venv with torch and resemblyzer "
              f"(see this file's docstring), never the project's.")
