@@ -16,11 +16,19 @@ Every EmoDB utterance (10 speakers, 535, acted emotions) is cut to its speech sp
   the kitchen noise (doing_the_dishes.wav) 2 m from the microphone, the noise scaled to 10 dB
   below the speech at the microphone; enrolment and trials both in the room;
 - ``cpu_s_per_speech_s``: encoder CPU time (process time) per second of speech, in this process;
+- with ``--variants``, a table of the figures (closed-set accuracy, open-set EER and its threshold,
+  all emotions and neutral only, clean and in the room) for each variant of ``VARIANTS``: partial
+  windows or the whole utterance, cohort centring, adaptive s-norm, perturbed enrolment copies.
+  The cohort is ``services/voiceid/cohort.py``'s: the shared data's real non-EmoDB speech and
+  flite voices, none of them an EmoDB speaker;
+- with ``--room-enrolment``, the room's trials against a clean enrolment (as a WAV enrolment would
+  be made), without and with reverberant noisy copies of each enrolment utterance in rooms unlike
+  the test room (``ROOM_COPIES``);
 - ``latency_p50_ms``: with ``--pipeline``, a few utterances played in real time through
   grabber → vad → voiceid → orchestrator: arrival of the fused result minus (end of the segment's
   speech + the VAD's hang-over), as bench/emotion.py.
 
-    python bench/voiceid.py [--pipeline]
+    python bench/voiceid.py [--pipeline] [--variants] [--room-enrolment]
 """
 from __future__ import annotations
 
@@ -29,6 +37,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +49,7 @@ sys.path[0] = str(REPO)  # not bench/: its ssl.py would shadow the standard libr
 
 from esiaf.scenes import speech_bounds  # noqa: E402
 from esiaf.testing import SHARED_DATA  # noqa: E402
-from services.voiceid.encoder import VoiceEncoder  # noqa: E402
+from services.voiceid.encoder import RESEMBLYZER_PARTIALS_PER_S, VoiceEncoder  # noqa: E402
 from services.voiceid.scoring import VoiceBook  # noqa: E402
 
 ENROL_UTTERANCES = 3
@@ -97,18 +106,32 @@ def eer(genuine: np.ndarray, impostor: np.ndarray) -> tuple[float, float]:
     return float(rate), float(best[1])
 
 
-def evaluate(names: list[str], speakers: list[str], neutral: list[bool], embeddings: np.ndarray) -> dict[str, float]:
+def enrolment(speakers: list[str], neutral: list[bool]) -> dict[str, list[int]]:
+    """Speaker → indices of its enrolment utterances: the first ENROL_UTTERANCES neutral ones."""
+    return {s: [i for i, (sp, n) in enumerate(zip(speakers, neutral, strict=True)) if sp == s and n][:ENROL_UTTERANCES]
+            for s in sorted(set(speakers))}
+
+
+def evaluate(names: list[str], speakers: list[str], neutral: list[bool], embeddings: np.ndarray,
+             book: Callable[[dict[str, np.ndarray]], VoiceBook] = VoiceBook,
+             extra: dict[int, np.ndarray] | None = None, enrol_from: np.ndarray | None = None) -> dict[str, float]:
+    """Closed- and open-set figures; ``book`` makes the scorer from the enrolled embeddings, ``extra``
+    adds embeddings (e.g. of perturbed copies) to an enrolment utterance's, by its index;
+    ``enrol_from``: the enrolment utterances' embeddings are taken from there (e.g. clean) rather
+    than from ``embeddings`` (e.g. in the room)."""
     ids = sorted(set(speakers))
-    enrol = {s: [i for i, (sp, n) in enumerate(zip(speakers, neutral, strict=True)) if sp == s and n][:ENROL_UTTERANCES]
-             for s in ids}
+    enrol = enrolment(speakers, neutral)
     enrolled = {i for idx in enrol.values() for i in idx}
     trials = [i for i in range(len(names)) if i not in enrolled]
-    book = VoiceBook({s: embeddings[idx] for s, idx in enrol.items()})
-    correct = [max(book.scores(embeddings[i]).items(), key=lambda kv: kv[1])[0] == speakers[i] for i in trials]
+    source = embeddings if enrol_from is None else enrol_from
+    voices = {s: np.concatenate([source[idx]] + [extra[i] for i in idx if extra and i in extra]) for s, idx
+              in enrol.items()}
+    closed = book(voices)
+    correct = [max(closed.scores(embeddings[i]).items(), key=lambda kv: kv[1])[0] == speakers[i] for i in trials]
     genuine, impostor = [], []
     for rotation in range(3):
         unknown = set(ids[rotation * UNKNOWN_SPEAKERS:(rotation + 1) * UNKNOWN_SPEAKERS])
-        known = VoiceBook({s: embeddings[idx] for s, idx in enrol.items() if s not in unknown})
+        known = book({s: e for s, e in voices.items() if s not in unknown})
         for i in trials:
             scores = known.scores(embeddings[i])
             (impostor.append(max(scores.values())) if speakers[i] in unknown else genuine.append(scores[speakers[i]]))
@@ -157,6 +180,9 @@ def pipeline_latency(files: list[Path]) -> dict[str, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     parser.add_argument("--pipeline", action="store_true", help="also measure latency through the pipeline")
+    parser.add_argument("--variants", action="store_true", help="also evaluate the variants of VARIANTS (a table)")
+    parser.add_argument("--room-enrolment", action="store_true",
+                        help="also room trials against clean enrolment, with and without reverberant copies")
     args = parser.parse_args()
     data = load_emodb()
     names, speakers, neutral, clips = (list(column) for column in zip(*data, strict=True))
@@ -171,13 +197,137 @@ def main() -> None:
     calm = [i for i, n in enumerate(neutral) if n]  # neutral speech only: enrolment and trials alike
     show({f"neutral_{k}": v for k, v in evaluate([names[i] for i in calm], [speakers[i] for i in calm],
                                                  [True] * len(calm), clean[calm]).items()})
-    room = np.stack([encoder.embed(c) for c in through_room(clips)])
+    room_clips = through_room(clips)
+    room = np.stack([encoder.embed(c) for c in room_clips])
     show({f"room_{k}": v for k, v in evaluate(names, speakers, neutral, room).items()})
     show({f"room_neutral_{k}": v for k, v in evaluate([names[i] for i in calm], [speakers[i] for i in calm],
                                                       [True] * len(calm), room[calm]).items()})
+    if args.room_enrolment:
+        clean_enrolment_in_room(encoder, names, speakers, neutral, clips, clean, room)
+    if args.variants:
+        compare_variants(encoder, names, speakers, neutral, {"clean": clips, "room": room_clips},
+                         {("clean", "dense"): clean, ("room", "dense"): room})  # the default: VoiceEncoder.embed
     if args.pipeline:
         wavs = SHARED_DATA / "emodb" / "wav"
         show(pipeline_latency([wavs / n for n in names[::60]]))
+
+
+# name: (embedding, scoring, extra copies of each enrolment utterance: (perturbation, its parameter))
+SPEED = (("speed", 0.9), ("speed", 1.1))
+TILT = (("tilt", 0.7), ("tilt", -0.7))
+VARIANTS = {
+    "baseline (the default until now): 1.6 s partials at 1.3/s (resemblyzer's), top-3 cosine":
+        ("partials", "cosine", ()),
+    "whole utterance: one LSTM pass": ("whole", "cosine", ()),
+    "dense partials: 2.5/s (step 0.4 s, 75 % overlap): the default now": ("dense", "cosine", ()),
+    "cosine after subtracting the cohort's mean embedding": ("partials", "centred", ()),
+    "adaptive s-norm, cohort top 20": ("partials", "snorm", ()),
+    "enrolment + speed-perturbed copies (×0.9, ×1.1)": ("partials", "cosine", SPEED),
+    "enrolment + tilted copies (pre-emphasis 0.7, low-pass 0.7)": ("partials", "cosine", TILT),
+    "enrolment + speed and tilted copies": ("partials", "cosine", SPEED + TILT),
+    "adaptive s-norm + speed-perturbed enrolment": ("partials", "snorm", SPEED),
+    "adaptive s-norm + tilted enrolment": ("partials", "snorm", TILT),
+}
+EMBEDDERS = {"partials": lambda encoder, clip: encoder.embed(clip, partials_per_s=RESEMBLYZER_PARTIALS_PER_S),
+             "whole": lambda encoder, clip: encoder.embed(clip, whole=True),
+             "dense": lambda encoder, clip: encoder.embed(clip, partials_per_s=2.5)}
+COHORT_TOP = 20
+COHORT_SENTENCES = 10  # RoboCup questions read by each flite voice
+
+
+def compare_variants(encoder: VoiceEncoder, names: list[str], speakers: list[str], neutral: list[bool],
+                     conditions: dict[str, list[np.ndarray]], cache: dict[tuple[str, str], np.ndarray]) -> None:
+    """One row per variant: closed-set accuracy and open-set EER (threshold), all emotions and
+    neutral only, clean and in the room. The cohort (services/voiceid/cohort.py: real non-EmoDB
+    speech of the shared data + flite voices) goes through the same condition as the trials."""
+    from services.voiceid.augment import speed_perturbed, tilted
+    from services.voiceid.cohort import flite_clips, real_clips, robocup_questions
+    sentences = robocup_questions(SHARED_DATA, COHORT_SENTENCES)
+    cohort_clips = [c for _, c in real_clips(SHARED_DATA) + flite_clips(sentences)]
+    cohort_audio = {"clean": cohort_clips, "room": through_room(cohort_clips)}
+    print(f"cohort: {len(cohort_clips)} clips", flush=True)
+    enrolled = sorted(i for idx in enrolment(speakers, neutral).values() for i in idx)
+    calm = [i for i, n in enumerate(neutral) if n]
+
+    def embeddings(condition: str, mode: str) -> np.ndarray:
+        if (condition, mode) not in cache:
+            cache[condition, mode] = np.stack([EMBEDDERS[mode](encoder, c) for c in conditions[condition]])
+        return cache[condition, mode]
+
+    cohorts: dict[tuple[str, str], np.ndarray] = {}
+    copies: dict[tuple[str, str, str, float], dict[int, np.ndarray]] = {}
+    print("| variant | closed, all | EER, all (threshold) | closed, neutral | EER, neutral (threshold) | "
+          "room closed, all | room EER, all | room closed, neutral | room EER, neutral |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    perturb = {"speed": speed_perturbed, "tilt": tilted}
+    for name, (mode, scoring, perturbations) in VARIANTS.items():
+        cells = []
+        for condition in conditions:
+            everything = embeddings(condition, mode)
+            if (condition, mode) not in cohorts:
+                cohorts[condition, mode] = np.stack([EMBEDDERS[mode](encoder, c) for c in cohort_audio[condition]])
+            cohort = cohorts[condition, mode]
+            extra = None
+            for kind, value in perturbations:
+                if (condition, mode, kind, value) not in copies:
+                    copies[condition, mode, kind, value] = {i: EMBEDDERS[mode](encoder, perturb[kind](
+                        conditions[condition][i], value)) for i in enrolled}
+            if perturbations:
+                extra = {i: np.stack([copies[condition, mode, kind, value][i] for kind, value in perturbations])
+                         for i in enrolled}
+            book: Callable[[dict[str, np.ndarray]], VoiceBook] = VoiceBook
+            if scoring == "centred":
+                mean = cohort.mean(axis=0)
+                everything = _unit(everything - mean)
+                extra = extra and {i: _unit(e - mean) for i, e in extra.items()}
+            elif scoring == "snorm":
+                def book(voices, cohort=cohort):
+                    return VoiceBook(voices, cohort=cohort, cohort_top=COHORT_TOP)
+            whole = evaluate(names, speakers, neutral, everything, book, extra)
+            position = {i: n for n, i in enumerate(calm)}
+            calm_extra = extra and {position[i]: e for i, e in extra.items() if i in position}
+            only = evaluate([names[i] for i in calm], [speakers[i] for i in calm], [True] * len(calm),
+                            everything[calm], book, calm_extra)
+            for figures in (whole, only):
+                cells.append(f"{100 * figures['closed_accuracy']:.1f} %")
+                cells.append(f"{100 * figures['open_eer']:.1f} % ({figures['open_eer_threshold']:.2f})"
+                             if condition == "clean" else f"{100 * figures['open_eer']:.1f} %")
+        print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
+
+
+# reverberant noisy copies of clean enrolment utterances: rooms unlike the test room (RT60 0.4 s,
+# 6×5×3 m, 1.5 m, kitchen noise at 10 dB): (RT60 s, room m, distance m, pink noise SNR dB)
+ROOM_COPIES = ((0.3, (4.0, 5.0, 2.8), 1.0, 20.0), (0.6, (7.0, 6.0, 3.0), 2.0, 5.0))
+
+
+def clean_enrolment_in_room(encoder: VoiceEncoder, names: list[str], speakers: list[str], neutral: list[bool],
+                            clips: list[np.ndarray], clean: np.ndarray, room: np.ndarray) -> None:
+    """Room trials against a clean enrolment (as a WAV enrolment would be), without and with
+    reverberant noisy copies of each enrolment utterance (services/voiceid/augment.py)."""
+    from services.voiceid.augment import reverberant
+    enrolled = sorted(i for idx in enrolment(speakers, neutral).values() for i in idx)
+    copies = {i: np.stack([encoder.embed(reverberant(clips[i], *copy, seed=n)) for n, copy in enumerate(ROOM_COPIES)])
+              for i in enrolled}
+    calm = [i for i, n in enumerate(neutral) if n]
+    position = {i: n for n, i in enumerate(calm)}
+    print("| room trials | closed, all | EER, all (threshold) | closed, neutral | EER, neutral (threshold) |")
+    print("|---|---|---|---|---|")
+    for name, enrol_from, extra in (("room enrolment (the room rows above)", None, None),
+                                    ("clean enrolment", clean, None),
+                                    ("clean enrolment + 2 reverberant noisy copies", clean, copies)):
+        cells = []
+        whole = evaluate(names, speakers, neutral, room, extra=extra, enrol_from=enrol_from)
+        only = evaluate([names[i] for i in calm], [speakers[i] for i in calm], [True] * len(calm), room[calm],
+                        extra=extra and {position[i]: e for i, e in extra.items() if i in position},
+                        enrol_from=None if enrol_from is None else enrol_from[calm])
+        for figures in (whole, only):
+            cells.append(f"{100 * figures['closed_accuracy']:.1f} %")
+            cells.append(f"{100 * figures['open_eer']:.1f} % ({figures['open_eer_threshold']:.2f})")
+        print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
 
 
 def show(figures: dict[str, float | int]) -> None:

@@ -31,18 +31,41 @@ class Match:
 
 
 class VoiceBook:
-    """Enrolled voices: name → (n, 256) unit embeddings."""
+    """Enrolled voices: name → (n, 256) unit embeddings.
 
-    def __init__(self, voices: dict[str, np.ndarray] | None = None, top_k: int = 3):
+    With a ``cohort`` (unit embeddings of other speakers, none of them enrolled) the scores are
+    adaptive s-norm: the raw score ``s`` minus the mean, over the standard deviation, of the
+    ``cohort_top`` best scores of the voice against the cohort (``z``) and of the segment against
+    the cohort (``t``), averaged: ``((s - μv) / σv + (s - μt) / σt) / 2``. The threshold is then
+    in those units, not in cosine.
+    """
+
+    def __init__(self, voices: dict[str, np.ndarray] | None = None, top_k: int = 3,
+                 cohort: np.ndarray | None = None, cohort_top: int = 20):
         self.voices = {name: _unit(np.atleast_2d(np.asarray(e, np.float32))) for name, e in (voices or {}).items()}
         self.top_k = top_k
+        self.cohort = None if cohort is None else _unit(np.atleast_2d(np.asarray(cohort, np.float32)))
+        self.cohort_top = cohort_top
+        self.voice_stats = {} if self.cohort is None else {
+            name: _top_stats(self._voice_scores(enrolled, self.cohort.T), cohort_top)
+            for name, enrolled in self.voices.items()}
+
+    def _voice_scores(self, enrolled: np.ndarray, probes: np.ndarray) -> np.ndarray:
+        """The voice's score (mean of its top_k similarities) against each column of ``probes``."""
+        similarities = -np.sort(-(enrolled @ probes), axis=0)
+        return np.mean(similarities[:self.top_k], axis=0)
+
+    def raw_scores(self, embedding: np.ndarray) -> dict[str, float]:
+        return {name: float(self._voice_scores(enrolled, embedding[:, None])[0])
+                for name, enrolled in self.voices.items()}
 
     def scores(self, embedding: np.ndarray) -> dict[str, float]:
-        result = {}
-        for name, enrolled in self.voices.items():
-            similarities = np.sort(enrolled @ embedding)[::-1]
-            result[name] = float(np.mean(similarities[:self.top_k]))
-        return result
+        raw = self.raw_scores(embedding)
+        if self.cohort is None:
+            return raw
+        mean_t, std_t = _top_stats(self.cohort @ embedding, self.cohort_top)
+        return {name: 0.5 * ((s - self.voice_stats[name][0]) / self.voice_stats[name][1] + (s - mean_t) / std_t)
+                for name, s in raw.items()}
 
     def identify(self, embedding: np.ndarray, threshold: float) -> Match:
         scores = self.scores(embedding)
@@ -81,6 +104,12 @@ class AnonymousVoices:
         while len(self.voices) > self.limit:
             self.voices.popitem(last=False)
         return voice_id, 1.0
+
+
+def _top_stats(scores: np.ndarray, top: int) -> tuple[float, float]:
+    """Mean and standard deviation (at least 1e-3) of the ``top`` highest scores."""
+    best = np.sort(np.asarray(scores, np.float64))[::-1][:top]
+    return float(np.mean(best)), max(float(np.std(best)), 1e-3)
 
 
 def _unit(x: np.ndarray) -> np.ndarray:

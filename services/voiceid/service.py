@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 class VoiceIdSettings(UtteranceSettings):
     model: str = "resemblyzer"  # the resemblyzer wheel's GE2E encoder (the only one)
     min_speech_ms: float = 1000.0  # shorter segments get "nothing": too short to tell voices apart
-    threshold: float = 0.78  # cosine score a voice needs (EER point on EmoDB's neutral speech, bench/voiceid.py)
+    threshold: float = 0.78  # cosine a voice needs (near the EER point of EmoDB's neutral speech, bench/voiceid.py)
     anonymous_threshold: float = 0.75  # cosine to an anonymous voice's mean to be that voice again
     top_k: int = 3  # a voice's score: mean of its top_k best enrolled embeddings
     anonymous_limit: int = 16  # anonymous voices remembered per stream

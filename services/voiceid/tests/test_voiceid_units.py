@@ -110,3 +110,99 @@ def test_the_fused_voice_is_the_results_label_not_the_best_enrolled_score():
     aggregate = label_aggregate([stranger], "voice_id", (0, 2_000_000_000))
     assert aggregate["label"] == "voice-2" and aggregate["probability"] == pytest.approx(0.9)
     assert aggregate["distribution"] == {"voice-2": pytest.approx(0.9), "unknown": pytest.approx(0.1)}
+
+
+def test_adaptive_snorm_normalises_by_the_best_cohort_scores_of_both_sides():
+    rng = np.random.default_rng(1)
+    cohort = np.stack([_unit(v) for v in rng.normal(size=(30, 8))])
+    anna, probe = _unit(rng.normal(size=8)), _unit(rng.normal(size=8))
+    book = VoiceBook({"anna": [anna]}, top_k=1, cohort=cohort, cohort_top=5)
+    raw = float(anna @ probe)
+    assert book.raw_scores(probe)["anna"] == pytest.approx(raw)
+    voice_side, probe_side = np.sort(cohort @ anna)[::-1][:5], np.sort(cohort @ probe)[::-1][:5]
+    expected = 0.5 * ((raw - voice_side.mean()) / voice_side.std() + (raw - probe_side.mean()) / probe_side.std())
+    assert book.scores(probe)["anna"] == pytest.approx(expected, rel=1e-5)
+    # the voice side uses the voice's top-k score against each cohort member, as the raw score does
+    two = VoiceBook({"anna": [anna, probe]}, top_k=2, cohort=cohort, cohort_top=5)
+    member_scores = np.sort(np.mean(np.stack([cohort @ anna, cohort @ probe]), axis=0))[::-1][:5]
+    assert two.voice_stats["anna"][0] == pytest.approx(member_scores.mean(), rel=1e-5)
+    # a probe close to the cohort is pulled down, one far from it is not
+    near_cohort = _unit(cohort[0] + 0.1 * anna)
+    plain = VoiceBook({"anna": [anna]}, top_k=1)
+    assert plain.scores(near_cohort)["anna"] == pytest.approx(book.raw_scores(near_cohort)["anna"])
+    assert book.scores(near_cohort)["anna"] < book.scores(_unit(anna + 0.1 * probe))["anna"]
+
+
+def test_speed_perturbation_changes_tempo_and_pitch_together():
+    from services.voiceid.augment import speed_perturbed
+    t = np.arange(16000) / 16000
+    tone = np.sin(2 * np.pi * 200 * t).astype(np.float32)
+    faster = speed_perturbed(tone, 1.25)
+    assert faster.dtype == np.float32 and abs(faster.size - 16000 / 1.25) <= 2
+    spectrum = np.abs(np.fft.rfft(faster * np.hanning(faster.size)))
+    assert np.argmax(spectrum) * 16000 / faster.size == pytest.approx(250, abs=2)
+    np.testing.assert_array_equal(speed_perturbed(tone, 1.0), tone)
+    with pytest.raises(ValueError):
+        speed_perturbed(tone, 0.0)
+
+
+def test_the_tilt_brightens_or_darkens_at_the_same_level():
+    from services.voiceid.augment import tilted
+    rng = np.random.default_rng(2)
+    noise = rng.normal(size=32000).astype(np.float32) * 0.1
+
+    def high_share(x):
+        power = np.abs(np.fft.rfft(x)) ** 2
+        return power[power.size // 2:].sum() / power.sum()
+
+    brighter, darker = tilted(noise, 0.7), tilted(noise, -0.7)
+    assert high_share(brighter) > high_share(noise) + 0.1 and high_share(darker) < high_share(noise) - 0.1
+    for y in (brighter, darker):
+        assert y.dtype == np.float32 and np.sqrt(np.mean(y ** 2)) == pytest.approx(0.1, rel=0.05)
+    np.testing.assert_allclose(tilted(noise, 0.0), noise, atol=1e-7)
+    with pytest.raises(ValueError):
+        tilted(noise, 1.0)
+
+
+def test_reverberant_copies_have_the_tail_the_noise_level_and_the_seed():
+    pytest.importorskip("pyroomacoustics")
+    from services.voiceid.augment import pink_noise, reverberant
+    rng = np.random.default_rng(3)
+    noise = pink_noise(64000, rng)
+    power = np.abs(np.fft.rfft(noise)) ** 2
+    low, high = power[100:200].mean(), power[10000:20000].mean()  # 25-50 Hz against 2.5-5 kHz
+    assert np.sqrt(np.mean(noise ** 2)) == pytest.approx(1.0) and low > 20 * high
+    t = np.arange(16000) / 16000
+    speech = (0.1 * np.sin(2 * np.pi * 220 * t)).astype(np.float32)
+    quiet = reverberant(speech, 0.3, (4.0, 5.0, 2.8), 1.0, snr_db=60.0)
+    noisy = reverberant(speech, 0.3, (4.0, 5.0, 2.8), 1.0, snr_db=0.0)
+    assert quiet.size == noisy.size == 16000 + 1600 and quiet.dtype == np.float32
+    assert np.sqrt(np.mean(quiet[-1600:] ** 2)) > 0  # the reverberant tail
+    added = noisy - quiet  # the noise alone, at the speech's level for 0 dB
+    assert np.sqrt(np.mean(added ** 2)) == pytest.approx(np.sqrt(np.mean(quiet ** 2)), rel=0.02)
+    np.testing.assert_array_equal(noisy, reverberant(speech, 0.3, (4.0, 5.0, 2.8), 1.0, snr_db=0.0))
+    assert not np.array_equal(noisy, reverberant(speech, 0.3, (4.0, 5.0, 2.8), 1.0, snr_db=0.0, seed=1))
+
+
+def test_partial_windows_and_the_whole_utterance_mode():
+    from services.voiceid.encoder import PARTIAL_FRAMES, partial_starts
+    assert partial_starts(16000 * 3) == [0, 77, 154]  # resemblyzer's 1.3 a second: a step of 77 frames
+    assert partial_starts(16000 * 3, partials_per_s=2.5) == [0, 40, 80, 120, 160]
+    assert partial_starts(8000) == [0]  # shorter than one partial: one, padded
+    with pytest.raises(ValueError):
+        partial_starts(16000, partials_per_s=0.5)  # a step longer than a partial leaves gaps
+    assert PARTIAL_FRAMES == 160
+
+
+def test_the_encoder_modes_give_unit_embeddings_that_agree_on_a_voice():
+    from services.voiceid.encoder import VoiceEncoder
+    encoder = VoiceEncoder()
+    rng = np.random.default_rng(0)
+    t = np.arange(int(16000 * 2.2)) / 16000
+    voiced = sum(np.sin(2 * np.pi * 140 * k * t) / k for k in range(1, 12)) * (1 + 0.3 * np.sin(2 * np.pi * 3 * t))
+    clip = (0.1 * voiced + 0.005 * rng.normal(size=t.size)).astype(np.float32)
+    default, whole = encoder.embed(clip), encoder.embed(clip, whole=True)
+    dense = encoder.embed(clip, partials_per_s=2.5)
+    for e in (default, whole, dense):
+        assert e.shape == (256,) and e.dtype == np.float32 and np.linalg.norm(e) == pytest.approx(1, abs=1e-5)
+    assert float(default @ dense) > 0.95  # the same partials, more of them
