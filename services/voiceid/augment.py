@@ -55,7 +55,7 @@ def _room_response(rt60_s: float, room_m: tuple[float, float, float], distance_m
     room = pra.ShoeBox(size, fs=SAMPLE_RATE_HZ, materials=pra.Material(absorption), max_order=max_order)
     mic = np.array([size[0] / 2, size[1] / 2, 1.2])
     room.add_microphone(mic)
-    room.add_source([*mic, distance_m, 0.0, 0.3])
+    room.add_source(mic + np.array([distance_m, 0.0, 0.3]))  # numpy: elementwise
     room.compute_rir()
     return np.asarray(room.rir[0][0], np.float64)
 
