@@ -77,8 +77,8 @@ def through_room(utterances: list[np.ndarray]) -> list[np.ndarray]:
     room = pra.ShoeBox(room_m, fs=16000, materials=pra.Material(absorption), max_order=max_order)
     mic = np.array([3.0, 2.5, 1.2])
     room.add_microphone(mic)
-    room.add_source([*mic, 1.5, 0.0, 0.3])
-    room.add_source([*mic, -1.0, 1.7, -0.2])
+    room.add_source(mic + np.array([1.5, 0.0, 0.3]))  # numpy: elementwise
+    room.add_source(mic + np.array([-1.0, 1.7, -0.2]))
     room.compute_rir()
     speech_rir, noise_rir = room.rir[0][0], room.rir[0][1]
     noise, _rate = soundfile.read(SHARED_DATA / "noise" / "speech_commands_bg" / "doing_the_dishes.wav",
