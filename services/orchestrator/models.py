@@ -124,6 +124,11 @@ class ComponentInfo(BaseModel):
     heartbeats: int
     results_received: int
     stats: dict[str, Any] | None = Field(description="the stats of its last heartbeat")
+    clock_offset_ms: float | None = Field(default=None, description="the orchestrator's clock minus the "
+                                          "component's host's, from its heartbeats' round trips (null until "
+                                          "measured); capture times it stamps are corrected by it")
+    clock_uncertainty_ms: float | None = Field(default=None, description="how far clock_offset_ms may be off: "
+                                               "half the shortest recent round trip")
 
 
 class ComponentList(BaseModel):
@@ -228,7 +233,8 @@ class Result(BaseModel):
     span: Span = Field(description="capture time of the audio the result was computed on")
     produced_ns: int
     received_ns: int
-    latency_ms: float = Field(description="(received_ns - span.end_ns) / 1e6")
+    latency_ms: float = Field(description="(received_ns - span.end_ns) / 1e6, the capture times put on the "
+                                          "orchestrator's clock (the capturing component's clock_offset_ms)")
     sequence: int
     vad: VadPayload | None = None
     speech: SpeechPayload | None = None
@@ -338,8 +344,8 @@ class LatencyList(BaseModel):
 
 class Health(BaseModel):
     status: Literal["ok"]
-    # what --recover copied from a corrupt database at this start, a line each; empty when it was sound
-    recovered: list[str] = []
+    recovered: list[str] | None = Field(default=None, description="what --recover copied from a corrupt "
+                                        "database at this start, a line each; absent when it was sound")
 
 
 class Problem(BaseModel):
