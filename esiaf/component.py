@@ -1,18 +1,16 @@
 """The component base class: what every ESIAF service is built on.
 
-A component declares audio inputs and outputs (topic + the format it wants),
-loads what it needs in :meth:`Component.setup` (which may fail cleanly), and
-handles one message at a time. The SDK owns the sockets and the loop,
-registration and heartbeats, sequence numbers and loss counting, capture
-timestamps, format conversion between the declared formats and the ones the
-orchestrator assigns to the topics (esiaf/links.py), the callback order (audio,
-then SSL meta, then VAD end, then end of stream) and shutdown on SIGTERM/SIGINT.
+A component declares audio inputs and outputs (topic + the format it wants), loads what it needs
+in :meth:`Component.setup` (which may fail cleanly), and handles one message at a time. The SDK
+owns the sockets and the loop, registration and heartbeats, sequence numbers and loss counting,
+capture timestamps, format conversion between the declared formats and the ones the orchestrator
+assigns to the topics (esiaf/links.py), the callback order (audio, then SSL meta, then VAD end,
+then end of stream) and shutdown on SIGTERM/SIGINT.
 
-All handlers run on one thread, in order; the heartbeat runs on another, so a
-long computation in a handler never makes the component look dead.
+All handlers run on one thread, in order; the heartbeat runs on another, so a long computation
+in a handler never makes the component look dead.
 
-The input side (bounds on what peers send, loss counting, per-publisher conversion) is
-esiaf/receiving.py.
+The input side (bounds on what peers send, loss counting, per-publisher conversion): esiaf/receiving.py.
 """
 from __future__ import annotations
 
@@ -200,6 +198,9 @@ class Component:
         self._send_results([b"result", result.SerializeToString()])
         return result
 
+    def clock_ns(self) -> int:  # this host's wall clock, ns since the epoch: what capture times are stamped with
+        return time.time_ns() + round(self.settings.clock_skew_s * 1e9)
+
     def announce_stream(self, start_ns: int, stream_id: str | None = None, **info: Any) -> None:
         """Sources call this when capture starts: the orchestrator records the stream's start time."""
         announce_stream(self.settings.orchestrator_url, stream_id or self.settings.stream_id, start_ns,
@@ -253,7 +254,8 @@ class Component:
                 raise SetupError(str(exc)) from None
             self.control = ControlClient(self._context, self.settings.orchestrator_url,
                                          self._registration_request(), self.stats,
-                                         self.settings.register_timeout_s, self.settings.health_file, curve)
+                                         self.settings.register_timeout_s, self.settings.health_file, curve,
+                                         self.clock_ns)
             self._output_links = {t: OutputLink(t, f) for t, f in self.outputs.items()}
             registration = self.control.start()
             self._apply_state(registration.state())

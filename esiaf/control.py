@@ -31,6 +31,7 @@ import httpx
 import zmq
 
 from esiaf import auth
+from esiaf.clock import ClockEstimate
 from esiaf.keys import Curve
 from esiaf.transport import STATE_ADDRESS
 
@@ -169,8 +170,10 @@ class ControlClient:
 
     def __init__(self, context: zmq.Context, url: str, request: dict[str, Any],
                  stats: Callable[[], dict[str, Any]], register_timeout_s: float, health_file: str = "",
-                 curve: Curve | None = None):
+                 curve: Curve | None = None, clock_ns: Callable[[], int] = time.time_ns):
         self._context = context
+        self._clock_ns = clock_ns  # this host's clock, as capture times are stamped with it
+        self.clock = ClockEstimate()  # the orchestrator's clock against it, from the heartbeats' round trips
         self._curve = curve
         self._health_file = health_file
         self._url = url
@@ -263,7 +266,8 @@ class ControlClient:
                     last_heard = next_beat = time.monotonic()
                     continue
                 if now >= next_beat or poked:
-                    beat = {"type": "heartbeat", "component_id": self.component_id, "stats": self._stats()}
+                    beat = {"type": "heartbeat", "component_id": self.component_id, "stats": self._stats(),
+                            "sent_ns": self._clock_ns(), "clock": self.clock.report()}
                     dealer.send(json.dumps(beat, default=_jsonable).encode())
                     next_beat = now + self._registered.heartbeat_interval_s
                 # sleep until the next beat (or the orchestrator's silence deadline), a message or a poke
@@ -277,7 +281,11 @@ class ControlClient:
                 if dealer not in ready:
                     continue
                 message = _control_message(dealer.recv())
+                received_ns = self._clock_ns()
                 last_heard = time.monotonic()
+                echo, answered = message.get("echo_ns"), message.get("orchestrator_ns")
+                if type(echo) is int and type(answered) is int:
+                    self.clock.add(echo, answered, received_ns)
                 self._heard()
                 if message.get("type") == "state":
                     self._registered.peers = message.get("peers", {})

@@ -48,6 +48,9 @@ class ComponentSettings(StrictModel):
     register_timeout_s: float = 30.0  # keep retrying the orchestrator this long at start-up
     log_level: str = "INFO"
     health_file: str = ""  # touched whenever the orchestrator answers (see esiaf.health)
+    # tests only: this component's clock runs this far ahead of the host's (capture times, heartbeats),
+    # as another host's might
+    clock_skew_s: float = 0.0
 
     @field_validator("log_level")
     @classmethod

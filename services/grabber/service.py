@@ -76,7 +76,7 @@ class Grabber(Component):
         fmt = source.format
         live = isinstance(source, AlsaSource)
         chunk_ns = fmt.duration_ns(source.chunk_frames)
-        origin_ns = time.time_ns() - (chunk_ns if live else 0)
+        origin_ns = self.clock_ns() - (chunk_ns if live else 0)
         started = time.monotonic()
         clock = SampleClock(origin_ns, fmt.sample_rate_hz)
         self.info.update(stream_start_ns=origin_ns, input=s.input or s.device, played_s=0.0,
@@ -91,7 +91,7 @@ class Grabber(Component):
         for samples in source.chunks():
             if isinstance(source, AlsaSource) and source.overruns != overruns:  # audio was lost: re-anchor
                 overruns = source.overruns
-                clock = SampleClock(time.time_ns() - chunk_ns, fmt.sample_rate_hz)
+                clock = SampleClock(self.clock_ns() - chunk_ns, fmt.sample_rate_hz)
             start_ns, end_ns = clock.advance(len(samples))
             if not (s.fast or live):
                 self.sleep_until(started + (end_ns - origin_ns) / 1e9)

@@ -138,8 +138,9 @@ def type_name(result: pb.Result) -> str:
     return kind_of(result)
 
 
-def result_to_json(result: pb.Result, result_id: int, received_ns: int) -> dict[str, Any]:
-    """The JSON of one stored result, as in docs/protocol.md."""
+def result_to_json(result: pb.Result, result_id: int, received_ns: int, capture_offset_ns: int = 0) -> dict[str, Any]:
+    """The JSON of one stored result, as in docs/protocol.md; its latency on our clock, the capture
+    times' corrected by ``capture_offset_ns`` (ours minus the capturing host's)."""
     payload = result.WhichOneof("payload")
     return {
         "id": result_id,
@@ -149,7 +150,7 @@ def result_to_json(result: pb.Result, result_id: int, received_ns: int) -> dict[
         "span": {"start_ns": result.span.start_ns, "end_ns": result.span.end_ns},
         "produced_ns": result.produced_ns,
         "received_ns": received_ns,
-        "latency_ms": round((received_ns - result.span.end_ns) / 1e6, 3),
+        "latency_ms": round((received_ns - result.span.end_ns - capture_offset_ns) / 1e6, 3),
         "sequence": result.sequence,
         # a generic payload is keyed by its kind, like the built-in ones: {"type": "rate", "rate": {...}}
         (kind_of(result) if payload == "generic" else payload): message_to_dict(getattr(result, payload)),

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from collections import Counter
 from typing import Any
 
@@ -12,6 +13,7 @@ from .registry import Component, Registry
 
 log = logging.getLogger(__name__)
 
+MAX_TIME_NS = 2**62  # beyond it a time cannot be one
 UNKNOWN = json.dumps({"type": "unknown"}).encode()
 
 
@@ -62,9 +64,14 @@ class ControlPlane:
         stats = message.get("stats")
         if isinstance(stats, dict):
             component.stats = stats
+        component.note_clock(message.get("clock"))
         state = self.registry.state_of(component)
         component.pushed_state = state
-        await self.send(component, state)
+        sent_ns = message.get("sent_ns")
+        if type(sent_ns) is int and abs(sent_ns) < MAX_TIME_NS:  # its send time, echoed with ours: its clock's offset
+            await self.send(component, {**state, "echo_ns": sent_ns, "orchestrator_ns": time.time_ns()})
+        else:
+            await self.send(component, state)
 
     async def push_changes(self) -> None:
         """Sends its new state to every live component whose peers or formats changed."""

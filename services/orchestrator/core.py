@@ -107,11 +107,16 @@ class Orchestrator:
                  self.control_endpoint, self.results_endpoint, self.guard.mechanism, self.store.path,
                  ",".join(f.name for f in self.settings.fusions) or "-")
 
+    def capture_offset_ns(self, stream_id: str) -> int:
+        """Our clock minus the clock of the host that captures ``stream_id``: its announced source's
+        offset, as that component measures it (0 while unknown)."""
+        return self._ingest.capture_offset_ns(stream_id) if self._ingest is not None else 0
+
     def _start(self) -> None:
         settings = self.settings
         engine = FusionEngine(settings.fusions, allocate_id=lambda: self.store.allocate_fused_id(),
                               live_components=self.registry.live.values,
-                              timeouts=settings.timeouts)
+                              timeouts=settings.timeouts, capture_offset_ns=self.capture_offset_ns)
         try:
             curve = keys.load(orchestrator=True)
         except keys.KeyFileError as exc:

@@ -121,8 +121,11 @@ class FusionEngine:
     def __init__(self, fusions: Iterable[FusionSettings], allocate_id: Callable[[], int],
                  live_components: Callable[[], Iterable[LiveComponent]] = lambda: (),
                  timeouts: TimeoutSettings | None = None,
-                 clock_ns: Callable[[], int] = time.time_ns) -> None:
+                 clock_ns: Callable[[], int] = time.time_ns,
+                 capture_offset_ns: Callable[[str], int] = lambda stream_id: 0) -> None:
         self._allocate_id = allocate_id
+        # a stream's capture times are on its capturing host's clock: this much added puts them on ours
+        self._capture_offset_ns = capture_offset_ns
         self._live = live_components
         self._clock_ns = clock_ns
         self.timeouts = timeouts or TimeoutSettings()
@@ -158,8 +161,9 @@ class FusionEngine:
     # events
     def on_result(self, result: StoredResult, received_ns: int) -> list[FusedResult]:
         """Fused results that ``result`` completes or revises, to store and publish in order."""
-        if result.stream_id not in self.replayed and received_ns >= result.end_ns:  # < 0: clocks disagree
-            self.latencies.add(result.component, received_ns - result.end_ns)
+        latency_ns = received_ns - (result.end_ns + self._capture_offset_ns(result.stream_id))
+        if result.stream_id not in self.replayed and latency_ns >= 0:  # < 0: clocks disagree beyond the offset
+            self.latencies.add(result.component, latency_ns)
         memory = self._remember(result)
         fused: list[FusedResult] = []
         if not result.is_nothing:
@@ -342,7 +346,8 @@ class FusionEngine:
                         (component.stream_id == anchor.stream_id or component.name in memory.seen) \
                         and component.name not in memory.ended \
                         and not self._covered(memory, component.name, fusion):
-                    deadline = anchor.end_ns + self.latencies.timeout_ns(component.name)
+                    deadline = (anchor.end_ns + self._capture_offset_ns(anchor.stream_id)
+                                + self.latencies.timeout_ns(component.name))
                     fusion.waiting[component.name] = (component.designation, deadline)
         if not fusion.waiting:
             return [self._publish(fusion, received_ns)]

@@ -63,6 +63,7 @@ class Ingest:
         # latencies (histogram, labels, seconds) of this transaction: observed once it is committed
         self._observed: list[tuple[Any, tuple[str, ...], float]] = []
         self._stream_reference: OrderedDict[str, int] = OrderedDict()
+        self.stream_sources: OrderedDict[str, str] = OrderedDict()  # stream -> the component capturing it
         self._store_retry: asyncio.TimerHandle | None = None
 
     def restore(self) -> None:
@@ -72,8 +73,8 @@ class Ingest:
         for component, count, mean_ns in self.store.latencies():
             if mean_ns >= 0:  # a negative mean: learnt from replays by an older version; start again
                 engine.latencies.restore(component, count, mean_ns)
-        for stream_id, _start_ns, _source, _announced_ns, info in self.store.streams():
-            self.on_stream_announced(stream_id, json.loads(info))
+        for stream_id, _start_ns, source, _announced_ns, info in self.store.streams():
+            self.on_stream_announced(stream_id, source, json.loads(info))
         results, fused = self.store.recent(engine.memory_ns)
         for text in results:
             engine.restore_result(StoredResult.from_json(json.loads(text)))
@@ -116,11 +117,24 @@ class Ingest:
             return []
         return outgoing
 
-    def on_stream_announced(self, stream_id: str, info: dict[str, Any]) -> None:
-        """A source said what it plays: a replay faster than real time (``"realtime": false``) does
-        not teach the fusion its components' latencies."""
+    def on_stream_announced(self, stream_id: str, source: str, info: dict[str, Any]) -> None:
+        """A source said what it plays: its capture times are on ``source``'s clock (corrected by its
+        offset, core.capture_offset_ns), and a replay faster than real time (``"realtime": false``)
+        does not teach the fusion its components' latencies."""
+        if source:
+            self.stream_sources[stream_id] = source
+            self.stream_sources.move_to_end(stream_id)
+            while len(self.stream_sources) > MAX_STREAMS:
+                self.stream_sources.popitem(last=False)
         if isinstance(info, dict) and info.get("realtime") is False:
             self.engine.mark_replayed(stream_id)
+
+    def capture_offset_ns(self, stream_id: str) -> int:
+        """Our clock minus the clock of the host that captures ``stream_id``: its announced source's
+        offset, as that component measures it (0 while unknown)."""
+        source = self.stream_sources.get(stream_id)
+        component = self.registry.by_name(source) if source else None
+        return (component.clock_offset_ns or 0) if component is not None else 0
 
     def _stream_reference_ns(self, stream_id: str) -> int | None:
         return self._stream_reference.get(stream_id)
@@ -264,7 +278,7 @@ class Ingest:
         try:
             result = parse_result(data, self._stream_reference_ns)
             result_id = self.store.next_result_id
-            as_json = result_to_json(result, result_id, received_ns)
+            as_json = result_to_json(result, result_id, received_ns, self.capture_offset_ns(result.stream_id))
             text = _dumps(as_json)
         except (BadResult, ValueError) as exc:
             self.counters["bad_results"] += 1
@@ -289,7 +303,7 @@ class Ingest:
         self.counters["results"] += 1  # stored and fused: counted once nothing can undo it
         if self.metrics is not None:
             self._observed.append((self.metrics.result_latency, (result.component, result.stream_id),
-                                   (received_ns - result.span.end_ns) / 1e9))
+                                   as_json["latency_ms"] / 1e3))
         return outgoing
 
     def _store_fused(self, fused: FusedResult) -> Outgoing:

@@ -24,6 +24,9 @@ class TopicConflict(Exception):
     """A declared format whose channel count differs from its topic's (HTTP 409)."""
 
 
+MAX_CLOCK_OFFSET_NS = 366 * 86_400 * 10**9  # a clock further off than a year is not believed
+
+
 @dataclass
 class Component:
     component_id: str
@@ -46,6 +49,19 @@ class Component:
     status: str = "alive"  # alive, dead (silent too long), replaced (its name re-registered)
     departed_ns: int | None = None
     pushed_state: dict[str, Any] | None = None  # the state this component last got from us
+    # our clock minus its host's, and how sure (half the best round trip), as its heartbeats report
+    # them (esiaf/clock.py); None until it has measured
+    clock_offset_ns: int | None = None
+    clock_uncertainty_ns: int | None = None
+
+    def note_clock(self, clock: Any) -> None:
+        """The clock estimate of a heartbeat, if it is one (a peer's: checked, never trusted)."""
+        if not isinstance(clock, dict):
+            return
+        offset, uncertainty = clock.get("offset_ns"), clock.get("uncertainty_ns")
+        if type(offset) is int and type(uncertainty) is int and abs(offset) <= MAX_CLOCK_OFFSET_NS \
+                and 0 <= uncertainty <= MAX_CLOCK_OFFSET_NS:
+            self.clock_offset_ns, self.clock_uncertainty_ns = offset, uncertainty
 
     def touch(self) -> None:
         self.last_seen_mono = time.monotonic()

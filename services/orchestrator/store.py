@@ -235,10 +235,11 @@ class Store:
             "SELECT component, count, mean_ns FROM latency ORDER BY component").fetchall()
 
     def recent_latencies_ns(self, component: str, limit: int) -> list[int]:
-        """Latencies of the component's last ``limit`` results."""
+        """Latencies of the component's last ``limit`` results (as each result's JSON gives it: on
+        our clock, corrected by the capturing host's offset)."""
         return [row[0] for row in self._db.execute(
-            "SELECT received_ns - end_ns FROM results WHERE component = ? ORDER BY id DESC"
-            " LIMIT ?", (component, limit))]
+            "SELECT CAST(ROUND(json_extract(json, '$.latency_ms') * 1000000) AS INTEGER) FROM results"
+            " WHERE component = ? ORDER BY id DESC LIMIT ?", (component, limit))]
 
     def pending(self) -> list[tuple[int, str, str, str]]:
         """(fused_id, anchor JSON, settings JSON, waiting JSON) of fusions not yet published."""

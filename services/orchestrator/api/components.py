@@ -23,7 +23,9 @@ def component_info(component: Component) -> ComponentInfo:
         audio_public_key=component.audio_public_key, host=component.host, pid=component.pid, info=component.info,
         registered_ns=component.registered_ns, last_seen_ns=component.last_seen_ns,
         departed_ns=component.departed_ns, heartbeats=component.heartbeats,
-        results_received=component.results_received, stats=component.stats)
+        results_received=component.results_received, stats=component.stats,
+        clock_offset_ms=None if component.clock_offset_ns is None else component.clock_offset_ns / 1e6,
+        clock_uncertainty_ms=None if component.clock_uncertainty_ns is None else component.clock_uncertainty_ns / 1e6)
 
 
 @router.post("/components", status_code=status.HTTP_201_CREATED, response_model=RegisterResponse,

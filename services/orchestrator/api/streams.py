@@ -54,7 +54,7 @@ async def announce(body: StreamAnnouncement, stream_id: str = Path(min_length=1)
     except sqlite3.Error as exc:
         raise HTTPException(503, f"the stream cannot be recorded: database {core.store.path} cannot be "
                                  f"written ({exc})") from None
-    core.ingest.on_stream_announced(stream_id, body.info)
+    core.ingest.on_stream_announced(stream_id, body.source, body.info)
     return _stream(core.store.streams(stream_id)[0])
 
 

@@ -210,3 +210,17 @@ def test_latencies_are_learnt_from_real_time_streams_only():
     engine.replayed.clear()
     engine.on_result(result(4, "asr", "nothing", 5 * S, 6 * S), received_ns=4 * S)  # a clock 2 s ahead
     assert engine.latencies.by_component["asr"].count == 1 and engine.latencies.by_component["asr"].mean_ns == 200 * MS
+
+
+def test_a_capture_clock_3_s_behind_moves_deadlines_and_latencies_onto_ours():
+    """Stream s is captured on a host whose clock is 3 s behind ours: its window ends 3 s later on
+    our clock than its stamps say, so deadlines and latencies are measured from there."""
+    ids = itertools.count(1)
+    live = [SimpleNamespace(name="ssl", designation="ssl", stream_id="s")]
+    engine = FusionEngine([FusionSettings(name="u", anchor="speech", fuse=["ssl"])], allocate_id=lambda: next(ids),
+                          live_components=lambda: live, clock_ns=Clock(),
+                          capture_offset_ns=lambda stream_id: 3 * S if stream_id == "s" else 0)
+    engine.latencies.add("ssl", 100 * MS)  # timeout 150 ms
+    assert engine.on_result(result(1, "asr", "speech", 0, S), received_ns=4 * S + 50 * MS) == []
+    assert engine.next_deadline_ns() == 4 * S + 150 * MS  # not 1.15 s: long gone on our clock at arrival
+    assert engine.latencies.by_component["asr"].mean_ns == 50 * MS  # not 3.05 s
