@@ -83,10 +83,11 @@ def main(component_cls: type[Component], argv: Sequence[str] | None = None) -> i
         print(f"{service}: {exc}", file=sys.stderr)
         return 2
     configure_logging(service, settings.log_level)
-    for name in unknown_variables(os.environ, known_services() | {service}):
+    services = known_services() | {service}
+    for name in unknown_variables(os.environ, services):
         logging.getLogger(service).warning(
             "%s names no service (%s) and no common setting: ignored; a typo? (a plug-in folder's own "
-            "settings are not known here)", name, ", ".join(sorted(known_services())))
+            "settings are not known here)", name, ", ".join(sorted(services)))
     try:
         component = component_cls(settings)
         return component.run()

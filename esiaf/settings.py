@@ -23,6 +23,8 @@ from typing import Any, TypeVar
 import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 
+from esiaf import auth, keys
+
 ENV_PREFIX = "ESIAF_"
 
 S = TypeVar("S", bound=BaseModel)
@@ -104,8 +106,9 @@ def _service_from_env(model: type[BaseModel], service: str, env: Mapping[str, st
 
 
 # ESIAF_* variables that name no service: read by the SDK, the tools or compose.yaml
-GLOBAL_VARIABLES = {"TOKEN", "TOKEN_FILE", "CURVE_DIR", "CURVE_KEY", "SHARED_DATA", "TAG", "BASE_TAG",
-                    "REBUILD_BASE", "HTTP_BIND", "HTTP_PORT", "INPUT_FILE", "INPUT_DIR", "SERVICE"}
+GLOBAL_VARIABLES = {auth.TOKEN_ENV, auth.TOKEN_FILE_ENV, keys.CURVE_DIR_ENV, keys.CURVE_KEY_ENV} | {
+    ENV_PREFIX + name for name in ("SHARED_DATA", "TAG", "BASE_TAG", "REBUILD_BASE", "HTTP_BIND", "HTTP_PORT",
+                                   "INPUT_FILE", "INPUT_DIR", "SERVICE")}
 
 
 def unknown_variables(env: Mapping[str, str], services: Iterable[str]) -> list[str]:
@@ -113,7 +116,7 @@ def unknown_variables(env: Mapping[str, str], services: Iterable[str]) -> list[s
     no setting every component has and no global one: a typo (``ESIAF_VDA_DB_MIN``), reported
     rather than silently ignored."""
     prefixes = tuple(f"{ENV_PREFIX}{service.upper()}_" for service in services)
-    known = {ENV_PREFIX + name for name in GLOBAL_VARIABLES | {f.upper() for f in ComponentSettings.model_fields}}
+    known = GLOBAL_VARIABLES | {ENV_PREFIX + field.upper() for field in ComponentSettings.model_fields}
     return sorted(key for key in env if key.startswith(ENV_PREFIX) and key not in known
                   and not key.startswith(prefixes))
 

@@ -9,11 +9,11 @@ from typing import Any
 
 import zmq.asyncio
 
+from .codec import MAX_TIME_NS
 from .registry import Component, Registry
 
 log = logging.getLogger(__name__)
 
-MAX_TIME_NS = 2**62  # beyond it a time cannot be one
 UNKNOWN = json.dumps({"type": "unknown"}).encode()
 
 

@@ -358,17 +358,17 @@ class Ingest:
         live = self.registry.with_inputs()
         names = {c.name for c in live}
         now_ns = self._clock_ns()
-        stalled = [c.component_id for c in self.registry.departed.values()
+        stalled = [c for c in self.registry.departed.values()
                    if c.status == "dead" and c.inputs and c.name not in names
                    and now_ns - (c.departed_ns or 0) < self.stream_end_grace_ns]
+        awaited = [*live, *stalled]
         # an instance that stalled, was declared dead and registered again (a new id), or a restarted
         # one, may have said "end" under the id it had before: that counts for it
         departed_ids: dict[str, set[str]] = {}
         for c in self.registry.departed.values():
             departed_ids.setdefault(c.name, set()).add(c.component_id)
-        predecessors = {c.component_id: departed_ids.get(c.name, set())
-                        for c in [*live, *(self.registry.departed[i] for i in stalled)]}
-        ended = self.streams.finished([*(c.component_id for c in live), *stalled], predecessors)
+        ended = self.streams.finished([c.component_id for c in awaited],
+                                      {c.component_id: departed_ids.get(c.name, set()) for c in awaited})
         for stream_id in ended:
             log.info("event=stream_end stream_id=%s", stream_id)
         return [Outgoing(text=_dumps({"type": "stream_end", "stream_id": stream_id}),
