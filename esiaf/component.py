@@ -22,7 +22,7 @@ import threading
 import time
 import uuid
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from typing import Any, ClassVar
 
 import numpy as np
@@ -32,7 +32,7 @@ from esiaf import keys
 from esiaf.audio import Audio
 from esiaf.control import ControlClient, announce_stream
 from esiaf.formats import AudioFormat, encode
-from esiaf.links import OutputLink
+from esiaf.links import OutputLink, OutputStats
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf.receiving import InputStats, Receiver
 from esiaf.results import make_result
@@ -48,13 +48,6 @@ class SetupError(Exception):
     """A component could not be configured (model missing, device unknown...)."""
 
 
-@dataclass
-class OutputStats:
-    published: int = 0
-    dropped: int = 0  # refused at the high-water mark
-    subscribers: int = 0
-
-
 class Component:
     """Subclass it, set ``service`` and ``designation``, declare topics, override handlers."""
 
@@ -67,7 +60,9 @@ class Component:
         self.settings = settings
         self.inputs: dict[str, AudioFormat] = {}
         self.outputs: dict[str, AudioFormat] = {}
-        self.instance_id = f"{settings.name}-{uuid.uuid4().hex[:8]}"
+        # this instance of its service (the name): unique while it lives, ours unless set
+        self.instance_id = settings.instance or f"{settings.name}-{uuid.uuid4().hex[:8]}"
+        self._incarnation = uuid.uuid4().hex  # this process: its own registrations replace each other
         self.output_stats: dict[str, OutputStats] = {}
         self.info: dict[str, Any] = {}  # reported with every heartbeat
         self.results_sent = 0
@@ -174,7 +169,7 @@ class Component:
         sequence = self._sequences.get(topic, 0) + 1
         msg.publisher, msg.sequence = self.instance_id, sequence
         stats = self.output_stats[topic]
-        if not self._wire.send_audio(topic, msg.SerializeToString()):
+        if not self._wire.send_audio(topic, msg.SerializeToString(), msg.stream_id):
             stats.dropped += 1
             log.warning("audio dropped at high-water mark topic=%s sequence=%d dropped=%d",
                         topic, sequence, stats.dropped)
@@ -195,6 +190,7 @@ class Component:
         self._result_sequence += 1
         result = make_result(self.settings.name, result_type, stream_id or self.settings.stream_id, span,
                              self._result_sequence, **payload)
+        result.instance = self.instance_id
         self._send_results([b"result", result.SerializeToString()])
         return result
 
@@ -204,7 +200,7 @@ class Component:
     def announce_stream(self, start_ns: int, stream_id: str | None = None, **info: Any) -> None:
         """Sources call this when capture starts: the orchestrator records the stream's start time."""
         announce_stream(self.settings.orchestrator_url, stream_id or self.settings.stream_id, start_ns,
-                        self.settings.name, info)
+                        self.instance_id, info)
 
     def wait_for_subscribers(self, topic: str, count: int, timeout_s: float) -> bool:
         """Services the sockets until ``topic`` has ``count`` subscribers, or the time is up."""
@@ -277,7 +273,8 @@ class Component:
     def _registration_request(self) -> dict[str, Any]:
         def topics(declared: dict[str, AudioFormat]) -> list[dict[str, Any]]:
             return [{"topic": t, "format": f.to_dict()} for t, f in declared.items()]
-        return {"name": self.settings.name, "designation": self.designation, "stream_id": self.settings.stream_id,
+        return {"name": self.settings.name, "instance": self.instance_id, "incarnation": self._incarnation,
+                "designation": self.designation, "stream_id": self.settings.stream_id,
                 "inputs": topics(self.inputs), "outputs": topics(self.outputs),
                 "audio_endpoint": self._wire.audio_endpoint, "host": socket.gethostname(), "info": self.info,
                 **({"audio_public_key": key} if (key := self._wire.audio_public_key) else {})}
@@ -314,6 +311,7 @@ class Component:
         self._wire.connect_peers({e for endpoints in state.get("peers", {}).values() for e in endpoints},
                                       state.get("peer_keys", {}))
         self._wire.connect_results(state.get("results_endpoint", ""))
+        self._wire.take_streams(state.get("streams"))
         for topic, fmt in state.get("formats", {}).items():
             assigned = AudioFormat.from_dict(fmt)
             if self._assigned.get(topic) == assigned:

@@ -59,10 +59,12 @@ class Registration:
     peers: dict[str, list[str]] = field(default_factory=dict)
     formats: dict[str, dict[str, Any]] = field(default_factory=dict)
     peer_keys: dict[str, str] = field(default_factory=dict)  # producer endpoint -> its CURVE public key
+    streams: list[str] | None = None  # one of several instances of its service: the streams it serves
 
     def state(self) -> dict[str, Any]:
         return {"type": "state", "peers": self.peers, "formats": self.formats, "peer_keys": self.peer_keys,
-                "results_endpoint": self.results_endpoint, "component_id": self.component_id}
+                "results_endpoint": self.results_endpoint, "component_id": self.component_id,
+                "streams": self.streams}
 
 
 def _error_text(response: httpx.Response) -> str:
@@ -92,11 +94,18 @@ def register(url: str, request: dict[str, Any], timeout_s: float,
             if response.status_code == 201:
                 data = response.json()
                 return Registration(**{k: data[k] for k in Registration.__dataclass_fields__ if k in data})
-            if 400 <= response.status_code < 500:
+            if response.status_code == 409 and "retry-after" in response.headers:
+                # our instance id is still held by a live instance (ours, before a crash?): it is
+                # declared dead after a few seconds' silence, so wait for that as for a restart
+                last_error = _error_text(response)
+                if attempts == 1:
+                    log.warning("%s: trying again until %g s have passed", last_error, timeout_s)
+            elif 400 <= response.status_code < 500:
                 raise RegistrationError(
                     f"orchestrator at {url} refused registration ({response.status_code}): {_error_text(response)}",
                     refused=True)
-            last_error = f"HTTP {response.status_code}: {_error_text(response)}"
+            else:
+                last_error = f"HTTP {response.status_code}: {_error_text(response)}"
         if time.monotonic() + delay_s > deadline or stopping():
             raise RegistrationError(
                 f"orchestrator at {url} not reachable after {timeout_s:g} s ({attempts} attempts): {last_error}")
@@ -291,6 +300,7 @@ class ControlClient:
                     self._registered.peers = message.get("peers", {})
                     self._registered.formats = message.get("formats", {})
                     self._registered.peer_keys = message.get("peer_keys", {})
+                    self._registered.streams = message.get("streams")
                     state_out.send(json.dumps(self._registered.state()).encode())
                 elif message.get("type") == "unknown":
                     log.warning("orchestrator does not know component_id=%s: registering again", self.component_id)

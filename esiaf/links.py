@@ -34,6 +34,13 @@ log = logging.getLogger(__name__)
 
 
 @dataclass
+class OutputStats:
+    published: int = 0
+    dropped: int = 0  # refused at the high-water mark
+    subscribers: int = 0  # subscriptions to the topic (a replica that takes some streams has one per stream)
+
+
+@dataclass
 class Outgoing:
     """One message to send: its wire format, converted payload and span, and whether it is the
     published chunk itself (``main``, it carries the meta) or a tail sent ahead of it."""

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from esiaf import auth, keys
 
@@ -42,6 +42,9 @@ class ComponentSettings(StrictModel):
     """What every component has, whatever it does."""
 
     name: str = ""  # the component's name; defaults to the service's name
+    # this instance's id, unique among the live ones; default: the name and a random suffix. Several
+    # instances of one name share the streams (the orchestrator assigns each to one of them)
+    instance: str = Field(default="", pattern=r"^$|^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
     orchestrator_url: str = "http://127.0.0.1:8000"
     stream_id: str = "default"
     bind_host: str = "127.0.0.1"  # where this component's audio output socket binds

@@ -54,13 +54,16 @@ class TransportError(Exception):
     """A socket could not be bound: the message says which address."""
 
 
-def topic_frame(topic: str) -> bytes:
-    """Topics travel NUL-terminated, so subscribing to "vad" does not also match "vad2"."""
-    return topic.encode() + b"\0"
+def topic_frame(topic: str, stream_id: str | None = None) -> bytes:
+    """Topics travel NUL-terminated, so subscribing to "vad" does not also match "vad2"; the stream
+    follows, NUL-terminated too, so a SUB can take one stream of a topic (``topic\0stream\0``) or
+    all of them (``topic\0``), and the producer's XPUB filters."""
+    frame = topic.encode() + b"\0"
+    return frame if stream_id is None else frame + stream_id.encode() + b"\0"
 
 
 def topic_name(frame: bytes) -> str:
-    return frame.rstrip(b"\0").decode(errors="replace")
+    return frame.split(b"\0", 1)[0].decode(errors="replace")
 
 
 class Transport:
@@ -110,6 +113,8 @@ class Transport:
             for topic in topics:
                 self.sub.setsockopt(zmq.SUBSCRIBE, topic_frame(topic))
             self._poller.register(self.sub, zmq.POLLIN)
+        self._topics = topics
+        self._streams: list[str] | None = None  # the streams taken: None, all of them
         # stop() from a signal handler or another thread writes here: a poll that waits long ends at once
         self._wake_read, self._wake_write = os.pipe()
         os.set_blocking(self._wake_read, False)
@@ -172,11 +177,29 @@ class Transport:
         except OSError:  # empty
             pass
 
-    def send_audio(self, topic: str, message: bytes) -> bool:
+    def take_streams(self, streams: Sequence[str] | None) -> None:
+        """Takes only these streams of the input topics (None: all), as the orchestrator assigns
+        them to this instance of a replicated service: subscribes to the new ones before it drops
+        the old ones, so a stream that stays is never missed."""
+        wanted = None if streams is None else sorted({s for s in streams if isinstance(s, str)})
+        if self.sub is None or wanted == self._streams:
+            return
+        def frames(streams: list[str] | None) -> set[bytes]:
+            return {topic_frame(t) for t in self._topics} if streams is None else \
+                {topic_frame(t, s) for t in self._topics for s in streams}
+        before, after = frames(self._streams), frames(wanted)
+        for frame in after - before:
+            self.sub.setsockopt(zmq.SUBSCRIBE, frame)
+        for frame in before - after:
+            self.sub.setsockopt(zmq.UNSUBSCRIBE, frame)
+        log.info("streams taken: %s", "all" if wanted is None else ", ".join(wanted) or "none")
+        self._streams = wanted
+
+    def send_audio(self, topic: str, message: bytes, stream_id: str | None = None) -> bool:
         """False if refused at the high-water mark."""
         assert self.pub is not None, "audio sent without a declared output"
         try:
-            self.pub.send_multipart([topic_frame(topic), message], flags=zmq.NOBLOCK)
+            self.pub.send_multipart([topic_frame(topic, stream_id), message], flags=zmq.NOBLOCK)
         except zmq.Again:
             return False
         return True

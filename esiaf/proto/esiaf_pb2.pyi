@@ -254,7 +254,7 @@ class GenericResult(_message.Message):
     def __init__(self, label: _Optional[str] = ..., probability: _Optional[float] = ..., class_probabilities: _Optional[_Mapping[str, float]] = ..., value: _Optional[float] = ..., has_value: _Optional[bool] = ..., text: _Optional[str] = ..., attributes: _Optional[_Union[_struct_pb2.Struct, _Mapping]] = ...) -> None: ...
 
 class Result(_message.Message):
-    __slots__ = ("component", "type", "stream_id", "span", "produced_ns", "sequence", "kind", "vad", "speech", "ssl", "emotion", "gender", "voice_id", "nothing", "generic")
+    __slots__ = ("component", "type", "stream_id", "span", "produced_ns", "sequence", "kind", "instance", "vad", "speech", "ssl", "emotion", "gender", "voice_id", "nothing", "generic")
     COMPONENT_FIELD_NUMBER: _ClassVar[int]
     TYPE_FIELD_NUMBER: _ClassVar[int]
     STREAM_ID_FIELD_NUMBER: _ClassVar[int]
@@ -262,6 +262,7 @@ class Result(_message.Message):
     PRODUCED_NS_FIELD_NUMBER: _ClassVar[int]
     SEQUENCE_FIELD_NUMBER: _ClassVar[int]
     KIND_FIELD_NUMBER: _ClassVar[int]
+    INSTANCE_FIELD_NUMBER: _ClassVar[int]
     VAD_FIELD_NUMBER: _ClassVar[int]
     SPEECH_FIELD_NUMBER: _ClassVar[int]
     SSL_FIELD_NUMBER: _ClassVar[int]
@@ -277,6 +278,7 @@ class Result(_message.Message):
     produced_ns: int
     sequence: int
     kind: str
+    instance: str
     vad: VadResult
     speech: SpeechResult
     ssl: SslResult
@@ -285,7 +287,7 @@ class Result(_message.Message):
     voice_id: LabelResult
     nothing: NoResult
     generic: GenericResult
-    def __init__(self, component: _Optional[str] = ..., type: _Optional[_Union[ResultType, str]] = ..., stream_id: _Optional[str] = ..., span: _Optional[_Union[Span, _Mapping]] = ..., produced_ns: _Optional[int] = ..., sequence: _Optional[int] = ..., kind: _Optional[str] = ..., vad: _Optional[_Union[VadResult, _Mapping]] = ..., speech: _Optional[_Union[SpeechResult, _Mapping]] = ..., ssl: _Optional[_Union[SslResult, _Mapping]] = ..., emotion: _Optional[_Union[LabelResult, _Mapping]] = ..., gender: _Optional[_Union[LabelResult, _Mapping]] = ..., voice_id: _Optional[_Union[LabelResult, _Mapping]] = ..., nothing: _Optional[_Union[NoResult, _Mapping]] = ..., generic: _Optional[_Union[GenericResult, _Mapping]] = ...) -> None: ...
+    def __init__(self, component: _Optional[str] = ..., type: _Optional[_Union[ResultType, str]] = ..., stream_id: _Optional[str] = ..., span: _Optional[_Union[Span, _Mapping]] = ..., produced_ns: _Optional[int] = ..., sequence: _Optional[int] = ..., kind: _Optional[str] = ..., instance: _Optional[str] = ..., vad: _Optional[_Union[VadResult, _Mapping]] = ..., speech: _Optional[_Union[SpeechResult, _Mapping]] = ..., ssl: _Optional[_Union[SslResult, _Mapping]] = ..., emotion: _Optional[_Union[LabelResult, _Mapping]] = ..., gender: _Optional[_Union[LabelResult, _Mapping]] = ..., voice_id: _Optional[_Union[LabelResult, _Mapping]] = ..., nothing: _Optional[_Union[NoResult, _Mapping]] = ..., generic: _Optional[_Union[GenericResult, _Mapping]] = ...) -> None: ...
 
 class MissingComponent(_message.Message):
     __slots__ = ("component", "type", "reason")

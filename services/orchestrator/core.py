@@ -69,6 +69,7 @@ class Orchestrator:
         self._ctx: zmq.asyncio.Context | None = None
         self._guard: Guard | None = None
         self._tasks: list[asyncio.Task] = []
+        self._pushes: set[asyncio.Task] = set()  # state pushes under way (_push_soon)
 
     # the parts start() makes; the REST API, the metrics and the tasks use them only while running
     @property
@@ -137,6 +138,7 @@ class Orchestrator:
         self._control = ControlPlane(control_socket, self.registry)
         self._ingest = Ingest(results_socket, self.store, engine, self.hub, self.registry, metrics=self.metrics,
                              stream_end_grace_s=self.settings.stream_end_grace_s)
+        self._ingest.on_assignments_changed = self._push_soon
         try:
             self.ingest.restore()
         except (sqlite3.Error, ValueError, KeyError) as exc:
@@ -195,22 +197,34 @@ class Orchestrator:
     async def register(self, *, name: str, designation: str, stream_id: str,
                        inputs: dict[str, Format], outputs: dict[str, Format],
                        audio_endpoint: str | None, host: str, pid: int | None,
-                       info: dict[str, Any], audio_public_key: str | None = None) -> Component:
-        """Registers a component (raises registry.TopicConflict) and tells the others."""
+                       info: dict[str, Any], audio_public_key: str | None = None,
+                       instance: str | None = None, incarnation: str | None = None) -> Component:
+        """Registers an instance (raises registry.TopicConflict, registry.InstanceConflict) and
+        tells the others."""
         component, replaced = self.registry.register(
             name=name, designation=designation, stream_id=stream_id, inputs=inputs,
             outputs=outputs, audio_endpoint=audio_endpoint, host=host, pid=pid, info=info,
-            audio_public_key=audio_public_key)
+            audio_public_key=audio_public_key, instance=instance, incarnation=incarnation)
         if replaced is not None:
-            log.info("event=component_replaced component_id=%s name=%s by=%s",
-                     replaced.component_id, name, component.component_id)
+            log.info("event=component_registered_again component_id=%s name=%s", component.component_id, name)
         log.info("event=component_registered component_id=%s name=%s designation=%s stream_id=%s "
                  "inputs=%s outputs=%s audio_endpoint=%s host=%s pid=%s",
                  component.component_id, name, designation, stream_id,
                  ",".join(inputs) or "-", ",".join(outputs) or "-", audio_endpoint or "-",
                  host or "-", pid if pid is not None else "-")
-        await self._after_change([])  # the name lives on: nothing stops waiting for it
+        await self._after_change([])  # nothing stops waiting for anyone
         return component
+
+    async def stream_announced(self, stream_id: str) -> None:
+        """A stream starts: each replicated service gives it to one of its instances, at once."""
+        if self.registry.add_stream(stream_id):
+            await self.control.push_changes()
+
+    def _push_soon(self) -> None:
+        """Pushes changed states from synchronous code (the ingest): as a task of the loop."""
+        task = asyncio.get_running_loop().create_task(self.control.push_changes(), name="push")
+        self._pushes.add(task)
+        task.add_done_callback(self._pushes.discard)
 
     async def remove(self, component_id: str) -> Component | None:
         component = self.registry.remove(component_id)

@@ -65,6 +65,8 @@ class Ingest:
         self._stream_reference: OrderedDict[str, int] = OrderedDict()
         self.stream_sources: OrderedDict[str, str] = OrderedDict()  # stream -> the component capturing it
         self._store_retry: asyncio.TimerHandle | None = None
+        # called when a stream became active or ended: the replicas' states are to be pushed
+        self.on_assignments_changed: Callable[[], None] | None = None
 
     def restore(self) -> None:
         """Warm start from the database: latencies (so timeouts), the recent results and fused
@@ -133,7 +135,7 @@ class Ingest:
         """Our clock minus the clock of the host that captures ``stream_id``: its announced source's
         offset, as that component measures it (0 while unknown)."""
         source = self.stream_sources.get(stream_id)
-        component = self.registry.by_name(source) if source else None
+        component = (self.registry.get(source) or self.registry.by_name(source)) if source else None
         return (component.clock_offset_ns or 0) if component is not None else 0
 
     def _stream_reference_ns(self, stream_id: str) -> int | None:
@@ -290,10 +292,12 @@ class Ingest:
             result_id=result_id, component=result.component, type_name=kind,
             stream_id=result.stream_id, start_ns=result.span.start_ns, end_ns=result.span.end_ns,
             produced_ns=result.produced_ns, received_ns=received_ns, proto=data, json_text=text)
-        component = self.registry.by_name(result.component)
+        component = self.registry.get(result.instance) if result.instance else self.registry.by_name(result.component)
         if component is not None:  # any message counts as life
             component.touch()
             component.results_received += 1
+        if self.registry.add_stream(result.stream_id, component) and self.on_assignments_changed is not None:
+            self.on_assignments_changed()  # an unannounced stream: it is served from now on
         self.streams.on_result(result.stream_id)
         self._remember_stream(result.stream_id, result.span.start_ns)
         stored = StoredResult(id=result_id, component=result.component, type=kind,
@@ -346,30 +350,29 @@ class Ingest:
             component.touch()
             fused = [self._store_fused(f)
                      for f in self.engine.on_end_of_stream(stream_id, component.name)]
+            service: str | None = component.name
+        else:  # said by an instance since declared dead, or one we never knew: its service, if known
+            departed = self.registry.departed.get(component_id)
+            service = departed.name if departed is not None else None
         log.info("event=end_of_stream component_id=%s stream_id=%s", component_id, stream_id)
-        self.streams.on_end_of_stream(stream_id, component_id)
+        if service is not None:
+            self.streams.on_end_of_stream(stream_id, service)
         return fused + self.stream_ends()  # the stream's last fused results before its end
 
     def stream_ends(self) -> list[Outgoing]:
         """``stream_end`` events of the streams that have now ended (call after any change): every
-        live component with inputs said so, and so did each one that died (went silent) less than
-        ``stream_end_grace_s`` ago and has no live successor of its name, which may yet come back. What
-        an earlier instance of a component's name said counts for it."""
-        live = self.registry.with_inputs()
-        names = {c.name for c in live}
+        service with a live instance with inputs said so, and so did each one whose last instance
+        died (went silent) less than ``stream_end_grace_s`` ago, which may yet come back. Whichever of
+        a service's instances said it counts: the one serving the stream, or its earlier self."""
+        awaited = {c.name for c in self.registry.with_inputs()}
         now_ns = self._clock_ns()
-        stalled = [c for c in self.registry.departed.values()
-                   if c.status == "dead" and c.inputs and c.name not in names
-                   and now_ns - (c.departed_ns or 0) < self.stream_end_grace_ns]
-        awaited = [*live, *stalled]
-        # an instance that stalled, was declared dead and registered again (a new id), or a restarted
-        # one, may have said "end" under the id it had before: that counts for it
-        departed_ids: dict[str, set[str]] = {}
-        for c in self.registry.departed.values():
-            departed_ids.setdefault(c.name, set()).add(c.component_id)
-        ended = self.streams.finished([c.component_id for c in awaited],
-                                      {c.component_id: departed_ids.get(c.name, set()) for c in awaited})
+        awaited |= {c.name for c in self.registry.departed.values()
+                    if c.status == "dead" and c.inputs and now_ns - (c.departed_ns or 0) < self.stream_end_grace_ns}
+        ended = self.streams.finished(awaited)
         for stream_id in ended:
             log.info("event=stream_end stream_id=%s", stream_id)
+            self.registry.end_stream(stream_id)
+        if ended and self.on_assignments_changed is not None:
+            self.on_assignments_changed()
         return [Outgoing(text=_dumps({"type": "stream_end", "stream_id": stream_id}),
                          stream_id=stream_id) for stream_id in ended]

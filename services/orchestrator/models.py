@@ -50,8 +50,17 @@ class RegisterRequest(Strict):
         "audio_endpoint": "tcp://127.0.0.1:40123", "host": "robot-1", "pid": 4242, "info": {}}]})
 
     name: str = Field(min_length=1, max_length=64, pattern=NAME_PATTERN,
-                      description="the component's name; registering a name again replaces "
-                                  "the old instance")
+                      description="the component's name: its service. Several live instances of one "
+                                  "name share the streams (each stream is served by one of them)")
+    instance: str | None = Field(default=None, min_length=1, max_length=64, pattern=NAME_PATTERN,
+                                 examples=["vad-5f3a9c01"],
+                                 description="this instance's id (its component_id), unique among the live "
+                                             "ones (409 if a live instance of another process holds it); "
+                                             "default: one the orchestrator makes up")
+    incarnation: str | None = Field(default=None, min_length=1, max_length=64,
+                                    description="a token of the registering process: a registration with "
+                                                "the instance id and incarnation of a live instance is "
+                                                "that instance registering again (it replaces itself)")
     designation: Designation = Field(description="the result type it produces; other: none")
     stream_id: str = Field(default="default", min_length=1)
     inputs: list[TopicDeclaration] = Field(default_factory=list)
@@ -103,6 +112,8 @@ class RegisterResponse(BaseModel):
     peer_keys: dict[str, str] = Field(default_factory=dict,
                                       description="each endpoint of peers: its producer's CURVE public key, "
                                                   "where it gave one")
+    streams: list[str] | None = Field(default=None, description="one of several live instances of its "
+                                      "service: the streams it serves (subscribe to those only); null: all")
 
 
 class ComponentInfo(BaseModel):
@@ -131,8 +142,15 @@ class ComponentInfo(BaseModel):
                                                "half the shortest recent round trip")
 
 
+class ServiceInfo(BaseModel):
+    instances: list[str] = Field(description="the component_ids of its live instances, oldest first")
+    serving: dict[str, str] = Field(description="each active stream and the instance serving it")
+
+
 class ComponentList(BaseModel):
     items: list[ComponentInfo]
+    services: dict[str, ServiceInfo] = Field(default_factory=dict, description="the live instances grouped "
+                                             "by service (component name), and which serves each stream")
 
 
 class TopicConsumer(BaseModel):
@@ -226,7 +244,9 @@ class Result(BaseModel):
     model_config = ConfigDict(extra="allow")  # a kind that is not built in: its payload under its name
 
     id: int
-    component: str
+    component: str = Field(description="the service that produced it (its component name)")
+    instance: str = Field(default="", description="the instance of it that produced it (its component_id; "
+                                                  "empty from an older SDK)")
     type: str = Field(description="the result kind: built in, or any other (its payload then has "
                                    "label, probability, class_probabilities, value, has_value, text, attributes)")
     stream_id: str

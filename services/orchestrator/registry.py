@@ -13,6 +13,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
 
+from .assignment import Assignments
 from .negotiation import Declaration, Format, Strategy, choose
 
 log = logging.getLogger(__name__)
@@ -22,6 +23,14 @@ KEEP_DEPARTED = 1000  # dead / replaced components kept for GET /components?incl
 
 class TopicConflict(Exception):
     """A declared format whose channel count differs from its topic's (HTTP 409)."""
+
+
+class InstanceConflict(Exception):
+    """An instance id that a live instance, another process, holds (HTTP 409)."""
+
+    def __init__(self, message: str, live: Component):
+        super().__init__(message)
+        self.live = live
 
 
 MAX_CLOCK_OFFSET_NS = 366 * 86_400 * 10**9  # a clock further off than a year is not believed
@@ -40,13 +49,14 @@ class Component:
     pid: int | None
     info: dict[str, Any]
     audio_public_key: str | None = None  # Z85 CURVE key of its audio output (with CURVE keys)
+    incarnation: str | None = None  # the registering process's secret token: its own re-registrations
     registered_ns: int = field(default_factory=time.time_ns)
     last_seen_ns: int = field(default_factory=time.time_ns)
     last_seen_mono: float = field(default_factory=time.monotonic)
     heartbeats: int = 0
     results_received: int = 0
     stats: dict[str, Any] | None = None
-    status: str = "alive"  # alive, dead (silent too long), replaced (its name re-registered)
+    status: str = "alive"  # alive, dead (silent too long), replaced (its process registered again)
     departed_ns: int | None = None
     pushed_state: dict[str, Any] | None = None  # the state this component last got from us
     # our clock minus its host's, and how sure (half the best round trip), as its heartbeats report
@@ -79,22 +89,32 @@ class Registry:
         self.live: dict[str, Component] = {}  # by component_id, in registration order
         self.departed: OrderedDict[str, Component] = OrderedDict()
         self.assigned: dict[str, Format] = {}  # each topic's internal format
+        self.assignments = Assignments()  # which instance of a replicated service serves each stream
 
     # changes
     def register(self, *, name: str, designation: str, stream_id: str,
                  inputs: dict[str, Format], outputs: dict[str, Format],
                  audio_endpoint: str | None, host: str, pid: int | None,
-                 info: dict[str, Any], audio_public_key: str | None = None) -> tuple[Component, Component | None]:
-        """Adds a component; returns it and the instance of the same name it replaces."""
-        previous = self.by_name(name)
+                 info: dict[str, Any], audio_public_key: str | None = None,
+                 instance: str | None = None, incarnation: str | None = None) -> tuple[Component, Component | None]:
+        """Adds an instance of service ``name`` under the id ``instance`` (or a new one); returns it
+        and its own earlier registration that it replaces (the same process registering again: the
+        same ``incarnation``). Raises InstanceConflict for another process's live instance id."""
+        previous = self.live.get(instance) if instance else None
+        if previous is not None and (incarnation is None or previous.incarnation != incarnation):
+            raise InstanceConflict(f"instance id {instance!r} is held by a live instance (host "
+                                   f"{previous.host or '?'}, pid {previous.pid}); give this one another "
+                                   "instance id, or let the other stop or be declared dead first", previous)
         self._check_channels(name, inputs, outputs, exclude=previous)
-        if previous is not None:
-            self._depart(previous, "replaced")
-        component_id = self._new_id(name)
+        if previous is not None:  # the same process, registering again: the new record is the instance
+            del self.live[previous.component_id]
+            previous.status = "replaced"
+        component_id = instance or self._new_id(name)
+        self.departed.pop(component_id, None)
         component = Component(component_id=component_id, name=name, designation=designation,
                               stream_id=stream_id, inputs=inputs, outputs=outputs,
                               audio_endpoint=audio_endpoint, host=host, pid=pid, info=info,
-                              audio_public_key=audio_public_key)
+                              audio_public_key=audio_public_key, incarnation=incarnation)
         self.live[component_id] = component
         self.recompute()
         component.pushed_state = self.state_of(component)
@@ -128,6 +148,7 @@ class Registry:
                 log.info("event=format_assigned topic=%s format=%s previous=%s strategy=%s", topic,
                          describe(assigned[topic]), describe(current) if current else "-", self.strategy)
         self.assigned = assigned
+        self.assignments.update(self.with_inputs())
         return changed
 
     def _depart(self, component: Component, status: str) -> None:
@@ -173,7 +194,23 @@ class Registry:
         return self.live.get(component_id)
 
     def by_name(self, name: str) -> Component | None:
+        """The first live instance of service ``name``."""
         return next((c for c in self.live.values() if c.name == name), None)
+
+    def instances(self, name: str) -> list[Component]:
+        """The live instances of service ``name``, in registration order."""
+        return [c for c in self.live.values() if c.name == name]
+
+    def add_stream(self, stream_id: str, served_by: Component | None = None) -> bool:
+        """A stream is active (announced, or a result of it came): each replicated service gives it
+        to one instance. True if that is news (states may have to be pushed)."""
+        if not self.assignments.add_stream(stream_id, served_by):
+            return False
+        self.assignments.update(self.with_inputs())
+        return True
+
+    def end_stream(self, stream_id: str) -> None:
+        self.assignments.end_stream(stream_id)
 
     def formats(self) -> dict[str, Format]:
         """The format assigned to each topic (as of the last registration, removal or death)."""
@@ -209,6 +246,10 @@ class Registry:
                      if p.audio_public_key}
         if peer_keys:
             state["peer_keys"] = peer_keys
+        if component.inputs:
+            streams = self.assignments.streams_of(component, len(self.instances(component.name)))
+            if streams is not None:  # one of several instances: only the streams it serves
+                state["streams"] = streams
         return state
 
     def changed_states(self) -> list[tuple[Component, dict[str, Any]]]:

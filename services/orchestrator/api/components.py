@@ -1,10 +1,20 @@
 from __future__ import annotations
 
+import math
+
 from fastapi import APIRouter, Depends, HTTPException, Query, Response, status
 
 from ..core import Orchestrator
-from ..models import ComponentInfo, ComponentList, Problem, RegisterRequest, RegisterResponse, TopicDeclaration
-from ..registry import Component, TopicConflict
+from ..models import (
+    ComponentInfo,
+    ComponentList,
+    Problem,
+    RegisterRequest,
+    RegisterResponse,
+    ServiceInfo,
+    TopicDeclaration,
+)
+from ..registry import Component, InstanceConflict, TopicConflict
 from .deps import get_core
 
 router = APIRouter(tags=["components"])
@@ -29,8 +39,10 @@ def component_info(component: Component) -> ComponentInfo:
 
 
 @router.post("/components", status_code=status.HTTP_201_CREATED, response_model=RegisterResponse,
-             responses={409: {"model": Problem, "description": "a topic's channel count differs"}},
-             summary="register a component (a name registered again replaces the old instance)")
+             responses={409: {"model": Problem, "description": "a topic's channel count differs, or the "
+                              "instance id is held by a live instance (then with Retry-After: it may be "
+                              "declared dead by then)"}},
+             summary="register an instance of a component")
 async def register(request: RegisterRequest,
                    core: Orchestrator = Depends(get_core)) -> RegisterResponse:
     try:
@@ -39,9 +51,13 @@ async def register(request: RegisterRequest,
             inputs={d.topic: d.format.model_dump() for d in request.inputs},
             outputs={d.topic: d.format.model_dump() for d in request.outputs},
             audio_endpoint=request.audio_endpoint, host=request.host, pid=request.pid,
-            info=request.info, audio_public_key=request.audio_public_key)
+            info=request.info, audio_public_key=request.audio_public_key, instance=request.instance,
+            incarnation=request.incarnation)
     except TopicConflict as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
+    except InstanceConflict as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, str(exc),
+                            headers={"Retry-After": str(math.ceil(core.settings.dead_after_s))}) from None
     state = component.pushed_state
     assert state is not None  # register() gives a new component its state
     return RegisterResponse(
@@ -49,7 +65,7 @@ async def register(request: RegisterRequest,
         results_endpoint=core.results_endpoint,
         heartbeat_interval_s=core.settings.heartbeat_interval_s,
         dead_after_s=core.settings.dead_after_s, peers=state["peers"], formats=state["formats"],
-        peer_keys=state.get("peer_keys", {}))
+        peer_keys=state.get("peer_keys", {}), streams=state.get("streams"))
 
 
 @router.get("/components", response_model=ComponentList,
@@ -57,7 +73,11 @@ async def register(request: RegisterRequest,
 async def list_components(
         include_dead: bool = Query(False, description="also the dead and replaced ones"),
         core: Orchestrator = Depends(get_core)) -> ComponentList:
-    return ComponentList(items=[component_info(c) for c in core.registry.all(include_dead)])
+    registry = core.registry
+    services = {name: ServiceInfo(instances=[c.component_id for c in registry.instances(name)],
+                                  serving=registry.assignments.serving(name))
+                for name in dict.fromkeys(c.name for c in registry.all())}
+    return ComponentList(items=[component_info(c) for c in registry.all(include_dead)], services=services)
 
 
 @router.delete("/components/{component_id}", status_code=status.HTTP_204_NO_CONTENT,

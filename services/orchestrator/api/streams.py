@@ -25,7 +25,7 @@ class StreamAnnouncement(BaseModel):
     model_config = ConfigDict(extra="forbid")
     start_ns: int = Field(gt=0, le=MAX_TIME_NS,
                           description="capture time of the stream's first sample (ns since the epoch)")
-    source: str = Field(default="", description="the component that captures it")
+    source: str = Field(default="", description="the component instance that captures it (its component_id)")
     info: dict[str, Any] = Field(default_factory=dict, examples=[{"input": "speech.wav"}])
 
 
@@ -55,6 +55,7 @@ async def announce(body: StreamAnnouncement, stream_id: str = Path(min_length=1)
         raise HTTPException(503, f"the stream cannot be recorded: database {core.store.path} cannot be "
                                  f"written ({exc})") from None
     core.ingest.on_stream_announced(stream_id, body.source, body.info)
+    await core.stream_announced(stream_id)
     return _stream(core.store.streams(stream_id)[0])
 
 

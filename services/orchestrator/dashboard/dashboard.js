@@ -252,18 +252,24 @@ function formatText(format) {
 
 function sum(values) { return values.reduce((total, value) => total + (Number(value) || 0), 0); }
 
-function latestPerName(components) {
+// every live instance (replicas of a service each get a row), and for a service with none live
+// its latest instance (dead or replaced)
+function rowsPerInstance(components) {
+  const live = components.filter((c) => c.status === "alive");
   const latest = new Map();
   for (const component of components) {
+    if (live.some((c) => c.name === component.name)) continue;
     const known = latest.get(component.name);
     if (!known || component.registered_ns > known.registered_ns) latest.set(component.name, component);
   }
-  return [...latest.values()].sort((a, b) => a.name.localeCompare(b.name));
+  return [...live, ...latest.values()].sort((a, b) => a.name.localeCompare(b.name) || a.registered_ns - b.registered_ns);
 }
 
 function drawComponents() {
   const nowNs = Date.now() * 1e6;
-  $("components").tBodies[0].replaceChildren(...latestPerName(state.components).map((component) => {
+  const rows = rowsPerInstance(state.components);
+  const replicated = new Set(rows.filter((c, i) => rows.findIndex((d) => d.name === c.name) !== i).map((c) => c.name));
+  $("components").tBodies[0].replaceChildren(...rows.map((component) => {
     const stats = component.stats || {};
     const inputs = Object.values(stats.inputs || {});
     const outputs = Object.values(stats.outputs || {});
@@ -274,7 +280,9 @@ function drawComponents() {
     const latency = state.latency.get(component.name);
     const row = el("tr", {"data-component": component.name, "data-component-id": component.component_id,
                           "data-status": component.status});
-    row.append(el("td", {}, component.name),
+    const name = el("td", {}, component.name);
+    if (replicated.has(component.name)) name.append(el("div", {"class": "instance"}, component.component_id));
+    row.append(name,
                el("td", {"class": "status", "data-status": component.status}, component.status),
                el("td", {"class": "heartbeat"}, Math.max(0, (nowNs - component.last_seen_ns) / 1e9).toFixed(1) + " s"),
                el("td", {"class": "counters"}, lost + " / " + bad + " / " + refused),

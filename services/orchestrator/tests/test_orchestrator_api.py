@@ -100,17 +100,45 @@ def test_bad_queries_are_422(http):
     assert http.get("/fused", params={"limit": 0}).status_code == 422
 
 
-def test_name_takeover_replaces_old_instance(component, http):
-    old = component("asr", designation="speech", inputs=["vad/speech"])
-    new = component("asr", designation="speech", inputs=["vad/speech"])
-    assert new.id != old.id
-    live = http.get("/components").json()["items"]
-    assert [c["component_id"] for c in live] == [new.id]
+def test_instances_of_a_name_share_it_a_live_id_is_409_and_a_process_registers_itself_again(component, http):
+    body = component_body("asr", designation="speech", inputs=["vad/speech"])
+    first = component("asr", designation="speech", inputs=["vad/speech"], instance="asr-a", incarnation="p1")
+    second = component("asr", designation="speech", inputs=["vad/speech"])
+    assert first.id == "asr-a" and second.id.startswith("asr-") and second.id != first.id
+    listed = http.get("/components").json()
+    assert [c["component_id"] for c in listed["items"]] == ["asr-a", second.id]
+    assert listed["services"]["asr"]["instances"] == ["asr-a", second.id]
+
+    for incarnation in ({"incarnation": "p2"}, {}):  # another process holds asr-a: refused, never replaced
+        response = http.post("/components", json={**body, "instance": "asr-a", **incarnation})
+        assert response.status_code == 409 and "'asr-a' is held by a live instance" in response.json()["detail"]
+        assert response.headers["retry-after"] == "3"  # dead_after_s 2.5, rounded up
+    first.heartbeat()
+    assert first.recv()["type"] == "state"  # still itself
+
+    again = http.post("/components", json={**body, "instance": "asr-a", "incarnation": "p1"})  # its own process
+    assert again.status_code == 201 and again.json()["component_id"] == "asr-a"
     everyone = http.get("/components", params={"include_dead": True}).json()["items"]
-    assert {c["component_id"]: c["status"] for c in everyone} == {new.id: "alive",
-                                                                   old.id: "replaced"}
-    old.heartbeat()
-    assert old.recv() == {"type": "unknown"}
+    assert sorted((c["component_id"], c["status"]) for c in everyone) == sorted([("asr-a", "alive"),
+                                                                               (second.id, "alive")])
+
+
+def test_replicas_are_told_the_streams_they_serve(component, http):
+    vad = component("vad", designation="vad", inputs=["raw"], outputs=["vad/speech"])
+    a = component("asr", designation="speech", inputs=["vad/speech"], instance="asr-a")
+    assert a.registration["streams"] is None and vad.registration["streams"] is None  # alone: every stream
+    b = component("asr", designation="speech", inputs=["vad/speech"], instance="asr-b")
+    assert b.registration["streams"] == []
+    for stream in ("robot1", "robot2"):
+        assert http.put(f"/streams/{stream}", json={"start_ns": 1, "source": "grabber-1"}).status_code == 200
+    told = {c.id: c.wait_for(lambda m: m.get("streams"), heartbeat_every_s=0.2)["streams"] for c in (a, b)}
+    assert sorted(told.values()) == [["robot1"], ["robot2"]]
+    assert http.get("/components").json()["services"]["asr"]["serving"] == {
+        stream: instance for instance, streams in told.items() for stream in streams}
+    b.close()  # leaves without a word: declared dead, its stream moves to a
+    a.wait_for(lambda m: m.get("type") == "state" and "streams" not in m, timeout_s=6, heartbeat_every_s=0.3)
+    assert http.get("/components").json()["services"]["asr"] == {
+        "instances": ["asr-a"], "serving": {"robot1": "asr-a", "robot2": "asr-a"}}
 
 
 def test_fusions_listed(http):

@@ -12,7 +12,7 @@ from esiaf.proto import esiaf_pb2 as pb
 from services.orchestrator.codec import BadResult, parse_result, result_to_json
 from services.orchestrator.fusion import FusionEngine, StoredResult
 from services.orchestrator.hub import Hub, Outgoing
-from services.orchestrator.registry import Registry, TopicConflict
+from services.orchestrator.registry import InstanceConflict, Registry, TopicConflict
 from services.orchestrator.settings import FusionSettings, OrchestratorSettings
 from services.orchestrator.store import MIGRATIONS, Store, StoreError
 from services.orchestrator.streams import StreamEnds
@@ -97,11 +97,12 @@ def test_settings_refuse_bad_kind_names_and_duplicate_fusions():
 
 
 # registry
-def register(registry: Registry, name: str, inputs=(), outputs=(), fmt=FMT):
+def register(registry: Registry, name: str, inputs=(), outputs=(), fmt=FMT, instance=None, incarnation=None):
     component, _ = registry.register(
         name=name, designation="other", stream_id="default",
         inputs={t: fmt for t in inputs}, outputs={t: fmt for t in outputs},
-        audio_endpoint=f"tcp://{name}:1" if outputs else None, host="", pid=None, info={})
+        audio_endpoint=f"tcp://{name}:1" if outputs else None, host="", pid=None, info={},
+        instance=instance, incarnation=incarnation)
     return component
 
 
@@ -127,12 +128,62 @@ def test_registry_conflict_leaves_old_instance_in_place():
     old = register(registry, "vad", inputs=["raw"])
     with pytest.raises(TopicConflict, match="'raw'"):
         register(registry, "vad", inputs=["raw"], fmt={**FMT, "channels": 4})
-    assert registry.by_name("vad") is old
-    # its own old declaration does not conflict with a takeover
+    assert registry.instances("vad") == [old]
+    # its own old declaration does not conflict when the same process registers again
     solo = Registry()
-    first = register(solo, "mic", outputs=["raw"], fmt={**FMT, "channels": 2})
-    second = register(solo, "mic", outputs=["raw"], fmt=FMT)
-    assert first.status == "replaced" and solo.live == {second.component_id: second}
+    first = register(solo, "mic", outputs=["raw"], fmt={**FMT, "channels": 2}, instance="mic-1", incarnation="a")
+    second = register(solo, "mic", outputs=["raw"], fmt=FMT, instance="mic-1", incarnation="a")
+    assert first.status == "replaced" and solo.live == {"mic-1": second} and not solo.departed
+
+
+def test_a_name_registered_again_is_another_instance_and_a_live_instance_id_is_refused():
+    registry = Registry()
+    first = register(registry, "asr", inputs=["speech"], instance="asr-a", incarnation="p1")
+    second = register(registry, "asr", inputs=["speech"])  # no id given: one is made up
+    assert registry.instances("asr") == [first, second] and first.status == second.status == "alive"
+    for incarnation in ("p2", None):  # another process, or one that cannot say it is the same
+        with pytest.raises(InstanceConflict, match="'asr-a' is held by a live instance"):
+            register(registry, "asr", inputs=["speech"], instance="asr-a", incarnation=incarnation)
+    assert registry.get("asr-a") is first
+    registry.expire(2.5, now_mono=first.last_seen_mono + 3)  # declared dead: its id is free again
+    third = register(registry, "asr", inputs=["speech"], instance="asr-a", incarnation="p2")
+    assert registry.get("asr-a") is third and "asr-a" not in registry.departed
+
+
+def test_replicas_share_the_streams_sticky_and_balanced_and_a_dead_ones_move_at_once():
+    registry = Registry()
+    vad = register(registry, "vad", inputs=["raw"], outputs=["speech"])
+    a = register(registry, "asr", inputs=["speech"], instance="asr-a")
+    for stream in ("s1", "s2"):
+        registry.add_stream(stream)
+    assert "streams" not in registry.state_of(a) and "streams" not in registry.state_of(vad)  # alone: all
+    b = register(registry, "asr", inputs=["speech"], instance="asr-b")
+    assert registry.state_of(a)["streams"] == ["s1", "s2"] and registry.state_of(b)["streams"] == []  # sticky
+    for stream in ("s3", "s4", "s5"):
+        registry.add_stream(stream)
+    assert registry.state_of(b)["streams"] == ["s3", "s4"]  # the least loaded
+    assert registry.state_of(a)["streams"] == ["s1", "s2", "s5"]  # the older on a tie
+    assert "streams" not in registry.state_of(vad)
+    registry.end_stream("s1")
+    registry.add_stream("s6")
+    assert registry.state_of(a)["streams"] == ["s2", "s5", "s6"]
+    registry.expire(2.5, now_mono=max(a.last_seen_mono, b.last_seen_mono) + 3)
+    assert registry.live == {}
+    c = register(registry, "asr", inputs=["speech"], instance="asr-c")
+    d = register(registry, "asr", inputs=["speech"], instance="asr-d")
+    registry.remove("asr-c")  # left: its streams go to the survivor
+    assert "streams" not in registry.state_of(d) and registry.assignments.serving("asr") == {
+        s: "asr-d" for s in ("s2", "s3", "s4", "s5", "s6")}
+    assert c.status == "alive"  # a clean leave is not a death
+
+
+def test_a_stream_first_heard_from_a_replica_stays_with_it():
+    registry = Registry()
+    a = register(registry, "asr", inputs=["speech"], instance="asr-a")
+    b = register(registry, "asr", inputs=["speech"], instance="asr-b")
+    assert registry.add_stream("x", served_by=b)
+    assert registry.state_of(b)["streams"] == ["x"] and registry.state_of(a)["streams"] == []
+    assert not registry.add_stream("x", served_by=a)  # known already: it stays
 
 
 def test_registry_expires_silent_components():
@@ -144,31 +195,18 @@ def test_registry_expires_silent_components():
 
 
 # stream ends
-def test_stream_ends_when_all_live_input_components_said_so():
+def test_stream_ends_when_every_awaited_service_said_so():
     ends = StreamEnds()
-    ends.on_end_of_stream("s", "vad-1")
-    assert ends.finished({"vad-1", "asr-1"}) == []
-    ends.on_end_of_stream("s", "asr-1")
-    assert ends.finished({"vad-1", "asr-1"}) == ["s"]
-    assert ends.finished({"vad-1", "asr-1"}) == []  # once
-    ends.on_end_of_stream("s", "vad-1")  # late: ignored, the stream has ended
+    ends.on_end_of_stream("s", "vad")
+    assert ends.finished({"vad", "asr"}) == []
+    ends.on_end_of_stream("s", "asr")
+    assert ends.finished({"vad", "asr"}) == ["s"]
+    assert ends.finished({"vad", "asr"}) == []  # once
+    ends.on_end_of_stream("s", "vad")  # late: ignored, the stream has ended
     ends.on_result("s")  # starts it again
-    ends.on_end_of_stream("s", "vad-1")
-    assert ends.finished({"vad-1", "asr-1"}) == []
-    assert ends.finished({"vad-1"}) == ["s"]  # asr died: nobody else to wait for
-
-
-def test_an_end_said_under_an_earlier_id_counts_for_the_instance_that_replaced_it():
-    """A stalled asr declared dead sends its end_of_stream under its old id, then registers again
-    under a new one: the stream must end, not wait for the new id forever."""
-    ends = StreamEnds()
-    ends.on_end_of_stream("s", "vad-1")
-    ends.on_end_of_stream("s", "asr-old")
-    assert ends.finished({"vad-1", "asr-new"}) == []  # without knowing asr-new replaced asr-old
-    assert ends.finished({"vad-1", "asr-new"}, {"asr-new": {"asr-old"}}) == ["s"]
-    ends.on_result("s")
-    ends.on_end_of_stream("s", "vad-1")
-    assert ends.finished({"vad-1", "asr-new"}, {"asr-new": {"asr-old"}}) == []  # ended again by vad alone
+    ends.on_end_of_stream("s", "vad")
+    assert ends.finished({"vad", "asr"}) == []
+    assert ends.finished({"vad"}) == ["s"]  # asr died: nobody else to wait for
 
 
 # hub
