@@ -101,7 +101,6 @@ class Fusion:
 class StreamMemory:
     coverage: dict[str, Coverage] = field(default_factory=dict)  # by component
     index: dict[str, SpanIndex] = field(default_factory=dict)  # real results, by type
-    seen: set[str] = field(default_factory=set)  # components that sent results for it
     ended: set[str] = field(default_factory=set)  # components that said end_of_stream since
     open: list[Fusion] = field(default_factory=list)
     published: SpanIndex = field(default_factory=SpanIndex)  # by window, for late results
@@ -298,7 +297,6 @@ class FusionEngine:
         if coverage is None:
             coverage = memory.coverage[result.component] = Coverage()
         coverage.add(result.start_ns, result.end_ns)
-        memory.seen.add(result.component)
         memory.ended.discard(result.component)
         if not result.is_nothing:
             index = memory.index.get(result.type)
@@ -342,8 +340,9 @@ class FusionEngine:
         if settings.fuse:
             types = set(settings.fuse)
             for component in self._live():
-                if component.designation in types and component.name not in fusion.waiting and \
-                        (component.stream_id == anchor.stream_id or component.name in memory.seen) \
+                # every live service of a fused type serves every stream (replicas share them):
+                # one that has not covered this stream yet is waited for, never assumed done
+                if component.designation in types and component.name not in fusion.waiting \
                         and component.name not in memory.ended \
                         and not self._covered(memory, component.name, fusion):
                     deadline = (anchor.end_ns + self._capture_offset_ns(anchor.stream_id)

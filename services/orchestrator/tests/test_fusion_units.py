@@ -16,8 +16,8 @@ MS = 1_000_000
 S = 1000 * MS
 
 
-def result(id_: int, component: str, type_: str, start: int, end: int, **payload) -> StoredResult:
-    json = {"id": id_, "component": component, "type": type_, "stream_id": "s",
+def result(id_: int, component: str, type_: str, start: int, end: int, stream: str = "s", **payload) -> StoredResult:
+    json = {"id": id_, "component": component, "type": type_, "stream_id": stream,
             "span": {"start_ns": start, "end_ns": end}, **payload}
     return StoredResult.from_json(json)
 
@@ -224,3 +224,19 @@ def test_a_capture_clock_3_s_behind_moves_deadlines_and_latencies_onto_ours():
     assert engine.on_result(result(1, "asr", "speech", 0, S), received_ns=4 * S + 50 * MS) == []
     assert engine.next_deadline_ns() == 4 * S + 150 * MS  # not 1.15 s: long gone on our clock at arrival
     assert engine.latencies.by_component["asr"].mean_ns == 50 * MS  # not 3.05 s
+
+
+def test_a_second_stream_waits_for_an_analyser_that_has_not_covered_it_yet():
+    """Issue 16: a second stream's first fused result was `complete` with emotion null, because an
+    analyser registered with another stream_id that had sent nothing for this one was assumed done."""
+    engine, clock = engine_with(("emo", "emotion"))
+    # emo registered with stream_id "s" and never sent anything for robot2: waited for
+    assert engine.on_result(result(1, "asr", "speech", 0, S, stream="robot2"), S) == []
+    emotion = result(2, "emo", "emotion", 0, S, stream="robot2", emotion={"label": "angry", "probability": 0.9})
+    [fused] = engine.on_result(emotion, S + 10 * MS)
+    assert fused.json["completion"] == "complete" and fused.json["results"]["emotion"][0]["id"] == 2
+    clock.now = 10 * S
+    # and one that never answers is reported missing, not assumed done
+    assert engine.on_result(result(3, "asr", "speech", 2 * S, 3 * S, stream="robot3"), 3 * S) == []
+    [timed_out] = engine.on_timer(10 * S)
+    assert timed_out.json["completion"] == "timed_out" and timed_out.json["missing_components"] == ["emo"]
