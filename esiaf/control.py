@@ -33,7 +33,7 @@ import zmq
 from esiaf import auth
 from esiaf.clock import ClockEstimate
 from esiaf.keys import Curve
-from esiaf.transport import STATE_ADDRESS
+from esiaf.transport import STATE_ADDRESS, keep_alive
 
 log = logging.getLogger(__name__)
 
@@ -248,7 +248,7 @@ class ControlClient:
             self._health_file = ""
 
     def _dealer(self) -> zmq.Socket:
-        dealer = self._context.socket(zmq.DEALER)
+        dealer = keep_alive(self._context.socket(zmq.DEALER))
         auth.secure_socket(dealer, self._curve)
         dealer.setsockopt(zmq.LINGER, 0)
         dealer.setsockopt(zmq.IDENTITY, self.component_id.encode())

@@ -23,7 +23,7 @@ import re
 import socket
 import time
 from collections.abc import Iterable, Iterator, Sequence
-from typing import Any, cast
+from typing import Any, TypeVar, cast
 
 import zmq
 from zmq.auth.thread import ThreadAuthenticator
@@ -39,6 +39,24 @@ RESULTS_HWM = 10_000
 FLUSH_LINGER_MS = 2_000  # data sockets get this long to deliver the last messages at shutdown
 ANY_HOST = ("0.0.0.0", "*", "::")
 LEAVE_GRACE_S = 1.0  # a departed producer's messages still arriving are taken this long at least
+
+
+# ZMTP heartbeats on every TCP socket: a peer cut off by the network (a cable, `docker network
+# disconnect`) is noticed within seconds and the connection made again, instead of a half-open TCP
+# connection swallowing messages until the kernel gives up on it (minutes)
+HEARTBEAT_IVL_MS = 1_000
+HEARTBEAT_TIMEOUT_MS = 4_000
+
+
+SocketT = TypeVar("SocketT", bound=zmq.Socket)
+
+
+def keep_alive(sock: SocketT) -> SocketT:
+    """Turns ZMTP heartbeats on (before connect/bind): a silent connection is dropped and redone."""
+    sock.setsockopt(zmq.HEARTBEAT_IVL, HEARTBEAT_IVL_MS)
+    sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, HEARTBEAT_TIMEOUT_MS)
+    sock.setsockopt(zmq.HEARTBEAT_TTL, HEARTBEAT_TIMEOUT_MS)
+    return sock
 
 
 _ENDPOINT = re.compile(r"^tcp://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]{1,253}):(\d{1,5})$")
@@ -83,7 +101,7 @@ class Transport:
         self.pub: zmq.Socket | None = None
         self.sub: zmq.Socket | None = None
         if has_outputs:
-            self.pub = context.socket(zmq.XPUB)
+            self.pub = keep_alive(context.socket(zmq.XPUB))
             self.pub.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
             self.pub.setsockopt(zmq.SNDHWM, AUDIO_HWM)
             self.pub.setsockopt(zmq.XPUB_VERBOSER, 1)
@@ -107,7 +125,7 @@ class Transport:
             self._poller.register(self.pub, zmq.POLLIN)
         topics = list(inputs)
         if topics:
-            self.sub = context.socket(zmq.SUB)
+            self.sub = keep_alive(context.socket(zmq.SUB))
             self.sub.setsockopt(zmq.LINGER, 0)
             self.sub.setsockopt(zmq.RCVHWM, AUDIO_HWM)
             for topic in topics:
@@ -120,7 +138,7 @@ class Transport:
         os.set_blocking(self._wake_read, False)
         os.set_blocking(self._wake_write, False)
         self._poller.register(self._wake_read, zmq.POLLIN)
-        self.push = context.socket(zmq.PUSH)
+        self.push = keep_alive(context.socket(zmq.PUSH))
         auth.secure_socket(self.push, curve)  # the orchestrator's results socket takes only known peers
         self.push.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
         self.push.setsockopt(zmq.SNDHWM, RESULTS_HWM)

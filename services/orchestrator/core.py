@@ -11,6 +11,7 @@ import zmq
 import zmq.asyncio
 
 from esiaf import auth, keys
+from esiaf.transport import keep_alive
 
 from .control import ControlPlane
 from .fusion import FusionEngine
@@ -151,7 +152,7 @@ class Orchestrator:
               setting: str) -> tuple[zmq.asyncio.Socket, str]:
         host = zmq_host(self.settings.host)
         assert self._ctx is not None  # _start() makes it first
-        socket = self._ctx.socket(kind)
+        socket = keep_alive(self._ctx.socket(kind))
         socket.setsockopt(zmq.LINGER, 0)
         self.guard.secure(socket, what)
         if host.startswith("["):
