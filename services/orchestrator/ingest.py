@@ -79,7 +79,11 @@ class Ingest:
             self.on_stream_announced(stream_id, source, json.loads(info))
         results, fused = self.store.recent(engine.memory_ns)
         for text in results:
-            engine.restore_result(StoredResult.from_json(json.loads(text)))
+            restored = StoredResult.from_json(json.loads(text))
+            engine.restore_result(restored)
+            # a stream heard from lately is taken to be going on: replicas serve it as their instances
+            # register again, not only from its next result on
+            self.registry.add_stream(restored.stream_id)
         for text in fused:
             engine.restore_published(json.loads(text))
         pending = self.store.pending()
