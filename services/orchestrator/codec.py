@@ -145,6 +145,7 @@ def result_to_json(result: pb.Result, result_id: int, received_ns: int, capture_
     return {
         "id": result_id,
         "component": result.component,
+        "instance": result.instance,
         "type": kind_of(result),
         "stream_id": result.stream_id,
         "span": {"start_ns": result.span.start_ns, "end_ns": result.span.end_ns},

@@ -30,7 +30,7 @@ def test_result_json_keeps_int64_as_integers_and_has_one_payload_key():
     result.emotion.class_probabilities["happy"] = 0.75
     parsed = parse_result(result.SerializeToString())
     as_json = json.loads(json.dumps(result_to_json(parsed, 3, BIG_NS + 2_500_000)))
-    assert as_json == {"id": 3, "component": "emo", "type": "emotion", "stream_id": "s",
+    assert as_json == {"id": 3, "component": "emo", "instance": "", "type": "emotion", "stream_id": "s",
                        "span": {"start_ns": BIG_NS - 1000, "end_ns": BIG_NS},
                        "produced_ns": BIG_NS + 5, "received_ns": BIG_NS + 2_500_000,
                        "latency_ms": 2.5, "sequence": 7,
