@@ -22,7 +22,7 @@ import os
 import re
 import socket
 import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any, TypeVar, cast
 
 import zmq
@@ -78,6 +78,14 @@ def topic_frame(topic: str, stream_id: str | None = None) -> bytes:
     all of them (``topic\0``), and the producer's XPUB filters."""
     frame = topic.encode() + b"\0"
     return frame if stream_id is None else frame + stream_id.encode() + b"\0"
+
+
+def _take(sock: zmq.Socket, receive: Callable[..., Any] = zmq.Socket.recv) -> Any:
+    """``receive(sock)`` without blocking, or None if nothing was there after all."""
+    try:
+        return receive(sock, zmq.NOBLOCK)
+    except zmq.Again:
+        return None
 
 
 def topic_name(frame: bytes) -> str:
@@ -169,16 +177,17 @@ class Transport:
         while ready:
             if ready.pop(self._wake_read, None):
                 self._drain_wake()
-            if self.state in ready:
-                yield "state", json.loads(self.state.recv())
-            if self.pub is not None and self.pub in ready:
-                frame = self.pub.recv()
+            # libzmq may say a socket is readable when it is not: each is read without blocking
+            if self.state in ready and (frame := _take(self.state)) is not None:
+                yield "state", json.loads(frame)
+            if self.pub is not None and self.pub in ready and (frame := _take(self.pub)) is not None:
                 yield "subscription", (topic_name(frame[1:]), 1 if frame[:1] == b"\x01" else -1)
-            if self._refusals is not None and self._refusals in ready:
-                event = recv_monitor_message(self._refusals)
+            if self._refusals is not None and self._refusals in ready and (
+                    event := _take(self._refusals, recv_monitor_message)) is not None:
                 yield "refused", keys.HANDSHAKE_FAILURES.get(event["event"], "other")
-            if self.sub is not None and self.sub in ready and take_audio:
-                yield "audio", self.sub.recv_multipart()
+            if self.sub is not None and self.sub in ready and take_audio and (
+                    frames := _take(self.sub, zmq.Socket.recv_multipart)) is not None:
+                yield "audio", frames
             ready = dict(self._poller.poll(timeout=0))
             if not take_audio:
                 ready.pop(self.sub, None)

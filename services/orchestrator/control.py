@@ -25,7 +25,11 @@ class ControlPlane:
 
     async def run(self) -> None:
         while True:
-            frames = await self.socket.recv_multipart()
+            try:
+                frames = await self.socket.recv_multipart()
+            except zmq.Again:  # libzmq may signal a message that is not there
+                self.counters["spurious_wakeups"] += 1
+                continue
             try:
                 await self.handle(frames)
             except Exception:  # a bug must not stop the heartbeats of everyone else

@@ -97,9 +97,18 @@ class Ingest:
     async def run(self) -> None:
         self._arm_timer()  # fusions restored from the database may be due
         while True:
-            batch = [await self.socket.recv_multipart()]
+            try:
+                batch = [await self.socket.recv_multipart()]
+            except zmq.Again:  # libzmq may signal a message that is not there (seen with heartbeats)
+                self.counters["spurious_wakeups"] += 1
+                if self.counters["spurious_wakeups"] in (1, 100, 10_000):
+                    log.info("event=spurious_wakeup plane=results count=%d", self.counters["spurious_wakeups"])
+                continue
             while len(batch) < MAX_BATCH and cast(int, self.socket.get(zmq.EVENTS)) & zmq.POLLIN:
-                batch.append(await self.socket.recv_multipart())
+                try:
+                    batch.append(cast("asyncio.Future[list[bytes]]", self.socket.recv_multipart(zmq.NOBLOCK)).result())
+                except zmq.Again:
+                    break
             self.handle_batch(batch)
 
     def handle_batch(self, batch: list[list[bytes]]) -> None:
