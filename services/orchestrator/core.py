@@ -5,6 +5,7 @@ import asyncio
 import errno
 import logging
 import sqlite3
+import time
 from typing import Any, TypeVar
 
 import zmq
@@ -26,8 +27,8 @@ from .zap import Guard
 
 log = logging.getLogger(__name__)
 
-LIVENESS_CHECK_S = 0.25  # how often silent components are looked for
-CHECKPOINT_INTERVAL_S = 1.0  # how often the SQLite WAL is copied into the database
+LIVENESS_MAX_SLEEP_S = 5.0  # the liveness task wakes when the first component may be dead, at the latest this
+CHECKPOINT_INTERVAL_S = 1.0  # how often the SQLite WAL is copied into the database, if it was written
 ANY_HOST = ("0.0.0.0", "*", "")
 
 
@@ -242,8 +243,10 @@ class Orchestrator:
             self.ingest.components_gone([component.name for component in gone])
 
     async def _watch_liveness(self) -> None:
+        """Declares silent components dead: it sleeps until the first of them may be (its last
+        message plus dead_after_s) or a dead one's stream-end grace runs out, not on a fixed tick."""
         while True:
-            await asyncio.sleep(LIVENESS_CHECK_S)
+            await asyncio.sleep(self._next_liveness_check_s())
             dead = self.registry.expire(self.settings.dead_after_s)
             for component in dead:
                 assert component.departed_ns is not None  # expire() sets it
@@ -255,12 +258,27 @@ class Orchestrator:
             elif self._ingest is not None and self._ingest.streams.pending():
                 self.ingest.check_stream_ends()  # a dead component's grace may have run out
 
+    def _next_liveness_check_s(self) -> float:
+        now_mono = time.monotonic()
+        due = [c.last_seen_mono + self.settings.dead_after_s - now_mono for c in self.registry.live.values()]
+        if self._ingest is not None and self._ingest.streams.pending():
+            now_ns, grace_ns = time.time_ns(), self.settings.stream_end_grace_s * 1e9
+            due += [((c.departed_ns or 0) + grace_ns - now_ns) / 1e9 for c in self.registry.departed.values()
+                    if c.status == "dead" and c.inputs and now_ns - (c.departed_ns or 0) < grace_ns]
+        # a component registering meanwhile may be dead dead_after_s after it did, at the earliest
+        longest = min(LIVENESS_MAX_SLEEP_S, self.settings.dead_after_s)
+        return min(max(min(due, default=longest) + 0.005, 0.01), longest)
+
     async def _checkpoint(self) -> None:
         checkpointer = Checkpointer(self.store.path)
+        checkpointed = -1
         job: asyncio.Future | None = None
         try:
             while True:
                 await asyncio.sleep(CHECKPOINT_INTERVAL_S)
+                if self.store.changes == checkpointed:
+                    continue  # nothing written since the last one: no thread, no fsync
+                checkpointed = self.store.changes
                 job = asyncio.ensure_future(asyncio.to_thread(checkpointer.run))
                 try:
                     await asyncio.shield(job)

@@ -122,6 +122,11 @@ class Store:
     def begin(self) -> None:
         self._batch_start = len(self._queued)
 
+    @property
+    def changes(self) -> int:
+        """Rows written since the database was opened (SQLite's total_changes)."""
+        return self._db.total_changes
+
     def commit(self) -> None:
         if not self._queued:
             return

@@ -13,7 +13,7 @@ from services.orchestrator.tests.helpers import FakeComponent, component_body, w
 
 START_NS = 1_763_720_000_123_000_000
 END_NS = 1_763_720_001_850_000_000
-ANCHOR_KEYS = {"id", "component", "type", "stream_id", "span", "produced_ns", "received_ns",
+ANCHOR_KEYS = {"id", "component", "instance", "type", "stream_id", "span", "produced_ns", "received_ns",
                "latency_ms", "sequence", "speech"}
 
 
