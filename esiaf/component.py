@@ -69,7 +69,7 @@ class Component:
         self.results_dropped = 0
         self._stop = threading.Event()
         self._exit_code = 0
-        self._sequences: dict[str, int] = {}
+        self._sequences: dict[tuple[str, str], int] = {}  # per topic and stream: a replica sees its streams only
         self.refused_subscribers: dict[str, int] = {}  # handshakes refused at the outputs (CURVE), by reason
         self._ended: dict[str, set[str]] = {}
         self._result_sequence = 0
@@ -84,7 +84,7 @@ class Component:
         self.input_stats = self._receiver.stats
         self.refused = self._receiver.refused  # audio messages refused, by reason
         self.refused_by_publisher = self._receiver.refused_by_publisher  # ... by publisher (the most recent ones)
-        self._input_links = self._receiver.links  # per topic and publisher
+        self._input_links = self._receiver.links  # per topic, publisher and stream
         self._last_seen = self._receiver.last_seen
 
     @property
@@ -166,7 +166,8 @@ class Component:
         return sequence
 
     def _send_audio(self, topic: str, msg: pb.AugmentedAudio) -> int:
-        sequence = self._sequences.get(topic, 0) + 1
+        key = (topic, msg.stream_id)
+        sequence = self._sequences.get(key, 0) + 1
         msg.publisher, msg.sequence = self.instance_id, sequence
         stats = self.output_stats[topic]
         if not self._wire.send_audio(topic, msg.SerializeToString(), msg.stream_id):
@@ -174,7 +175,7 @@ class Component:
             log.warning("audio dropped at high-water mark topic=%s sequence=%d dropped=%d",
                         topic, sequence, stats.dropped)
             return 0
-        self._sequences[topic] = sequence
+        self._sequences[key] = sequence
         stats.published += 1
         self._service(0)
         return sequence

@@ -81,8 +81,10 @@ class Receiver:
         self.stats: dict[str, InputStats] = {}
         self.refused: dict[str, int] = {}  # audio messages refused, by reason
         self.refused_by_publisher: dict[str, int] = {}  # ... by publisher (the most recent ones)
-        self.links: dict[tuple[str, str], InputLink] = {}  # per topic and publisher
-        self.last_seen: dict[tuple[str, str], int] = {}  # the last sequence number, per topic and publisher
+        # per topic, publisher and stream: a publisher numbers each stream apart, as a consumer that
+        # serves some of its streams (a replica) receives only those
+        self.links: dict[tuple[str, str, str], InputLink] = {}
+        self.last_seen: dict[tuple[str, str, str], int] = {}  # the last sequence number
         self._on_loss = on_loss  # called when messages were lost
 
     def receive(self, frames: list[bytes]) -> Received | None:
@@ -105,7 +107,7 @@ class Receiver:
             return None
         stats.received += 1
         self.count_gap(audio, stats)
-        link = self.link(topic, audio.publisher)
+        link = self.link(topic, audio.publisher, audio.stream_id)
         try:
             chunks = link.receive(audio)
         except FormatError as exc:  # a channel count this component does not take
@@ -113,10 +115,10 @@ class Receiver:
             return None
         return Received(topic, stats, audio, chunks)
 
-    def link(self, topic: str, publisher: str) -> InputLink:
+    def link(self, topic: str, publisher: str, stream_id: str) -> InputLink:
         """The conversion state of one publisher on one topic; the least recently heard of more
         than MAX_PUBLISHERS are forgotten (10,000 forged names must not grow the process)."""
-        key = (topic, publisher)
+        key = (topic, publisher, stream_id)
         link = self.links.pop(key, None) or InputLink(self.inputs[topic])
         self.links[key] = link  # most recent last
         while len(self.links) > MAX_PUBLISHERS:
@@ -139,14 +141,15 @@ class Receiver:
                       reason, publisher or "?", self.refused[reason], detail)
 
     def count_gap(self, audio: Audio, stats: InputStats) -> None:
-        key = (audio.topic, audio.publisher)
+        key = (audio.topic, audio.publisher, audio.stream_id)
         last = self.last_seen.get(key)
         if last is not None and audio.sequence > last + 1:
             missing = audio.sequence - last - 1
             stats.lost += missing
-            log.warning("lost audio topic=%s publisher=%s missing=%d lost_total=%d",
-                        audio.topic, audio.publisher, missing, stats.lost)
+            log.warning("lost audio topic=%s publisher=%s stream_id=%s missing=%d lost_total=%d",
+                        audio.topic, audio.publisher, audio.stream_id, missing, stats.lost)
             self._on_loss()
         elif last is None and audio.sequence > 1:
-            log.info("joined topic=%s publisher=%s at sequence=%d", audio.topic, audio.publisher, audio.sequence)
+            log.info("joined topic=%s publisher=%s stream_id=%s at sequence=%d",
+                     audio.topic, audio.publisher, audio.stream_id, audio.sequence)
         self.last_seen[key] = audio.sequence

@@ -128,7 +128,7 @@ def test_loss_is_counted_and_visible_in_the_orchestrator(pair, orchestrator):
     def send_with_gap(c):
         assert c.wait_for_subscribers("source/audio", 1, timeout_s=10)
         c.publish("source/audio", np.zeros(160, dtype=np.int16), 0, 10_000_000)
-        c._sequences["source/audio"] += 3  # three messages "lost on the way"
+        c._sequences["source/audio", c.settings.stream_id] += 3  # three messages "lost on the way"
         c.publish("source/audio", np.zeros(160, dtype=np.int16), 40_000_000, 50_000_000)
 
     run_on(source, send_with_gap)

@@ -88,6 +88,12 @@ def test_replicas_share_the_streams_and_a_killed_ones_move_to_the_survivor(orche
         poll(lambda: taken(files["sink-a"]).total() >= 80, timeout_s=10)
         time.sleep(0.3)
         assert taken(files["sink-a"]) == {s: 30 if instance == "sink-a" else 10 for s, instance in serving.items()}
+        # a publisher numbers each stream apart: a replica that hears half of them has lost nothing
+        inputs = poll(lambda: (i := next(c["stats"]["inputs"]["source/audio"] for c in
+                                         orchestrator.http.get("/components").json()["items"]
+                                         if c["component_id"] == "sink-a")) and i["received"] == 80 and i,
+                      timeout_s=10)
+        assert inputs["lost"] == 0
     finally:
         source.stop()
         thread.join(timeout=10)
