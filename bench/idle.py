@@ -1,6 +1,6 @@
 """Idle CPU: the orchestrator and a few services registered and heartbeating, with no audio.
 
-    python bench/idle.py [--seconds 30] [--services vad,splitter,asr]
+    python bench/idle.py [--seconds 30] [--services vad,asr,gender]
 
 Prints CPU seconds per minute of each process while idle, as ``name=value`` lines
 (``idle_cpu_s_per_min_vad=0.02``). Issue 18's target: at most 0.03 s per minute per service.
@@ -33,7 +33,8 @@ def cpu_s(process: psutil.Process) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=30.0, help="how long to measure (default 30)")
-    parser.add_argument("--services", default="vad,splitter", help="services to start beside the orchestrator")
+    parser.add_argument("--services", default="vad,asr,gender", help="services to start beside the orchestrator "
+                        "(each must register without a producer upstream: not the splitter)")
     args = parser.parse_args()
     if args.seconds <= 0:
         raise SystemExit("bench/idle.py: --seconds must be positive")
