@@ -72,7 +72,7 @@ def test_forged_heartbeats_do_not_keep_a_killed_component_alive(make_orchestrato
                 dead_after = time.monotonic() - killed
                 break
         assert dead_after is not None, "the forged heartbeats kept the killed grabber alive"
-        assert dead_after < DEAD_AFTER_S + 0.75
+        assert dead_after < DEAD_AFTER_S + 1.0  # dead on time (a loaded machine may be late by some)
         assert listed(http)[grabber.id]["status"] == "dead"
         assert listed(http)[grabber.id]["heartbeats"] == 1
         for dealer, _ in forgers:
