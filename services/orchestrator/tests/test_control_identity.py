@@ -5,6 +5,8 @@ goes on beside it; a registration again gets a new key and the old one is refuse
 from __future__ import annotations
 
 import json
+import logging
+import re
 import time
 
 import httpx
@@ -130,3 +132,17 @@ def test_a_registration_again_gets_a_new_key_and_the_old_one_is_refused(http, zc
     assert [c["heartbeats"] for c in http.get("/components").json()["items"]] == [1]
     first.close()
     again.close()
+
+
+def test_refusals_are_logged_the_first_and_every_100th(orch, http, zctx, caplog):
+    caplog.set_level(logging.WARNING, logger="services.orchestrator.control")
+    vad = FakeComponent(zctx, http, component_body("vad", designation="vad", inputs=["audio/raw"]))
+    dealer = forger(zctx, orch.core.control_endpoint)
+    for _ in range(250):
+        forge(dealer, vad.id, None)
+    wait_until(lambda: refused_control(http.get("/metrics").text, "no_key") == 250, what="250 refusals")
+    logged = [re.search(r"reason=(\S+) component_id=(\S+) count=(\d+)", r.getMessage()) for r in caplog.records
+              if "event=control_refused" in r.getMessage()]
+    assert [m.groups() if m else None for m in logged] == [("no_key", vad.id, str(n)) for n in (1, 100, 200)]
+    assert drain(dealer) == []
+    vad.close()
