@@ -1,8 +1,9 @@
 """Registration with the orchestrator and the heartbeat thread.
 
 Registration is HTTP (``POST /components``), retried with exponential back-off
-until ``register_timeout_s``. After it, a thread owns a DEALER socket whose
-identity is the component id: it sends a heartbeat every
+until ``register_timeout_s``. After it, a thread owns a DEALER socket (its
+routing id left to the orchestrator's ROUTER): it sends a heartbeat, which names the component
+and carries the registration's ``control_key``, every
 ``heartbeat_interval_s`` (and at once when :meth:`ControlClient.poke` is
 called), and passes every state message the orchestrator pushes (peers and
 formats) to the data thread through an inproc PAIR socket. When the
@@ -56,6 +57,7 @@ class Registration:
     results_endpoint: str
     heartbeat_interval_s: float
     dead_after_s: float
+    control_key: str = ""  # this registration's control secret: every control message carries it
     peers: dict[str, list[str]] = field(default_factory=dict)
     formats: dict[str, dict[str, Any]] = field(default_factory=dict)
     peer_keys: dict[str, str] = field(default_factory=dict)  # producer endpoint -> its CURVE public key
@@ -251,7 +253,8 @@ class ControlClient:
         dealer = keep_alive(self._context.socket(zmq.DEALER))
         auth.secure_socket(dealer, self._curve)
         dealer.setsockopt(zmq.LINGER, 0)
-        dealer.setsockopt(zmq.IDENTITY, self.component_id.encode())
+        # no IDENTITY: the ROUTER gives each connection a routing id no peer can claim, and the
+        # heartbeat says who we are and proves it with the control key
         dealer.connect(self._registered.control_endpoint)
         return dealer
 
@@ -275,7 +278,8 @@ class ControlClient:
                     last_heard = next_beat = time.monotonic()
                     continue
                 if now >= next_beat or poked:
-                    beat = {"type": "heartbeat", "component_id": self.component_id, "stats": self._stats(),
+                    beat = {"type": "heartbeat", "component_id": self.component_id,
+                            "control_key": self._registered.control_key, "stats": self._stats(),
                             "sent_ns": self._clock_ns(), "clock": self.clock.report()}
                     dealer.send(json.dumps(beat, default=_jsonable).encode())
                     next_beat = now + self._registered.heartbeat_interval_s

@@ -144,6 +144,15 @@ def refused_peers(metrics_text: str, socket: str, *reasons: str) -> float:
                and (not reasons or sample.labels["reason"] in reasons))
 
 
+def refused_control(metrics_text: str, *reasons: str) -> float:
+    """``esiaf_refused_control_messages_total`` in a ``GET /metrics`` answer: the control messages
+    refused for these reasons (``no_key``, ``wrong_key``, ``wrong_peer_key``; every reason if none)."""
+    from prometheus_client.parser import text_string_to_metric_families
+    return sum(sample.value for family in text_string_to_metric_families(metrics_text) for sample in family.samples
+               if sample.name == "esiaf_refused_control_messages_total"
+               and (not reasons or sample.labels["reason"] in reasons))
+
+
 class Orchestrator:
     """The real orchestrator as a process on random loopback ports, with a real SQLite file."""
 

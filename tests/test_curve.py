@@ -3,6 +3,7 @@ them, components with allowed keys registering, exchanging audio and storing res
 no keys or unknown ones refused and counted; bad key files refused at start-up with one line."""
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -20,7 +21,7 @@ from zmq.utils.monitor import recv_monitor_message
 from esiaf import keys
 from esiaf.component import SetupError
 from esiaf.results import make_result
-from esiaf.testing import REPO, Orchestrator, free_port, poll, refused_peers
+from esiaf.testing import REPO, Orchestrator, free_port, poll, refused_control, refused_peers
 from esiaf.transport import Transport
 from tests.test_component import Sink, Source, run_on, start
 
@@ -129,6 +130,33 @@ def test_peers_without_keys_or_with_unknown_keys_are_refused_and_counted(curved,
         assert texts == ["from the member"]  # the refused handshakes above never let the others through
         items = curved.http.get("/components", params={"include_dead": "true"}).json()["items"]
         assert [c["heartbeats"] for c in items if c["component_id"] == registration["component_id"]] == [0]
+    finally:
+        context.destroy(linger=0)
+
+
+def test_a_registration_is_bound_to_the_curve_key_of_its_first_heartbeat(curved, curve_dir):
+    registration = curved.http.post("/components", json={"name": "asr", "designation": "speech"}).json()
+    server_key = zmq.auth.load_certificate(curve_dir / "orchestrator.key")[0]
+    beat = json.dumps({"type": "heartbeat", "component_id": registration["component_id"],
+                       "control_key": registration["control_key"], "stats": {}}).encode()
+    context = zmq.Context()
+    try:
+        dealers = {}
+        for name in ("sink", "source"):  # both keys allowed; the sink's heartbeats first
+            dealer = dealers[name] = context.socket(zmq.DEALER)
+            dealer.setsockopt(zmq.LINGER, 0)
+            dealer.curve_publickey, dealer.curve_secretkey = keys.key_pair(curve_dir / f"{name}.key_secret")
+            dealer.curve_serverkey = server_key
+            dealer.connect(registration["control_endpoint"])
+        owner, other = dealers["sink"], dealers["source"]
+        owner.send(beat)
+        assert owner.poll(10_000) and owner.recv_json()["type"] == "state"
+        other.send(beat)  # the right control key, from another allowed CURVE key: refused
+        poll(lambda: refused_control(curved.http.get("/metrics").text, "wrong_peer_key") == 1, timeout_s=10)
+        assert not other.poll(500)
+        owner.send(beat)
+        assert owner.poll(10_000) and owner.recv_json()["type"] == "state"
+        assert curved.component("asr")["heartbeats"] == 2
     finally:
         context.destroy(linger=0)
 

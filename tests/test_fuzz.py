@@ -3,6 +3,7 @@ sockets and at a component's audio input. Nothing crashes, and every valid resul
 them is stored."""
 from __future__ import annotations
 
+import json
 import random
 
 import numpy as np
@@ -52,6 +53,8 @@ def test_results_and_control_sockets_survive_10000_fuzzed_frames(orchestrator):
     dealer.setsockopt_string(zmq.IDENTITY, registration["component_id"])
     dealer.connect(registration["control_endpoint"])
     valid_sent = 0
+    heartbeat = json.dumps({"type": "heartbeat", "component_id": registration["component_id"],
+                            "control_key": registration["control_key"], "stats": {}}).encode()
     try:
         template = valid_result(0, stream="mutant")  # its mutants that still parse are not counted
         for n in range(10_000):
@@ -62,7 +65,7 @@ def test_results_and_control_sockets_survive_10000_fuzzed_frames(orchestrator):
             frames = [kind, mutate(rng, template)] + [rng.randbytes(3)] * rng.choice([0, 0, 0, 1])
             push.send_multipart(frames)
             if n % 5 == 0:
-                dealer.send(mutate(rng, b'{"type": "heartbeat", "component_id": "x", "stats": {}}'))
+                dealer.send(mutate(rng, heartbeat))
         poll(lambda: len(orchestrator.http.get("/results", params={"stream": "fuzz", "limit": 1000})
                          .json()["items"]) == valid_sent, timeout_s=60)
         assert orchestrator.process.poll() is None

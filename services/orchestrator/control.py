@@ -1,6 +1,17 @@
-"""The control plane: heartbeats in, full state out (ROUTER, one JSON frame per message)."""
+"""The control plane: heartbeats in, full state out (ROUTER, one JSON frame per message).
+
+A message names its component (``component_id``) and carries the secret that component's current
+registration was given (``control_key``): only then does it count as life, get an answer, and make
+its routing id the one state is pushed to. Anyone else who holds the token or an allowed CURVE key
+and knows a component id (``GET /components`` lists them) is refused, counted per reason and
+logged, the first and every 100th. With CURVE, a registration is also bound to the public key of
+its first accepted message. The ROUTER keeps libzmq's default for a routing id already connected:
+the newcomer is ignored (no ROUTER_HANDOVER, which would let a peer naming a live routing id take
+its pushes). See docs/protocol.md, "Control".
+"""
 from __future__ import annotations
 
+import hmac
 import json
 import logging
 import time
@@ -18,15 +29,16 @@ UNKNOWN = json.dumps({"type": "unknown"}).encode()
 
 
 class ControlPlane:
-    def __init__(self, socket: zmq.asyncio.Socket, registry: Registry) -> None:
+    def __init__(self, socket: zmq.asyncio.Socket, registry: Registry, bind_peer_key: bool = False) -> None:
         self.socket = socket
         self.registry = registry
+        self.bind_peer_key = bind_peer_key  # CURVE: the ZAP handler gives each message its peer's public key
         self.counters: Counter[str] = Counter()
 
     async def run(self) -> None:
         while True:
             try:
-                frames = await self.socket.recv_multipart()
+                frames = await self.socket.recv_multipart(copy=False)
             except zmq.Again:  # libzmq may signal a message that is not there
                 self.counters["spurious_wakeups"] += 1
                 continue
@@ -43,24 +55,57 @@ class ControlPlane:
         if count == 1 or count % 100 == 0:
             log.warning("event=bad_message plane=control count=%d %s", count, detail)
 
-    async def handle(self, frames: list[bytes]) -> None:
+    def _refuse(self, reason: str, component: Component) -> None:
+        """Counts a message refused for ``reason``; logs the first of each reason and every 100th."""
+        self.counters["refused"] += 1
+        key = f"refused_{reason}"
+        self.counters[key] += 1
+        if self.counters[key] == 1 or self.counters[key] % 100 == 0:
+            log.warning("event=control_refused reason=%s component_id=%s count=%d", reason,
+                        component.component_id, self.counters[key])
+
+    def _proven(self, component: Component, message: dict[str, Any], data: zmq.Frame) -> bool:
+        """The message carries the component's current control key (and, with CURVE, comes with the
+        public key its registration is bound to); else it is refused and counted."""
+        key = message.get("control_key")
+        if not isinstance(key, str):
+            self._refuse("no_key", component)
+            return False
+        if not hmac.compare_digest(key.encode(), component.control_key.encode()):
+            self._refuse("wrong_key", component)
+            return False
+        if self.bind_peer_key:
+            peer_key = str(data.get("User-Id"))  # its public key, Z85: what the ZAP handler (pyzmq) names it
+            if component.control_peer_key is None:
+                component.control_peer_key = peer_key
+            elif not hmac.compare_digest(peer_key.encode(), component.control_peer_key.encode()):
+                self._refuse("wrong_peer_key", component)
+                return False
+        return True
+
+    async def handle(self, frames: list[zmq.Frame]) -> None:
         if len(frames) != 2:
             self._bad(f"frames={len(frames)}")
             return
-        identity, data = frames
-        component = self.registry.get(identity.decode("utf-8", errors="replace"))
-        if component is None:
-            self.counters["unknown"] += 1
-            log.debug("event=unknown_component component_id=%r", identity[:80])
-            await self.socket.send_multipart([identity, UNKNOWN])
-            return
-        component.touch()  # any message counts as life, even a malformed one
+        route, data = frames[0].bytes, frames[1]
         try:
-            message = json.loads(data)
+            message = json.loads(data.bytes)
             kind = message["type"]
         except (ValueError, KeyError, TypeError, RecursionError) as exc:
-            self._bad(f"component_id={component.component_id} reason={str(exc)[:200]!r}")
+            self._bad(f"route={route[:80]!r} reason={str(exc)[:200]!r}")
             return
+        named = message.get("component_id")
+        component_id = named if isinstance(named, str) else route.decode("utf-8", errors="replace")
+        component = self.registry.get(component_id)
+        if component is None:
+            self.counters["unknown"] += 1
+            log.debug("event=unknown_component component_id=%r", component_id[:80])
+            await self.socket.send_multipart([route, UNKNOWN])
+            return
+        if not self._proven(component, message, data):
+            return  # neither life nor an answer: whoever sent it does not hold this registration
+        component.touch()
+        component.control_route = route  # state goes to the connection that proved the key last
         if kind != "heartbeat":
             self._bad(f"component_id={component.component_id} type={str(kind)[:50]!r}")
             return
@@ -84,7 +129,8 @@ class ControlPlane:
             await self.send(component, state)
 
     async def send(self, component: Component, message: dict[str, Any]) -> None:
-        # ROUTER drops messages to a peer that is not (yet) connected: the next heartbeat's
-        # answer carries the full state anyway.
-        await self.socket.send_multipart([component.component_id.encode(),
-                                          json.dumps(message).encode()])
+        # Only to the routing id that last presented the component's key; none yet: its first
+        # heartbeat's answer carries the full state. ROUTER drops messages to a peer that is gone.
+        if component.control_route is None:
+            return
+        await self.socket.send_multipart([component.control_route, json.dumps(message).encode()])

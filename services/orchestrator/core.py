@@ -130,14 +130,13 @@ class Orchestrator:
         self.guard.start()
         control_socket, self.control_endpoint = self._bind(zmq.ROUTER, settings.control_port,
                                                            "control", "control_port")
-        control_socket.setsockopt(zmq.ROUTER_HANDOVER, 1)
         results_socket, self.results_endpoint = self._bind(zmq.PULL, settings.results_port,
                                                            "results", "results_port")
         try:
             self._store = Store(settings.db_path, fresh=self.fresh)
         except StoreError as exc:
             raise StartupError(str(exc)) from None
-        self._control = ControlPlane(control_socket, self.registry)
+        self._control = ControlPlane(control_socket, self.registry, bind_peer_key=self.guard.mechanism == "curve")
         self._ingest = Ingest(results_socket, self.store, engine, self.hub, self.registry, metrics=self.metrics,
                              stream_end_grace_s=self.settings.stream_end_grace_s)
         self._ingest.on_assignments_changed = self._push_soon

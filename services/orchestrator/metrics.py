@@ -94,6 +94,10 @@ class StateCollector(Collector):
                                     "token), by socket and reason", labels=["socket", "reason"])
         for (socket, reason), count in sorted(core.guard.refused.items()):
             peers.add_metric([socket, reason], count)
+        control = _by_prefix(CounterMetricFamily(
+            "esiaf_refused_control_messages", "control messages refused: no_key, wrong_key (not the control_key "
+            "of the named component's registration), wrong_peer_key (CURVE: another key than its registration's)",
+            labels=["reason"]), core.control.counters, "refused_")
         open_fusions = GaugeMetricFamily("esiaf_open_fusions", "fusions waiting for results")
         open_fusions.add_metric([], len(core.ingest.engine.open))
         queued = GaugeMetricFamily("esiaf_store_queued_writes", "database writes not yet committed")
@@ -107,8 +111,8 @@ class StateCollector(Collector):
         limit.add_metric([], core.hub.max_queue)
         dropped = CounterMetricFamily("esiaf_websocket_dropped_clients", "websocket clients closed as too slow")
         dropped.add_metric([], core.hub.dropped_clients)
-        yield from (results, fused, revisions, refused, peers, bad, lost, open_fusions, queued, clients, depth, limit,
-                    dropped)
+        yield from (results, fused, revisions, refused, peers, control, bad, lost, open_fusions, queued, clients, depth,
+                    limit, dropped)
 
     def _components(self) -> Iterator:
         now_ns = time.time_ns()

@@ -102,6 +102,8 @@ class RegisterRequest(Strict):
 class RegisterResponse(BaseModel):
     component_id: str = Field(examples=["vad-5f3a9c"])
     control_endpoint: str = Field(examples=["tcp://127.0.0.1:5560"])
+    control_key: str = Field(description="this registration's control secret (a new one for every registration): "
+                             "every control message must carry it as `control_key`, else it is refused")
     results_endpoint: str = Field(examples=["tcp://127.0.0.1:5561"])
     heartbeat_interval_s: float
     dead_after_s: float

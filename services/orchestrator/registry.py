@@ -50,6 +50,12 @@ class Component:
     info: dict[str, Any]
     audio_public_key: str | None = None  # Z85 CURVE key of its audio output (with CURVE keys)
     incarnation: str | None = None  # the registering process's secret token: its own re-registrations
+    # this registration's control secret: every control message must carry it (a new one for every
+    # registration); the routing id that last presented it (state is pushed there only); with CURVE,
+    # the public key its first such message came with (every later one must come with it too)
+    control_key: str = field(default_factory=lambda: secrets.token_urlsafe(32))
+    control_route: bytes | None = None
+    control_peer_key: str | None = None
     registered_ns: int = field(default_factory=time.time_ns)
     last_seen_ns: int = field(default_factory=time.time_ns)
     last_seen_mono: float = field(default_factory=time.monotonic)

@@ -94,8 +94,7 @@ class FakeComponent:
         self.id = self.registration["component_id"]
         self.name = body["name"]
         self.dealer = ctx.socket(zmq.DEALER)
-        self.dealer.setsockopt(zmq.LINGER, 0)
-        self.dealer.setsockopt_string(zmq.IDENTITY, self.id)
+        self.dealer.setsockopt(zmq.LINGER, 0)  # no IDENTITY, as the SDK: the heartbeat names it
         self.dealer.connect(self.registration["control_endpoint"])
         self.push = ctx.socket(zmq.PUSH)
         self.push.setsockopt(zmq.LINGER, 0)
@@ -104,6 +103,7 @@ class FakeComponent:
 
     def heartbeat(self, stats: dict | None = None) -> None:
         self.dealer.send_json({"type": "heartbeat", "component_id": self.id,
+                               "control_key": self.registration["control_key"],
                                "stats": stats or {"inputs": {}, "outputs": {},
                                                   "results_sent": self.sequence, "info": {}}})
 
