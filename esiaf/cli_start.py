@@ -10,13 +10,12 @@ import logging
 import os
 import sys
 from dataclasses import dataclass
-from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from esiaf import auth
-from esiaf.cli_args import check_array, check_input, check_port_free, parse_without
-from esiaf.cli_follow import follow
+from esiaf.cli_args import check_array, check_inputs, check_port_free, expand_inputs, parse_without, stream_ids
+from esiaf.cli_follow import Stream, follow
 from esiaf.feed import FusedFeed
 from esiaf.launcher import START_TIMEOUT_S, Child, LaunchError, OrchestratorClient, Supervisor, fixed_ports, wait_until
 from esiaf.plugins import resolve as resolve_plugin
@@ -39,7 +38,10 @@ class Pipeline:
 
 
 def run(args: argparse.Namespace) -> int:
-    array, channels = check_array(args, check_input(args.input) if args.input else 0)
+    if args.input:  # every file and folder checked before anything starts
+        args.input = expand_inputs(args.input)
+    array, channels = check_array(args, check_inputs(args.input) if args.input else 0)
+    ids = stream_ids([path.stem for path in args.input] if args.input else ["mic"], args.stream_id)
     without = parse_without(args.without)
     wanted_plugins = [resolve_plugin(spec) for spec in args.plugins]  # a bad --with fails before anything starts
     services = known_services() | {p.name for p in wanted_plugins}
@@ -48,14 +50,14 @@ def run(args: argparse.Namespace) -> int:
               "ignored; a typo?", file=sys.stderr, flush=True)
     resolve_paths(args)
     check_port_free(args.host, args.port)
-    stream_id = args.stream_id = args.stream_id or "{}-{}".format(
-        args.input.stem if args.input else "mic", datetime.now().strftime("%Y%m%d-%H%M%S"))
+    args.stream_id = ids[0] if len(ids) == 1 else None
     url = f"http://{args.host}:{args.port}"
     workdir = args.workdir.resolve()
     # one token per run (or the one given): every service presents it, every query needs it
     os.environ[auth.TOKEN_ENV] = auth.token() or auth.new_token()
     auth.write_token(workdir / "token", os.environ[auth.TOKEN_ENV])
-    supervisor = Supervisor(workdir, env={"ESIAF_ORCHESTRATOR_URL": url, "ESIAF_STREAM_ID": stream_id})
+    supervisor = Supervisor(workdir, env={"ESIAF_ORCHESTRATOR_URL": url}
+                            | ({"ESIAF_STREAM_ID": ids[0]} if len(ids) == 1 else {}))
     client = OrchestratorClient(url)
     try:
         start_orchestrator(args, supervisor, client, workdir)
@@ -69,19 +71,35 @@ def run(args: argparse.Namespace) -> int:
             with_kinds = ", ".join(f"{n} ({k})" for n, k in zip(plugins, kinds, strict=True))
             print(f"esiaf: with {with_kinds}", file=sys.stderr)
         log.info("services: %s", ", ".join(pipeline.services))
-        with FusedFeed(f"ws://{args.host}:{args.port}/ws/fused?stream={stream_id}") as ws:
-            source = ["--input", str(args.input.resolve())] if args.input else ["--device", args.mic]
-            grabber = supervisor.start("grabber", source + (["--fast"] if args.fast else []),
-                                       env=pipeline.grabber_env)
-            print(f"esiaf: playing {args.input or args.mic} as stream {stream_id}; "
-                  f"orchestrator at {url} (API docs: {url}/docs; token in {shown_path(workdir / 'token')}); "
-                  f"logs in {shown_path(workdir / 'logs')}",
-                  file=sys.stderr, flush=True)
+        # one stream: only its results; several: every stream's, each line told by its stream_id
+        feed_url = f"ws://{args.host}:{args.port}/ws/fused" + (f"?stream={ids[0]}" if len(ids) == 1 else "")
+        with FusedFeed(feed_url) as ws:
+            streams = start_grabbers(args, supervisor, pipeline, ids)
+            print(f"esiaf: orchestrator at {url} (API docs: {url}/docs; token in {shown_path(workdir / 'token')}); "
+                  f"logs in {shown_path(workdir / 'logs')}", file=sys.stderr, flush=True)
             print(f"esiaf: dashboard at {url}/?token={os.environ[auth.TOKEN_ENV]}", file=sys.stderr, flush=True)
-            return follow(ws, supervisor, client, grabber, args)
+            return follow(ws, supervisor, client, streams, args)
     finally:
         client.close()
         supervisor.stop()
+
+
+def start_grabbers(args: argparse.Namespace, supervisor: Supervisor, pipeline: Pipeline,
+                   ids: list[str]) -> list[Stream]:
+    """A grabber per input, all at once, each playing its stream; with several, each is an instance of its
+    own (grabber-1, grabber-2, ...: logs/grabber-1.log, ...)."""
+    sources: list[list[str]] = [["--input", str(path.resolve())] for path in args.input] if args.input \
+        else [["--device", args.mic]]
+    streams = []
+    for n, (source, stream_id) in enumerate(zip(sources, ids, strict=True), start=1):
+        grabber = supervisor.start("grabber", source + (["--fast"] if args.fast else []),
+                                   env={**pipeline.grabber_env, "ESIAF_STREAM_ID": stream_id},
+                                   instance=f"grabber-{n}" if len(ids) > 1 else None)
+        shown = str(args.input[n - 1]) if args.input else args.mic
+        streams.append(Stream(stream_id, grabber, shown))
+        print(f"esiaf: playing {shown} as stream {stream_id}" + (f" ({grabber.name})" if len(ids) > 1 else ""),
+              file=sys.stderr, flush=True)
+    return streams
 
 
 def resolve_paths(args: argparse.Namespace) -> None:

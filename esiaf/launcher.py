@@ -82,17 +82,20 @@ class Supervisor:
     children: list[Child] = field(default_factory=list)
 
     def start(self, name: str, args: Sequence[str] = (), env: dict[str, str] | None = None,
-              target: list[str] | None = None) -> Child:
-        """Starts ``python -m services.<name>`` (or ``python <target...>``, a plug-in) with ``args``."""
+              target: list[str] | None = None, instance: str | None = None) -> Child:
+        """Starts ``python -m services.<name>`` (or ``python <target...>``, a plug-in) with ``args``;
+        ``instance``: one of several instances of the service, under this id (its child and log name)."""
         logs = self.workdir / "logs"
         logs.mkdir(parents=True, exist_ok=True)
-        log_path = logs / f"{name}.log"
+        log_path = logs / f"{instance or name}.log"
         child_env = {**os.environ, **self.env, **(env or {})}
+        if instance:
+            child_env[f"ESIAF_{name.upper()}_INSTANCE"] = instance
         child_env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), child_env.get("PYTHONPATH")]))
         command = [sys.executable, *(target or ["-m", f"services.{name}"]), *args]
-        child = Child(name, self._spawn(command, child_env, log_path, "wb"), log_path, command, child_env)
+        child = Child(instance or name, self._spawn(command, child_env, log_path, "wb"), log_path, command, child_env)
         self.children.append(child)
-        log.info("started service=%s pid=%d log=%s", name, child.process.pid, log_path)
+        log.info("started service=%s pid=%d log=%s", child.name, child.process.pid, log_path)
         return child
 
     @staticmethod

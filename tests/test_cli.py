@@ -25,14 +25,20 @@ class Client:
     def __init__(self, info):
         self.info = info
 
-    def component(self, name):
-        return {"name": name, "stats": {"info": self.info}}
+    def by_pid(self, pid):
+        return {"name": "grabber", "pid": pid, "stats": {"info": self.info}}
 
 
 def test_progress_on_long_files_only(capsys):
-    show_progress(Client({"played_s": 40.2, "duration_s": 300.0}))
-    show_progress(Client({"played_s": 10.0, "duration_s": 20.0}))
-    assert capsys.readouterr().err == "esiaf: played 40 of 300 s (13 %)\n"
+    import types
+
+    from esiaf.cli_follow import Stream
+    stream = Stream("robot1", types.SimpleNamespace(process=types.SimpleNamespace(pid=12)), "a.wav")
+    show_progress(Client({"played_s": 40.2, "duration_s": 300.0}), stream, several=False)
+    show_progress(Client({"played_s": 10.0, "duration_s": 20.0}), stream, several=False)
+    show_progress(Client({"played_s": 40.2, "duration_s": 300.0}), stream, several=True)
+    assert capsys.readouterr().err == ("esiaf: played 40 of 300 s (13 %)\n"
+                                       "esiaf: stream robot1: played 40 of 300 s (13 %)\n")
 
 
 def test_direction_emotion_and_gender_are_on_the_line_with_their_shares():
@@ -76,14 +82,14 @@ def _follow_a_played_file_that_never_ends(monkeypatch, serve):
     client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS})
     args = argparse.Namespace(stream_id="s", json=False, input="a.wav", serve=serve, mic=None)
     try:
-        return cli.follow(_Silent(polls=5), supervisor, client, grabber, args)
+        return cli.follow(_Silent(polls=5), supervisor, client, [cli_follow.Stream("s", grabber, "a.wav")], args)
     except LaunchError:  # the websocket went away while it still listened
         return "kept serving"
 
 
 def test_without_serve_the_launcher_gives_up_when_no_end_of_stream_comes(monkeypatch, capsys):
     assert _follow_a_played_file_that_never_ends(monkeypatch, serve=False) == 1
-    assert "no end of stream and no result" in capsys.readouterr().err
+    assert "no end of stream s and no result" in capsys.readouterr().err
 
 
 def test_serve_never_stops_the_services_on_its_own(monkeypatch, capsys):
