@@ -17,6 +17,8 @@ if TYPE_CHECKING:
     from esiaf.arrays import ArrayGeometry
 
 ANALYSERS = ("ssl", "emotion", "gender", "voiceid")  # what --without can leave out (the recogniser anchors every line)
+ON_SPEECH = ("asr", "emotion", "gender", "voiceid")  # the analysers on the VAD's output: what --replicas can scale
+MAX_REPLICAS = 8
 
 
 def check_input(path: Path) -> int:
@@ -146,6 +148,23 @@ def parse_without(text: str | None) -> set[str]:
     return names
 
 
+def parse_replicas(texts: Sequence[str], without: set[str]) -> dict[str, int]:
+    """``--replicas SERVICE=N`` (repeatable): how many instances of each analyser on the VAD's output
+    to start; each must be one this run starts."""
+    started = [name for name in ON_SPEECH if name not in without]
+    replicas: dict[str, int] = {}
+    for text in texts:
+        name, _, count = text.partition("=")
+        name = name.strip()
+        if not count.strip().isdigit() or not 1 <= int(count) <= MAX_REPLICAS:
+            raise LaunchError(f"--replicas takes SERVICE=N with N from 1 to {MAX_REPLICAS} (e.g. asr=2), not {text!r}")
+        if name not in started:
+            raise LaunchError(f"--replicas {text}: {name or 'no service'} is not an analyser this run starts on the "
+                              f"VAD's output ({', '.join(started)})")
+        replicas[name] = int(count)
+    return replicas
+
+
 def check_port_free(host: str, port: int) -> None:
     with socket.socket() as probe:
         # as the orchestrator will (uvicorn): connections of an earlier run in TIME_WAIT do not count
@@ -174,6 +193,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                      "(default: as the microphones need)")
     run.add_argument("--without", metavar="ANALYSERS", help="analysers to leave out, separated by commas: "
                      "emotion, gender, voiceid, ssl (e.g. --without emotion,gender on a slow robot)")
+    run.add_argument("--replicas", action="append", default=[], metavar="SERVICE=N", help="start N instances "
+                     f"(1 to {MAX_REPLICAS}) of an analyser on the VAD's output ({', '.join(ON_SPEECH)}), named "
+                     "SERVICE-1 ... SERVICE-N, that share the streams; repeatable (e.g. --replicas asr=2)")
     run.add_argument("--with", dest="plugins", action="append", default=[], metavar="FOLDER_OR_NAME",
                      help="also run your own analyser: a folder with a __main__.py, an installed component "
                      "(entry point group esiaf.components) or a module; repeatable")

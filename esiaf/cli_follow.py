@@ -96,8 +96,8 @@ def follow(ws, supervisor: Supervisor, client: OrchestratorClient, streams: list
     """Prints fused results until every stream has ended (files) or forever (mic, --serve)."""
     for stream in streams:
         def stream_start_ns(stream_id: str = stream.stream_id) -> int | None:
-            found = client.stream(stream_id)
-            return found["start_ns"] if found else None
+            found = client.stream(stream_id)  # as its grabber announced it (the launcher's has no source)
+            return found["start_ns"] if found and found.get("source") else None
 
         stream.origin_ns = wait_until(stream_start_ns, supervisor, f"the grabber to start playing {stream.source}",
                                       START_TIMEOUT_S, stream.grabber)

@@ -9,12 +9,21 @@ import functools
 import logging
 import os
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from esiaf import auth
-from esiaf.cli_args import check_array, check_inputs, check_port_free, expand_inputs, parse_without, stream_ids
+from esiaf.cli_args import (
+    check_array,
+    check_inputs,
+    check_port_free,
+    expand_inputs,
+    parse_replicas,
+    parse_without,
+    stream_ids,
+)
 from esiaf.cli_follow import Stream, follow
 from esiaf.feed import FusedFeed
 from esiaf.launcher import START_TIMEOUT_S, Child, LaunchError, OrchestratorClient, Supervisor, fixed_ports, wait_until
@@ -35,6 +44,7 @@ class Pipeline:
     grabber_env: dict[str, str]
     beamforming: bool  # grabber -> ssl -> beamformer -> vad
     labellers: list[str]  # the analysers on the VAD's output besides the recogniser
+    replicas: dict[str, int]  # analysers on the VAD's output run as several instances (--replicas)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
     array, channels = check_array(args, check_inputs(args.input) if args.input else 0)
     ids = stream_ids([path.stem for path in args.input] if args.input else ["mic"], args.stream_id)
     without = parse_without(args.without)
+    replicas = parse_replicas(args.replicas, without)
     wanted_plugins = [resolve_plugin(spec) for spec in args.plugins]  # a bad --with fails before anything starts
     services = known_services() | {p.name for p in wanted_plugins}
     for name in unknown_variables(os.environ, services):
@@ -62,15 +73,20 @@ def run(args: argparse.Namespace) -> int:
     try:
         start_orchestrator(args, supervisor, client, workdir)
         # every service at once (their imports and models load in parallel), then each must register
-        pipeline = start_services(args, supervisor, array, channels, without)
+        pipeline = start_services(args, supervisor, array, channels, without, replicas)
         plugins = {plugin.name: supervisor.start(plugin.name, target=plugin.target) for plugin in wanted_plugins}
         kinds, on_speech = wait_for_registration(client, supervisor, pipeline.services, plugins)
         pipeline.services.update(plugins)
         wait_for_subscriptions(client, supervisor, pipeline, on_speech)
+        if replicas:
+            reserve_streams(client, supervisor, pipeline, ids, on_speech)
         if plugins:
             with_kinds = ", ".join(f"{n} ({k})" for n, k in zip(plugins, kinds, strict=True))
             print(f"esiaf: with {with_kinds}", file=sys.stderr)
         log.info("services: %s", ", ".join(pipeline.services))
+        for name, count in replicas.items():
+            print(f"esiaf: {name} as {count} instances sharing the streams ({name}-1 ... {name}-{count})",
+                  file=sys.stderr, flush=True)
         # one stream: only its results; several: every stream's, each line told by its stream_id
         feed_url = f"ws://{args.host}:{args.port}/ws/fused" + (f"?stream={ids[0]}" if len(ids) == 1 else "")
         with FusedFeed(feed_url) as ws:
@@ -129,11 +145,13 @@ def start_orchestrator(args: argparse.Namespace, supervisor: Supervisor, client:
 
 
 def start_services(args: argparse.Namespace, supervisor: Supervisor, array: ArrayGeometry | None, channels: int,
-                   without: set[str]) -> Pipeline:
+                   without: set[str], replicas: dict[str, int]) -> Pipeline:
     """Starts the recogniser, the VAD (on the array steered at the talker, on the first channel or on
-    the mono input), the ssl service with an array, and the labellers on the VAD's output."""
-    services = {"asr": supervisor.start("asr", (["--grammar", args.grammar] if args.grammar else [])
-                                        + (["--backend", args.asr] if args.asr else []))}
+    the mono input), the ssl service with an array, and the labellers on the VAD's output (those in
+    ``replicas`` as that many instances: asr-1, asr-2, ...)."""
+    services = start_replicas(supervisor, "asr", replicas.get("asr", 1),
+                              (["--grammar", args.grammar] if args.grammar else [])
+                              + (["--backend", args.asr] if args.asr else []))
     grabber_env = {"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1", "ESIAF_GRABBER_CHUNK_MS": str(args.chunk_ms)}
     vad_env = {"ESIAF_VAD_BACKEND": args.vad} if args.vad else {}
     beamforming = array is not None and "ssl" not in without and not args.no_beamformer
@@ -160,8 +178,15 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
             grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"] = "2"
     labellers = [name for name in ("emotion", "gender", "voiceid") if name not in without]
     for name in labellers:  # on the VAD's output, like the recogniser
-        services[name] = supervisor.start(name)
-    return Pipeline(services, grabber_env, beamforming, labellers)
+        services.update(start_replicas(supervisor, name, replicas.get(name, 1)))
+    return Pipeline(services, grabber_env, beamforming, labellers, replicas)
+
+
+def start_replicas(supervisor: Supervisor, name: str, count: int, args: Sequence[str] = ()) -> dict[str, Child]:
+    """One instance of a service (under its name), or ``count`` sharing the streams: name-1, name-2, ..."""
+    if count == 1:
+        return {name: supervisor.start(name, args)}
+    return {f"{name}-{n}": supervisor.start(name, args, instance=f"{name}-{n}") for n in range(1, count + 1)}
 
 
 def wait_for_registration(client: OrchestratorClient, supervisor: Supervisor, services: dict[str, Child],
@@ -169,7 +194,8 @@ def wait_for_registration(client: OrchestratorClient, supervisor: Supervisor, se
     """Waits until every service and plug-in has registered; adds the plug-ins' result kinds to the
     fusion. Returns the plug-ins' kinds (in their order) and how many of them hear vad/speech."""
     for name, child in services.items():
-        wait_until(functools.partial(client.component, name), supervisor, f"the {name} service to register",
+        find = client.component if name in known_services() else client.instance  # asr, or asr-1 of --replicas
+        wait_until(functools.partial(find, name), supervisor, f"the {name} service to register",
                    START_TIMEOUT_S, child)
     registered = [wait_until(functools.partial(client.by_pid, child.process.pid), supervisor,
                              f"{name} (--with) to register", START_TIMEOUT_S, child)
@@ -193,9 +219,23 @@ def wait_for_subscriptions(client: OrchestratorClient, supervisor: Supervisor, p
                    "the beamformer to subscribe to ssl/audio", START_TIMEOUT_S, services["beamformer"])
         wait_until(lambda: topic_ready(client, "beamformer/audio", 1), supervisor,
                    "vad to subscribe to beamformer/audio", START_TIMEOUT_S, services["vad"])
-    labellers = pipeline.labellers
-    wait_until(lambda: topic_ready(client, "vad/speech", 1 + len(labellers) + on_speech), supervisor,
-               f"{', '.join(['asr', *labellers])} to subscribe to vad/speech", START_TIMEOUT_S, services["vad"])
+    # replicas subscribe to a stream's audio once they are given the stream: here, only the others count
+    waited = [name for name in ("asr", *pipeline.labellers) if name not in pipeline.replicas]
+    wait_until(lambda: topic_ready(client, "vad/speech", len(waited) + on_speech), supervisor,
+               f"{', '.join(waited) or 'the plug-ins'} to subscribe to vad/speech", START_TIMEOUT_S, services["vad"])
+
+
+def reserve_streams(client: OrchestratorClient, supervisor: Supervisor, pipeline: Pipeline, ids: list[str],
+                    on_speech: int) -> None:
+    """With --replicas: announces the streams before their grabbers play and waits until an instance of
+    each replicated service has taken each stream (subscribed to its speech). A grabber announces its
+    stream only as it starts playing; a replica told of it then could miss its first utterance."""
+    for stream_id in ids:
+        client.announce(stream_id, {"announced_by": "esiaf run", "before": "its grabber"})
+    subscriptions = len(pipeline.replicas) * len(ids) + len(pipeline.labellers) + 1 - len(pipeline.replicas)
+    wait_until(lambda: topic_ready(client, "vad/speech", subscriptions + on_speech), supervisor,
+               f"the instances of {', '.join(pipeline.replicas)} to take the streams", START_TIMEOUT_S,
+               pipeline.services["vad"])
 
 
 def array_env(service: str, args: argparse.Namespace, channels: int) -> dict[str, str]:

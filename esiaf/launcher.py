@@ -232,6 +232,11 @@ class OrchestratorClient:
     def component(self, name: str) -> dict[str, Any] | None:
         return next((c for c in self.components() if c.get("name") == name), None)
 
+    def instance(self, component_id: str) -> dict[str, Any] | None:
+        """The live component registered under this id (one of several instances of a service)."""
+        return next((c for c in self.components() if c.get("component_id") == component_id
+                     and c.get("status") == "alive"), None)
+
     def by_pid(self, pid: int) -> dict[str, Any] | None:
         """The live component a process registered (plug-ins: their name is their own)."""
         return next((c for c in self.components() if c.get("pid") == pid and c.get("status") == "alive"), None)
@@ -257,6 +262,12 @@ class OrchestratorClient:
             return None
         response.raise_for_status()
         return response.json()
+
+    def announce(self, stream_id: str, info: dict[str, Any]) -> None:
+        """Announces a stream ahead of its source (which announces it again, with its start)."""
+        response = self._http.put(f"{self.url}/streams/{stream_id}", json={"start_ns": time.time_ns(), "info": info})
+        if response.status_code != 200:
+            raise LaunchError(f"the orchestrator refused to announce stream {stream_id}: {response.text}")
 
     def close(self) -> None:
         self._http.close()

@@ -82,7 +82,7 @@ def _follow_a_played_file_that_never_ends(monkeypatch, serve):
     monkeypatch.setattr(cli_follow, "DRAIN_TIMEOUT_S", 0.0)  # where follow() reads it
     grabber = types.SimpleNamespace(process=types.SimpleNamespace(returncode=0))
     supervisor = types.SimpleNamespace(exited=lambda: [grabber])
-    client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS})
+    client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS, "source": "grabber-1"})
     args = argparse.Namespace(stream_id="s", json=False, input="a.wav", serve=serve, mic=None)
     try:
         return cli.follow(_Silent(polls=5), supervisor, client, [cli_follow.Stream("s", grabber, "a.wav")], args)
@@ -157,7 +157,7 @@ def _follow_two_streams_of_which_one_ends(monkeypatch, serve, b_returncode=0):
     monkeypatch.setattr(cli_follow, "DRAIN_TIMEOUT_S", 0.3)
     grabbers = [types.SimpleNamespace(process=types.SimpleNamespace(returncode=code)) for code in (0, b_returncode)]
     supervisor = types.SimpleNamespace(exited=lambda: grabbers, failure=lambda child: "service grabber-2 failed")
-    client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS})
+    client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS, "source": "grabber-1"})
     args = argparse.Namespace(json=False, input=["a.wav", "b.wav"], serve=serve, mic=None)
     streams = [cli_follow.Stream("a", grabbers[0], "a.wav"), cli_follow.Stream("b", grabbers[1], "b.wav")]
     feed = _Feed([{**fused(), "stream_id": "a"}, {**fused(), "stream_id": "other"},

@@ -1,7 +1,8 @@
 """Several inputs at once under ``esiaf run`` (issue 16): each ``--input`` (or each sound file of a
 folder) is played by a grabber instance of its own as a stream of its own; every stream gets its own
-sentences and its own stream_end, and the run ends once all have ended. ``--serve`` never ends the
-run on its own: SIGTERM does, cleanly. Bad inputs fail before any service starts."""
+sentences and its own stream_end, and the run ends once all have ended; ``--replicas asr=2`` shares
+them between two recognisers. ``--serve`` never ends the run on its own: SIGTERM does, cleanly. Bad
+inputs fail before any service starts."""
 from __future__ import annotations
 
 import os
@@ -94,6 +95,25 @@ def test_a_folder_of_four_is_four_streams_at_once_each_line_naming_its_stream(la
     assert len(texts) == sum(len(said) for said in truth.values()), texts  # each line belongs to a stream
 
 
+def test_replicas_of_the_recogniser_each_serve_streams_of_their_own(launch, tmp_path):
+    truth = synthesise(tmp_path / "wavs", ["robot1", "robot2", "robot3"])
+    run = launch("--input", str(tmp_path / "wavs"), "--replicas", "asr=2", "--fast", "--json", *RUN)
+    assert finished(run, 150) == 0, run.describe()
+    ids = streams_played(run)
+    served_by = {}
+    for name, stream_id in ids.items():
+        mine = [line for line in run.lines if line.get("type") == "fused_result" and line["stream_id"] == stream_id]
+        heard = [normalise(line["anchor"]["speech"]["hypotheses"][0]["text"]) for line in mine
+                 if line["revision"] == 1]
+        assert heard == truth[name], (name, heard, run.describe())  # announced ahead: nothing missed with --fast
+        served_by[name] = {line["anchor"]["instance"] for line in mine}
+    # each stream by one instance; announced one after the other, the least loaded takes the next
+    assert served_by == {"robot1": {"asr-1"}, "robot2": {"asr-2"}, "robot3": {"asr-1"}}, served_by
+    logs = run.workdir / "logs"
+    assert (logs / "asr-1.log").exists() and (logs / "asr-2.log").exists() and not (logs / "asr.log").exists()
+    assert "asr as 2 instances sharing the streams" in "".join(run.stderr)
+
+
 def test_serve_keeps_every_service_up_after_the_streams_ended_until_sigterm(launch, tmp_path):
     synthesise(tmp_path / "wavs", ["robot1", "robot2"])
     run = launch("--input", str(tmp_path / "wavs" / "robot1.wav"), "--input", str(tmp_path / "wavs" / "robot2.wav"),
@@ -132,6 +152,13 @@ def test_bad_inputs_fail_with_a_clear_message_before_anything_starts(tmp_path):
         ("--input", str(tmp_path / "papers")): f"input folder {tmp_path / 'papers'} holds no sound file",
         ("--input", str(wav), "--input", str(wav), "--stream-id", "one"):
             "--stream-id names the stream of a single input, not of 2",
+        ("--input", str(wav), "--replicas", "asr=0"): "--replicas takes SERVICE=N with N from 1 to 8",
+        ("--input", str(wav), "--replicas", "asr=9"): "--replicas takes SERVICE=N with N from 1 to 8",
+        ("--input", str(wav), "--replicas", "asr"): "--replicas takes SERVICE=N",
+        ("--input", str(wav), "--replicas", "emotion=2", "--without", "emotion"):
+            "--replicas emotion=2: emotion is not an analyser this run starts on the VAD's output (asr, gender, "
+            "voiceid)",
+        ("--input", str(wav), "--replicas", "orchestrator=2"): "--replicas orchestrator=2: orchestrator is not",
     }
     for args, message in cases.items():
         result = esiaf_run(tmp_path, *args)
