@@ -1,7 +1,7 @@
 """The ``esiaf`` command: ``esiaf run`` starts the whole pipeline as local processes.
 
     esiaf run --input FILE|FOLDER [--input ...] [--array SPEC] [--fast] [--grammar FILE|robocup] [--serve]
-              [--without emotion,...]
+              [--without emotion,...] [--replicas asr=2 ...]
     esiaf run --mic DEVICE [--array SPEC]
     esiaf eval robocup [--runs N] [--seed S] [--snr LO:HI] [--array SPEC] [-- RUN OPTIONS]
     esiaf keys DIR [--component NAME ...]      (CURVE key pairs: esiaf/keys.py)
@@ -11,10 +11,11 @@ output, like the recogniser) and the grabber (with a microphone array also the s
 beamformer, the VAD hearing the array steered at the talker; with ``--no-beamformer`` the channel
 splitter instead, the VAD hearing the first microphone), prints each fused result as one line as
 it arrives, and with ``--input`` exits once the file has been played and its last fused result
-printed. Several ``--input`` (or a folder) are played at once, each by a grabber of its own as a stream
-of its own; the run ends once every stream has ended. With ``--serve`` it never ends on its own:
-Ctrl-C or SIGTERM stops it. ``--without`` leaves analysers out; the orchestrator's default fusion waits only for
-the analysers that are running.
+printed. Several ``--input`` (or a folder) are played at once, each by a grabber of its own as a
+stream of its own; the run ends once every stream has ended. With ``--serve`` it never ends on its
+own: Ctrl-C or SIGTERM stops it. ``--replicas asr=2`` runs two recognisers that share the streams.
+``--without`` leaves analysers out; the orchestrator's default fusion waits only for the analysers
+that are running.
 """
 from __future__ import annotations
 
