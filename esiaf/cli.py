@@ -1,6 +1,7 @@
 """The ``esiaf`` command: ``esiaf run`` starts the whole pipeline as local processes.
 
-    esiaf run --input FILE [--array SPEC] [--fast] [--grammar FILE|robocup] [--serve] [--without emotion,...]
+    esiaf run --input FILE|FOLDER [--input ...] [--array SPEC] [--fast] [--grammar FILE|robocup] [--serve]
+              [--without emotion,...] [--replicas asr=2 ...]
     esiaf run --mic DEVICE [--array SPEC]
     esiaf eval robocup [--runs N] [--seed S] [--snr LO:HI] [--array SPEC] [-- RUN OPTIONS]
     esiaf keys DIR [--component NAME ...]      (CURVE key pairs: esiaf/keys.py)
@@ -10,12 +11,16 @@ output, like the recogniser) and the grabber (with a microphone array also the s
 beamformer, the VAD hearing the array steered at the talker; with ``--no-beamformer`` the channel
 splitter instead, the VAD hearing the first microphone), prints each fused result as one line as
 it arrives, and with ``--input`` exits once the file has been played and its last fused result
-printed. ``--without`` leaves analysers out; the orchestrator's default fusion waits only for
-the analysers that are running.
+printed. Several ``--input`` (or a folder) are played at once, each by a grabber of its own as a
+stream of its own; the run ends once every stream has ended. With ``--serve`` it never ends on its
+own: Ctrl-C or SIGTERM stops it. ``--replicas asr=2`` runs two recognisers that share the streams.
+``--without`` leaves analysers out; the orchestrator's default fusion waits only for the analysers
+that are running.
 """
 from __future__ import annotations
 
 import logging
+import signal
 import sys
 from collections.abc import Sequence
 
@@ -48,6 +53,15 @@ __all__ = ["ANALYSERS", "DRAIN_TIMEOUT_S", "LABELS", "LONG_FILE_S", "PROGRESS_EV
            "shown_path", "topic_ready"]
 
 
+class Terminated(Exception):
+    """SIGTERM came: stop every service and end the run, as asked (exit code 0)."""
+
+
+def _terminate(signum: int, frame: object) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second one must not cut the services' shutdown short
+    raise Terminated
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["eval"]:
@@ -59,8 +73,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(asctime)s %(levelname)s %(name)s %(message)s")
+    signal.signal(signal.SIGTERM, _terminate)  # like Ctrl-C, the services are stopped on the way out
     try:
         return run(args)
+    except Terminated:
+        print("esiaf: stopped (SIGTERM)", file=sys.stderr)
+        return 0
     except LaunchError as exc:
         print(f"esiaf: {exc}", file=sys.stderr)
         return 2

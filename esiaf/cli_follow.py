@@ -1,5 +1,6 @@
 """``esiaf run`` once the pipeline is up: each fused result printed as one line (or as JSON) as it
-arrives, progress and the orchestrator's health on stderr, until the stream has ended."""
+arrives, progress and the orchestrator's health on stderr, until every stream has ended. With several
+streams each line starts with its stream's id."""
 from __future__ import annotations
 
 import argparse
@@ -15,7 +16,7 @@ from websockets.exceptions import ConnectionClosed
 from esiaf.launcher import START_TIMEOUT_S, LaunchError, OrchestratorClient, Supervisor, wait_until
 
 LABELS = ("emotion", "gender", "voice_id")  # label aggregates shown on a line, in this order
-DRAIN_TIMEOUT_S = 30.0  # after the grabber has finished: wait this long for the next result at most
+DRAIN_TIMEOUT_S = 30.0  # after a grabber has finished: wait this long for the next result at most
 PROGRESS_EVERY_S = 10.0  # how often to say how much of a long file has been played
 LONG_FILE_S = 60.0
 
@@ -68,31 +69,46 @@ def format_line(fused: dict[str, Any], origin_ns: int) -> str:
 
 
 @dataclass
+class Stream:
+    """One input played as a stream: its grabber, and how far it has come."""
+    stream_id: str
+    grabber: Any  # the Child playing it
+    source: str  # the file or device, as the user named it
+    origin_ns: int = 0  # the stream's start: lines show times relative to it
+    done_at: float | None = None  # monotonic time its grabber finished playing
+    ended: bool = False  # its stream_end came
+    gave_up: bool = False  # no stream_end came in time (without --serve)
+    warned: bool = False  # --serve: said once that it did not end, or that its grabber failed
+    printed: int = 0
+
+
+@dataclass
 class Following:
     """What :func:`follow` keeps track of between two messages."""
-    origin_ns: int  # the stream's start: lines show times relative to it
+    streams: dict[str, Stream]
     next_progress: float  # monotonic time of the next progress and health report
-    grabber_done_at: float | None = None  # when the grabber finished playing the file
-    heard_at: float = 0.0  # when the last message arrived
-    warned: bool = False  # --serve: said once that the stream did not end
-    ended: bool = False
-    printed: int = 0
+    heard_at: float = 0.0  # when the last message of one of the streams arrived
     unhealthy: str = ""  # why the orchestrator said it is unhealthy, as last reported
 
 
-def follow(ws, supervisor: Supervisor, client: OrchestratorClient, grabber, args: argparse.Namespace) -> int:
-    """Prints fused results until the stream has ended (file) or forever (mic, --serve)."""
-    def stream_start_ns() -> int | None:
-        stream = client.stream(args.stream_id)
-        return stream["start_ns"] if stream else None
+def follow(ws, supervisor: Supervisor, client: OrchestratorClient, streams: list[Stream],
+           args: argparse.Namespace) -> int:
+    """Prints fused results until every stream has ended (files) or forever (mic, --serve)."""
+    for stream in streams:
+        def stream_start_ns(stream_id: str = stream.stream_id) -> int | None:
+            found = client.stream(stream_id)  # as its grabber announced it (the launcher's has no source)
+            return found["start_ns"] if found and found.get("source") else None
 
-    origin_ns = wait_until(stream_start_ns, supervisor, "the grabber to start playing", START_TIMEOUT_S, grabber)
-    if args.json:
-        print(json.dumps({"type": "stream_start", "stream_id": args.stream_id, "start_ns": origin_ns}), flush=True)
-    state = Following(origin_ns, next_progress=time.monotonic() + PROGRESS_EVERY_S)
+        stream.origin_ns = wait_until(stream_start_ns, supervisor, f"the grabber to start playing {stream.source}",
+                                      START_TIMEOUT_S, stream.grabber)
+        if args.json:
+            print(json.dumps({"type": "stream_start", "stream_id": stream.stream_id, "start_ns": stream.origin_ns}),
+                  flush=True)
+    state = Following({stream.stream_id: stream for stream in streams},
+                      next_progress=time.monotonic() + PROGRESS_EVERY_S)
     while True:
         report_when_due(state, client, args)
-        watch_children(state, supervisor, grabber)
+        watch_children(state, supervisor, args)
         if (code := check_drained(state, args)) is not None:
             return code
         try:
@@ -101,59 +117,85 @@ def follow(ws, supervisor: Supervisor, client: OrchestratorClient, grabber, args
             continue
         except ConnectionClosed as exc:
             raise LaunchError(f"the orchestrator closed the websocket: {exc}") from None
-        state.heard_at = time.monotonic()  # results still arriving: the drain deadline moves on
         if (code := show_message(state, message, args)) is not None:
             return code
 
 
 def report_when_due(state: Following, client: OrchestratorClient, args: argparse.Namespace) -> None:
-    """Every PROGRESS_EVERY_S: how much of the file has been played, and the orchestrator's health."""
+    """Every PROGRESS_EVERY_S: how much of each file has been played, and the orchestrator's health."""
     if time.monotonic() < state.next_progress:
         return
     state.next_progress += PROGRESS_EVERY_S
-    if args.input and state.grabber_done_at is None:
-        show_progress(client)
+    for stream in state.streams.values():
+        if args.input and stream.done_at is None:
+            show_progress(client, stream, len(state.streams) > 1)
     state.unhealthy = report_health(client, state.unhealthy)
 
 
-def watch_children(state: Following, supervisor: Supervisor, grabber) -> None:
-    """Notes the grabber's end; a grabber that failed ends the run, another service is restarted."""
+def watch_children(state: Following, supervisor: Supervisor, args: argparse.Namespace) -> None:
+    """Notes each grabber's end; a grabber that failed ends the run (with --serve: it is said once and the
+    services stay up), another service is restarted."""
+    grabbers = {id(stream.grabber): stream for stream in state.streams.values()}
     for child in supervisor.exited():
-        if child is grabber and child.process.returncode == 0:
-            state.grabber_done_at = state.grabber_done_at or time.monotonic()
-            continue
-        if child is grabber:
+        stream = grabbers.get(id(child))
+        if stream is None:
+            supervisor.restart_when_due(child)
+        elif child.process.returncode == 0:
+            stream.done_at = stream.done_at or time.monotonic()
+        elif not args.serve:
             raise LaunchError(supervisor.failure(child))
-        supervisor.restart_when_due(child)
+        elif not stream.warned:
+            stream.warned = True
+            stream.done_at = stream.done_at or time.monotonic()
+            print(f"esiaf: {supervisor.failure(child)}\nesiaf: stream {stream.stream_id} has no more audio; "
+                  f"still serving", file=sys.stderr, flush=True)
 
 
 def check_drained(state: Following, args: argparse.Namespace) -> int | None:
-    """The exit code once nothing has come for DRAIN_TIMEOUT_S after the file was played (None: go on)."""
-    if not state.grabber_done_at or state.ended or \
-            time.monotonic() - max(state.grabber_done_at, state.heard_at) <= DRAIN_TIMEOUT_S:
+    """Gives up on each stream that has not ended when nothing has come for DRAIN_TIMEOUT_S after its file
+    was played; the exit code once every stream has ended or been given up on (None: go on). With
+    --serve it only says so: the services stay up until the launcher is stopped."""
+    now = time.monotonic()
+    for stream in state.streams.values():
+        if not stream.done_at or stream.ended or stream.gave_up or \
+                now - max(stream.done_at, state.heard_at) <= DRAIN_TIMEOUT_S:
+            continue
+        if not args.serve:
+            stream.gave_up = True
+            print(f"esiaf: no end of stream {stream.stream_id} and no result {DRAIN_TIMEOUT_S:g} s after "
+                  f"{stream.source} was played; stopping{' it' if len(state.streams) > 1 else ''}", file=sys.stderr)
+        elif not stream.warned:  # --serve never stops the services on its own
+            stream.warned = True
+            print(f"esiaf: no end of stream {stream.stream_id} {DRAIN_TIMEOUT_S:g} s after {stream.source} was "
+                  f"played; still serving", file=sys.stderr, flush=True)
+    return run_over(state, args)
+
+
+def run_over(state: Following, args: argparse.Namespace) -> int | None:
+    """Without --serve, a file's run is over once every stream has ended (0) or been given up on (1)."""
+    if args.serve or args.mic or not all(s.ended or s.gave_up for s in state.streams.values()):
         return None
-    if not args.serve:
-        print(f"esiaf: no end of stream and no result {DRAIN_TIMEOUT_S:g} s after the file was played; "
-              f"stopping", file=sys.stderr)
-        return 1
-    if not state.warned:  # --serve never stops the services on its own
-        state.warned = True
-        print(f"esiaf: no end of stream {DRAIN_TIMEOUT_S:g} s after the file was played; still serving",
-              file=sys.stderr, flush=True)
-    return None
+    return 1 if any(s.gave_up for s in state.streams.values()) else 0
 
 
 def show_message(state: Following, message: dict[str, Any], args: argparse.Namespace) -> int | None:
-    """Prints a fused result, or the stream's end; returns the exit code once the run is over."""
+    """Prints a fused result, or a stream's end; returns the exit code once the run is over."""
+    stream = state.streams.get(message.get("stream_id", ""))
+    if stream is None:
+        return None  # another source's stream (a second robot streaming into this pipeline)
+    state.heard_at = time.monotonic()  # results still arriving: the drain deadlines move on
+    several = len(state.streams) > 1
     if message.get("type") == "stream_end":
-        state.ended = True
+        stream.ended = True
         if args.json:
             print(json.dumps(message), flush=True)
-        print(f"esiaf: stream ended, {state.printed} fused result(s)", file=sys.stderr, flush=True)
-        return None if args.serve or args.mic else 0
+        print(f"esiaf: stream {stream.stream_id + ' ' if several else ''}ended, {stream.printed} fused result(s)",
+              file=sys.stderr, flush=True)
+        return run_over(state, args)
     if message.get("type") == "fused_result":
-        state.printed += 1
-        print(json.dumps(message) if args.json else format_line(message, state.origin_ns), flush=True)
+        stream.printed += 1
+        line = json.dumps(message) if args.json else format_line(message, stream.origin_ns)
+        print(f"[{stream.stream_id}] {line}" if several and not args.json else line, flush=True)
     return None
 
 
@@ -170,13 +212,14 @@ def report_health(client: OrchestratorClient, reported: str) -> str:
     return problem
 
 
-def show_progress(client: OrchestratorClient) -> None:
-    """'esiaf: played 40 of 300 s (13 %)' on stderr, for files longer than LONG_FILE_S."""
+def show_progress(client: OrchestratorClient, stream: Stream, several: bool) -> None:
+    """'esiaf: played 40 of 300 s (13 %)' on stderr, for files longer than LONG_FILE_S (with several
+    streams: 'esiaf: stream robot1-...: played ...')."""
     try:
-        info = ((client.component("grabber") or {}).get("stats") or {}).get("info", {})
+        info = ((client.by_pid(stream.grabber.process.pid) or {}).get("stats") or {}).get("info", {})
     except httpx.HTTPError:
         return
     played_s, duration_s = info.get("played_s"), info.get("duration_s")
     if played_s is not None and duration_s and duration_s > LONG_FILE_S:
-        print(f"esiaf: played {played_s:.0f} of {duration_s:.0f} s ({100 * played_s / duration_s:.0f} %)",
-              file=sys.stderr, flush=True)
+        print(f"esiaf: {f'stream {stream.stream_id}: ' if several else ''}played {played_s:.0f} of "
+              f"{duration_s:.0f} s ({100 * played_s / duration_s:.0f} %)", file=sys.stderr, flush=True)

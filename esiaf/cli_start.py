@@ -9,14 +9,22 @@ import functools
 import logging
 import os
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
-from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from esiaf import auth
-from esiaf.cli_args import check_array, check_input, check_port_free, parse_without
-from esiaf.cli_follow import follow
+from esiaf.cli_args import (
+    check_array,
+    check_inputs,
+    check_port_free,
+    expand_inputs,
+    parse_replicas,
+    parse_without,
+    stream_ids,
+)
+from esiaf.cli_follow import Stream, follow
 from esiaf.feed import FusedFeed
 from esiaf.launcher import START_TIMEOUT_S, Child, LaunchError, OrchestratorClient, Supervisor, fixed_ports, wait_until
 from esiaf.plugins import resolve as resolve_plugin
@@ -36,11 +44,16 @@ class Pipeline:
     grabber_env: dict[str, str]
     beamforming: bool  # grabber -> ssl -> beamformer -> vad
     labellers: list[str]  # the analysers on the VAD's output besides the recogniser
+    replicas: dict[str, int]  # analysers on the VAD's output run as several instances (--replicas)
 
 
 def run(args: argparse.Namespace) -> int:
-    array, channels = check_array(args, check_input(args.input) if args.input else 0)
+    if args.input:  # every file and folder checked before anything starts
+        args.input = expand_inputs(args.input)
+    array, channels = check_array(args, check_inputs(args.input) if args.input else 0)
+    ids = stream_ids([path.stem for path in args.input] if args.input else ["mic"], args.stream_id)
     without = parse_without(args.without)
+    replicas = parse_replicas(args.replicas, without)
     wanted_plugins = [resolve_plugin(spec) for spec in args.plugins]  # a bad --with fails before anything starts
     services = known_services() | {p.name for p in wanted_plugins}
     for name in unknown_variables(os.environ, services):
@@ -48,40 +61,61 @@ def run(args: argparse.Namespace) -> int:
               "ignored; a typo?", file=sys.stderr, flush=True)
     resolve_paths(args)
     check_port_free(args.host, args.port)
-    stream_id = args.stream_id = args.stream_id or "{}-{}".format(
-        args.input.stem if args.input else "mic", datetime.now().strftime("%Y%m%d-%H%M%S"))
+    args.stream_id = ids[0] if len(ids) == 1 else None
     url = f"http://{args.host}:{args.port}"
     workdir = args.workdir.resolve()
     # one token per run (or the one given): every service presents it, every query needs it
     os.environ[auth.TOKEN_ENV] = auth.token() or auth.new_token()
     auth.write_token(workdir / "token", os.environ[auth.TOKEN_ENV])
-    supervisor = Supervisor(workdir, env={"ESIAF_ORCHESTRATOR_URL": url, "ESIAF_STREAM_ID": stream_id})
+    supervisor = Supervisor(workdir, env={"ESIAF_ORCHESTRATOR_URL": url}
+                            | ({"ESIAF_STREAM_ID": ids[0]} if len(ids) == 1 else {}))
     client = OrchestratorClient(url)
     try:
         start_orchestrator(args, supervisor, client, workdir)
         # every service at once (their imports and models load in parallel), then each must register
-        pipeline = start_services(args, supervisor, array, channels, without)
+        pipeline = start_services(args, supervisor, array, channels, without, replicas)
         plugins = {plugin.name: supervisor.start(plugin.name, target=plugin.target) for plugin in wanted_plugins}
         kinds, on_speech = wait_for_registration(client, supervisor, pipeline.services, plugins)
         pipeline.services.update(plugins)
         wait_for_subscriptions(client, supervisor, pipeline, on_speech)
+        if replicas:
+            reserve_streams(client, supervisor, pipeline, ids, on_speech)
         if plugins:
             with_kinds = ", ".join(f"{n} ({k})" for n, k in zip(plugins, kinds, strict=True))
             print(f"esiaf: with {with_kinds}", file=sys.stderr)
         log.info("services: %s", ", ".join(pipeline.services))
-        with FusedFeed(f"ws://{args.host}:{args.port}/ws/fused?stream={stream_id}") as ws:
-            source = ["--input", str(args.input.resolve())] if args.input else ["--device", args.mic]
-            grabber = supervisor.start("grabber", source + (["--fast"] if args.fast else []),
-                                       env=pipeline.grabber_env)
-            print(f"esiaf: playing {args.input or args.mic} as stream {stream_id}; "
-                  f"orchestrator at {url} (API docs: {url}/docs; token in {shown_path(workdir / 'token')}); "
-                  f"logs in {shown_path(workdir / 'logs')}",
+        for name, count in replicas.items():
+            print(f"esiaf: {name} as {count} instances sharing the streams ({name}-1 ... {name}-{count})",
                   file=sys.stderr, flush=True)
+        # one stream: only its results; several: every stream's, each line told by its stream_id
+        feed_url = f"ws://{args.host}:{args.port}/ws/fused" + (f"?stream={ids[0]}" if len(ids) == 1 else "")
+        with FusedFeed(feed_url) as ws:
+            streams = start_grabbers(args, supervisor, pipeline, ids)
+            print(f"esiaf: orchestrator at {url} (API docs: {url}/docs; token in {shown_path(workdir / 'token')}); "
+                  f"logs in {shown_path(workdir / 'logs')}", file=sys.stderr, flush=True)
             print(f"esiaf: dashboard at {url}/?token={os.environ[auth.TOKEN_ENV]}", file=sys.stderr, flush=True)
-            return follow(ws, supervisor, client, grabber, args)
+            return follow(ws, supervisor, client, streams, args)
     finally:
         client.close()
         supervisor.stop()
+
+
+def start_grabbers(args: argparse.Namespace, supervisor: Supervisor, pipeline: Pipeline,
+                   ids: list[str]) -> list[Stream]:
+    """A grabber per input, all at once, each playing its stream; with several, each is an instance of its
+    own (grabber-1, grabber-2, ...: logs/grabber-1.log, ...)."""
+    sources: list[list[str]] = [["--input", str(path.resolve())] for path in args.input] if args.input \
+        else [["--device", args.mic]]
+    streams = []
+    for n, (source, stream_id) in enumerate(zip(sources, ids, strict=True), start=1):
+        grabber = supervisor.start("grabber", source + (["--fast"] if args.fast else []),
+                                   env={**pipeline.grabber_env, "ESIAF_STREAM_ID": stream_id},
+                                   instance=f"grabber-{n}" if len(ids) > 1 else None)
+        shown = str(args.input[n - 1]) if args.input else args.mic
+        streams.append(Stream(stream_id, grabber, shown))
+        print(f"esiaf: playing {shown} as stream {stream_id}" + (f" ({grabber.name})" if len(ids) > 1 else ""),
+              file=sys.stderr, flush=True)
+    return streams
 
 
 def resolve_paths(args: argparse.Namespace) -> None:
@@ -111,11 +145,13 @@ def start_orchestrator(args: argparse.Namespace, supervisor: Supervisor, client:
 
 
 def start_services(args: argparse.Namespace, supervisor: Supervisor, array: ArrayGeometry | None, channels: int,
-                   without: set[str]) -> Pipeline:
+                   without: set[str], replicas: dict[str, int]) -> Pipeline:
     """Starts the recogniser, the VAD (on the array steered at the talker, on the first channel or on
-    the mono input), the ssl service with an array, and the labellers on the VAD's output."""
-    services = {"asr": supervisor.start("asr", (["--grammar", args.grammar] if args.grammar else [])
-                                        + (["--backend", args.asr] if args.asr else []))}
+    the mono input), the ssl service with an array, and the labellers on the VAD's output (those in
+    ``replicas`` as that many instances: asr-1, asr-2, ...)."""
+    services = start_replicas(supervisor, "asr", replicas.get("asr", 1),
+                              (["--grammar", args.grammar] if args.grammar else [])
+                              + (["--backend", args.asr] if args.asr else []))
     grabber_env = {"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1", "ESIAF_GRABBER_CHUNK_MS": str(args.chunk_ms)}
     vad_env = {"ESIAF_VAD_BACKEND": args.vad} if args.vad else {}
     beamforming = array is not None and "ssl" not in without and not args.no_beamformer
@@ -142,8 +178,15 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
             grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"] = "2"
     labellers = [name for name in ("emotion", "gender", "voiceid") if name not in without]
     for name in labellers:  # on the VAD's output, like the recogniser
-        services[name] = supervisor.start(name)
-    return Pipeline(services, grabber_env, beamforming, labellers)
+        services.update(start_replicas(supervisor, name, replicas.get(name, 1)))
+    return Pipeline(services, grabber_env, beamforming, labellers, replicas)
+
+
+def start_replicas(supervisor: Supervisor, name: str, count: int, args: Sequence[str] = ()) -> dict[str, Child]:
+    """One instance of a service (under its name), or ``count`` sharing the streams: name-1, name-2, ..."""
+    if count == 1:
+        return {name: supervisor.start(name, args)}
+    return {f"{name}-{n}": supervisor.start(name, args, instance=f"{name}-{n}") for n in range(1, count + 1)}
 
 
 def wait_for_registration(client: OrchestratorClient, supervisor: Supervisor, services: dict[str, Child],
@@ -151,7 +194,8 @@ def wait_for_registration(client: OrchestratorClient, supervisor: Supervisor, se
     """Waits until every service and plug-in has registered; adds the plug-ins' result kinds to the
     fusion. Returns the plug-ins' kinds (in their order) and how many of them hear vad/speech."""
     for name, child in services.items():
-        wait_until(functools.partial(client.component, name), supervisor, f"the {name} service to register",
+        find = client.component if name in known_services() else client.instance  # asr, or asr-1 of --replicas
+        wait_until(functools.partial(find, name), supervisor, f"the {name} service to register",
                    START_TIMEOUT_S, child)
     registered = [wait_until(functools.partial(client.by_pid, child.process.pid), supervisor,
                              f"{name} (--with) to register", START_TIMEOUT_S, child)
@@ -175,9 +219,23 @@ def wait_for_subscriptions(client: OrchestratorClient, supervisor: Supervisor, p
                    "the beamformer to subscribe to ssl/audio", START_TIMEOUT_S, services["beamformer"])
         wait_until(lambda: topic_ready(client, "beamformer/audio", 1), supervisor,
                    "vad to subscribe to beamformer/audio", START_TIMEOUT_S, services["vad"])
-    labellers = pipeline.labellers
-    wait_until(lambda: topic_ready(client, "vad/speech", 1 + len(labellers) + on_speech), supervisor,
-               f"{', '.join(['asr', *labellers])} to subscribe to vad/speech", START_TIMEOUT_S, services["vad"])
+    # replicas subscribe to a stream's audio once they are given the stream: here, only the others count
+    waited = [name for name in ("asr", *pipeline.labellers) if name not in pipeline.replicas]
+    wait_until(lambda: topic_ready(client, "vad/speech", len(waited) + on_speech), supervisor,
+               f"{', '.join(waited) or 'the plug-ins'} to subscribe to vad/speech", START_TIMEOUT_S, services["vad"])
+
+
+def reserve_streams(client: OrchestratorClient, supervisor: Supervisor, pipeline: Pipeline, ids: list[str],
+                    on_speech: int) -> None:
+    """With --replicas: announces the streams before their grabbers play and waits until an instance of
+    each replicated service has taken each stream (subscribed to its speech). A grabber announces its
+    stream only as it starts playing; a replica told of it then could miss its first utterance."""
+    for stream_id in ids:
+        client.announce(stream_id, {"announced_by": "esiaf run", "before": "its grabber"})
+    subscriptions = len(pipeline.replicas) * len(ids) + len(pipeline.labellers) + 1 - len(pipeline.replicas)
+    wait_until(lambda: topic_ready(client, "vad/speech", subscriptions + on_speech), supervisor,
+               f"the instances of {', '.join(pipeline.replicas)} to take the streams", START_TIMEOUT_S,
+               pipeline.services["vad"])
 
 
 def array_env(service: str, args: argparse.Namespace, channels: int) -> dict[str, str]:

@@ -33,7 +33,8 @@ class FusedFeed:
 
     def recv(self, timeout: float) -> str | bytes:
         if self.ws is None:
-            url = self.url + (f"&after_seq={self.last_seq}" if self.last_seq is not None else "")
+            after = f"after_seq={self.last_seq}" if self.last_seq is not None else ""
+            url = self.url + ("&" if "?" in self.url else "?") + after if after else self.url
             try:
                 self.ws = connect(url, open_timeout=timeout, additional_headers=auth.headers())
             except (OSError, TimeoutError, WebSocketException) as exc:  # not back yet, or going away again

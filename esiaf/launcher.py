@@ -82,17 +82,20 @@ class Supervisor:
     children: list[Child] = field(default_factory=list)
 
     def start(self, name: str, args: Sequence[str] = (), env: dict[str, str] | None = None,
-              target: list[str] | None = None) -> Child:
-        """Starts ``python -m services.<name>`` (or ``python <target...>``, a plug-in) with ``args``."""
+              target: list[str] | None = None, instance: str | None = None) -> Child:
+        """Starts ``python -m services.<name>`` (or ``python <target...>``, a plug-in) with ``args``;
+        ``instance``: one of several instances of the service, under this id (its child and log name)."""
         logs = self.workdir / "logs"
         logs.mkdir(parents=True, exist_ok=True)
-        log_path = logs / f"{name}.log"
+        log_path = logs / f"{instance or name}.log"
         child_env = {**os.environ, **self.env, **(env or {})}
+        if instance:
+            child_env[f"ESIAF_{name.upper()}_INSTANCE"] = instance
         child_env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), child_env.get("PYTHONPATH")]))
         command = [sys.executable, *(target or ["-m", f"services.{name}"]), *args]
-        child = Child(name, self._spawn(command, child_env, log_path, "wb"), log_path, command, child_env)
+        child = Child(instance or name, self._spawn(command, child_env, log_path, "wb"), log_path, command, child_env)
         self.children.append(child)
-        log.info("started service=%s pid=%d log=%s", name, child.process.pid, log_path)
+        log.info("started service=%s pid=%d log=%s", child.name, child.process.pid, log_path)
         return child
 
     @staticmethod
@@ -229,6 +232,11 @@ class OrchestratorClient:
     def component(self, name: str) -> dict[str, Any] | None:
         return next((c for c in self.components() if c.get("name") == name), None)
 
+    def instance(self, component_id: str) -> dict[str, Any] | None:
+        """The live component registered under this id (one of several instances of a service)."""
+        return next((c for c in self.components() if c.get("component_id") == component_id
+                     and c.get("status") == "alive"), None)
+
     def by_pid(self, pid: int) -> dict[str, Any] | None:
         """The live component a process registered (plug-ins: their name is their own)."""
         return next((c for c in self.components() if c.get("pid") == pid and c.get("status") == "alive"), None)
@@ -254,6 +262,12 @@ class OrchestratorClient:
             return None
         response.raise_for_status()
         return response.json()
+
+    def announce(self, stream_id: str, info: dict[str, Any]) -> None:
+        """Announces a stream ahead of its source (which announces it again, with its start)."""
+        response = self._http.put(f"{self.url}/streams/{stream_id}", json={"start_ns": time.time_ns(), "info": info})
+        if response.status_code != 200:
+            raise LaunchError(f"the orchestrator refused to announce stream {stream_id}: {response.text}")
 
     def close(self) -> None:
         self._http.close()

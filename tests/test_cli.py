@@ -1,4 +1,7 @@
 """The launcher's own output: one readable line per fused result, progress on long files."""
+import json
+import time
+
 from esiaf.cli import format_line, show_progress
 
 ORIGIN_NS = 1_700_000_000_000_000_000
@@ -25,14 +28,20 @@ class Client:
     def __init__(self, info):
         self.info = info
 
-    def component(self, name):
-        return {"name": name, "stats": {"info": self.info}}
+    def by_pid(self, pid):
+        return {"name": "grabber", "pid": pid, "stats": {"info": self.info}}
 
 
 def test_progress_on_long_files_only(capsys):
-    show_progress(Client({"played_s": 40.2, "duration_s": 300.0}))
-    show_progress(Client({"played_s": 10.0, "duration_s": 20.0}))
-    assert capsys.readouterr().err == "esiaf: played 40 of 300 s (13 %)\n"
+    import types
+
+    from esiaf.cli_follow import Stream
+    stream = Stream("robot1", types.SimpleNamespace(process=types.SimpleNamespace(pid=12)), "a.wav")
+    show_progress(Client({"played_s": 40.2, "duration_s": 300.0}), stream, several=False)
+    show_progress(Client({"played_s": 10.0, "duration_s": 20.0}), stream, several=False)
+    show_progress(Client({"played_s": 40.2, "duration_s": 300.0}), stream, several=True)
+    assert capsys.readouterr().err == ("esiaf: played 40 of 300 s (13 %)\n"
+                                       "esiaf: stream robot1: played 40 of 300 s (13 %)\n")
 
 
 def test_direction_emotion_and_gender_are_on_the_line_with_their_shares():
@@ -73,17 +82,17 @@ def _follow_a_played_file_that_never_ends(monkeypatch, serve):
     monkeypatch.setattr(cli_follow, "DRAIN_TIMEOUT_S", 0.0)  # where follow() reads it
     grabber = types.SimpleNamespace(process=types.SimpleNamespace(returncode=0))
     supervisor = types.SimpleNamespace(exited=lambda: [grabber])
-    client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS})
+    client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS, "source": "grabber-1"})
     args = argparse.Namespace(stream_id="s", json=False, input="a.wav", serve=serve, mic=None)
     try:
-        return cli.follow(_Silent(polls=5), supervisor, client, grabber, args)
+        return cli.follow(_Silent(polls=5), supervisor, client, [cli_follow.Stream("s", grabber, "a.wav")], args)
     except LaunchError:  # the websocket went away while it still listened
         return "kept serving"
 
 
 def test_without_serve_the_launcher_gives_up_when_no_end_of_stream_comes(monkeypatch, capsys):
     assert _follow_a_played_file_that_never_ends(monkeypatch, serve=False) == 1
-    assert "no end of stream and no result" in capsys.readouterr().err
+    assert "no end of stream s and no result" in capsys.readouterr().err
 
 
 def test_serve_never_stops_the_services_on_its_own(monkeypatch, capsys):
@@ -122,3 +131,56 @@ def test_esiaf_run_names_a_misspelt_variable_before_it_starts_anything():
                               env={**os.environ, "ESIAF_VDA_DB_MIN": "3"}, timeout=60)
     assert done.returncode == 2, done.stderr
     assert done.stderr.startswith("esiaf: ESIAF_VDA_DB_MIN names no service ("), done.stderr
+
+
+class _Feed:
+    """A websocket that delivers ``messages``, then nothing (each receive waits its timeout) until,
+    after ``polls`` silent receives, the orchestrator 'closes' it."""
+
+    def __init__(self, messages, polls):
+        self.messages, self.polls = [json.dumps(m) for m in messages], polls
+
+    def recv(self, timeout):
+        if self.messages:
+            return self.messages.pop(0)
+        time.sleep(timeout)
+        _Silent.recv(self, timeout)  # type: ignore[arg-type]  # the same countdown to a closed websocket
+
+
+def _follow_two_streams_of_which_one_ends(monkeypatch, serve, b_returncode=0):
+    import argparse
+    import types
+
+    from esiaf import cli_follow
+    from esiaf.launcher import LaunchError
+
+    monkeypatch.setattr(cli_follow, "DRAIN_TIMEOUT_S", 0.3)
+    grabbers = [types.SimpleNamespace(process=types.SimpleNamespace(returncode=code)) for code in (0, b_returncode)]
+    supervisor = types.SimpleNamespace(exited=lambda: grabbers, failure=lambda child: "service grabber-2 failed")
+    client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS, "source": "grabber-1"})
+    args = argparse.Namespace(json=False, input=["a.wav", "b.wav"], serve=serve, mic=None)
+    streams = [cli_follow.Stream("a", grabbers[0], "a.wav"), cli_follow.Stream("b", grabbers[1], "b.wav")]
+    feed = _Feed([{**fused(), "stream_id": "a"}, {**fused(), "stream_id": "other"},
+                  {"type": "stream_end", "stream_id": "a"}], polls=10)
+    try:
+        return cli_follow.follow(feed, supervisor, client, streams, args)
+    except LaunchError:
+        return "kept serving"
+
+
+def test_several_streams_each_end_or_are_given_up_on_before_the_run_ends(monkeypatch, capsys):
+    assert _follow_two_streams_of_which_one_ends(monkeypatch, serve=False) == 1
+    out, err = capsys.readouterr()
+    assert out == "[a] [12.31–14.05 s] 'go forward ten meters' (p=0.93)\n"  # another source's stream is not shown
+    assert "esiaf: stream a ended, 1 fused result(s)" in err
+    assert "no end of stream b and no result 0.3 s after b.wav was played; stopping it" in err
+    assert "no end of stream a" not in err
+
+
+def test_serve_goes_on_after_a_stream_without_end_and_a_failed_grabber(monkeypatch, capsys):
+    assert _follow_two_streams_of_which_one_ends(monkeypatch, serve=True) == "kept serving"
+    assert capsys.readouterr().err.count("no end of stream b 0.3 s after b.wav was played; still serving") == 1
+    assert _follow_two_streams_of_which_one_ends(monkeypatch, serve=True, b_returncode=1) == "kept serving"
+    err = capsys.readouterr().err
+    assert err.count("service grabber-2 failed\nesiaf: stream b has no more audio; still serving") == 1
+    assert "no end of stream" not in err
