@@ -334,9 +334,14 @@ class FusionEngine:
                     fusion.results[type_name][result.id] = result
         return fusion
 
+    def open_orphan(self, settings: FusionSettings, anchor: StoredResult, missing: dict[str, tuple[str, str]],
+                    received_ns: int) -> list[FusedResult]:  # a stand-in anchor (orphans.py)
+        return self._open(settings, anchor, self._memory(anchor.stream_id), received_ns, missing)
+
     def _open(self, settings: FusionSettings, anchor: StoredResult, memory: StreamMemory,
-              received_ns: int) -> list[FusedResult]:
+              received_ns: int, missing: dict[str, tuple[str, str]] | None = None) -> list[FusedResult]:
         fusion = self._new_fusion(settings, self._allocate_id(), anchor, memory)
+        fusion.missing.update(missing or {})
         if settings.fuse:
             types = set(settings.fuse)
             for component in self._live():

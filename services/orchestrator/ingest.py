@@ -20,7 +20,8 @@ from .codec import BadResult, parse_result, result_to_json, type_name
 from .fusion import FusedResult, FusionEngine, StoredResult
 from .hub import Hub, Outgoing
 from .metrics import Metrics
-from .registry import Registry
+from .orphans import fuse_orphans
+from .registry import Component, Registry
 from .settings import FusionSettings
 from .store import Store, StoreUnavailable
 from .streams import StreamEnds
@@ -172,11 +173,15 @@ class Ingest:
         if self.counters[key] == 1 or self.counters[key] % 100 == 0:
             log.warning("event=message_refused reason=%s count=%d detail=%.300s", reason, self.counters[key], detail)
 
-    def components_gone(self, names: list[str]) -> None:
-        """Fusions and stream ends stop waiting for components that died or left."""
+    def components_gone(self, gone: list[Component]) -> None:
+        """Fusions and stream ends stop waiting for components that died or left; what a dead one
+        left unanswered on the streams it served is fused without it (orphans.py)."""
         def work() -> list[Outgoing]:
-            return [self._store_fused(f) for name in names
-                    for f in self.engine.on_component_gone(name)]
+            now_ns = self._clock_ns()
+            return [self._store_fused(f) for c in gone for f in [
+                *self.engine.on_component_gone(c.name),
+                *(f for s in c.served_at_departure if c.status == "dead"
+                  for f in fuse_orphans(self.engine, s, c.name, c.designation, now_ns))]]
         self._transaction(work, after="components_gone")
         self._publish(self.stream_ends())
 

@@ -191,6 +191,10 @@ class Heartbeater:
                 while component.recv(0) is not None:
                     pass
 
+    def drop(self, component: FakeComponent) -> None:
+        """Stops beating for ``component``: it falls silent, as if killed."""
+        self._components.remove(component)
+
     def stop(self) -> None:
         self._stop.set()
         self._thread.join(5)

@@ -10,6 +10,7 @@ from services.orchestrator.aggregate import label_aggregate, overlaps, ssl_aggre
 from services.orchestrator.coverage import GAP_TOLERANCE_NS, Coverage, StoredResult
 from services.orchestrator.fusion import FusionEngine
 from services.orchestrator.latency import Latencies
+from services.orchestrator.orphans import fuse_orphans, unanswered_segments
 from services.orchestrator.settings import FusionSettings, TimeoutSettings
 
 MS = 1_000_000
@@ -240,3 +241,30 @@ def test_a_second_stream_waits_for_an_analyser_that_has_not_covered_it_yet():
     assert engine.on_result(result(3, "asr", "speech", 2 * S, 3 * S, stream="robot3"), 3 * S) == []
     [timed_out] = engine.on_timer(10 * S)
     assert timed_out.json["completion"] == "timed_out" and timed_out.json["missing_components"] == ["emo"]
+
+
+def test_segments_a_dead_recogniser_left_unanswered_are_fused_without_it_once():
+    engine, clock = engine_with(("emo", "emotion"))
+    vad = [result(10 + i, "vad", "vad", i * 3 * S, i * 3 * S + 2 * S, vad={"probability": 1.0}) for i in range(4)]
+    engine.on_result(vad[0], 2 * S)
+    assert engine.on_result(result(1, "asr", "speech", 0, 2 * S, speech={"hypotheses": [{"text": "hi"}]}),
+                            2 * S) == []
+    assert engine.open  # waiting for emo
+    engine.on_result(result(2, "emo", "emotion", 0, 2 * S, emotion={"label": "angry"}), 2 * S)
+    assert not engine.open
+    for segment in vad[1:3]:  # the recogniser takes them, then dies before answering
+        engine.on_result(segment, segment.end_ns)
+    engine.on_result(result(3, "emo", "emotion", 3 * S, 5 * S, emotion={"label": "sad"}), 5 * S)
+    assert [s.id for s in unanswered_segments(engine, "s", "asr")] == [11, 12]
+    assert unanswered_segments(engine, "s", "emo") == [vad[2]]  # (emo answered the first two)
+    clock.now = 9 * S
+    [fused] = fuse_orphans(engine, "s", "asr", "speech", 9 * S)  # segment 11: emo has covered it
+    assert fused.json["anchor"]["type"] == "vad" and fused.json["anchor"]["id"] == 11
+    assert fused.json["completion"] == "components_gone"
+    assert fused.json["missing"] == [{"component": "asr", "type": "speech", "reason": "gone"}]
+    assert fused.json["aggregates"]["emotion"]["label"] == "sad"
+    assert [f.anchor.id for f in engine.open.values()] == [12]  # waits for emo as any fusion does
+    assert fuse_orphans(engine, "s", "asr", "speech", 9 * S) == []  # once: 11 published, 12 open
+    [later] = engine.on_result(result(4, "emo", "emotion", 6 * S, 8 * S, emotion={"label": "sad"}), 10 * S)
+    assert later.json["anchor"]["id"] == 12 and later.json["completion"] == "components_gone"
+    assert fuse_orphans(engine, "s", "ssl", "ssl", 9 * S) == []  # no fusion is anchored on ssl

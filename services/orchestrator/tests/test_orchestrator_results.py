@@ -226,3 +226,36 @@ def test_results_survive_a_restart_and_ids_go_on(make_orchestrator, zctx, tmp_pa
             assert [f["id"] for f in http.get("/fused").json()["items"]] == expected_ids
             asr.close()
         orch.stop()
+
+
+def test_an_utterance_in_flight_on_a_recogniser_that_dies_is_fused_with_it_missing(make_orchestrator, zctx):
+    """Issue 16: an asr instance killed with an utterance it had taken but not answered: the VAD's
+    segment is fused without it (anchored on the segment, the asr missing), never silently lost;
+    what the asr answered before and another stream it did not serve are left alone."""
+    from services.orchestrator.tests.helpers import Heartbeater
+    orch = make_orchestrator(dead_after_s=0.6)
+    with httpx.Client(base_url=orch.url, timeout=5.0) as http, connect(f"{orch.ws_url}/ws/fused?stream=s4") as ws:
+        vad = FakeComponent(zctx, http, component_body("vad", designation="vad", inputs=["audio/raw"],
+                                                       outputs=["vad/speech"]))
+        asr = FakeComponent(zctx, http, component_body("asr", designation="speech", inputs=["vad/speech"]))
+        beating = Heartbeater([vad, asr])
+        try:
+            vad.send_result(stream_id="s4", start_ns=START_NS, end_ns=END_NS, type_=pb.RESULT_TYPE_VAD)
+            asr.send_result(stream_id="s4", start_ns=START_NS, end_ns=END_NS, text="bring me a coke")
+            answered = recv_json(ws)
+            assert answered["anchor"]["type"] == "speech" and answered["completion"] == "complete"
+            in_flight = (END_NS + 1_000_000_000, END_NS + 2_500_000_000)
+            vad.send_result(stream_id="s4", start_ns=in_flight[0], end_ns=in_flight[1], type_=pb.RESULT_TYPE_VAD)
+            wait_until(lambda: stored_count(http, type="vad") == 2, what="the second segment stored")
+            beating.drop(asr)  # killed: silent from now on
+            orphan = recv_json(ws, timeout_s=5.0)  # once it is declared dead (0.6 s)
+            assert orphan["type"] == "fused_result" and orphan["completion"] == "components_gone"
+            assert orphan["anchor"]["type"] == "vad"
+            assert orphan["anchor"]["span"] == {"start_ns": in_flight[0], "end_ns": in_flight[1]}
+            assert orphan["missing"] == [{"component": "asr", "type": "speech", "reason": "gone"}]
+            with pytest.raises(TimeoutError):
+                recv_json(ws, timeout_s=1.0)  # the answered utterance is not fused again
+        finally:
+            beating.stop()
+            vad.close()
+            asr.close()
