@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import time
 from dataclasses import dataclass
@@ -14,6 +15,8 @@ import httpx
 from websockets.exceptions import ConnectionClosed
 
 from esiaf.launcher import START_TIMEOUT_S, LaunchError, OrchestratorClient, Supervisor, wait_until
+
+log = logging.getLogger(__name__)
 
 LABELS = ("emotion", "gender", "voice_id")  # label aggregates shown on a line, in this order
 DRAIN_TIMEOUT_S = 30.0  # after a grabber has finished: wait this long for the next result at most
@@ -38,6 +41,8 @@ def format_line(fused: dict[str, Any], origin_ns: int) -> str:
             what = f"out of set: '{best.get('raw_text', '')}' (match {best.get('match_score', 0):.2f})"
         else:
             what = f"'{best['text']}' (p={best['probability']:.2f})"
+    elif any(m.get("type") == "speech" for m in fused.get("missing", [])):  # its recogniser died with it
+        what = "(speech lost: its recogniser died)"
     else:
         payload = next((k for k in ("vad", "ssl", "emotion", "gender", "voice_id") if k in anchor), "")
         what = f"{payload} {json.dumps(anchor.get(payload, {}))}"
@@ -108,7 +113,7 @@ def follow(ws, supervisor: Supervisor, client: OrchestratorClient, streams: list
                       next_progress=time.monotonic() + PROGRESS_EVERY_S)
     while True:
         report_when_due(state, client, args)
-        watch_children(state, supervisor, args)
+        watch_children(state, supervisor, client, args)
         if (code := check_drained(state, args)) is not None:
             return code
         try:
@@ -132,11 +137,17 @@ def report_when_due(state: Following, client: OrchestratorClient, args: argparse
     state.unhealthy = report_health(client, state.unhealthy)
 
 
-def watch_children(state: Following, supervisor: Supervisor, args: argparse.Namespace) -> None:
-    """Notes each grabber's end; a grabber that failed ends the run (with --serve: it is said once and the
-    services stay up), another service is restarted."""
+def watch_children(state: Following, supervisor: Supervisor, client: OrchestratorClient,
+                   args: argparse.Namespace) -> None:
+    """Reports each child that died to the orchestrator (dead at once: its streams move, what it had
+    not answered is fused without it); notes each grabber's end; a grabber that failed ends the run
+    (with --serve: it is said once and the services stay up), another service is restarted."""
     grabbers = {id(stream.grabber): stream for stream in state.streams.values()}
     for child in supervisor.exited():
+        if not child.reported:
+            child.reported = True
+            if (component_id := client.report_dead(child.process.pid)) is not None:
+                log.info("reported dead service=%s component_id=%s", child.name, component_id)
         stream = grabbers.get(id(child))
         if stream is None:
             supervisor.restart_when_due(child)

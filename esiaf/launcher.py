@@ -54,6 +54,7 @@ class Child:
     env: dict[str, str] = field(default_factory=dict)
     restarts: int = 0
     died_at: float | None = None  # monotonic time its death was first seen
+    reported: bool = False  # its death was reported to the orchestrator
 
     def restart_delay_s(self) -> float:
         return min(RESTART_BACKOFF_S * 2 ** self.restarts, 10.0)
@@ -107,7 +108,7 @@ class Supervisor:
     def restart(self, child: Child) -> None:
         """Starts a dead child again with the same command and environment; its log goes on."""
         child.restarts += 1
-        child.died_at = None
+        child.died_at, child.reported = None, False
         with child.log_path.open("ab") as out:
             out.write(f"\n--- esiaf: restart {child.restarts} ---\n".encode())
         child.process = self._spawn(child.command, child.env, child.log_path, "ab")
@@ -240,6 +241,19 @@ class OrchestratorClient:
     def by_pid(self, pid: int) -> dict[str, Any] | None:
         """The live component a process registered (plug-ins: their name is their own)."""
         return next((c for c in self.components() if c.get("pid") == pid and c.get("status") == "alive"), None)
+
+    def report_dead(self, pid: int) -> str | None:
+        """Tells the orchestrator that the process ``pid`` died, so that its component is dead now and
+        not only once silent for dead_after_s; the component's id, or None (none was registered, it
+        had left cleanly, or the orchestrator is not there: then its silence will tell)."""
+        try:
+            component = self.by_pid(pid)
+            if component is not None:
+                self._http.post(f"{self.url}/components/{component['component_id']}/dead").raise_for_status()
+                return str(component["component_id"])
+        except httpx.HTTPError as exc:
+            log.debug("could not report pid=%d dead: %s", pid, exc)
+        return None
 
     def fusions(self) -> list[dict[str, Any]]:
         response = self._http.get(f"{self.url}/fusions")

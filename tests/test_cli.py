@@ -24,6 +24,14 @@ def test_the_line_says_what_else_was_fused_how_it_completed_and_the_revision():
     assert line == ("[12.31–14.05 s] 'go forward ten meters' (p=0.93) ssl×2; timed_out, missing emotion rev 2")
 
 
+def test_an_utterance_whose_recogniser_died_says_its_speech_was_lost():
+    orphan = fused(completion="components_gone", missing_components=["asr"],
+                   missing=[{"component": "asr", "type": "speech", "reason": "gone"}])
+    orphan["anchor"] = {"span": orphan["anchor"]["span"], "vad": {"probability": 0.8}}
+    assert format_line(orphan, ORIGIN_NS) == \
+        "[12.31–14.05 s] (speech lost: its recogniser died) components_gone, missing asr"
+
+
 class Client:
     def __init__(self, info):
         self.info = info
@@ -80,9 +88,10 @@ def _follow_a_played_file_that_never_ends(monkeypatch, serve):
     from esiaf.launcher import LaunchError
 
     monkeypatch.setattr(cli_follow, "DRAIN_TIMEOUT_S", 0.0)  # where follow() reads it
-    grabber = types.SimpleNamespace(process=types.SimpleNamespace(returncode=0))
+    grabber = types.SimpleNamespace(process=types.SimpleNamespace(returncode=0, pid=1), reported=False)
     supervisor = types.SimpleNamespace(exited=lambda: [grabber])
-    client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS, "source": "grabber-1"})
+    client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS, "source": "grabber-1"},
+                                   report_dead=lambda pid: None)
     args = argparse.Namespace(stream_id="s", json=False, input="a.wav", serve=serve, mic=None)
     try:
         return cli.follow(_Silent(polls=5), supervisor, client, [cli_follow.Stream("s", grabber, "a.wav")], args)
@@ -155,9 +164,11 @@ def _follow_two_streams_of_which_one_ends(monkeypatch, serve, b_returncode=0):
     from esiaf.launcher import LaunchError
 
     monkeypatch.setattr(cli_follow, "DRAIN_TIMEOUT_S", 0.3)
-    grabbers = [types.SimpleNamespace(process=types.SimpleNamespace(returncode=code)) for code in (0, b_returncode)]
+    grabbers = [types.SimpleNamespace(process=types.SimpleNamespace(returncode=code, pid=i), reported=False)
+                for i, code in enumerate((0, b_returncode))]
     supervisor = types.SimpleNamespace(exited=lambda: grabbers, failure=lambda child: "service grabber-2 failed")
-    client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS, "source": "grabber-1"})
+    client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS, "source": "grabber-1"},
+                                   report_dead=lambda pid: None)
     args = argparse.Namespace(json=False, input=["a.wav", "b.wav"], serve=serve, mic=None)
     streams = [cli_follow.Stream("a", grabbers[0], "a.wav"), cli_follow.Stream("b", grabbers[1], "b.wav")]
     feed = _Feed([{**fused(), "stream_id": "a"}, {**fused(), "stream_id": "other"},

@@ -6,7 +6,9 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import time
 
+import httpx
 import psutil
 import pytest
 
@@ -56,7 +58,15 @@ def test_a_service_killed_mid_stream_comes_back_and_the_pipeline_goes_on(launch,
                  "--stream-id", f"kill-{victim}")
     run.wait_for_line(lambda line: line.get("type") == "fused_result", timeout_s=120)  # the first question
     first_pid = service_pid(run, victim)
+    listed = httpx.get(f"{run.url}/components", headers=run.headers, timeout=5).json()["items"]
+    killed_id = next((c["component_id"] for c in listed if c.get("pid") == first_pid), None)
     os.kill(first_pid, signal.SIGKILL)
+    killed_at = time.monotonic()
+    if killed_id is not None:  # an analyser: its launcher reports it dead at once, no dead_after_s (2.5 s) wait
+        poll(lambda: any(c["component_id"] == killed_id and c["status"] == "dead" for c in httpx.get(
+            f"{run.url}/components", params={"include_dead": True}, headers=run.headers, timeout=5).json()["items"]),
+             timeout_s=5)
+        assert time.monotonic() - killed_at < 1.5, run.describe()
     try:
         poll(lambda: (service_pid(run, victim) or first_pid) != first_pid, timeout_s=30)  # restarted
     except AssertionError as exc:

@@ -235,11 +235,20 @@ class Orchestrator:
             await self._after_change([component])
         return component
 
+    async def declare_dead(self, component_id: str) -> Component | None:
+        """A component whose process its launcher saw die: dead now, not dead_after_s later."""
+        component = self.registry.declare_dead(component_id)
+        if component is not None:
+            log.warning("event=component_dead component_id=%s name=%s reported=launcher",
+                        component_id, component.name)
+            await self._after_change([component])
+        return component
+
     async def _after_change(self, gone: list[Component]) -> None:
         """Pushes changed states, and lets fusions and stream ends stop waiting for ``gone``."""
         await self.control.push_changes()
         if gone:
-            self.ingest.components_gone([component.name for component in gone])
+            self.ingest.components_gone(gone)
 
     async def _watch_liveness(self) -> None:
         """Declares silent components dead: it sleeps until the first of them may be (its last

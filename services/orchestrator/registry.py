@@ -64,6 +64,7 @@ class Component:
     stats: dict[str, Any] | None = None
     status: str = "alive"  # alive, dead (silent too long), replaced (its process registered again)
     departed_ns: int | None = None
+    served_at_departure: list[str] = field(default_factory=list)  # the streams it served when it died or left
     pushed_state: dict[str, Any] | None = None  # the state this component last got from us
     # our clock minus its host's, and how sure (half the best round trip), as its heartbeats report
     # them (esiaf/clock.py); None until it has measured
@@ -133,6 +134,14 @@ class Registry:
             self.recompute()
         return component
 
+    def declare_dead(self, component_id: str) -> Component | None:
+        """Declares a live component dead now: its process is known to have died (its launcher saw it)."""
+        component = self.live.get(component_id)
+        if component is not None:
+            self._depart(component, "dead")
+            self.recompute()
+        return component
+
     def expire(self, dead_after_s: float, now_mono: float | None = None) -> list[Component]:
         """Drops and returns the components silent for more than ``dead_after_s``."""
         now_mono = time.monotonic() if now_mono is None else now_mono
@@ -158,6 +167,8 @@ class Registry:
         return changed
 
     def _depart(self, component: Component, status: str) -> None:
+        component.served_at_departure = sorted(
+            s for s, i in self.assignments.serving(component.name).items() if i == component.component_id)
         self.live.pop(component.component_id, None)
         component.status = status
         component.departed_ns = time.time_ns()

@@ -88,3 +88,14 @@ async def remove(component_id: str, core: Orchestrator = Depends(get_core)) -> R
     if await core.remove(component_id) is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"no live component {component_id!r}")
     return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+@router.post("/components/{component_id}/dead", status_code=status.HTTP_204_NO_CONTENT,
+             responses={404: {"model": Problem, "description": "no such live component"}},
+             summary="report a component dead (its process died: its launcher saw it exit)")
+async def report_dead(component_id: str, core: Orchestrator = Depends(get_core)) -> Response:
+    """What a silent component's `dead_after_s` would do, at once: fusions stop waiting for it, its
+    streams move to another instance, the utterances it had not answered are fused without it."""
+    if await core.declare_dead(component_id) is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no live component {component_id!r}")
+    return Response(status_code=status.HTTP_204_NO_CONTENT)

@@ -141,6 +141,23 @@ def test_replicas_are_told_the_streams_they_serve(component, http):
         "instances": ["asr-a"], "serving": {"robot1": "asr-a", "robot2": "asr-a"}}
 
 
+def test_a_component_reported_dead_is_dead_at_once_and_its_streams_move(component, http):
+    a = component("asr", designation="speech", inputs=["vad/speech"], instance="asr-a")
+    b = component("asr", designation="speech", inputs=["vad/speech"], instance="asr-b")
+    for stream in ("robot1", "robot2"):
+        assert http.put(f"/streams/{stream}", json={"start_ns": 1, "source": "grabber-1"}).status_code == 200
+    assert set(http.get("/components").json()["services"]["asr"]["serving"].values()) == {"asr-a", "asr-b"}
+    assert http.post("/components/asr-b/dead").status_code == 204  # its launcher saw its process die
+    listed = {c["component_id"]: c["status"] for c in
+              http.get("/components", params={"include_dead": True}).json()["items"]}
+    assert listed["asr-b"] == "dead" and listed["asr-a"] == "alive"
+    assert http.get("/components").json()["services"]["asr"]["serving"] == {"robot1": "asr-a", "robot2": "asr-a"}
+    again = http.post("/components/asr-b/dead")
+    assert again.status_code == 404 and "asr-b" in again.json()["detail"]
+    b.close()
+    a.close()
+
+
 def test_fusions_listed(http):
     assert http.get("/fusions").json() == {
         "items": [{"name": "speech", "anchor": "speech", "fuse": ["ssl", "emotion", "gender", "voice_id"],
