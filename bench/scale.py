@@ -9,16 +9,17 @@ process's websocket minus (the capture time of the utterance's last speech sampl
 hangover), as in bench/latency.py.
 
 Per run it reports, over all streams: questions played, fused results, questions with no fused
-result overlapping them (``lost``), questions recognised exactly (``right``), fused results not
-``complete``, and the p50/p95/max latency.
+result overlapping them (``lost``: silently), questions fused without their recogniser because it
+died with them in flight (``reported_lost``), questions recognised exactly (``right``), fused
+results not ``complete``, and the p50/p95/max latency.
 
     python bench/scale.py [--streams 1,2,3,4,6,8] [--questions 6]     # the sweep
     python bench/scale.py --kill [--asr 3 --streams 8]                 # kill one asr mid-run
     python bench/scale.py --skew 3                                     # the vad's clock 3 s ahead
 
 ``max_streams_p95_le_1s`` is the largest swept number of streams whose p95 is ≤ 1 s with nothing
-lost. With ``--kill``, the asr instance serving the most streams is SIGKILLed halfway through; the
-figures are split into before and after, and ``lost`` lists what was in flight on it.
+lost. With ``--kill``, the asr instance serving the most streams is SIGKILLed halfway through and
+reported dead as ``esiaf run`` does; the figures are split into before and after the kill.
 """
 from __future__ import annotations
 
@@ -95,8 +96,7 @@ class Pipeline:
                                                   "ESIAF_ORCHESTRATOR_RESULTS_PORT": str(ports["results"])})
         wait_until(self.client.healthy, self.supervisor, "the orchestrator", 60, orchestrator)
         self.supervisor.start("vad", env=env.get("vad"))
-        self.asr = [self.supervisor.start(f"asr-{i + 1}", ["--grammar", "robocup"], target=["-m", "services.asr"],
-                                          env={"ESIAF_ASR_INSTANCE": f"asr-{i + 1}", **env.get("asr", {})})
+        self.asr = [self.supervisor.start("asr", ["--grammar", "robocup"], env=env.get("asr"), instance=f"asr-{i + 1}")
                     for i in range(asr)]
         wait_until(lambda: sum(c.get("status") == "alive" for c in self.client.components()) == 1 + asr,
                    self.supervisor, "vad and asr to register", 90)
@@ -105,9 +105,8 @@ class Pipeline:
         for i, stream in enumerate(streams):
             if i:
                 time.sleep(STAGGER_S)
-            self.supervisor.start(f"grabber-{i}", ["--input", str(stream.wav)], target=["-m", "services.grabber"],
-                                  env={"ESIAF_STREAM_ID": stream.stream_id, "ESIAF_GRABBER_INSTANCE": f"grabber-{i}",
-                                       "ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1"})
+            self.supervisor.start("grabber", ["--input", str(stream.wav)], instance=f"grabber-{i}",
+                                  env={"ESIAF_STREAM_ID": stream.stream_id, "ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1"})
 
     def serving(self) -> dict[str, str]:
         response = self.client._http.get(f"{self.url}/components")
@@ -139,7 +138,7 @@ def collect(url: str, streams: list[Stream], deadline: float, stop: threading.Ev
 
 def score(streams: list[Stream], since_ns: int = 0, until_ns: int = 2**63) -> dict[str, float]:
     """Figures over the questions that ended within [since_ns, until_ns) (capture time)."""
-    played = lost = right = incomplete = 0
+    played = lost = right = incomplete = orphaned = 0
     latencies: list[float] = []
     for stream in streams:
         for question in stream.truth:
@@ -154,11 +153,12 @@ def score(streams: list[Stream], since_ns: int = 0, until_ns: int = 2**63) -> di
                 lost += 1
                 continue
             hit = hits[0]
+            orphaned += hit["anchor"]["type"] != "speech"  # fused without its dead recogniser: reported lost
             hyps = hit["anchor"].get("speech", {}).get("hypotheses", [])
             right += bool(hyps) and normalise(hyps[0]["text"]) == normalise(question["text"])
             incomplete += hit.get("completion") != "complete"
             latencies.append((hit["arrived_ns"] - hit["anchor"]["span"]["end_ns"] - HANGOVER_NS) / 1e6)
-    return {"questions": played, "lost": lost, "right": right, "incomplete": incomplete,
+    return {"questions": played, "lost": lost, "reported_lost": orphaned, "right": right, "incomplete": incomplete,
             "fused": len(latencies), "p50_ms": percentile(latencies, 0.5),
             "p95_ms": percentile(latencies, 0.95), "max_ms": max(latencies, default=float("nan"))}
 
@@ -184,9 +184,11 @@ def run(count: int, questions: int, asr: int, port: int, work: Path, kill: bool 
             time.sleep(length_s / 2)
             serving = pipeline.serving()
             victim = max(set(serving.values()), key=list(serving.values()).count)
-            child = next(c for c in pipeline.asr if c.env.get("ESIAF_ASR_INSTANCE") == victim)
+            child = next(c for c in pipeline.asr if c.name == victim)
             child.process.send_signal(signal.SIGKILL)
             killed_ns = time.time_ns()
+            child.process.wait()
+            pipeline.client.report_dead(child.process.pid)  # as esiaf run does when it sees a service die
             print(f"killed {victim} (serving {sorted(s for s, i in serving.items() if i == victim)})",
                   file=sys.stderr, flush=True)
         collector.join()
