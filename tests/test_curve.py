@@ -7,9 +7,11 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -164,6 +166,55 @@ def test_a_registration_is_bound_to_the_curve_key_of_its_first_heartbeat(curved,
 def handshake_failed(sock: zmq.Socket) -> zmq.Socket:
     return sock.get_monitor_socket(zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL | zmq.EVENT_HANDSHAKE_FAILED_AUTH
                                    | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL)
+
+
+def test_a_new_robots_key_is_let_in_on_sighup_without_a_restart(curved, curve_dir, tmp_path):
+    assert make_keys(tmp_path / "later", "robot2").returncode == 0  # made on the new robot, not yet allowed
+    pair = keys.key_pair(tmp_path / "later" / "robot2.key_secret")
+    server_key = zmq.auth.load_certificate(curve_dir / "orchestrator.key")[0]
+    registration = curved.http.post("/components", json={"name": "asr", "designation": "speech"}).json()
+    context = zmq.Context()
+    kept = []  # open until the end: a socket closed at once may end before its handshake
+
+    def push(text: str) -> None:  # a new connection each time: keys are checked at the handshake
+        sock = context.socket(zmq.PUSH)
+        kept.append(sock)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.curve_publickey, sock.curve_secretkey = pair
+        sock.curve_serverkey = server_key
+        sock.connect(registration["results_endpoint"])
+        result = make_result("asr", "speech", "s", (10**18, 10**18 + 5), 1,
+                             speech={"hypotheses": [{"text": text, "probability": 1.0}]})
+        sock.send_multipart([b"result", result.SerializeToString()])
+
+    def reloads() -> list[str]:
+        return re.findall(r"event=keys_reloaded dir=\S+ (clients=\d+)", (tmp_path / "orchestrator.log").read_text())
+
+    def texts() -> list[str]:
+        return [r["speech"]["hypotheses"][0]["text"] for r in curved.http.get("/results").json()["items"]]
+
+    try:
+        push("before")
+        poll(lambda: refusals(curved, "results", "auth") >= 1, timeout_s=10)
+        shutil.copyfile(tmp_path / "later" / "robot2.key", curve_dir / "clients" / "robot2.key")
+        time.sleep(0.5)
+        push("copied, not yet reloaded")
+        poll(lambda: refusals(curved, "results", "auth") >= 2, timeout_s=10)
+        assert texts() == []
+        os.kill(curved.process.pid, signal.SIGHUP)  # the orchestrator reads its allowed keys again
+        poll(lambda: reloads() == ["clients=3"], timeout_s=10)  # source, sink, robot2
+        push("after")
+        poll(lambda: "after" in texts(), timeout_s=10)
+        assert curved.process.poll() is None  # SIGHUP does not end it
+        (curve_dir / "clients" / "robot2.key").unlink()  # withdrawn again
+        os.kill(curved.process.pid, signal.SIGHUP)
+        poll(lambda: reloads() == ["clients=3", "clients=2"], timeout_s=10)
+        refused = refusals(curved, "results", "auth")
+        push("withdrawn")
+        poll(lambda: refusals(curved, "results", "auth") > refused, timeout_s=10)
+        assert "withdrawn" not in texts()
+    finally:
+        context.destroy(linger=0)
 
 
 def test_audio_goes_only_between_allowed_keys(curve_dir):

@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import errno
 import logging
+import signal
 import sqlite3
 import time
 from typing import Any, TypeVar
@@ -106,6 +108,8 @@ class Orchestrator:
                        *(asyncio.create_task(watch, name="zap") for watch in self.guard.watchers())]
         for task in self._tasks:
             task.add_done_callback(self._task_done)
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):  # not in the main thread
+            asyncio.get_running_loop().add_signal_handler(signal.SIGHUP, self.guard.reload)
         log.info("event=orchestrator_ready control=%s results=%s zmq_auth=%s db=%s fusions=%s",
                  self.control_endpoint, self.results_endpoint, self.guard.mechanism, self.store.path,
                  ",".join(f.name for f in self.settings.fusions) or "-")

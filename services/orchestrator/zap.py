@@ -1,7 +1,8 @@
 """Who may connect to the orchestrator's control and results sockets (ZAP), and who was refused.
 
 - CURVE keys (``ESIAF_CURVE_DIR``, esiaf/keys.py): the sockets are CURVE servers with the
-  orchestrator's key pair, and take only the client keys in ``DIR/clients/`` (read at start-up).
+  orchestrator's key pair, and take only the client keys in ``DIR/clients/`` (read at start-up and
+  again on SIGHUP: a new robot's key is let in, a withdrawn one kept out, without a restart).
 - else a token: PLAIN, user ``esiaf``, password the token. It travels in clear text: loopback or a
   network no one else is on (an encrypted overlay) only.
 - neither: anyone (NULL).
@@ -49,6 +50,21 @@ class Guard:
             self._authenticator.configure_curve(domain="*", location=str(self.curve.clients_dir))
         else:
             self._authenticator.configure_plain(domain="*", passwords={auth.ZMQ_USER: self.token})
+
+    def reload(self) -> int | None:
+        """Reads the allowed client keys again (SIGHUP); their number, or None without CURVE keys.
+        A key file that cannot be read is logged and skipped, never fatal: the old set stays."""
+        if self.curve is None or self._authenticator is None:
+            log.info("event=keys_not_reloaded reason=no CURVE keys (ESIAF_CURVE_DIR) in use")
+            return None
+        try:
+            allowed = keys.allowed_clients(self.curve.clients_dir)
+        except (OSError, ValueError) as exc:
+            log.error("event=keys_not_reloaded dir=%s reason=%s", self.curve.clients_dir, exc)
+            return None
+        self._authenticator.configure_curve(domain="*", location=str(self.curve.clients_dir))
+        log.info("event=keys_reloaded dir=%s clients=%d", self.curve.clients_dir, len(allowed))
+        return len(allowed)
 
     def secure(self, socket: zmq.asyncio.Socket, name: str) -> None:
         """Before bind: makes ``socket`` a PLAIN or CURVE server and counts its refused peers."""
