@@ -29,17 +29,19 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import httpx
+import tenacity
 import zmq
 
 from esiaf import auth
+from esiaf.api_client import OrchestratorHTTP, transient, why
 from esiaf.clock import ClockEstimate
 from esiaf.keys import Curve
 from esiaf.transport import STATE_ADDRESS, keep_alive
 
 log = logging.getLogger(__name__)
 
-_BACKOFF_START_S = 0.1
-_BACKOFF_MAX_S = 2.0
+ANNOUNCE_RETRY_S = 1.0  # a stream announcement is tried again this long while the orchestrator is away
+TOPIC_POLL_S = 0.2  # declared_format asks this often for a producer of its topic
 
 
 class RegistrationError(Exception):
@@ -69,67 +71,51 @@ class Registration:
                 "streams": self.streams}
 
 
-def _error_text(response: httpx.Response) -> str:
-    try:
-        detail = response.json().get("detail", response.text)
-    except ValueError:
-        detail = response.text
-    if isinstance(detail, list):  # pydantic validation errors
-        detail = "; ".join(f"{'.'.join(str(p) for p in d.get('loc', []))}: {d.get('msg')}" for d in detail)
-    return str(detail)
-
-
 def register(url: str, request: dict[str, Any], timeout_s: float,
              stopping: Callable[[], bool] = lambda: False) -> Registration:
-    """POSTs the registration, retrying while the orchestrator is unreachable."""
-    deadline = time.monotonic() + timeout_s
-    delay_s = _BACKOFF_START_S
-    attempts = 0
-    while True:
-        attempts += 1
+    """POSTs the registration, retrying while the orchestrator is unreachable or answers 5xx, and
+    while our instance id is still held by a live instance (409 with Retry-After: ours, before a
+    crash, until it is declared dead)."""
+    said: list[str] = []
+
+    def waiting(why: str) -> None:
+        if not said:
+            log.info("waiting for orchestrator url=%s error=%s (trying again for up to %g s)", url, why, timeout_s)
+        said.append(why)
+
+    with OrchestratorHTTP(url) as http:
         try:
-            response = httpx.post(f"{url.rstrip('/')}/components", json=request, timeout=5.0,
-                                  headers=auth.headers())
+            response = http.request("POST", "/components", json=request, retry_for_s=timeout_s, stopping=stopping,
+                                    on_retry=waiting)
         except httpx.HTTPError as exc:
-            last_error = str(exc) or type(exc).__name__
-        else:
-            if response.status_code == 201:
-                data = response.json()
-                return Registration(**{k: data[k] for k in Registration.__dataclass_fields__ if k in data})
-            if response.status_code == 409 and "retry-after" in response.headers:
-                # our instance id is still held by a live instance (ours, before a crash?): it is
-                # declared dead after a few seconds' silence, so wait for that as for a restart
-                last_error = _error_text(response)
-                if attempts == 1:
-                    log.warning("%s: trying again until %g s have passed", last_error, timeout_s)
-            elif 400 <= response.status_code < 500:
-                raise RegistrationError(
-                    f"orchestrator at {url} refused registration ({response.status_code}): {_error_text(response)}",
-                    refused=True)
-            else:
-                last_error = f"HTTP {response.status_code}: {_error_text(response)}"
-        if time.monotonic() + delay_s > deadline or stopping():
-            raise RegistrationError(
-                f"orchestrator at {url} not reachable after {timeout_s:g} s ({attempts} attempts): {last_error}")
-        if attempts == 1:
-            log.info("waiting for orchestrator url=%s error=%s", url, last_error)
-        time.sleep(delay_s)
-        delay_s = min(delay_s * 2, _BACKOFF_MAX_S)
+            raise RegistrationError(f"orchestrator at {url} not reachable after {timeout_s:g} s ({http.attempts} "
+                                    f"attempts): {str(exc) or type(exc).__name__}") from None
+        attempts = http.attempts
+    if response.status_code == 201:
+        data = response.json()
+        return Registration(**{k: data[k] for k in Registration.__dataclass_fields__ if k in data})
+    if transient(response):
+        raise RegistrationError(f"orchestrator at {url} not reachable after {timeout_s:g} s ({attempts} attempts): "
+                                f"{why(response)}")
+    raise RegistrationError(f"orchestrator at {url} refused registration ({response.status_code}): {why(response)}",
+                            refused=True)
 
 
 def unregister(url: str, component_id: str) -> None:
     try:
-        httpx.delete(f"{url.rstrip('/')}/components/{component_id}", timeout=2.0, headers=auth.headers())
+        with OrchestratorHTTP(url, timeout_s=2.0) as http:
+            http.delete(f"/components/{component_id}")
     except httpx.HTTPError as exc:
         log.info("could not unregister component_id=%s error=%s", component_id, exc)
 
 
 def announce_stream(url: str, stream_id: str, start_ns: int, source: str, info: dict[str, Any]) -> bool:
-    """Tells the orchestrator a stream's capture started (``PUT /streams/{id}``); False if it could not."""
+    """Tells the orchestrator a stream's capture started (``PUT /streams/{id}``); False if it could not
+    (tried again for a few seconds while the orchestrator is unreachable)."""
     try:
-        response = httpx.put(f"{url.rstrip('/')}/streams/{stream_id}",
-                             json={"start_ns": start_ns, "source": source, "info": info}, timeout=5.0,
-                             headers=auth.headers())
+        with OrchestratorHTTP(url) as http:
+            response = http.request("PUT", f"/streams/{stream_id}", retry_for_s=ANNOUNCE_RETRY_S,
+                                    json={"start_ns": start_ns, "source": source, "info": info})
         response.raise_for_status()
     except httpx.HTTPError as exc:
         log.warning("could not announce stream_id=%s start_ns=%d error=%s", stream_id, start_ns, exc)
@@ -141,19 +127,19 @@ def declared_format(url: str, topic: str, timeout_s: float,
                     stopping: Callable[[], bool] = lambda: False) -> dict[str, Any] | None:
     """The format a producer of ``topic`` declared (``GET /topics``), waiting up to ``timeout_s`` for
     one to register; None if none did. For components that take whatever a topic carries."""
-    deadline = time.monotonic() + timeout_s
-    while True:
+    def producers() -> list[dict[str, Any]]:
         try:
-            items = httpx.get(f"{url.rstrip('/')}/topics", timeout=5.0, headers=auth.headers()).json()["items"]
+            items = http.get("/topics").json()["items"]
         except (httpx.HTTPError, ValueError, KeyError) as exc:
             log.info("waiting for orchestrator url=%s error=%s", url, exc)
-        else:
-            producers: list[dict[str, Any]] = next((t["producers"] for t in items if t["topic"] == topic), [])
-            if producers:
-                return producers[0]["format"]
-        if time.monotonic() >= deadline or stopping():
-            return None
-        time.sleep(0.2)
+            return []
+        return next((t["producers"] for t in items if t["topic"] == topic), [])
+
+    with OrchestratorHTTP(url) as http:
+        found = tenacity.Retrying(stop=tenacity.stop_after_delay(timeout_s), wait=tenacity.wait_fixed(TOPIC_POLL_S),
+                                  retry=tenacity.retry_if_result(lambda found: not found and not stopping()),
+                                  retry_error_callback=lambda state: None)(producers)
+    return found[0]["format"] if found else None
 
 
 def _jsonable(value: Any) -> Any:

@@ -25,7 +25,7 @@ from typing import Any
 
 import httpx
 
-from esiaf import auth
+from esiaf.api_client import OrchestratorHTTP
 
 log = logging.getLogger(__name__)
 
@@ -205,7 +205,7 @@ def _any_free_port() -> int:
 class OrchestratorClient:
     def __init__(self, url: str):
         self.url = url.rstrip("/")
-        self._http = httpx.Client(timeout=2.0, headers=auth.headers())
+        self._http = OrchestratorHTTP(self.url, timeout_s=2.0)
 
     def healthy(self) -> bool:
         return self._http.get(f"{self.url}/health").status_code == 200

@@ -18,7 +18,8 @@ from typing import ClassVar
 import httpx
 import numpy as np
 
-from esiaf import SetupError, auth
+from esiaf import SetupError
+from esiaf.api_client import OrchestratorHTTP
 from services.emotion.service import UtteranceClassifier, UtteranceSettings
 from services.voiceid.encoder import EncoderError, VoiceEncoder
 from services.voiceid.scoring import AnonymousVoices, VoiceBook, probability
@@ -69,7 +70,7 @@ class VoiceId(UtteranceClassifier):
         super().teardown()
 
     def _poll_voices(self) -> None:
-        with httpx.Client(base_url=self.settings.orchestrator_url, timeout=5.0, headers=auth.headers()) as client:
+        with OrchestratorHTTP(self.settings.orchestrator_url) as client:
             while not self._halt.is_set():
                 try:
                     self.refresh_voices(client)
@@ -77,7 +78,7 @@ class VoiceId(UtteranceClassifier):
                     log.warning("voices not fetched from %s: %s", self.settings.orchestrator_url, exc)
                 self._halt.wait(self.settings.voices_poll_s)
 
-    def refresh_voices(self, client: httpx.Client) -> None:
+    def refresh_voices(self, client: OrchestratorHTTP) -> None:
         reply = client.get("/voices", params={"embeddings": 1}, headers={"If-None-Match": self._etag})
         if reply.status_code == 304:
             return

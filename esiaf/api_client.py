@@ -1,0 +1,113 @@
+"""The one HTTP client of the orchestrator's API, for components, the launcher and services.
+
+It carries the token on every request (``ESIAF_TOKEN``), keeps one connection pool, and retries
+with exponential backoff (tenacity) what is worth retrying, for as long as the caller allows:
+
+- the orchestrator unreachable (connection refused or reset, timeouts: it is starting or
+  restarting);
+- a 5xx answer (a database that cannot be written says 503);
+- 409 with ``Retry-After``: an instance id still held by an instance that is not yet declared
+  dead (a process restarted under its old id).
+
+Anything else (2xx, 3xx, other 4xx) is returned at once: a refusal is not made better by asking
+again.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import httpx
+import tenacity
+
+from esiaf import auth
+
+log = logging.getLogger(__name__)
+
+BACKOFF_START_S = 0.1  # the first wait; it doubles with each attempt
+BACKOFF_MAX_S = 2.0
+
+
+def transient(response: httpx.Response) -> bool:
+    """An answer that another attempt may change."""
+    return response.status_code >= 500 or (response.status_code == 409 and "retry-after" in response.headers)
+
+
+class OrchestratorHTTP:
+    """``get``/``post``/``put``/``delete`` as httpx's (one attempt), and :meth:`request` with retries."""
+
+    def __init__(self, url: str, timeout_s: float = 5.0) -> None:
+        self.url = url.rstrip("/")
+        self.attempts = 0  # of the last request()
+        self._client = httpx.Client(base_url=self.url, timeout=timeout_s, headers=auth.headers())
+
+    def __enter__(self) -> OrchestratorHTTP:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._client.close()
+
+    def get(self, path: str, **kwargs: Any) -> httpx.Response:
+        return self._client.get(path, **kwargs)
+
+    def post(self, path: str, **kwargs: Any) -> httpx.Response:
+        return self._client.post(path, **kwargs)
+
+    def put(self, path: str, **kwargs: Any) -> httpx.Response:
+        return self._client.put(path, **kwargs)
+
+    def delete(self, path: str, **kwargs: Any) -> httpx.Response:
+        return self._client.delete(path, **kwargs)
+
+    def request(self, method: str, path: str, *, retry_for_s: float = 0.0,
+                stopping: Callable[[], bool] = lambda: False,
+                on_retry: Callable[[str], None] | None = None, **kwargs: Any) -> httpx.Response:
+        """One request, tried again while it fails transiently (see the module) and the next wait
+        still ends within ``retry_for_s`` and ``stopping()`` is false. Returns the last answer, or
+        raises the last ``httpx.HTTPError`` if no attempt got one. ``on_retry(why)`` is called
+        before each wait."""
+        self.attempts = 0
+
+        def attempt() -> httpx.Response:
+            self.attempts += 1
+            return self._client.request(method, path, **kwargs)
+
+        def before_sleep(state: tenacity.RetryCallState) -> None:
+            if on_retry is not None and state.outcome is not None:
+                failed = state.outcome.exception()
+                on_retry(str(failed) or type(failed).__name__ if failed is not None
+                         else why(state.outcome.result()))
+
+        retrying = tenacity.Retrying(
+            stop=tenacity.stop_before_delay(retry_for_s) | _StopWhen(stopping),
+            wait=tenacity.wait_exponential(multiplier=BACKOFF_START_S, min=BACKOFF_START_S, max=BACKOFF_MAX_S),
+            retry=tenacity.retry_if_exception_type(httpx.TransportError) | tenacity.retry_if_result(transient),
+            before_sleep=before_sleep,
+            # out of time: the last answer as it is, or its transport error raised
+            retry_error_callback=lambda state: state.outcome.result() if state.outcome is not None else None)
+        return retrying(attempt)
+
+
+def why(response: httpx.Response) -> str:
+    """What an error answer says: its ``detail`` (pydantic's list made one line), else its text."""
+    try:
+        detail = response.json().get("detail", response.text)
+    except (ValueError, AttributeError):
+        detail = response.text
+    if isinstance(detail, list):  # pydantic validation errors
+        detail = "; ".join(f"{'.'.join(str(p) for p in d.get('loc', []))}: {d.get('msg')}" for d in detail)
+    return f"HTTP {response.status_code}: {detail}" if response.status_code >= 500 else str(detail)
+
+
+class _StopWhen(tenacity.stop.stop_base):
+    """Stops retrying once ``stopping()`` says so (the component is shutting down)."""
+
+    def __init__(self, stopping: Callable[[], bool]) -> None:
+        self._stopping = stopping
+
+    def __call__(self, retry_state: tenacity.RetryCallState) -> bool:
+        return self._stopping()
