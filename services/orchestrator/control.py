@@ -1,4 +1,5 @@
-"""The control plane: heartbeats in, full state out (ROUTER, one JSON frame per message).
+"""The control plane: heartbeats in; out, the full state when it changed, else a short ack (ROUTER,
+one JSON frame per message).
 
 A message names its component (``component_id``) and carries the secret that component's current
 registration was given (``control_key``): only then does it count as life, get an answer, and make
@@ -114,19 +115,30 @@ class ControlPlane:
         if isinstance(stats, dict):
             component.stats = stats
         component.note_clock(message.get("clock"))
-        state = self.registry.state_of(component)
-        component.pushed_state = state
+        component.offer(self.registry.state_of(component))
+        # the state it says it has is the current one: a short ack; else (an older or no version) the full state
+        has = message.get("state_version")
+        if type(has) is int and has == component.state_version:
+            answer: dict[str, Any] = {"type": "ack", "version": component.state_version}
+            self.counters["acks"] += 1
+        else:
+            answer = self.versioned(component)
         sent_ns = message.get("sent_ns")
         if type(sent_ns) is int and abs(sent_ns) < MAX_TIME_NS:  # its send time, echoed with ours: its clock's offset
-            await self.send(component, {**state, "echo_ns": sent_ns, "orchestrator_ns": time.time_ns()})
-        else:
-            await self.send(component, state)
+            answer["echo_ns"], answer["orchestrator_ns"] = sent_ns, time.time_ns()
+        await self.send(component, answer)
+
+    @staticmethod
+    def versioned(component: Component) -> dict[str, Any]:
+        """Its full state, numbered: the number its heartbeats give back once it has applied it."""
+        return {**(component.pushed_state or {}), "version": component.state_version}
 
     async def push_changes(self) -> None:
         """Sends its new state to every live component whose peers or formats changed."""
-        for component, state in self.registry.changed_states():
-            log.debug("event=state_pushed component_id=%s", component.component_id)
-            await self.send(component, state)
+        for component, _ in self.registry.changed_states():
+            log.debug("event=state_pushed component_id=%s version=%d", component.component_id,
+                      component.state_version)
+            await self.send(component, self.versioned(component))
 
     async def send(self, component: Component, message: dict[str, Any]) -> None:
         # Only to the routing id that last presented the component's key; none yet: its first
