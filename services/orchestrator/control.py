@@ -12,6 +12,7 @@ its pushes). See docs/protocol.md, "Control".
 """
 from __future__ import annotations
 
+import asyncio
 import hmac
 import json
 import logging
@@ -32,22 +33,39 @@ UNKNOWN = json.dumps({"type": "unknown"}).encode()
 class ControlPlane:
     def __init__(self, socket: zmq.asyncio.Socket, registry: Registry, bind_peer_key: bool = False) -> None:
         self.socket = socket
+        # the same socket, used synchronously: run() takes every message there is when its file
+        # descriptor wakes the loop, and send() never waits (a ROUTER drops what it cannot send)
+        self._sync: zmq.Socket = zmq.Socket.shadow(socket.underlying)
+        self._look = asyncio.Event()  # there may be messages to take
         self.registry = registry
         self.bind_peer_key = bind_peer_key  # CURVE: the ZAP handler gives each message its peer's public key
         self.counters: Counter[str] = Counter()
 
     async def run(self) -> None:
-        while True:
-            try:
-                frames = await self.socket.recv_multipart(copy=False)
-            except zmq.Again:  # libzmq may signal a message that is not there
-                self.counters["spurious_wakeups"] += 1
-                continue
-            try:
-                await self.handle(frames)
-            except Exception:  # a bug must not stop the heartbeats of everyone else
-                self.counters["errors"] += 1
-                log.exception("event=control_failed frames=%d", len(frames))
+        """Takes and handles messages. The socket's ZMQ_FD is registered with the loop once, not
+        per message as zmq.asyncio's futures do (two epoll_ctl calls and a future each: issue 18);
+        it is edge-triggered, and reading ZMQ_EVENTS, which any send does, resets it: so the socket
+        is drained until it says it holds nothing, and looked at again after every send."""
+        loop = asyncio.get_running_loop()
+        fd: int = self._sync.FD
+        loop.add_reader(fd, self._look.set)
+        try:
+            while True:
+                await self._look.wait()
+                self._look.clear()
+                while int(self._sync.EVENTS) & zmq.POLLIN:
+                    try:
+                        frames = self._sync.recv_multipart(zmq.NOBLOCK, copy=False)
+                    except zmq.Again:  # libzmq may signal a message that is not there
+                        self.counters["spurious_wakeups"] += 1
+                        break
+                    try:
+                        await self.handle(frames)
+                    except Exception:  # a bug must not stop the heartbeats of everyone else
+                        self.counters["errors"] += 1
+                        log.exception("event=control_failed frames=%d", len(frames))
+        finally:
+            loop.remove_reader(fd)
 
     def _bad(self, detail: str) -> None:
         """Counts a bad control message; logs the first and then every 100th."""
@@ -101,7 +119,7 @@ class ControlPlane:
         if component is None:
             self.counters["unknown"] += 1
             log.debug("event=unknown_component component_id=%r", component_id[:80])
-            await self.socket.send_multipart([route, UNKNOWN])
+            self._send(route, UNKNOWN)
             return
         if not self._proven(component, message, data):
             return  # neither life nor an answer: whoever sent it does not hold this registration
@@ -145,4 +163,11 @@ class ControlPlane:
         # heartbeat's answer carries the full state. ROUTER drops messages to a peer that is gone.
         if component.control_route is None:
             return
-        await self.socket.send_multipart([component.control_route, json.dumps(message).encode()])
+        self._send(component.control_route, json.dumps(message).encode())
+
+    def _send(self, route: bytes, data: bytes) -> None:
+        try:
+            self._sync.send_multipart([route, data], zmq.NOBLOCK)
+        except zmq.Again:  # its queue is full (ROUTER_MANDATORY is off: it drops, but to be sure)
+            self.counters["dropped"] += 1
+        self._look.set()  # the send read ZMQ_EVENTS: a message that came meanwhile wakes no one

@@ -104,3 +104,21 @@ def test_a_current_state_is_acknowledged_a_changed_or_missed_one_is_sent_in_full
     assert vad.recv() == pushed
     vad.heartbeat(state_version=2)
     assert vad.recv() == {"type": "ack", "version": 2}
+
+
+def test_heartbeats_arriving_together_and_amid_pushes_are_all_answered(component):
+    """The control socket is drained at each wake-up and looked at again after each send (its file
+    descriptor is edge-triggered): no heartbeat waits for the next one to be answered."""
+    vads = [component("vad", designation="vad", inputs=["audio/raw"]) for _ in range(12)]
+    for vad in vads:
+        vad.heartbeat()
+        assert vad.recv()["type"] == "state"  # connected
+    for round_ in range(3):
+        for vad in vads:  # together: several are queued when the loop wakes
+            vad.heartbeat(state_version=vad.registration.get("seen", 0))
+        # a producer registering pushes a new state to every vad while their beats arrive
+        component("grabber", outputs=["audio/raw"], endpoint=f"tcp://127.0.0.1:{40900 + round_}")
+        for vad in vads:
+            answers = [vad.recv(timeout_s=1.0), vad.recv(timeout_s=1.0)]  # its answer and the push, any order
+            assert all(a is not None for a in answers), f"{vad.id}: not answered within 1 s"
+            vad.registration["seen"] = max(a["version"] for a in answers if a is not None)
