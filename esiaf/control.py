@@ -5,8 +5,10 @@ until ``register_timeout_s``. After it, a thread owns a DEALER socket (its
 routing id left to the orchestrator's ROUTER): it sends a heartbeat, which names the component
 and carries the registration's ``control_key``, every
 ``heartbeat_interval_s`` (and at once when :meth:`ControlClient.poke` is
-called), and passes every state message the orchestrator pushes (peers and
-formats) to the data thread through an inproc PAIR socket. When the
+called), and passes every state message the orchestrator pushes or answers with (peers and
+formats) to the data thread through an inproc PAIR socket. Each heartbeat gives back the number
+of the last state applied; while it is current the answer is a short ``ack``, and the data thread
+sleeps on. When the
 orchestrator answers ``unknown`` (it restarted, or thought us dead) the thread
 registers again; so it does when the orchestrator has been silent for longer
 than ``dead_after_s`` (it died, or came back on other ports), and it keeps
@@ -64,6 +66,9 @@ class Registration:
     formats: dict[str, dict[str, Any]] = field(default_factory=dict)
     peer_keys: dict[str, str] = field(default_factory=dict)  # producer endpoint -> its CURVE public key
     streams: list[str] | None = None  # one of several instances of its service: the streams it serves
+    # the number of the last state the orchestrator sent and we applied (0: none yet, the next answer
+    # is the full state); every heartbeat gives it back, and an unchanged state is answered with an ack
+    state_version: int = 0
 
     def state(self) -> dict[str, Any]:
         return {"type": "state", "peers": self.peers, "formats": self.formats, "peer_keys": self.peer_keys,
@@ -266,7 +271,8 @@ class ControlClient:
                 if now >= next_beat or poked:
                     beat = {"type": "heartbeat", "component_id": self.component_id,
                             "control_key": self._registered.control_key, "stats": self._stats(),
-                            "sent_ns": self._clock_ns(), "clock": self.clock.report()}
+                            "sent_ns": self._clock_ns(), "clock": self.clock.report(),
+                            "state_version": self._registered.state_version}
                     dealer.send(json.dumps(beat, default=_jsonable).encode())
                     next_beat = now + self._registered.heartbeat_interval_s
                 # sleep until the next beat (or the orchestrator's silence deadline), a message or a poke
@@ -286,7 +292,9 @@ class ControlClient:
                 if type(echo) is int and type(answered) is int:
                     self.clock.add(echo, answered, received_ns)
                 self._heard()
-                if message.get("type") == "state":
+                if message.get("type") == "state":  # the full state (an "ack": ours is still current)
+                    version = message.get("version")
+                    self._registered.state_version = version if type(version) is int else 0
                     self._registered.peers = message.get("peers", {})
                     self._registered.formats = message.get("formats", {})
                     self._registered.peer_keys = message.get("peer_keys", {})

@@ -1,4 +1,5 @@
-"""The control plane: heartbeats in, full state out (ROUTER, one JSON frame per message).
+"""The control plane: heartbeats in; out, the full state when it changed, else a short ack (ROUTER,
+one JSON frame per message).
 
 A message names its component (``component_id``) and carries the secret that component's current
 registration was given (``control_key``): only then does it count as life, get an answer, and make
@@ -11,6 +12,7 @@ its pushes). See docs/protocol.md, "Control".
 """
 from __future__ import annotations
 
+import asyncio
 import hmac
 import json
 import logging
@@ -31,22 +33,39 @@ UNKNOWN = json.dumps({"type": "unknown"}).encode()
 class ControlPlane:
     def __init__(self, socket: zmq.asyncio.Socket, registry: Registry, bind_peer_key: bool = False) -> None:
         self.socket = socket
+        # the same socket, used synchronously: run() takes every message there is when its file
+        # descriptor wakes the loop, and send() never waits (a ROUTER drops what it cannot send)
+        self._sync: zmq.Socket = zmq.Socket.shadow(socket.underlying)
+        self._look = asyncio.Event()  # there may be messages to take
         self.registry = registry
         self.bind_peer_key = bind_peer_key  # CURVE: the ZAP handler gives each message its peer's public key
         self.counters: Counter[str] = Counter()
 
     async def run(self) -> None:
-        while True:
-            try:
-                frames = await self.socket.recv_multipart(copy=False)
-            except zmq.Again:  # libzmq may signal a message that is not there
-                self.counters["spurious_wakeups"] += 1
-                continue
-            try:
-                await self.handle(frames)
-            except Exception:  # a bug must not stop the heartbeats of everyone else
-                self.counters["errors"] += 1
-                log.exception("event=control_failed frames=%d", len(frames))
+        """Takes and handles messages. The socket's ZMQ_FD is registered with the loop once, not
+        per message as zmq.asyncio's futures do (two epoll_ctl calls and a future each: issue 18);
+        it is edge-triggered, and reading ZMQ_EVENTS, which any send does, resets it: so the socket
+        is drained until it says it holds nothing, and looked at again after every send."""
+        loop = asyncio.get_running_loop()
+        fd: int = self._sync.FD
+        loop.add_reader(fd, self._look.set)
+        try:
+            while True:
+                await self._look.wait()
+                self._look.clear()
+                while int(self._sync.EVENTS) & zmq.POLLIN:
+                    try:
+                        frames = self._sync.recv_multipart(zmq.NOBLOCK, copy=False)
+                    except zmq.Again:  # libzmq may signal a message that is not there
+                        self.counters["spurious_wakeups"] += 1
+                        break
+                    try:
+                        await self.handle(frames)
+                    except Exception:  # a bug must not stop the heartbeats of everyone else
+                        self.counters["errors"] += 1
+                        log.exception("event=control_failed frames=%d", len(frames))
+        finally:
+            loop.remove_reader(fd)
 
     def _bad(self, detail: str) -> None:
         """Counts a bad control message; logs the first and then every 100th."""
@@ -100,7 +119,7 @@ class ControlPlane:
         if component is None:
             self.counters["unknown"] += 1
             log.debug("event=unknown_component component_id=%r", component_id[:80])
-            await self.socket.send_multipart([route, UNKNOWN])
+            self._send(route, UNKNOWN)
             return
         if not self._proven(component, message, data):
             return  # neither life nor an answer: whoever sent it does not hold this registration
@@ -114,23 +133,41 @@ class ControlPlane:
         if isinstance(stats, dict):
             component.stats = stats
         component.note_clock(message.get("clock"))
-        state = self.registry.state_of(component)
-        component.pushed_state = state
+        component.offer(self.registry.state_of(component))
+        # the state it says it has is the current one: a short ack; else (an older or no version) the full state
+        has = message.get("state_version")
+        if type(has) is int and has == component.state_version:
+            answer: dict[str, Any] = {"type": "ack", "version": component.state_version}
+            self.counters["acks"] += 1
+        else:
+            answer = self.versioned(component)
         sent_ns = message.get("sent_ns")
         if type(sent_ns) is int and abs(sent_ns) < MAX_TIME_NS:  # its send time, echoed with ours: its clock's offset
-            await self.send(component, {**state, "echo_ns": sent_ns, "orchestrator_ns": time.time_ns()})
-        else:
-            await self.send(component, state)
+            answer["echo_ns"], answer["orchestrator_ns"] = sent_ns, time.time_ns()
+        await self.send(component, answer)
+
+    @staticmethod
+    def versioned(component: Component) -> dict[str, Any]:
+        """Its full state, numbered: the number its heartbeats give back once it has applied it."""
+        return {**(component.pushed_state or {}), "version": component.state_version}
 
     async def push_changes(self) -> None:
         """Sends its new state to every live component whose peers or formats changed."""
-        for component, state in self.registry.changed_states():
-            log.debug("event=state_pushed component_id=%s", component.component_id)
-            await self.send(component, state)
+        for component, _ in self.registry.changed_states():
+            log.debug("event=state_pushed component_id=%s version=%d", component.component_id,
+                      component.state_version)
+            await self.send(component, self.versioned(component))
 
     async def send(self, component: Component, message: dict[str, Any]) -> None:
         # Only to the routing id that last presented the component's key; none yet: its first
         # heartbeat's answer carries the full state. ROUTER drops messages to a peer that is gone.
         if component.control_route is None:
             return
-        await self.socket.send_multipart([component.control_route, json.dumps(message).encode()])
+        self._send(component.control_route, json.dumps(message).encode())
+
+    def _send(self, route: bytes, data: bytes) -> None:
+        try:
+            self._sync.send_multipart([route, data], zmq.NOBLOCK)
+        except zmq.Again:  # its queue is full (ROUTER_MANDATORY is off: it drops, but to be sure)
+            self.counters["dropped"] += 1
+        self._look.set()  # the send read ZMQ_EVENTS: a message that came meanwhile wakes no one

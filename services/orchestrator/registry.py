@@ -66,6 +66,7 @@ class Component:
     departed_ns: int | None = None
     served_at_departure: list[str] = field(default_factory=list)  # the streams it served when it died or left
     pushed_state: dict[str, Any] | None = None  # the state this component last got from us
+    state_version: int = 0  # pushed_state's number: a new one for every change (heartbeats say which they have)
     # our clock minus its host's, and how sure (half the best round trip), as its heartbeats report
     # them (esiaf/clock.py); None until it has measured
     clock_offset_ns: int | None = None
@@ -79,6 +80,14 @@ class Component:
         if type(offset) is int and type(uncertainty) is int and abs(offset) <= MAX_CLOCK_OFFSET_NS \
                 and 0 <= uncertainty <= MAX_CLOCK_OFFSET_NS:
             self.clock_offset_ns, self.clock_uncertainty_ns = offset, uncertainty
+
+    def offer(self, state: dict[str, Any]) -> bool:
+        """Makes ``state`` the one it is to have; True (and a new ``state_version``) if it changed."""
+        if state == self.pushed_state:
+            return False
+        self.pushed_state = state
+        self.state_version += 1
+        return True
 
     def touch(self) -> None:
         self.last_seen_mono = time.monotonic()
@@ -124,7 +133,7 @@ class Registry:
                               audio_public_key=audio_public_key, incarnation=incarnation)
         self.live[component_id] = component
         self.recompute()
-        component.pushed_state = self.state_of(component)
+        component.offer(self.state_of(component))
         return component, previous
 
     def remove(self, component_id: str) -> Component | None:
@@ -275,8 +284,7 @@ class Registry:
         changed = []
         for component in self.live.values():
             state = self.state_of(component, formats)
-            if state != component.pushed_state:
-                component.pushed_state = state
+            if component.offer(state):
                 changed.append((component, state))
         return changed
 

@@ -44,13 +44,34 @@ def listen_socket(host: str, port: int) -> socket.socket:
     return sock
 
 
+TICK_S = 1.0  # uvicorn's main loop: how often it renews the Date header (its own loop wakes every 0.1 s)
+
+
 class _Server(uvicorn.Server):
     """uvicorn's server without its signal handling: serve() installs ours, which exit 0
-    instead of re-raising the signal after shutdown."""
+    instead of re-raising the signal after shutdown. Its main loop wakes once a second, not ten
+    times (issue 18); :meth:`exit` ends it at once."""
+
+    def __init__(self, config: uvicorn.Config) -> None:
+        super().__init__(config)
+        self._exit_now = asyncio.Event()  # bound to the loop that first waits on it
 
     @contextlib.contextmanager
     def capture_signals(self) -> Iterator[None]:
         yield
+
+    async def main_loop(self) -> None:
+        counter = 0
+        while not await self.on_tick(counter):
+            counter = (counter + 10) % 864000  # on_tick does its once-a-second work when counter % 10 == 0
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(self._exit_now.wait(), TICK_S)
+
+    def exit(self, force: bool = False) -> None:
+        """Starts the shutdown now (``force``: the second signal, without waiting for requests)."""
+        self.force_exit = self.force_exit or force
+        self.should_exit = True
+        self._exit_now.set()
 
 
 async def serve(settings: OrchestratorSettings, *, fresh: bool = False, recovered: list[str] | None = None) -> int:
@@ -72,9 +93,7 @@ async def serve(settings: OrchestratorSettings, *, fresh: bool = False, recovere
 
     def on_signal(signum: int) -> None:
         log.info("event=signal signal=%s", signal.Signals(signum).name)
-        if server.should_exit:
-            server.force_exit = True
-        server.should_exit = True
+        server.exit(force=server.should_exit)
 
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGINT, signal.SIGTERM):

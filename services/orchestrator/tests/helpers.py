@@ -101,11 +101,12 @@ class FakeComponent:
         self.push.connect(self.registration["results_endpoint"])
         self.sequence = 0
 
-    def heartbeat(self, stats: dict | None = None) -> None:
+    def heartbeat(self, stats: dict | None = None, **extra: Any) -> None:
+        """``extra``: more fields, e.g. ``state_version`` (without it, every answer is the full state)."""
         self.dealer.send_json({"type": "heartbeat", "component_id": self.id,
                                "control_key": self.registration["control_key"],
                                "stats": stats or {"inputs": {}, "outputs": {},
-                                                  "results_sent": self.sequence, "info": {}}})
+                                                  "results_sent": self.sequence, "info": {}}, **extra})
 
     def recv(self, timeout_s: float = 5.0) -> dict | None:
         if self.dealer.poll(int(timeout_s * 1000)):

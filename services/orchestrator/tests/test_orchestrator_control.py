@@ -17,7 +17,7 @@ def test_heartbeat_is_answered_with_full_state_and_stats_are_kept(component, htt
     vad = component("vad", designation="vad", inputs=["audio/raw"], outputs=["vad/speech"])
     vad.heartbeat()
     assert vad.recv() == {"type": "state", "peers": {"audio/raw": ["tcp://127.0.0.1:40444"]},
-                          "formats": {"audio/raw": FMT16, "vad/speech": FMT16}}
+                          "formats": {"audio/raw": FMT16, "vad/speech": FMT16}, "version": 1}
     grabber.heartbeat({"inputs": {}, "outputs": {"audio/raw": {"published": 12, "subscribers": 1}},
                        "results_sent": 0, "info": {}})
     assert grabber.recv()["type"] == "state"
@@ -49,7 +49,7 @@ def test_producer_registering_after_consumer_is_pushed_to_it(component):
     # no heartbeat from asr: the new peer must be pushed at once
     pushed = asr.wait_for(lambda m: m.get("type") == "state", timeout_s=2.0)
     assert pushed == {"type": "state", "peers": {"vad/speech": ["tcp://127.0.0.1:40555"]},
-                      "formats": {"vad/speech": FMT16}}
+                      "formats": {"vad/speech": FMT16}, "version": 2}
     assert vad.registration["formats"] == {"vad/speech": FMT16}
 
 
@@ -83,3 +83,42 @@ def test_heartbeats_keep_alive_and_silence_kills_within_3_s(component, http):
     assert everyone["grabber"]["status"] == "dead"
     grabber.heartbeat()
     assert grabber.wait_for(lambda m: True) == {"type": "unknown"}
+
+
+def test_a_current_state_is_acknowledged_a_changed_or_missed_one_is_sent_in_full(component):
+    vad = component("vad", designation="vad", inputs=["audio/raw"])
+    vad.heartbeat()  # no state_version (an older SDK): always the full state
+    first = vad.recv()
+    assert first == {"type": "state", "peers": {"audio/raw": []}, "formats": {"audio/raw": FMT16}, "version": 1}
+    vad.heartbeat(state_version=1, sent_ns=1_000)
+    ack = vad.recv()
+    assert ack is not None and ack.pop("orchestrator_ns") > 0
+    assert ack == {"type": "ack", "version": 1, "echo_ns": 1_000}  # the clock sample, and no state
+    for stale in (0, 7, True, "1"):  # none, unknown, or not a number: the full state
+        vad.heartbeat(state_version=stale)
+        assert vad.recv() == first
+    component("grabber", outputs=["audio/raw"], endpoint="tcp://127.0.0.1:40888")
+    pushed = vad.wait_for(lambda m: m.get("type") == "state", timeout_s=2.0)
+    assert pushed["peers"] == {"audio/raw": ["tcp://127.0.0.1:40888"]} and pushed["version"] == 2
+    vad.heartbeat(state_version=1)  # as if the push were lost: the answer carries it
+    assert vad.recv() == pushed
+    vad.heartbeat(state_version=2)
+    assert vad.recv() == {"type": "ack", "version": 2}
+
+
+def test_heartbeats_arriving_together_and_amid_pushes_are_all_answered(component):
+    """The control socket is drained at each wake-up and looked at again after each send (its file
+    descriptor is edge-triggered): no heartbeat waits for the next one to be answered."""
+    vads = [component("vad", designation="vad", inputs=["audio/raw"]) for _ in range(12)]
+    for vad in vads:
+        vad.heartbeat()
+        assert vad.recv()["type"] == "state"  # connected
+    for round_ in range(3):
+        for vad in vads:  # together: several are queued when the loop wakes
+            vad.heartbeat(state_version=vad.registration.get("seen", 0))
+        # a producer registering pushes a new state to every vad while their beats arrive
+        component("grabber", outputs=["audio/raw"], endpoint=f"tcp://127.0.0.1:{40900 + round_}")
+        for vad in vads:
+            answers = [vad.recv(timeout_s=1.0), vad.recv(timeout_s=1.0)]  # its answer and the push, any order
+            assert all(a is not None for a in answers), f"{vad.id}: not answered within 1 s"
+            vad.registration["seen"] = max(a["version"] for a in answers if a is not None)
