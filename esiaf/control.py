@@ -285,7 +285,10 @@ class ControlClient:
                     os.read(self._wake_read, 4096)
                 if dealer not in ready:
                     continue
-                message = _control_message(dealer.recv())
+                try:
+                    message = _control_message(dealer.recv(zmq.NOBLOCK))
+                except zmq.Again:  # libzmq may say it is readable when it is not
+                    continue
                 received_ns = self._clock_ns()
                 last_heard = time.monotonic()
                 echo, answered = message.get("echo_ns"), message.get("orchestrator_ns")

@@ -249,6 +249,8 @@ class Transport:
         """
         if self.sub is None:
             return
+        for endpoint in wanted & self._leaving.keys():  # back before it was dropped: it stays connected
+            del self._leaving[endpoint]
         refused = set()
         for endpoint in wanted - self._connected:
             try:

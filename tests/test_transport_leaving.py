@@ -50,3 +50,33 @@ def test_a_producer_gone_with_audio_queued_is_read_to_the_end_then_disconnected(
     assert done.returncode == 0, done.stderr
     queued, late = map(int, done.stdout.split())
     assert queued >= 500 and late == 0
+
+
+BACK = textwrap.dedent("""
+    import time, zmq
+    from esiaf.transport import LEAVE_GRACE_S, Transport, topic_frame
+    context = zmq.Context()
+    pub = context.socket(zmq.PUB)
+    endpoint = f"tcp://127.0.0.1:{pub.bind_to_random_port('tcp://127.0.0.1')}"
+    transport = Transport(context, inputs=["grabber/audio"], has_outputs=False, bind_host="127.0.0.1")
+    transport.connect_peers({endpoint})
+    received = 0
+    while received == 0:  # until the subscription has reached the publisher
+        pub.send_multipart([topic_frame("grabber/audio"), b"probe"])
+        received += sum(1 for kind, _ in transport.events(50) if kind == "audio")
+    # the orchestrator restarted: our registration's state knows no producer yet, the next one does
+    transport.connect_peers(set())
+    transport.connect_peers({endpoint})
+    deadline = time.monotonic() + LEAVE_GRACE_S + 0.5
+    while time.monotonic() < deadline:  # past the grace period
+        list(transport.events(100))
+    pub.send_multipart([topic_frame("grabber/audio"), b"after"])
+    print(sum(1 for kind, _ in transport.events(1000) if kind == "audio"))
+    transport.close(); pub.close(0); context.term()
+""")
+
+
+def test_a_producer_that_comes_back_within_the_grace_period_stays_connected():
+    done = subprocess.run([sys.executable, "-c", BACK], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["1"]  # before the fix it was dropped at the end of the grace period: 0
