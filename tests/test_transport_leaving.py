@@ -12,7 +12,7 @@ import textwrap
 
 from esiaf.testing import REPO
 
-SCENARIO = textwrap.dedent("""
+CONNECTED = """
     import time, zmq
     from esiaf.transport import LEAVE_GRACE_S, Transport, topic_frame
     context = zmq.Context()
@@ -25,6 +25,9 @@ SCENARIO = textwrap.dedent("""
     while received == 0:  # until the subscription has reached the publisher
         pub.send_multipart([topic_frame("grabber/audio"), b"probe"])
         received += sum(1 for kind, _ in transport.events(50) if kind == "audio")
+"""  # a consumer's transport subscribed to a publisher of its own
+
+SCENARIO = textwrap.dedent(CONNECTED + """
     for i in range(500):
         pub.send_multipart([topic_frame("grabber/audio"), b"x" * 640])
     time.sleep(0.5)  # all 500 queued on the SUB side
@@ -52,18 +55,7 @@ def test_a_producer_gone_with_audio_queued_is_read_to_the_end_then_disconnected(
     assert queued >= 500 and late == 0
 
 
-BACK = textwrap.dedent("""
-    import time, zmq
-    from esiaf.transport import LEAVE_GRACE_S, Transport, topic_frame
-    context = zmq.Context()
-    pub = context.socket(zmq.PUB)
-    endpoint = f"tcp://127.0.0.1:{pub.bind_to_random_port('tcp://127.0.0.1')}"
-    transport = Transport(context, inputs=["grabber/audio"], has_outputs=False, bind_host="127.0.0.1")
-    transport.connect_peers({endpoint})
-    received = 0
-    while received == 0:  # until the subscription has reached the publisher
-        pub.send_multipart([topic_frame("grabber/audio"), b"probe"])
-        received += sum(1 for kind, _ in transport.events(50) if kind == "audio")
+BACK = textwrap.dedent(CONNECTED + """
     # the orchestrator restarted: our registration's state knows no producer yet, the next one does
     transport.connect_peers(set())
     transport.connect_peers({endpoint})
