@@ -30,7 +30,7 @@ class AsrSettings(ComponentSettings):
     extra_dictionary: str = str(DEFAULT_EXTRA_DICT)  # project words on top of the bundled dictionary
     language_weight: float = 7.5
     nbest: int = 5  # pocketsphinx: hypotheses per segment
-    n_best: int = 1  # whisper: hypotheses per segment (> 1: a second beam search, whisper.py; 1: as before)
+    n_best: int = 10  # whisper: hypotheses per segment (> 1: a second beam search, whisper.py; 1: as before)
     sentences: str = ""  # closed set: a file of allowed sentences (one per line) or a JSGF grammar
     match_threshold: float = 0.6  # a transcript scoring less than this against every sentence is out of set
     char_threshold: float = 0.7  # ... unless its letters are this similar to the nearest (services/asr/matching.py)
