@@ -88,6 +88,17 @@ class Match:
     in_set: bool  # score >= the threshold
 
 
+def chosen_first(matches: list[Match]) -> list[int]:
+    """The order in which a segment's hypotheses are reported, given each one's match: the
+    hypothesis whose match is in the set with the best score first (ties: the higher ranked), then
+    the others in their own order. None in the set: their own order (the first is out of set)."""
+    in_set = [i for i, m in enumerate(matches) if m.in_set]
+    if not in_set:
+        return list(range(len(matches)))
+    best = max(in_set, key=lambda i: (matches[i].score, -i))
+    return [best, *(i for i in range(len(matches)) if i != best)]
+
+
 class SentenceMatcher:
     def __init__(self, sentences: list[str], threshold: float = 0.6, char_threshold: float = 0.7) -> None:
         if not sentences:

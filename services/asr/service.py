@@ -12,7 +12,7 @@ from typing import ClassVar
 import numpy as np
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError, hypothesis
-from services.asr.matching import GrammarError, SentenceMatcher
+from services.asr.matching import GrammarError, Match, SentenceMatcher, chosen_first
 from services.asr.recognizer import DEFAULT_EXTRA_DICT, UNRECOGNISED, PocketsphinxRecognizer, RecognizerError
 from services.asr.whisper import WhisperRecognizer
 
@@ -29,7 +29,8 @@ class AsrSettings(ComponentSettings):
     grammar: str = ""  # a JSGF file, or the name of a bundled grammar ("robocup"); empty = language model
     extra_dictionary: str = str(DEFAULT_EXTRA_DICT)  # project words on top of the bundled dictionary
     language_weight: float = 7.5
-    nbest: int = 5
+    nbest: int = 5  # pocketsphinx: hypotheses per segment
+    n_best: int = 10  # whisper: hypotheses per segment (> 1: a second beam search, whisper.py; 1: as before)
     sentences: str = ""  # closed set: a file of allowed sentences (one per line) or a JSGF grammar
     match_threshold: float = 0.6  # a transcript scoring less than this against every sentence is out of set
     char_threshold: float = 0.7  # ... unless its letters are this similar to the nearest (services/asr/matching.py)
@@ -85,7 +86,8 @@ class Asr(Component):
         s = self.settings
         try:
             if s.backend == "whisper":
-                self.whisper = WhisperRecognizer(s.model_dir, s.beam_size, s.no_speech_threshold)
+                self.whisper = WhisperRecognizer(s.model_dir, s.beam_size, s.no_speech_threshold,
+                                                 n_best=s.n_best)
                 self.info["model"] = str(self.whisper.path)
             else:
                 self.streams[s.stream_id] = StreamState(self._new_decoder())  # ready for the usual stream
@@ -173,19 +175,20 @@ class Asr(Component):
             self.emit("speech", span, stream_id=audio.stream_id, nothing=nothing)
             log.info("utterance stream_id=%s start_ns=%d recognised nothing: %s", audio.stream_id, span[0], nothing)
             return
+        matches = [self.matcher.match(h.text) for h in hypotheses] if self.matcher is not None else []
+        order = chosen_first(matches) if matches else list(range(len(hypotheses)))
         self.emit("speech", span, stream_id=audio.stream_id, speech={"hypotheses": [
-            self._hypothesis(h, origin_ns) for h in hypotheses]})
+            self._hypothesis(hypotheses[i], origin_ns, matches[i] if matches else None) for i in order]})
         log.info("utterance stream_id=%s start_ns=%d text=%r p=%.2f", audio.stream_id, span[0],
-                 hypotheses[0].text, hypotheses[0].probability)
+                 hypotheses[order[0]].text, hypotheses[order[0]].probability)
 
-    def _hypothesis(self, h, origin_ns: int):
+    def _hypothesis(self, h, origin_ns: int, match: Match | None):
         """The proto hypothesis; with a closed set, its text is the matched sentence (or empty when
         out of set) and the raw transcript and match score go beside it."""
         words = [{"word": w.word, "start_ns": origin_ns + round(w.start_s * 1e9),
                   "end_ns": origin_ns + round(w.end_s * 1e9), "probability": w.probability} for w in h.words]
         out = hypothesis(h.text, h.probability, words)
-        if self.matcher is not None:
-            match = self.matcher.match(h.text)
+        if match is not None:
             out.raw_text, out.match_score, out.out_of_set = h.text, match.score, not match.in_set
             out.text = match.sentence if match.in_set else ""
         return out
