@@ -20,7 +20,7 @@ from .codec import BadResult, parse_result, result_to_json, type_name
 from .fusion import FusedResult, FusionEngine, StoredResult
 from .hub import Hub, Outgoing
 from .metrics import Metrics
-from .orphans import fuse_orphans
+from .orphans import Orphans
 from .registry import Component, Registry
 from .settings import FusionSettings
 from .store import Store, StoreUnavailable
@@ -46,6 +46,7 @@ class Ingest:
         self.socket = socket
         self.store = store
         self.engine = engine
+        self.orphans = Orphans(engine)  # what dead recogniser instances left unanswered
         self.hub = hub
         self.registry = registry
         self.streams = StreamEnds()
@@ -180,8 +181,8 @@ class Ingest:
             now_ns = self._clock_ns()
             return [self._store_fused(f) for c in gone for f in [
                 *self.engine.on_component_gone(c.name),
-                *(f for s in c.served_at_departure if c.status == "dead"
-                  for f in fuse_orphans(self.engine, s, c.name, c.designation, now_ns))]]
+                *(f for s in c.served_at_departure if c.status == "dead" for f in self.orphans.on_death(
+                    s, c.name, c.designation, now_ns - self.capture_offset_ns(s), now_ns))]]
         self._transaction(work, after="components_gone")
         self._publish(self.stream_ends())
 
@@ -321,7 +322,8 @@ class Ingest:
         stored = StoredResult(id=result_id, component=result.component, type=kind,
                               stream_id=result.stream_id, start_ns=result.span.start_ns,
                               end_ns=result.span.end_ns, json=as_json)
-        outgoing = [self._store_fused(fused) for fused in self.engine.on_result(stored, received_ns)]
+        outgoing = [self._store_fused(fused) for fused in [*self.engine.on_result(stored, received_ns),
+                                                           *self.orphans.on_result(stored, received_ns)]]
         self.counters["results"] += 1  # stored and fused: counted once nothing can undo it
         if self.metrics is not None:
             self._observed.append((self.metrics.result_latency, (result.component, result.stream_id),

@@ -6,6 +6,11 @@ each VAD segment on the streams it served that its service has not covered since
 is fused anyway: anchored on the segment itself, with the instance's service missing (reason
 ``gone``, completion ``components_gone``), so a client sees where speech was and that its text is
 lost. The next utterance goes to the instance the stream moved to.
+
+An utterance still going on when the instance died reaches the instance the stream moved to from
+its middle, which says ``nothing`` about it ("joined late") rather than a wrong sentence. So the
+streams a dead instance served are watched (:class:`Orphans`): an anchor-type ``nothing`` there
+over speech that began before the death is fused the same way, anchored on its VAD segment.
 """
 from __future__ import annotations
 
@@ -56,3 +61,50 @@ def fuse_orphans(engine: FusionEngine, stream_id: str, service: str, anchor_type
                         stream_id, service, segment.start_ns, segment.end_ns, settings.name)
             fused.extend(engine.open_orphan(settings, segment, {service: (anchor_type, "gone")}, received_ns))
     return fused
+
+
+class Orphans:
+    """What dead instances left: fused at their death (:func:`fuse_orphans`), and the utterances that
+    were going on then, once their new instance has said ``nothing`` about them."""
+
+    MAX_WATCHED = 10_000  # (stream, service) pairs watched at once, the oldest dropped
+
+    def __init__(self, engine: FusionEngine) -> None:
+        self.engine = engine
+        # (stream, service) -> (anchor type, the capture time before which speech was in flight on the dead one)
+        self.watched: dict[tuple[str, str], tuple[str, int]] = {}
+
+    def on_death(self, stream_id: str, service: str, anchor_type: str, in_flight_before_ns: int,
+                 received_ns: int) -> list[FusedResult]:
+        if not any(s.anchor == anchor_type for s in self.engine.fusions):
+            return []
+        self.watched.pop((stream_id, service), None)
+        self.watched[stream_id, service] = (anchor_type, in_flight_before_ns)
+        while len(self.watched) > self.MAX_WATCHED:
+            del self.watched[next(iter(self.watched))]
+        return fuse_orphans(self.engine, stream_id, service, anchor_type, received_ns)
+
+    def on_result(self, result: StoredResult, received_ns: int) -> list[FusedResult]:
+        """``result`` just fused: if it is its new instance's ``nothing`` over an utterance that was
+        in flight on a dead one, that utterance's segment is fused without it."""
+        watch = self.watched.get((result.stream_id, result.component))
+        if watch is None or result.type != watch[0]:
+            return []
+        if result.start_ns >= watch[1]:  # an utterance begun after the death: the watch is over
+            del self.watched[result.stream_id, result.component]
+            return []
+        if not result.is_nothing:
+            return []
+        memory = self.engine.streams.get(result.stream_id)
+        segments = memory.index.get(SEGMENT_TYPE) if memory is not None else None
+        fused: list[FusedResult] = []
+        # on its VAD segment; if that has not come yet (the two are sent at the same moment), on the `nothing`
+        anchors = (list(segments.overlapping(result.start_ns, result.end_ns)) if segments else []) or [result]
+        for segment in anchors:
+            for settings in (s for s in self.engine.fusions if s.anchor == watch[0]
+                             and s.stream in (None, result.stream_id)):
+                log.warning("event=utterance_orphaned stream_id=%s service=%s start_ns=%d joined_late=1",
+                            result.stream_id, result.component, segment.start_ns)
+                fused.extend(self.engine.open_orphan(settings, segment, {result.component: (watch[0], "gone")},
+                                                     received_ns))
+        return fused

@@ -10,7 +10,7 @@ from services.orchestrator.aggregate import label_aggregate, overlaps, ssl_aggre
 from services.orchestrator.coverage import GAP_TOLERANCE_NS, Coverage, StoredResult
 from services.orchestrator.fusion import FusionEngine
 from services.orchestrator.latency import Latencies
-from services.orchestrator.orphans import fuse_orphans, unanswered_segments
+from services.orchestrator.orphans import Orphans, fuse_orphans, unanswered_segments
 from services.orchestrator.settings import FusionSettings, TimeoutSettings
 
 MS = 1_000_000
@@ -268,3 +268,22 @@ def test_segments_a_dead_recogniser_left_unanswered_are_fused_without_it_once():
     [later] = engine.on_result(result(4, "emo", "emotion", 6 * S, 8 * S, emotion={"label": "sad"}), 10 * S)
     assert later.json["anchor"]["id"] == 12 and later.json["completion"] == "components_gone"
     assert fuse_orphans(engine, "s", "ssl", "ssl", 9 * S) == []  # no fusion is anchored on ssl
+
+
+def test_an_utterance_going_on_when_its_recogniser_died_is_fused_once_its_new_instance_says_nothing():
+    engine, _ = engine_with()
+    orphans = Orphans(engine)
+    engine.on_result(result(10, "vad", "vad", 0, 2 * S, vad={"probability": 1.0}), 2 * S)
+    engine.on_result(result(1, "asr", "speech", 0, 2 * S, speech={"hypotheses": [{"text": "hi"}]}), 2 * S)
+    assert orphans.on_death("s", "asr", "speech", 5 * S, 5 * S) == []  # nothing unanswered yet
+    # the utterance [4 s, 7 s] was going on: its segment ends, its new instance joined it late
+    engine.on_result(result(11, "vad", "vad", 4 * S, 7 * S, vad={"probability": 1.0}), 7 * S)
+    late = result(2, "asr", "speech", 4 * S, 7 * S, nothing={"reason": "joined the utterance 1000 ms after its start"})
+    assert engine.on_result(late, 7 * S) == []  # a `nothing` opens no fusion of its own
+    [fused] = orphans.on_result(late, 7 * S)
+    assert fused.json["anchor"]["id"] == 11 and fused.json["completion"] == "components_gone"
+    assert fused.json["missing"] == [{"component": "asr", "type": "speech", "reason": "gone"}]
+    # the next utterance, begun after the death, ends the watch: a later `nothing` is only that
+    nxt = result(3, "asr", "speech", 9 * S, 10 * S, speech={"hypotheses": [{"text": "go"}]})
+    assert orphans.on_result(nxt, 10 * S) == [] and not orphans.watched
+    assert orphans.on_result(result(4, "asr", "speech", 4 * S, 7 * S, nothing={"reason": "x"}), 11 * S) == []
