@@ -232,19 +232,16 @@ class Orchestrator:
         task.add_done_callback(self._pushes.discard)
 
     async def remove(self, component_id: str) -> Component | None:
-        component = self.registry.remove(component_id)
-        if component is not None:
-            log.info("event=component_removed component_id=%s name=%s",
-                     component_id, component.name)
-            await self._after_change([component])
-        return component
+        return await self._gone(self.registry.remove(component_id), logging.INFO, "component_removed")
 
     async def declare_dead(self, component_id: str) -> Component | None:
         """A component whose process its launcher saw die: dead now, not dead_after_s later."""
-        component = self.registry.declare_dead(component_id)
+        return await self._gone(self.registry.declare_dead(component_id), logging.WARNING, "component_dead",
+                                " reported=launcher")
+
+    async def _gone(self, component: Component | None, level: int, event: str, detail: str = "") -> Component | None:
         if component is not None:
-            log.warning("event=component_dead component_id=%s name=%s reported=launcher",
-                        component_id, component.name)
+            log.log(level, "event=%s component_id=%s name=%s%s", event, component.component_id, component.name, detail)
             await self._after_change([component])
         return component
 

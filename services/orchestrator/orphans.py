@@ -19,6 +19,7 @@ import logging
 from .aggregate import overlaps
 from .coverage import StoredResult
 from .fusion import FusedResult, FusionEngine
+from .settings import FusionSettings
 
 log = logging.getLogger(__name__)
 
@@ -39,28 +40,37 @@ def unanswered_segments(engine: FusionEngine, stream_id: str, service: str) -> l
                 segment.start_ns, segment.end_ns))]
 
 
+def anchored(engine: FusionEngine, anchor_type: str, stream_id: str) -> list[FusionSettings]:
+    """The fusions that open on results of ``anchor_type`` in ``stream_id``."""
+    return [s for s in engine.fusions if s.anchor == anchor_type and s.stream in (None, stream_id)]
+
+
+def fuse_without(engine: FusionEngine, segment: StoredResult, service: str, anchor_type: str,
+                 received_ns: int, why: str) -> list[FusedResult]:
+    """Fuses ``segment`` for every fusion anchored on ``anchor_type``, ``service`` missing, unless
+    a fusion of that name is open or published over it already."""
+    memory = engine.streams.get(segment.stream_id)
+    span = (segment.start_ns, segment.end_ns)
+    taken = {f.settings.name for f in [*memory.published.overlapping(*span),
+                                       *(f for f in memory.open if overlaps(f.start_ns, f.end_ns, *span))]} \
+        if memory is not None else set()
+    fused: list[FusedResult] = []
+    for settings in anchored(engine, anchor_type, segment.stream_id):
+        if settings.name not in taken:
+            log.warning("event=utterance_orphaned stream_id=%s service=%s start_ns=%d end_ns=%d fusion=%s why=%s",
+                        segment.stream_id, service, *span, settings.name, why)
+            fused.extend(engine.open_orphan(settings, segment, {service: (anchor_type, "gone")}, received_ns))
+    return fused
+
+
 def fuse_orphans(engine: FusionEngine, stream_id: str, service: str, anchor_type: str,
                  received_ns: int) -> list[FusedResult]:
     """Fuses each segment of ``stream_id`` that the dead instance of ``service`` (producing
-    ``anchor_type``) left unanswered, for every fusion anchored on that type, unless a fusion of
-    that name is open or published over it already."""
-    fusions = [s for s in engine.fusions if s.anchor == anchor_type and s.stream in (None, stream_id)]
-    if not fusions:
+    ``anchor_type``) left unanswered (:func:`fuse_without`)."""
+    if not anchored(engine, anchor_type, stream_id):
         return []
-    memory = engine.streams.get(stream_id)
-    fused: list[FusedResult] = []
-    for segment in unanswered_segments(engine, stream_id, service):
-        assert memory is not None  # there are segments
-        for settings in fusions:
-            span = (segment.start_ns, segment.end_ns)
-            fusions_over = [*memory.published.overlapping(*span),
-                            *(f for f in memory.open if overlaps(f.start_ns, f.end_ns, *span))]
-            if any(f.settings.name == settings.name for f in fusions_over):
-                continue
-            log.warning("event=utterance_orphaned stream_id=%s service=%s start_ns=%d end_ns=%d fusion=%s",
-                        stream_id, service, segment.start_ns, segment.end_ns, settings.name)
-            fused.extend(engine.open_orphan(settings, segment, {service: (anchor_type, "gone")}, received_ns))
-    return fused
+    return [f for segment in unanswered_segments(engine, stream_id, service)
+            for f in fuse_without(engine, segment, service, anchor_type, received_ns, "unanswered")]
 
 
 class Orphans:
@@ -76,7 +86,7 @@ class Orphans:
 
     def on_death(self, stream_id: str, service: str, anchor_type: str, in_flight_before_ns: int,
                  received_ns: int) -> list[FusedResult]:
-        if not any(s.anchor == anchor_type for s in self.engine.fusions):
+        if not anchored(self.engine, anchor_type, stream_id):
             return []
         self.watched.pop((stream_id, service), None)
         self.watched[stream_id, service] = (anchor_type, in_flight_before_ns)
@@ -97,14 +107,7 @@ class Orphans:
             return []
         memory = self.engine.streams.get(result.stream_id)
         segments = memory.index.get(SEGMENT_TYPE) if memory is not None else None
-        fused: list[FusedResult] = []
         # on its VAD segment; if that has not come yet (the two are sent at the same moment), on the `nothing`
         anchors = (list(segments.overlapping(result.start_ns, result.end_ns)) if segments else []) or [result]
-        for segment in anchors:
-            for settings in (s for s in self.engine.fusions if s.anchor == watch[0]
-                             and s.stream in (None, result.stream_id)):
-                log.warning("event=utterance_orphaned stream_id=%s service=%s start_ns=%d joined_late=1",
-                            result.stream_id, result.component, segment.start_ns)
-                fused.extend(self.engine.open_orphan(settings, segment, {result.component: (watch[0], "gone")},
-                                                     received_ns))
-        return fused
+        return [f for segment in anchors
+                for f in fuse_without(self.engine, segment, result.component, watch[0], received_ns, "joined_late")]
