@@ -1,9 +1,9 @@
-"""Fixtures shared by every test folder (tests/, services/*/tests/); the helpers are in esiaf.testing."""
+"""Fixtures shared by every test folder (tests/, esiaf_services/*/tests/); the helpers are in esiaf.tools.testing."""
 from __future__ import annotations
 
 import pytest
 
-from esiaf.testing import Launcher, Orchestrator
+from esiaf.tools.testing import Launcher, Orchestrator
 
 
 @pytest.fixture

@@ -4,7 +4,7 @@
 
 Pocketsphinx (en-us language model, streamed as the service does) and Whisper tiny.en (the
 asr-whisper extra) decode the transcribed clips of ../shared/data/speech (the pocketsphinx folder
-and CMU ARCTIC). Word error is on normalised text (services/asr/matching.py: case, punctuation,
+and CMU ARCTIC). Word error is on normalised text (esiaf_services/asr/matching.py: case, punctuation,
 numbers as words). False matches: each clip's transcript matched against the 50 RoboCup questions
 (none of them is one) and counted when it is not refused as out of set. The time from segment
 end to result is what each backend spends once the segment has closed (pocketsphinx: finishing its
@@ -25,10 +25,10 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 import soundfile  # noqa: E402
 
-from services.asr.matching import SentenceMatcher, normalise, word_distance  # noqa: E402
-from services.asr.recognizer import PocketsphinxRecognizer  # noqa: E402
-from services.asr.service import resolve_grammar  # noqa: E402
-from services.asr.whisper import WhisperRecognizer  # noqa: E402
+from esiaf_services.asr.matching import SentenceMatcher, normalise, word_distance  # noqa: E402
+from esiaf_services.asr.recognizer import PocketsphinxRecognizer  # noqa: E402
+from esiaf_services.asr.service import resolve_grammar  # noqa: E402
+from esiaf_services.asr.whisper import WhisperRecognizer  # noqa: E402
 
 DATA = Path(os.environ.get("ESIAF_SHARED_DATA", REPO.parent / "shared" / "data"))
 

@@ -30,10 +30,10 @@ import soundfile
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from esiaf.testing import SHARED_DATA  # noqa: E402
-from services.emotion.backends import load_backend  # noqa: E402
-from services.emotion.tools.pipeline import EmotionPipeline, build_recording  # noqa: E402
-from services.vad.segmenter import SegmenterParams  # noqa: E402
+from esiaf.tools.testing import SHARED_DATA  # noqa: E402
+from esiaf_services.emotion.backends import load_backend  # noqa: E402
+from esiaf_services.emotion.tools.pipeline import EmotionPipeline, build_recording  # noqa: E402
+from esiaf_services.vad.segmenter import SegmenterParams  # noqa: E402
 
 HANGOVER_NS = int(SegmenterParams().keep_alive_ms * 1_000_000)
 THESIS_SPEECH_S = 83 * 60

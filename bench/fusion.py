@@ -35,8 +35,8 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from esiaf.results import make_result, ssl_direction  # noqa: E402
-from esiaf.testing import Orchestrator, poll  # noqa: E402
-from services.orchestrator.latency import percentile  # noqa: E402
+from esiaf.tools.testing import Orchestrator, poll  # noqa: E402
+from esiaf_services.orchestrator.latency import percentile  # noqa: E402
 
 S = 1_000_000_000
 UTTERANCE_NS = 2 * S

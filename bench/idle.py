@@ -22,7 +22,7 @@ import time  # noqa: E402
 import httpx  # noqa: E402
 import psutil  # noqa: E402
 
-from esiaf.testing import free_port, poll  # noqa: E402
+from esiaf.tools.testing import free_port, poll  # noqa: E402
 
 
 def cpu_s(process: psutil.Process) -> float:
@@ -48,7 +48,7 @@ def main() -> None:
     try:
         for name in names:
             extra = ["--port", str(port), "--db", str(workdir / "o.db")] if name == "orchestrator" else []
-            processes[name] = subprocess.Popen([sys.executable, "-m", f"services.{name}", *extra], cwd=REPO,
+            processes[name] = subprocess.Popen([sys.executable, "-m", f"esiaf_services.{name}", *extra], cwd=REPO,
                                                env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             if name == "orchestrator":
                 poll(lambda: httpx.get(f"{url}/health").status_code == 200, timeout_s=60)

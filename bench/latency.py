@@ -48,10 +48,10 @@ sys.path.insert(0, str(REPO))
 
 from esiaf.audio import SampleClock  # noqa: E402
 from esiaf.formats import AudioFormat, peak  # noqa: E402
-from services.asr.recognizer import PocketsphinxRecognizer  # noqa: E402
-from services.asr.service import resolve_grammar  # noqa: E402
-from services.emotion.backends import load_backend  # noqa: E402
-from services.vad.segmenter import Segmenter, SegmenterParams, level_db  # noqa: E402
+from esiaf_services.asr.recognizer import PocketsphinxRecognizer  # noqa: E402
+from esiaf_services.asr.service import resolve_grammar  # noqa: E402
+from esiaf_services.emotion.backends import load_backend  # noqa: E402
+from esiaf_services.vad.segmenter import Segmenter, SegmenterParams, level_db  # noqa: E402
 
 CHUNK_MS = 20
 HANGOVER_NS = int(SegmenterParams().keep_alive_ms * 1_000_000)
@@ -118,7 +118,7 @@ def pipeline(path: Path, grammar: str, port: int, extra: list[str]):
     """The launcher with every service as a process. Returns latencies (ms), texts, CPU s per
     service while playing, CPU s per service at start-up, and the fused results."""
     workdir = Path(tempfile.mkdtemp(prefix="esiaf-bench-"))
-    cmd = [sys.executable, "-m", "esiaf.cli", "run", "--input", str(path), "--json", "--serve",
+    cmd = [sys.executable, "-m", "esiaf", "run", "--input", str(path), "--json", "--serve",
            "--port", str(port), "--workdir", str(workdir), *extra] + (["--grammar", grammar] if grammar else [])
     launcher = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                 env={**os.environ, "PYTHONPATH": str(REPO)},  # Ctrl-C stops it even when the
@@ -176,7 +176,7 @@ def children_cpu(pid: int) -> dict[str, float]:
     """CPU seconds (user + system) so far of each service the launcher started."""
     cpu = {}
     for child in psutil.Process(pid).children():
-        name = next((a.split(".", 1)[1] for a in child.cmdline() if a.startswith("services.")), str(child.pid))
+        name = next((a.split(".", 1)[1] for a in child.cmdline() if a.startswith("esiaf_services.")), str(child.pid))
         times = child.cpu_times()
         cpu[name] = times.user + times.system
     return cpu

@@ -1,6 +1,6 @@
 """SSL per DOA algorithm: CPU seconds per second of 4-channel audio, and angle error, in one run.
 
-Scenes: the accuracy scene of the tests (services.ssl.offline.accuracy_scene: six CMU ARCTIC
+Scenes: the accuracy scene of the tests (esiaf_services.ssl.offline.accuracy_scene: six CMU ARCTIC
 utterances from 0/90/180/270/30/200°, 1.5 m away, RT60 0.4 s, kitchen noise from 120° 10 dB below
 the speech), rendered once per array (Pepper and ReSpeaker). Every algorithm runs the real ssl
 component's frame loop (128 ms frames, nfft 256, 300-5000 Hz, background bin selection) over the
@@ -23,9 +23,9 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from esiaf.scenes import render  # noqa: E402
-from esiaf.testing import SHARED_DATA  # noqa: E402
-from services.ssl.doa import ALGORITHMS  # noqa: E402
-from services.ssl.offline import accuracy_scene, localise, score  # noqa: E402
+from esiaf.tools.testing import SHARED_DATA  # noqa: E402
+from esiaf_services.ssl.doa import ALGORITHMS  # noqa: E402
+from esiaf_services.ssl.offline import accuracy_scene, localise, score  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

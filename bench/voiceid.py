@@ -19,7 +19,7 @@ Every EmoDB utterance (10 speakers, 535, acted emotions) is cut to its speech sp
 - with ``--variants``, a table of the figures (closed-set accuracy, open-set EER and its threshold,
   all emotions and neutral only, clean and in the room) for each variant of ``VARIANTS``: partial
   windows or the whole utterance, cohort centring, adaptive s-norm, perturbed enrolment copies.
-  The cohort is ``services/voiceid/cohort.py``'s: the shared data's real non-EmoDB speech and
+  The cohort is ``esiaf_services/voiceid/cohort.py``'s: the shared data's real non-EmoDB speech and
   flite voices, none of them an EmoDB speaker;
 - with ``--room-enrolment``, the room's trials against a clean enrolment (as a WAV enrolment would
   be made), without and with reverberant noisy copies of each enrolment utterance in rooms unlike
@@ -48,9 +48,9 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path[0] = str(REPO)  # not bench/: its ssl.py would shadow the standard library's ssl
 
 from esiaf.scenes import speech_bounds  # noqa: E402
-from esiaf.testing import SHARED_DATA  # noqa: E402
-from services.voiceid.encoder import RESEMBLYZER_PARTIALS_PER_S, VoiceEncoder  # noqa: E402
-from services.voiceid.scoring import VoiceBook  # noqa: E402
+from esiaf.tools.testing import SHARED_DATA  # noqa: E402
+from esiaf_services.voiceid.encoder import RESEMBLYZER_PARTIALS_PER_S, VoiceEncoder  # noqa: E402
+from esiaf_services.voiceid.scoring import VoiceBook  # noqa: E402
 
 ENROL_UTTERANCES = 3
 UNKNOWN_SPEAKERS = 3
@@ -142,14 +142,14 @@ def evaluate(names: list[str], speakers: list[str], neutral: list[bool], embeddi
 
 
 def pipeline_latency(files: list[Path]) -> dict[str, float]:
-    from services.emotion.tools.pipeline import EmotionPipeline, build_recording
-    from services.vad.segmenter import SegmenterParams
+    from esiaf_services.emotion.tools.pipeline import EmotionPipeline, build_recording
+    from esiaf_services.vad.segmenter import SegmenterParams
 
     class VoicePipeline(EmotionPipeline):  # orchestrator + vad + voiceid, fused on voice_id
         def __init__(self, workdir: Path):
-            from esiaf.cli import topic_ready
-            from esiaf.launcher import OrchestratorClient, Supervisor, wait_until
-            from esiaf.testing import free_port
+            from esiaf.tools.cli import topic_ready
+            from esiaf.tools.launcher import OrchestratorClient, Supervisor, wait_until
+            from esiaf.tools.testing import free_port
             self.stream_id = "bench"
             port = free_port()
             self.url = f"http://127.0.0.1:{port}"
@@ -238,10 +238,10 @@ COHORT_SENTENCES = 10  # RoboCup questions read by each flite voice
 def compare_variants(encoder: VoiceEncoder, names: list[str], speakers: list[str], neutral: list[bool],
                      conditions: dict[str, list[np.ndarray]], cache: dict[tuple[str, str], np.ndarray]) -> None:
     """One row per variant: closed-set accuracy and open-set EER (threshold), all emotions and
-    neutral only, clean and in the room. The cohort (services/voiceid/cohort.py: real non-EmoDB
+    neutral only, clean and in the room. The cohort (esiaf_services/voiceid/cohort.py: real non-EmoDB
     speech of the shared data + flite voices) goes through the same condition as the trials."""
-    from services.voiceid.augment import speed_perturbed, tilted
-    from services.voiceid.cohort import flite_clips, real_clips, robocup_questions
+    from esiaf_services.voiceid.augment import speed_perturbed, tilted
+    from esiaf_services.voiceid.cohort import flite_clips, real_clips, robocup_questions
     sentences = robocup_questions(SHARED_DATA, COHORT_SENTENCES)
     cohort_clips = [c for _, c in real_clips(SHARED_DATA) + flite_clips(sentences)]
     cohort_audio = {"clean": cohort_clips, "room": through_room(cohort_clips)}
@@ -303,8 +303,8 @@ ROOM_COPIES = ((0.3, (4.0, 5.0, 2.8), 1.0, 20.0), (0.6, (7.0, 6.0, 3.0), 2.0, 5.
 def clean_enrolment_in_room(encoder: VoiceEncoder, names: list[str], speakers: list[str], neutral: list[bool],
                             clips: list[np.ndarray], clean: np.ndarray, room: np.ndarray) -> None:
     """Room trials against a clean enrolment (as a WAV enrolment would be), without and with
-    reverberant noisy copies of each enrolment utterance (services/voiceid/augment.py)."""
-    from services.voiceid.augment import reverberant
+    reverberant noisy copies of each enrolment utterance (esiaf_services/voiceid/augment.py)."""
+    from esiaf_services.voiceid.augment import reverberant
     enrolled = sorted(i for idx in enrolment(speakers, neutral).values() for i in idx)
     copies = {i: np.stack([encoder.embed(reverberant(clips[i], *copy, seed=n)) for n, copy in enumerate(ROOM_COPIES)])
               for i in enrolled}

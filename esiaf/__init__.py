@@ -8,7 +8,7 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING
 
-# Imported on first use (PEP 562), so that a light module such as esiaf.health (a container's
+# Imported on first use (PEP 562), so that a light module such as esiaf.tools.health (a container's
 # healthcheck, run every few seconds) starts without loading numpy, ZeroMQ and pydantic.
 _EXPORTS = {
     "Audio": "esiaf.audio", "SampleClock": "esiaf.audio",

@@ -1,4 +1,4 @@
-"""The one HTTP client of the orchestrator's API, for components, the launcher and services.
+"""The one HTTP client of the orchestrator's API, for components, the launcher and esiaf_services.
 
 It carries the token on every request (``ESIAF_TOKEN``), keeps one connection pool, and retries
 with exponential backoff (tenacity) what is worth retrying, for as long as the caller allows:

@@ -16,7 +16,7 @@ trying for as long as the component runs. See docs/protocol.md.
 
 With a ``health_file``, the thread touches that file whenever the orchestrator
 answers (registration, state, heartbeat replies): its age tells a container's
-healthcheck (``python -m esiaf.health``) that the component is registered and heard.
+healthcheck (``python -m esiaf.tools.health``) that the component is registered and heard.
 """
 from __future__ import annotations
 

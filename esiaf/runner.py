@@ -49,9 +49,9 @@ def settings_help(model: type[ComponentSettings], service: str) -> str:
 
 
 def known_services() -> set[str]:
-    """The built-in services (services/*/ with a __main__.py) and the installed plug-ins (entry
+    """The built-in services (esiaf_services/*/ with a __main__.py) and the installed plug-ins (entry
     point group esiaf.components)."""
-    spec = importlib.util.find_spec("services")
+    spec = importlib.util.find_spec("esiaf_services")
     folders = [Path(p) for p in (spec.submodule_search_locations or [])] if spec else []
     built_in = {d.name for folder in folders for d in folder.iterdir() if (d / "__main__.py").is_file()}
     return built_in | {ep.name for ep in entry_points(group="esiaf.components")}
@@ -60,7 +60,7 @@ def known_services() -> set[str]:
 def main(component_cls: type[Component], argv: Sequence[str] | None = None) -> int:
     service = component_cls.service
     doc_lines = (component_cls.__doc__ or "").strip().splitlines()
-    parser = argparse.ArgumentParser(prog=f"python -m services.{service}",
+    parser = argparse.ArgumentParser(prog=f"python -m esiaf_services.{service}",
                                      description=doc_lines[0] if doc_lines else f"the {service} component",
                                      epilog=settings_help(component_cls.Settings, service),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -52,7 +52,7 @@ class ComponentSettings(StrictModel):
     audio_port: int = 0  # 0 = any free port
     register_timeout_s: float = 30.0  # keep retrying the orchestrator this long at start-up
     log_level: str = "INFO"
-    health_file: str = ""  # touched whenever the orchestrator answers (see esiaf.health)
+    health_file: str = ""  # touched whenever the orchestrator answers (see esiaf.tools.health)
     # tests only: this component's clock runs this far ahead of the host's (capture times, heartbeats),
     # as another host's might
     clock_skew_s: float = 0.0

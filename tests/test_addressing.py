@@ -11,7 +11,7 @@ import sys
 import httpx
 import pytest
 
-from esiaf.testing import REPO, free_port, poll, shared_data
+from esiaf.tools.testing import REPO, free_port, poll, shared_data
 
 pytestmark = pytest.mark.e2e
 ORCHESTRATOR_HOST = "127.0.0.4"
@@ -27,7 +27,7 @@ def test_each_service_on_its_own_address(tmp_path):
 
     def start(service: str, *args: str, **env: str) -> subprocess.Popen:
         log = (tmp_path / f"{service}.log").open("wb")
-        process = subprocess.Popen([sys.executable, "-m", f"services.{service}", *args], cwd=REPO,
+        process = subprocess.Popen([sys.executable, "-m", f"esiaf_services.{service}", *args], cwd=REPO,
                                    env={**base, **env}, stdout=log, stderr=subprocess.STDOUT)
         processes.append(process)
         return process

@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from esiaf.testing import shared_data
+from esiaf.tools.testing import shared_data
 
 pytestmark = pytest.mark.e2e
 RATE_HZ = 16000
@@ -69,8 +69,8 @@ def test_live_capture_from_a_four_channel_array(launch, tmp_path):
 
     import soundfile
 
-    from esiaf.testing import REPO
-    from services.ssl.tracker import angle_difference_deg
+    from esiaf.tools.testing import REPO
+    from esiaf_services.ssl.tracker import angle_difference_deg
     scene = REPO / "examples" / "robocup_scene.flac"
     first = json.loads(scene.with_suffix(".json").read_text())["utterances"][0]
     samples, _ = soundfile.read(str(scene), dtype="int16", frames=int((first["end_s"] + 0.5) * RATE_HZ))

@@ -11,7 +11,7 @@ import pytest
 
 from esiaf.api_client import OrchestratorHTTP
 from esiaf.control import RegistrationError, register
-from esiaf.testing import free_port
+from esiaf.tools.testing import free_port
 
 
 class Scripted:

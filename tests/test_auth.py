@@ -13,7 +13,7 @@ import zmq
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
-from esiaf.testing import REPO, free_port, poll, refused_peers
+from esiaf.tools.testing import REPO, free_port, poll, refused_peers
 
 TOKEN = "s3cret-token-for-the-test"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -25,7 +25,7 @@ def secured(tmp_path):
     port = free_port()
     env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_TOKEN": TOKEN,
            "ESIAF_ORCHESTRATOR_CONTROL_PORT": "0", "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"}
-    process = subprocess.Popen([sys.executable, "-m", "services.orchestrator", "--port", str(port),
+    process = subprocess.Popen([sys.executable, "-m", "esiaf_services.orchestrator", "--port", str(port),
                                 "--db", str(tmp_path / "o.db")], cwd=REPO, env=env,
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     url = f"http://127.0.0.1:{port}"

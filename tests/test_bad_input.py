@@ -8,13 +8,13 @@ import sys
 
 import httpx
 
-from esiaf.testing import REPO, free_port, poll
+from esiaf.tools.testing import REPO, free_port, poll
 
 ENV = {**os.environ, "PYTHONPATH": str(REPO)}
 
 
 def esiaf_run(*args: str, timeout_s: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "esiaf.cli", "run", *args], cwd=REPO, env=ENV,
+    return subprocess.run([sys.executable, "-m", "esiaf", "run", *args], cwd=REPO, env=ENV,
                           capture_output=True, text=True, timeout=timeout_s)
 
 
@@ -62,7 +62,7 @@ def test_unknown_alsa_device(tmp_path):
 
 def test_unreachable_orchestrator_is_retried_then_a_clear_error():
     url = f"http://127.0.0.1:{free_port()}"
-    result = subprocess.run([sys.executable, "-m", "services.vad"], cwd=REPO, capture_output=True, text=True,
+    result = subprocess.run([sys.executable, "-m", "esiaf_services.vad"], cwd=REPO, capture_output=True, text=True,
                             env={**ENV, "ESIAF_ORCHESTRATOR_URL": url, "ESIAF_VAD_REGISTER_TIMEOUT_S": "1.5"},
                             timeout=60)
     assert result.returncode == 2
@@ -71,7 +71,7 @@ def test_unreachable_orchestrator_is_retried_then_a_clear_error():
 
 
 def test_bad_setting_is_one_line():
-    result = subprocess.run([sys.executable, "-m", "services.vad"], cwd=REPO, capture_output=True, text=True,
+    result = subprocess.run([sys.executable, "-m", "esiaf_services.vad"], cwd=REPO, capture_output=True, text=True,
                             env={**ENV, "ESIAF_VAD_DB_MINN": "3"}, timeout=60)
     assert result.returncode == 2
     assert result.stderr.startswith("vad: unknown setting ESIAF_VAD_DB_MINN")
@@ -82,16 +82,17 @@ def test_a_failing_service_does_not_take_others_down(tmp_path):
     url = f"http://127.0.0.1:{port}"
     env = {**ENV, "ESIAF_ORCHESTRATOR_URL": url, "ESIAF_ORCHESTRATOR_CONTROL_PORT": "0",
            "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"}
-    procs = [subprocess.Popen([sys.executable, "-m", "services.orchestrator", "--port", str(port),
+    procs = [subprocess.Popen([sys.executable, "-m", "esiaf_services.orchestrator", "--port", str(port),
                                "--db", str(tmp_path / "o.db")], cwd=REPO, env=env,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
     try:
-        procs.append(subprocess.Popen([sys.executable, "-m", "services.vad"], cwd=REPO, env=env,
+        procs.append(subprocess.Popen([sys.executable, "-m", "esiaf_services.vad"], cwd=REPO, env=env,
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-        from esiaf.launcher import OrchestratorClient
+        from esiaf.tools.launcher import OrchestratorClient
         client = OrchestratorClient(url)
         poll(lambda: client.component("vad"), timeout_s=60)
-        grabber = subprocess.run([sys.executable, "-m", "services.grabber", "--input", str(tmp_path / "gone.wav")],
+        grabber = subprocess.run([sys.executable, "-m", "esiaf_services.grabber",
+                                  "--input", str(tmp_path / "gone.wav")],
                                  cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
         assert grabber.returncode == 2 and "gone.wav does not exist" in grabber.stderr
         assert procs[1].poll() is None and client.component("vad")

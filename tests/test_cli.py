@@ -2,7 +2,7 @@
 import json
 import time
 
-from esiaf.cli import format_line, show_progress
+from esiaf.tools.cli import format_line, show_progress
 
 ORIGIN_NS = 1_700_000_000_000_000_000
 
@@ -43,7 +43,7 @@ class Client:
 def test_progress_on_long_files_only(capsys):
     import types
 
-    from esiaf.cli_follow import Stream
+    from esiaf.tools.cli_follow import Stream
     stream = Stream("robot1", types.SimpleNamespace(process=types.SimpleNamespace(pid=12)), "a.wav")
     show_progress(Client({"played_s": 40.2, "duration_s": 300.0}), stream, several=False)
     show_progress(Client({"played_s": 10.0, "duration_s": 20.0}), stream, several=False)
@@ -84,8 +84,8 @@ def _follow_a_played_file_that_never_ends(monkeypatch, serve):
     import argparse
     import types
 
-    from esiaf import cli, cli_follow
-    from esiaf.launcher import LaunchError
+    from esiaf.tools import cli, cli_follow
+    from esiaf.tools.launcher import LaunchError
 
     monkeypatch.setattr(cli_follow, "DRAIN_TIMEOUT_S", 0.0)  # where follow() reads it
     grabber = types.SimpleNamespace(process=types.SimpleNamespace(returncode=0, pid=1), reported=False)
@@ -131,11 +131,11 @@ def test_esiaf_run_names_a_misspelt_variable_before_it_starts_anything():
     import subprocess
     import sys
 
-    from esiaf.testing import REPO
+    from esiaf.tools.testing import REPO
     with socket.socket() as taken:  # the port in use stops the run right after the check
         taken.bind(("127.0.0.1", 0))
         taken.listen()
-        done = subprocess.run([sys.executable, "-m", "esiaf.cli", "run", "--input", "examples/robocup_questions.wav",
+        done = subprocess.run([sys.executable, "-m", "esiaf", "run", "--input", "examples/robocup_questions.wav",
                                "--port", str(taken.getsockname()[1])], cwd=REPO, capture_output=True, text=True,
                               env={**os.environ, "ESIAF_VDA_DB_MIN": "3"}, timeout=60)
     assert done.returncode == 2, done.stderr
@@ -160,8 +160,8 @@ def _follow_two_streams_of_which_one_ends(monkeypatch, serve, b_returncode=0):
     import argparse
     import types
 
-    from esiaf import cli_follow
-    from esiaf.launcher import LaunchError
+    from esiaf.tools import cli_follow
+    from esiaf.tools.launcher import LaunchError
 
     monkeypatch.setattr(cli_follow, "DRAIN_TIMEOUT_S", 0.3)
     grabbers = [types.SimpleNamespace(process=types.SimpleNamespace(returncode=code, pid=i), reported=False)

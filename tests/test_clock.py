@@ -10,7 +10,7 @@ import pytest
 
 from esiaf import Component
 from esiaf.clock import WINDOW, ClockEstimate
-from esiaf.testing import REPO, normalise, poll
+from esiaf.tools.testing import REPO, normalise, poll
 
 S = 10**9
 MS = 10**6

@@ -14,7 +14,7 @@ import pytest
 
 from esiaf import Audio, AudioFormat, Component, SampleClock, ssl_direction
 from esiaf.links import OutputLink
-from esiaf.testing import REPO, poll
+from esiaf.tools.testing import REPO, poll
 
 FMT = AudioFormat(16000, "int16")
 
@@ -203,7 +203,7 @@ def test_a_backlog_shows_as_the_input_queue_depth_in_the_heartbeat(orchestrator)
 
 def test_sigterm_stops_a_service_cleanly_and_unregisters_it(orchestrator):
     env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_URL": orchestrator.url}
-    vad = subprocess.Popen([sys.executable, "-m", "services.vad"], cwd=REPO, env=env,
+    vad = subprocess.Popen([sys.executable, "-m", "esiaf_services.vad"], cwd=REPO, env=env,
                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     poll(lambda: orchestrator.component("vad"), timeout_s=30)
     vad.send_signal(signal.SIGTERM)
@@ -214,7 +214,7 @@ def test_sigterm_stops_a_service_cleanly_and_unregisters_it(orchestrator):
 
 def test_a_killed_component_is_dead_within_3_s(orchestrator):
     env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_URL": orchestrator.url}
-    vad = subprocess.Popen([sys.executable, "-m", "services.vad"], cwd=REPO, env=env,
+    vad = subprocess.Popen([sys.executable, "-m", "esiaf_services.vad"], cwd=REPO, env=env,
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     poll(lambda: orchestrator.component("vad"), timeout_s=30)
     vad.kill()

@@ -22,7 +22,7 @@ import pytest
 import soundfile
 from websockets.sync.client import connect
 
-from esiaf.testing import REPO, free_port, normalise, poll
+from esiaf.tools.testing import REPO, free_port, normalise, poll
 
 pytestmark = [pytest.mark.containers, pytest.mark.timeout(3600)]  # the first one builds the images
 EXAMPLE = REPO / "examples" / "robocup_questions.wav"
@@ -161,7 +161,7 @@ def test_each_image_carries_only_what_its_service_needs(docker_images, service):
     assert set(found) == CARRIES[service]
     config = json.loads(run("docker", "image", "inspect", image).stdout)[0]["Config"]
     assert config["User"] == "esiaf"
-    assert config["Healthcheck"]["Test"] == ["CMD", "python3", "-m", "esiaf.health"]
+    assert config["Healthcheck"]["Test"] == ["CMD", "python3", "-m", "esiaf.tools.health"]
     assert config["Env"] and f"ESIAF_SERVICE={service}" in config["Env"]
 
 
@@ -256,7 +256,7 @@ def test_killed_asr_is_dead_within_3_s_fusions_stop_waiting_and_it_comes_back(pr
     heard_before = {normalise(best_text(f)) for f in p.fused("speech")[:before] if best_text(f)}
     assert heard_before <= truth, heard_before
     # recognising again: a sentence of the recording comes back whole. The utterance it restarted in
-    # may come first, as "speech not understood" (an empty text: services/asr/README.md) or as the
+    # may come first, as "speech not understood" (an empty text: esiaf_services/asr/README.md) or as the
     # words of the part it heard, so results are not required to be right until one is
     poll(lambda: [f for f in p.fused("speech")[before:] if normalise(best_text(f)) in truth] or None,
          timeout_s=60)

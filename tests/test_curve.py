@@ -22,14 +22,14 @@ from zmq.utils.monitor import recv_monitor_message
 from esiaf import keys
 from esiaf.component import SetupError
 from esiaf.results import make_result
-from esiaf.testing import REPO, Orchestrator, free_port, poll, refused_control, refused_peers
+from esiaf.tools.testing import REPO, Orchestrator, free_port, poll, refused_control, refused_peers
 from esiaf.transport import Transport
 from tests.test_component import Sink, Source, run_on, start
 
 
 def make_keys(directory: Path, *names: str) -> subprocess.CompletedProcess:
     args = [arg for name in names for arg in ("--component", name)]
-    return subprocess.run([sys.executable, "-m", "esiaf.cli", "keys", str(directory), *args], cwd=REPO,
+    return subprocess.run([sys.executable, "-m", "esiaf", "keys", str(directory), *args], cwd=REPO,
                           env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True, timeout=60)
 
 
@@ -293,7 +293,7 @@ def test_bad_key_files_are_one_clear_line(curve_dir, spoil, orchestrator, compla
 def test_the_orchestrator_with_a_bad_key_file_exits_2_at_once(tmp_path, curve_dir):
     public_instead_of_secret(curve_dir)
     env = {**os.environ, "PYTHONPATH": str(REPO), keys.CURVE_DIR_ENV: str(curve_dir)}
-    done = subprocess.run([sys.executable, "-m", "services.orchestrator", "--port", str(free_port()),
+    done = subprocess.run([sys.executable, "-m", "esiaf_services.orchestrator", "--port", str(free_port()),
                            "--db", str(tmp_path / "o.db")], cwd=REPO, env=env, capture_output=True, text=True,
                           timeout=60)
     assert done.returncode == 2

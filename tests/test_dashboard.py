@@ -16,8 +16,8 @@ import httpx
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from esiaf.testing import REPO, normalise, poll
-from services.ssl.tracker import angle_difference_deg
+from esiaf.tools.testing import REPO, normalise, poll
+from esiaf_services.ssl.tracker import angle_difference_deg
 
 SCENE = REPO / "examples" / "robocup_scene.flac"
 ARTEFACTS = REPO / "tests" / "artefacts"  # gitignored: screenshots of the last run
@@ -202,7 +202,7 @@ NETWORK = {"offline": False, "latency": 0, "downloadThroughput": -1, "uploadThro
 def test_after_an_orchestrator_restart_the_page_reconnects_and_replays_what_it_missed(orchestrator, browser):
     import zmq
 
-    from services.orchestrator.tests.helpers import FakeComponent, component_body
+    from esiaf_services.orchestrator.tests.helpers import FakeComponent, component_body
     context = zmq.Context()
     try:
         asr = FakeComponent(context, orchestrator.http, component_body("asr", designation="speech"))
@@ -238,8 +238,8 @@ def test_a_revision_replaces_its_older_version_and_the_stream_filter_filters(tmp
     import zmq
     from selenium.webdriver.support.ui import Select
 
-    from esiaf.testing import Orchestrator
-    from services.orchestrator.tests.helpers import FakeComponent, Heartbeater, component_body
+    from esiaf.tools.testing import Orchestrator
+    from esiaf_services.orchestrator.tests.helpers import FakeComponent, Heartbeater, component_body
     orchestrator = Orchestrator(tmp_path, config={"timeouts": {"initial_s": 0.3}})
     context = zmq.Context()
     try:

@@ -8,7 +8,7 @@ import psutil
 import pytest
 from websockets.sync.client import connect
 
-from esiaf.testing import REPO, need_flite, normalise, shared_data
+from esiaf.tools.testing import REPO, need_flite, normalise, shared_data
 
 pytestmark = pytest.mark.e2e
 SPAN_TOLERANCE_S = 0.150

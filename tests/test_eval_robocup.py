@@ -4,13 +4,13 @@ import sys
 
 import pytest
 
-from esiaf.testing import REPO, free_port, need_flite, shared_data
+from esiaf.tools.testing import REPO, free_port, need_flite, shared_data
 
 pytestmark = pytest.mark.e2e
 
 
 def run_eval(*args, timeout=900):
-    return subprocess.run([sys.executable, "-m", "esiaf.cli", "eval", "robocup", *args], cwd=REPO,
+    return subprocess.run([sys.executable, "-m", "esiaf", "eval", "robocup", *args], cwd=REPO,
                           capture_output=True, text=True, timeout=timeout)
 
 

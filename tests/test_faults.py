@@ -12,7 +12,7 @@ import httpx
 import psutil
 import pytest
 
-from esiaf.testing import REPO, need_flite, normalise, poll, shared_data
+from esiaf.tools.testing import REPO, need_flite, normalise, poll, shared_data
 
 pytestmark = pytest.mark.e2e
 sys.path.insert(0, str(REPO / "scripts"))
@@ -33,7 +33,7 @@ def questions(tmp_path):
 def service_pid(launcher, name: str) -> int | None:
     for child in psutil.Process(launcher.process.pid).children(recursive=True):
         try:
-            if f"services.{name}" in child.cmdline():
+            if f"esiaf_services.{name}" in child.cmdline():
                 return child.pid
         except psutil.Error:
             continue
@@ -47,7 +47,7 @@ def fused_texts(launcher) -> list[str]:
     for line in launcher.lines:
         if line.get("type") == "fused_result" and line.get("anchor", {}).get("speech", {}).get("hypotheses"):
             latest.setdefault(line["id"], {})[line["revision"]] = line["anchor"]["speech"]["hypotheses"][0]["text"]
-    # "speech not understood" (an empty text: services/asr/README.md) is not a sentence heard
+    # "speech not understood" (an empty text: esiaf_services/asr/README.md) is not a sentence heard
     return [normalise(text) for by_revision in latest.values() if (text := by_revision[max(by_revision)])]
 
 

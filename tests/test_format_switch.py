@@ -13,7 +13,7 @@ import numpy as np
 
 from esiaf import Audio, AudioFormat, Component, SampleClock
 from esiaf.formats import encode
-from esiaf.testing import REPO, poll
+from esiaf.tools.testing import REPO, poll
 
 FMT48, FMT16 = AudioFormat(48000, "int16"), AudioFormat(16000, "int16")
 TONE_HZ, CHUNK = 440.0, 960  # 20 ms at 48 kHz
@@ -110,7 +110,7 @@ def test_a_channel_mismatch_is_refused_and_the_component_exits_with_the_reason(o
     poll(lambda: orchestrator.component("mic"), timeout_s=10)
     env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_URL": orchestrator.url,
            "ESIAF_VAD_INPUT_TOPIC": "mic/audio", "ESIAF_VAD_CHANNELS": "2"}
-    vad = subprocess.run([sys.executable, "-m", "services.vad"], cwd=REPO, env=env, capture_output=True,
+    vad = subprocess.run([sys.executable, "-m", "esiaf_services.vad"], cwd=REPO, env=env, capture_output=True,
                          text=True, timeout=60)
     assert vad.returncode == 2
     line = vad.stderr.strip().splitlines()[-1]

@@ -12,7 +12,7 @@ from test_component import run_on
 from test_hostile_input import forged, pair  # noqa: F401  (pair is a fixture)
 
 from esiaf.results import make_result
-from esiaf.testing import poll
+from esiaf.tools.testing import poll
 from esiaf.transport import topic_frame
 
 SEED = 20261123

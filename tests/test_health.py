@@ -1,4 +1,4 @@
-"""The containers' healthcheck (python -m esiaf.health) against a real orchestrator and a real service."""
+"""The containers' healthcheck (python -m esiaf.tools.health) against a real orchestrator and a real service."""
 from __future__ import annotations
 
 import os
@@ -6,8 +6,8 @@ import subprocess
 import sys
 import time
 
-from esiaf.health import main as health
-from esiaf.testing import REPO, free_port, poll
+from esiaf.tools.health import main as health
+from esiaf.tools.testing import REPO, free_port, poll
 
 
 def test_a_component_is_healthy_while_the_orchestrator_answers_it(orchestrator, tmp_path, capsys):
@@ -16,7 +16,7 @@ def test_a_component_is_healthy_while_the_orchestrator_answers_it(orchestrator, 
     assert "missing (not registered" in capsys.readouterr().err
     env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_URL": orchestrator.url,
            "ESIAF_HEALTH_FILE": str(health_file)}
-    vad = subprocess.Popen([sys.executable, "-m", "services.vad"], cwd=REPO, env=env,
+    vad = subprocess.Popen([sys.executable, "-m", "esiaf_services.vad"], cwd=REPO, env=env,
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         poll(lambda: health_file.exists(), timeout_s=30)

@@ -9,7 +9,7 @@ import zmq
 from test_component import Sink, Source, run_on, start
 
 from esiaf.proto import esiaf_pb2 as pb
-from esiaf.testing import poll
+from esiaf.tools.testing import poll
 from esiaf.transport import Transport, topic_frame, valid_endpoint
 
 

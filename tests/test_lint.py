@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from esiaf.testing import REPO
+from esiaf.tools.testing import REPO
 
 BIN = Path(sys.executable).parent  # the virtual environment's bin (not resolved: that would leave it)
 CONFIG = REPO / "pyproject.toml"

@@ -17,7 +17,7 @@ import httpx
 import psutil
 import pytest
 
-from esiaf.testing import REPO, need_flite, normalise, shared_data
+from esiaf.tools.testing import REPO, need_flite, normalise, shared_data
 
 pytestmark = pytest.mark.e2e
 sys.path.insert(0, str(REPO / "scripts"))
@@ -126,12 +126,12 @@ def test_serve_keeps_every_service_up_after_the_streams_ended_until_sigterm(laun
     while sum(line.get("type") == "stream_end" for line in run.lines) < 2:
         assert time.monotonic() < deadline and run.process.poll() is None, run.describe()
         time.sleep(0.2)
-    services = [p for p in psutil.Process(run.process.pid).children() if "services." in " ".join(p.cmdline())]
+    services = [p for p in psutil.Process(run.process.pid).children() if "esiaf_services." in " ".join(p.cmdline())]
     time.sleep(8)  # both streams over, both grabbers done: still serving
     assert run.process.poll() is None, run.describe()
     assert httpx.get(f"{run.url}/health", timeout=5).status_code == 200
     alive = [p for p in services if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
-    assert {p.cmdline()[2] for p in alive} >= {"services.orchestrator", "services.asr", "services.vad"}
+    assert {p.cmdline()[2] for p in alive} >= {f"esiaf_services.{name}" for name in ("orchestrator", "asr", "vad")}
     run.process.send_signal(signal.SIGTERM)
     assert finished(run, 30) == 0, run.describe()
     assert "stopped (SIGTERM)" in "".join(run.stderr)
@@ -139,7 +139,7 @@ def test_serve_keeps_every_service_up_after_the_streams_ended_until_sigterm(laun
 
 
 def esiaf_run(tmp_path, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "esiaf.cli", "run", "--workdir", str(tmp_path / "wd"), *args],
+    return subprocess.run([sys.executable, "-m", "esiaf", "run", "--workdir", str(tmp_path / "wd"), *args],
                           cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)},
                           capture_output=True, text=True, timeout=60)
 

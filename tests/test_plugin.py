@@ -10,7 +10,7 @@ import httpx
 import pytest
 from websockets.sync.client import connect
 
-from esiaf.testing import REPO
+from esiaf.tools.testing import REPO
 
 pytestmark = pytest.mark.e2e
 
@@ -62,7 +62,7 @@ def test_a_plugin_folder_reaches_fused_results_websocket_and_results(launch, tmp
 
 
 def test_the_line_shows_a_plugins_value():
-    from esiaf.cli import format_line
+    from esiaf.tools.cli import format_line
     line = {"anchor": {"span": {"start_ns": 0, "end_ns": 10**9}, "speech": {"hypotheses": [
         {"text": "hello", "probability": 0.9}]}}, "aggregates": {"duration": {"value": 1.234, "overlap_s": 1}}}
     assert format_line(line, 0) == "[0.00–1.00 s] 'hello' (p=0.90), duration 1.23"
@@ -73,7 +73,7 @@ def test_with_something_that_is_no_component_is_one_line(tmp_path):
     empty = tmp_path / "empty"
     empty.mkdir()
     for spec, complaint in ((str(empty), "no __main__.py"), ("no_such_analyser_xyz", "not a folder")):
-        result = subprocess.run([sys.executable, "-m", "esiaf.cli", "run",
+        result = subprocess.run([sys.executable, "-m", "esiaf", "run",
                                  "--input", str(REPO / "examples/robocup_questions.wav"),
                                  "--with", spec, "--workdir", str(tmp_path / "w")], cwd=REPO, capture_output=True,
                                 text=True, timeout=60)

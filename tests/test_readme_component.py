@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from esiaf import AudioFormat, Component
-from esiaf.testing import REPO, poll
+from esiaf.tools.testing import REPO, poll
 
 
 def readme_component() -> str:

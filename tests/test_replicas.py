@@ -14,7 +14,7 @@ from collections import Counter
 import numpy as np
 
 from esiaf import AudioFormat, Component
-from esiaf.testing import REPO, poll
+from esiaf.tools.testing import REPO, poll
 
 STREAMS = ["robot1", "robot2", "robot3", "robot4"]
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import soundfile
 
-from esiaf.testing import REPO, normalise
+from esiaf.tools.testing import REPO, normalise
 from tests.test_bad_input import assert_clear, esiaf_run
 
 pytestmark = pytest.mark.e2e

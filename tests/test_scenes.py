@@ -11,7 +11,7 @@ import pytest
 import soundfile
 
 from esiaf.scenes import NoiseSource, Scene, SceneError, SpeechSource, render
-from esiaf.testing import REPO, need_flite, shared_data
+from esiaf.tools.testing import REPO, need_flite, shared_data
 
 CLIP = "speech/cmu_arctic/cmu_arctic_us_aew_a0001.wav"
 

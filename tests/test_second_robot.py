@@ -14,7 +14,7 @@ import httpx
 import pytest
 from test_e2e import best_text, collect_fused
 
-from esiaf.testing import REPO, need_flite, normalise, poll, shared_data
+from esiaf.tools.testing import REPO, need_flite, normalise, poll, shared_data
 
 pytestmark = pytest.mark.e2e
 sys.path.insert(0, str(REPO / "scripts"))
@@ -32,7 +32,7 @@ def test_a_second_grabber_of_the_same_name_streams_beside_the_first_with_complet
                  "--without", "voiceid", "--stream-id", "robot1")
     run.wait_for_line(lambda line: line.get("type") == "stream_start", timeout_s=120)
     env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_URL": run.url, "ESIAF_TOKEN": run.token}
-    robot2 = subprocess.Popen([sys.executable, "-m", "services.grabber", "--input", str(tmp_path / "robot2.wav"),
+    robot2 = subprocess.Popen([sys.executable, "-m", "esiaf_services.grabber", "--input", str(tmp_path / "robot2.wav"),
                                "--set", "stream_id=robot2"], cwd=REPO, env=env,  # the same name: grabber
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:

@@ -76,8 +76,8 @@ def test_a_bad_set_on_the_command_line_is_blamed_on_the_command_line():
     import subprocess
     import sys
 
-    from esiaf.testing import REPO
-    result = subprocess.run([sys.executable, "-m", "services.vad", "--set", "db_min=loud"], cwd=REPO,
+    from esiaf.tools.testing import REPO
+    result = subprocess.run([sys.executable, "-m", "esiaf_services.vad", "--set", "db_min=loud"], cwd=REPO,
                             capture_output=True, text=True, timeout=60,
                             env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO), "ESIAF_STREAM_ID": "s"})
     assert result.returncode == 2
@@ -130,10 +130,10 @@ def test_a_service_started_with_a_misspelt_variable_says_so(tmp_path):
     import subprocess
     import sys
 
-    from esiaf.testing import REPO
+    from esiaf.tools.testing import REPO
     env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_VDA_DB_MIN": "3", "ESIAF_ORCHESTRATOR_URL": "http://127.0.0.1:9",
            "ESIAF_REGISTER_TIMEOUT_S": "0.5", "ESIAF_VAD_BACKEND": "energy"}
-    done = subprocess.run([sys.executable, "-m", "services.vad"], cwd=tmp_path, env=env, capture_output=True,
+    done = subprocess.run([sys.executable, "-m", "esiaf_services.vad"], cwd=tmp_path, env=env, capture_output=True,
                           text=True, timeout=60)
     assert done.returncode == 2  # no orchestrator: it gives up, but said first what it ignored
     assert "WARNING vad [vad] ESIAF_VDA_DB_MIN names no service" in done.stderr, done.stderr

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import soundfile
 
-from esiaf.testing import REPO, normalise, shared_data
-from services.ssl.tracker import angle_difference_deg
+from esiaf.tools.testing import REPO, normalise, shared_data
+from esiaf_services.ssl.tracker import angle_difference_deg
 from tests.test_bad_input import assert_clear, esiaf_run
 
 SCENE = REPO / "examples" / "robocup_scene.flac"
@@ -41,12 +41,14 @@ def test_the_array_must_fit_the_input(four_channels, tmp_path, extra, phrases):
 
 def test_a_grabber_with_more_channels_than_the_ssl_array_is_refused_at_start(orchestrator, four_channels):
     env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_URL": orchestrator.url}
-    ssl = subprocess.Popen([sys.executable, "-m", "services.ssl", "--array", "circular:6:0.05"], cwd=REPO, env=env,
+    ssl = subprocess.Popen([sys.executable, "-m", "esiaf_services.ssl", "--array", "circular:6:0.05"],
+                           cwd=REPO, env=env,
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        from esiaf.testing import poll
+        from esiaf.tools.testing import poll
         poll(lambda: orchestrator.component("ssl"), timeout_s=30)
-        grabber = subprocess.run([sys.executable, "-m", "services.grabber", "--input", str(four_channels), "--fast"],
+        grabber = subprocess.run([sys.executable, "-m", "esiaf_services.grabber",
+                                  "--input", str(four_channels), "--fast"],
                                  cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
     finally:
         ssl.terminate()

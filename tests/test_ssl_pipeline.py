@@ -6,13 +6,13 @@ import os
 import subprocess
 import sys
 
-from esiaf.testing import REPO, poll, shared_data
+from esiaf.tools.testing import REPO, poll, shared_data
 
 NS = 1_000_000_000
 
 
 def run_service(orchestrator, name: str, *args: str, env: dict | None = None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", f"services.{name}", *args], cwd=REPO,
+    return subprocess.Popen([sys.executable, "-m", f"esiaf_services.{name}", *args], cwd=REPO,
                             env={**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_URL": orchestrator.url,
                                  "ESIAF_STREAM_ID": "mix", **(env or {})},
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

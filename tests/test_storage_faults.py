@@ -12,7 +12,7 @@ import pytest
 import zmq
 
 from esiaf.results import make_result
-from esiaf.testing import REPO, Orchestrator, poll
+from esiaf.tools.testing import REPO, Orchestrator, poll
 
 BASE_NS = 1_763_720_000_000_000_000
 
@@ -99,7 +99,7 @@ def test_a_read_only_database_is_refused_at_start_up_with_one_line(small_disk, t
     subprocess.run(["mount", "--bind", "-o", "ro", str(small_disk), str(read_only)], check=True)
     try:
         started = subprocess.run(
-            [sys.executable, "-m", "services.orchestrator", "--port", "0", "--db", str(read_only / "o.db")],
+            [sys.executable, "-m", "esiaf_services.orchestrator", "--port", "0", "--db", str(read_only / "o.db")],
             cwd=REPO, capture_output=True, text=True, timeout=60,
             env={**os.environ, "ESIAF_ORCHESTRATOR_CONTROL_PORT": "0", "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"})
     finally:

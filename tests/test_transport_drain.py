@@ -6,7 +6,7 @@ import time
 import numpy as np
 
 from esiaf import SampleClock
-from esiaf.testing import poll
+from esiaf.tools.testing import poll
 from tests.test_component import Sink, Source, run_on, start
 
 

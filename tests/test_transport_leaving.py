@@ -10,7 +10,7 @@ import subprocess
 import sys
 import textwrap
 
-from esiaf.testing import REPO
+from esiaf.tools.testing import REPO
 
 CONNECTED = """
     import time, zmq

@@ -9,7 +9,7 @@ import sys
 import pytest
 from test_e2e import best_text, collect_fused
 
-from esiaf.testing import REPO, need_flite, normalise, shared_data
+from esiaf.tools.testing import REPO, need_flite, normalise, shared_data
 
 pytestmark = pytest.mark.e2e
 sys.path.insert(0, str(REPO / "scripts"))
@@ -27,7 +27,7 @@ def test_two_streams_at_once_each_get_their_own_sentences(launch, tmp_path):
                  "--without", "emotion,gender,voiceid", "--stream-id", "robot1")
     run.wait_for_line(lambda line: line.get("type") == "stream_start", timeout_s=120)
     env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_URL": run.url, "ESIAF_TOKEN": run.token}
-    robot2 = subprocess.Popen([sys.executable, "-m", "services.grabber", "--input", str(tmp_path / "robot2.wav"),
+    robot2 = subprocess.Popen([sys.executable, "-m", "esiaf_services.grabber", "--input", str(tmp_path / "robot2.wav"),
                                "--set", "name=grabber2", "--set", "stream_id=robot2"], cwd=REPO, env=env,
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:

@@ -1,0 +1,91 @@
+"""The ``esiaf`` command: ``esiaf run`` starts the whole pipeline as local processes.
+
+    esiaf run --input FILE|FOLDER [--input ...] [--array SPEC] [--fast] [--grammar FILE|robocup] [--serve]
+              [--without emotion,...] [--replicas asr=2 ...]
+    esiaf run --mic DEVICE [--array SPEC]
+    esiaf eval robocup [--runs N] [--seed S] [--snr LO:HI] [--array SPEC] [-- RUN OPTIONS]
+    esiaf keys DIR [--component NAME ...]      (CURVE key pairs: esiaf/keys.py)
+
+It starts the orchestrator, the recogniser, the VAD, the emotion, gender and voiceid services (on the VAD's
+output, like the recogniser) and the grabber (with a microphone array also the ssl service and the
+beamformer, the VAD hearing the array steered at the talker; with ``--no-beamformer`` the channel
+splitter instead, the VAD hearing the first microphone), prints each fused result as one line as
+it arrives, and with ``--input`` exits once the file has been played and its last fused result
+printed. Several ``--input`` (or a folder) are played at once, each by a grabber of its own as a
+stream of its own; the run ends once every stream has ended. With ``--serve`` it never ends on its
+own: Ctrl-C or SIGTERM stops it. ``--replicas asr=2`` runs two recognisers that share the streams.
+``--without`` leaves analysers out; the orchestrator's default fusion waits only for the analysers
+that are running.
+"""
+from __future__ import annotations
+
+import logging
+import signal
+import sys
+from collections.abc import Sequence
+
+# the run command's parts, importable from here as before
+from esiaf.tools.cli_args import (
+    ANALYSERS,
+    check_array,
+    check_input,
+    check_port_free,
+    parse_args,
+    parse_channels,
+    parse_without,
+)
+from esiaf.tools.cli_follow import (
+    DRAIN_TIMEOUT_S,
+    LABELS,
+    LONG_FILE_S,
+    PROGRESS_EVERY_S,
+    follow,
+    format_line,
+    report_health,
+    show_progress,
+)
+from esiaf.tools.cli_start import array_env, fuse_kinds, run, shown_path, topic_ready
+from esiaf.tools.launcher import START_TIMEOUT_S, LaunchError
+
+__all__ = ["ANALYSERS", "DRAIN_TIMEOUT_S", "LABELS", "LONG_FILE_S", "PROGRESS_EVERY_S", "START_TIMEOUT_S",
+           "array_env", "check_array", "check_input", "check_port_free", "follow", "format_line", "fuse_kinds",
+           "main", "parse_args", "parse_channels", "parse_without", "report_health", "run", "show_progress",
+           "shown_path", "topic_ready"]
+
+
+class Terminated(Exception):
+    """SIGTERM came: stop every service and end the run, as asked (exit code 0)."""
+
+
+def _terminate(signum: int, frame: object) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second one must not cut the services' shutdown short
+    raise Terminated
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["eval"]:
+        from esiaf.tools.evaluation import main as evaluate
+        return evaluate(argv[1:])
+    if argv[:1] == ["keys"]:
+        from esiaf.keys import main as make_keys
+        return make_keys(argv[1:])
+    args = parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(asctime)s %(levelname)s %(name)s %(message)s")
+    signal.signal(signal.SIGTERM, _terminate)  # like Ctrl-C, the services are stopped on the way out
+    try:
+        return run(args)
+    except Terminated:
+        print("esiaf: stopped (SIGTERM)", file=sys.stderr)
+        return 0
+    except LaunchError as exc:
+        print(f"esiaf: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("esiaf: stopped", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

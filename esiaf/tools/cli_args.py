@@ -1,0 +1,227 @@
+"""``esiaf run``'s command line: its arguments, and the checks made before anything starts
+(the input files and folders, each stream's id, the microphone array, --without, the orchestrator's port)."""
+from __future__ import annotations
+
+import argparse
+import re
+import socket
+import sys
+from collections.abc import Sequence
+from datetime import datetime
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from esiaf.tools.launcher import LaunchError
+
+if TYPE_CHECKING:
+    from esiaf.arrays import ArrayGeometry
+
+ANALYSERS = ("ssl", "emotion", "gender", "voiceid")  # what --without can leave out (the recogniser anchors every line)
+ON_SPEECH = ("asr", "emotion", "gender", "voiceid")  # the analysers on the VAD's output: what --replicas can scale
+MAX_REPLICAS = 8
+
+
+def check_input(path: Path) -> int:
+    """Checks the input file; returns its channel count. Any rate and sample type is fine: the
+    grabber sends the file as it is and the SDK converts it to what each consumer takes."""
+    if not path.exists():
+        raise LaunchError(f"input file {path} does not exist")
+    if not path.is_file():
+        raise LaunchError(f"input {path} is not a file")
+    try:
+        path.open("rb").close()
+    except OSError as exc:
+        raise LaunchError(f"cannot read input file {path}: {exc.strerror}") from None
+    if path.suffix.lower() in (".raw", ".pcm"):
+        return 1  # headerless: read as 16 kHz int16 mono
+    import soundfile
+    try:
+        info = soundfile.info(str(path))
+    except Exception as exc:  # libsndfile's own error types vary by version
+        raise LaunchError(f"cannot read input file {path}: {exc}") from None
+    if info.frames == 0:
+        raise LaunchError(f"input file {path} holds no audio")
+    return info.channels
+
+
+def sound_suffixes() -> set[str]:
+    """The file name endings --input FOLDER plays: what libsndfile reads, and headerless .raw/.pcm."""
+    import soundfile
+    return {f".{name.lower()}" for name in soundfile.available_formats()} | {".aif", ".oga", ".raw", ".pcm"}
+
+
+def expand_inputs(paths: Sequence[Path]) -> list[Path]:
+    """Each --input as the files it plays: a file itself, a folder every sound file in it (sorted by
+    name, not descending into subfolders). A missing input, an empty folder or one without a sound
+    file is an error."""
+    files: list[Path] = []
+    for path in paths:
+        if not path.is_dir():
+            if not path.exists():
+                raise LaunchError(f"input file {path} does not exist")
+            files.append(path)
+            continue
+        entries = sorted(entry for entry in path.iterdir() if not entry.name.startswith("."))
+        if not entries:
+            raise LaunchError(f"input folder {path} is empty")
+        suffixes = sound_suffixes()
+        sounds = [entry for entry in entries if entry.is_file() and entry.suffix.lower() in suffixes]
+        if not sounds:
+            raise LaunchError(f"input folder {path} holds no sound file (none of its {len(entries)} entries ends "
+                              f"in {', '.join(sorted(suffixes))})")
+        files.extend(sounds)
+    return files
+
+
+def check_inputs(paths: Sequence[Path]) -> int:
+    """Checks every input file; returns their channel count, which all must share (one pipeline hears them)."""
+    channels = {path: check_input(path) for path in paths}
+    if len(set(channels.values())) > 1:
+        counts = ", ".join(f"{path} {count}" for path, count in channels.items())
+        raise LaunchError(f"the inputs are played through one pipeline: give files of one channel count, "
+                          f"not {counts}")
+    return next(iter(channels.values()))
+
+
+def stream_ids(sources: Sequence[str], given: str | None, now: datetime | None = None) -> list[str]:
+    """The stream id of each input (its file's stem, or 'mic', and the run's start time); ``given``
+    (--stream-id) names the stream of a single input only."""
+    if given and len(sources) > 1:
+        raise LaunchError(f"--stream-id names the stream of a single input, not of {len(sources)}: without it "
+                          f"each stream is named after its file and the run's start time")
+    if given:
+        return [given]
+    when = (now or datetime.now()).strftime("%Y%m%d-%H%M%S")
+    if len(sources) == 1:
+        return [f"{sources[0]}-{when}"]
+    ids: list[str] = []
+    for source in sources:  # several: ids safe in a URL query, the same stem twice made unique
+        base = re.sub(r"[^A-Za-z0-9_.-]+", "_", source).strip("_.-") or "input"
+        stream_id, n = f"{base}-{when}", 1
+        while stream_id in ids:
+            n += 1
+            stream_id = f"{base}-{n}-{when}"
+        ids.append(stream_id)
+    return ids
+
+
+def check_array(args: argparse.Namespace, channels: int) -> tuple[ArrayGeometry | None, int]:
+    """The array geometry and the audio's channel count (None, channels for mono without --array)."""
+    from esiaf.arrays import ArrayError, load_array
+    mic_channels = parse_channels(args.mic_channels)
+    if args.array is None:
+        if mic_channels or args.channels:
+            raise LaunchError("--mic-channels and --channels describe a microphone array: give --array too")
+        if channels > 1:
+            inputs = " ".join(map(str, args.input))
+            print(f"esiaf: {inputs} {'has' if len(args.input) == 1 else 'have'} {channels} channels and no "
+                  f"--array: the analysers hear channel 0 (name the microphone array with --array, e.g. "
+                  f"respeaker4, to localise the speakers too)", file=sys.stderr, flush=True)
+        return None, channels
+    try:
+        array = load_array(args.array)
+        if not channels:  # live capture: as many channels as asked, or as the microphones need
+            channels = args.channels or (max(mic_channels) + 1 if mic_channels else array.mics)
+        array.select_channels(channels, mic_channels)
+    except ArrayError as exc:
+        raise LaunchError(str(exc)) from None
+    return array, channels
+
+
+def parse_channels(text: str | None) -> list[int]:
+    if not text:
+        return []
+    try:
+        return [int(part) for part in text.split(",")]
+    except ValueError:
+        raise LaunchError(f"--mic-channels takes channel numbers separated by commas (e.g. 1,2,3,4), "
+                          f"not {text!r}") from None
+
+
+def parse_without(text: str | None) -> set[str]:
+    """The analysers ``--without`` leaves out."""
+    names = {part.strip() for part in (text or "").split(",") if part.strip()}
+    unknown = sorted(names - set(ANALYSERS))
+    if unknown:
+        raise LaunchError(f"--without takes analysers separated by commas ({', '.join(ANALYSERS)}), "
+                          f"not {', '.join(unknown)}")
+    return names
+
+
+def parse_replicas(texts: Sequence[str], without: set[str]) -> dict[str, int]:
+    """``--replicas SERVICE=N`` (repeatable): how many instances of each analyser on the VAD's output
+    to start; each must be one this run starts."""
+    started = [name for name in ON_SPEECH if name not in without]
+    replicas: dict[str, int] = {}
+    for text in texts:
+        name, _, count = text.partition("=")
+        name = name.strip()
+        if not count.strip().isdigit() or not 1 <= int(count) <= MAX_REPLICAS:
+            raise LaunchError(f"--replicas takes SERVICE=N with N from 1 to {MAX_REPLICAS} (e.g. asr=2), not {text!r}")
+        if name not in started:
+            raise LaunchError(f"--replicas {text}: {name or 'no service'} is not an analyser this run starts on the "
+                              f"VAD's output ({', '.join(started)})")
+        replicas[name] = int(count)
+    return replicas
+
+
+def check_port_free(host: str, port: int) -> None:
+    with socket.socket() as probe:
+        # as the orchestrator will (uvicorn): connections of an earlier run in TIME_WAIT do not count
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            raise LaunchError(f"cannot listen on {host}:{port}: {exc.strerror} (another orchestrator running? "
+                              f"use --port)") from None
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="esiaf", description="ESIAF speech-analysis pipeline")
+    sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="run every service as a local process")
+    source = run.add_mutually_exclusive_group(required=True)
+    source.add_argument("--input", type=Path, action="append", help="sound file to play (WAV/FLAC/... of any "
+                        "rate and sample type, or .raw: 16 kHz s16le mono), or a folder: each sound file in it; "
+                        "repeatable: every file is played at once, each as a stream of its own")
+    source.add_argument("--mic", metavar="DEVICE", help="ALSA capture device (see arecord -L)")
+    run.add_argument("--array", help="microphone array of a multi-channel input or --mic: pepper4, respeaker4, "
+                     "circular:MICS:RADIUS_M or a YAML file; starts sound source localisation")
+    run.add_argument("--mic-channels", help="with --array: the channels that are the microphones, in the array's "
+                     "order, where the audio has others too (ReSpeaker 6-channel firmware: 1,2,3,4)")
+    run.add_argument("--channels", type=int, help="with --mic and --array: channels to capture "
+                     "(default: as the microphones need)")
+    run.add_argument("--without", metavar="ANALYSERS", help="analysers to leave out, separated by commas: "
+                     "emotion, gender, voiceid, ssl (e.g. --without emotion,gender on a slow robot)")
+    run.add_argument("--replicas", action="append", default=[], metavar="SERVICE=N", help="start N instances "
+                     f"(1 to {MAX_REPLICAS}) of an analyser on the VAD's output ({', '.join(ON_SPEECH)}), named "
+                     "SERVICE-1 ... SERVICE-N, that share the streams; repeatable (e.g. --replicas asr=2)")
+    run.add_argument("--with", dest="plugins", action="append", default=[], metavar="FOLDER_OR_NAME",
+                     help="also run your own analyser: a folder with a __main__.py, an installed component "
+                     "(entry point group esiaf.components) or a module; repeatable")
+    run.add_argument("--no-beamformer", action="store_true", help="with --array: the analysers hear the first "
+                     "microphone instead of the array steered at the talker")
+    run.add_argument("--beamformer", choices=("mvdr", "das"), help="with --array: the beamforming method "
+                     "(default mvdr; das: delay and sum)")
+    run.add_argument("--ssl-algorithm", help="DOA algorithm of the ssl service (default NormMUSIC)")
+    run.add_argument("--fast", action="store_true", help="play the file as fast as possible")
+    run.add_argument("--grammar", help="JSGF grammar file for the recogniser, or 'robocup' (with --asr whisper: "
+                     "the allowed sentences its transcripts are matched to)")
+    run.add_argument("--vad", choices=("silero", "energy"), help="the voice activity detector: silero (default, "
+                     "a neural VAD that babble does not fool) or energy (the original double threshold)")
+    run.add_argument("--asr", choices=("pocketsphinx", "whisper"), help="the recogniser (default pocketsphinx)")
+    run.add_argument("--serve", action="store_true", help="keep the services up after the files have played, "
+                     "until Ctrl-C or SIGTERM")
+    run.add_argument("--host", default="127.0.0.1", help="orchestrator address (default 127.0.0.1)")
+    run.add_argument("--port", type=int, default=8000, help="orchestrator HTTP port (default 8000)")
+    run.add_argument("--workdir", type=Path, default=Path(".esiaf"), help="logs and database (default .esiaf)")
+    run.add_argument("--recover", action="store_true", help="if the workdir's database is corrupt, start on a copy "
+                     "of what can still be read (the orchestrator's log says what was lost; the damaged file is kept)")
+    run.add_argument("--stream-id", help="name of this capture session (default: input name + time); "
+                     "with a single input only")
+    run.add_argument("--chunk-ms", type=float, default=20.0, help="grabber chunk length (default 20 ms)")
+    run.add_argument("--json", action="store_true", help="print each fused result as JSON")
+    run.add_argument("-v", "--verbose", action="store_true", help="log what the launcher does")
+    sub.add_parser("eval", help="evaluation harnesses through the real pipeline: esiaf eval robocup --help")
+    sub.add_parser("keys", help="CURVE key pairs for ZeroMQ across hosts: esiaf keys DIR --help")
+    return parser.parse_args(argv)

@@ -1,0 +1,236 @@
+"""``esiaf run`` once the pipeline is up: each fused result printed as one line (or as JSON) as it
+arrives, progress and the orchestrator's health on stderr, until every stream has ended. With several
+streams each line starts with its stream's id."""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import httpx
+from websockets.exceptions import ConnectionClosed
+
+from esiaf.tools.launcher import START_TIMEOUT_S, LaunchError, OrchestratorClient, Supervisor, wait_until
+
+log = logging.getLogger(__name__)
+
+LABELS = ("emotion", "gender", "voice_id")  # label aggregates shown on a line, in this order
+DRAIN_TIMEOUT_S = 30.0  # after a grabber has finished: wait this long for the next result at most
+PROGRESS_EVERY_S = 10.0  # how often to say how much of a long file has been played
+LONG_FILE_S = 60.0
+
+
+def format_line(fused: dict[str, Any], origin_ns: int) -> str:
+    """'[12.31–14.05 s] 'go forward ten meters' (p=0.93) from 92°, angry (0.81), female (0.97)'.
+
+    The direction is shown where SSL was fused, each label (emotion, gender, voice) with the
+    share of its top class where that analyser said something about the utterance."""
+    anchor = fused["anchor"]
+    span = anchor["span"]
+    start_s, end_s = (span["start_ns"] - origin_ns) / 1e9, (span["end_ns"] - origin_ns) / 1e9
+    what = ""
+    if "speech" in anchor and anchor["speech"].get("hypotheses"):
+        best = anchor["speech"]["hypotheses"][0]
+        if not best.get("text") and not best.get("raw_text"):
+            what = "(speech not understood)"
+        elif best.get("out_of_set"):
+            what = f"out of set: '{best.get('raw_text', '')}' (match {best.get('match_score', 0):.2f})"
+        else:
+            what = f"'{best['text']}' (p={best['probability']:.2f})"
+    elif any(m.get("type") == "speech" for m in fused.get("missing", [])):  # its recogniser died with it
+        what = "(speech lost: its recogniser died)"
+    else:
+        payload = next((k for k in ("vad", "ssl", "emotion", "gender", "voice_id") if k in anchor), "")
+        what = f"{payload} {json.dumps(anchor.get(payload, {}))}"
+    aggregates = fused.get("aggregates") or {}
+    shown = set()
+    if aggregates.get("ssl"):  # where the utterance came from: the fused SSL directions' circular mean
+        what += f" from {aggregates['ssl']['azimuth_deg']:.0f}°"
+        shown.add("ssl")
+    for kind in LABELS:  # how, and who: the top label of the fused distribution and its share
+        if aggregates.get(kind):
+            label, share = aggregates[kind]["label"], f" ({aggregates[kind]['probability']:.2f})"
+            if kind == "voice_id":  # "by Anna (0.91)"; an anonymous voice has no probability to show
+                what += f" by {label}" + ("" if label.startswith("voice-") else share)
+            else:
+                what += f", {label}{share}"
+            shown.add(kind)
+    for kind, aggregate in sorted(aggregates.items()):  # plug-ins' kinds: "duration 1.64", "pace fast (0.80)"
+        if aggregate and kind not in shown and kind != "ssl":
+            label = f" {aggregate['label']} ({aggregate['probability']:.2f})" if aggregate.get("label") else ""
+            value = f" {aggregate['value']:.3g}" if aggregate.get("value") is not None else ""
+            what += f", {kind}{label}{value}"
+            shown.add(kind)
+    extra = [f"{kind}×{len(results)}" for kind, results in sorted(fused.get("results", {}).items())
+             if results and kind not in shown]  # fused types with results but no aggregate shown
+    if fused.get("completion") not in (None, "complete"):
+        extra.append(f"{fused['completion']}, missing {', '.join(fused.get('missing_components', []))}")
+    revision = f" rev {fused['revision']}" if fused.get("revision", 1) > 1 else ""
+    return f"[{start_s:.2f}–{end_s:.2f} s] {what}{' ' + '; '.join(extra) if extra else ''}{revision}"
+
+
+@dataclass
+class Stream:
+    """One input played as a stream: its grabber, and how far it has come."""
+    stream_id: str
+    grabber: Any  # the Child playing it
+    source: str  # the file or device, as the user named it
+    origin_ns: int = 0  # the stream's start: lines show times relative to it
+    done_at: float | None = None  # monotonic time its grabber finished playing
+    ended: bool = False  # its stream_end came
+    gave_up: bool = False  # no stream_end came in time (without --serve)
+    warned: bool = False  # --serve: said once that it did not end, or that its grabber failed
+    printed: int = 0
+
+
+@dataclass
+class Following:
+    """What :func:`follow` keeps track of between two messages."""
+    streams: dict[str, Stream]
+    next_progress: float  # monotonic time of the next progress and health report
+    heard_at: float = 0.0  # when the last message of one of the streams arrived
+    unhealthy: str = ""  # why the orchestrator said it is unhealthy, as last reported
+
+
+def follow(ws, supervisor: Supervisor, client: OrchestratorClient, streams: list[Stream],
+           args: argparse.Namespace) -> int:
+    """Prints fused results until every stream has ended (files) or forever (mic, --serve)."""
+    for stream in streams:
+        def stream_start_ns(stream_id: str = stream.stream_id) -> int | None:
+            found = client.stream(stream_id)  # as its grabber announced it (the launcher's has no source)
+            return found["start_ns"] if found and found.get("source") else None
+
+        stream.origin_ns = wait_until(stream_start_ns, supervisor, f"the grabber to start playing {stream.source}",
+                                      START_TIMEOUT_S, stream.grabber)
+        if args.json:
+            print(json.dumps({"type": "stream_start", "stream_id": stream.stream_id, "start_ns": stream.origin_ns}),
+                  flush=True)
+    state = Following({stream.stream_id: stream for stream in streams},
+                      next_progress=time.monotonic() + PROGRESS_EVERY_S)
+    while True:
+        report_when_due(state, client, args)
+        watch_children(state, supervisor, client, args)
+        if (code := check_drained(state, args)) is not None:
+            return code
+        try:
+            message = json.loads(ws.recv(timeout=0.2))
+        except TimeoutError:
+            continue
+        except ConnectionClosed as exc:
+            raise LaunchError(f"the orchestrator closed the websocket: {exc}") from None
+        if (code := show_message(state, message, args)) is not None:
+            return code
+
+
+def report_when_due(state: Following, client: OrchestratorClient, args: argparse.Namespace) -> None:
+    """Every PROGRESS_EVERY_S: how much of each file has been played, and the orchestrator's health."""
+    if time.monotonic() < state.next_progress:
+        return
+    state.next_progress += PROGRESS_EVERY_S
+    for stream in state.streams.values():
+        if args.input and stream.done_at is None:
+            show_progress(client, stream, len(state.streams) > 1)
+    state.unhealthy = report_health(client, state.unhealthy)
+
+
+def watch_children(state: Following, supervisor: Supervisor, client: OrchestratorClient,
+                   args: argparse.Namespace) -> None:
+    """Reports each child that died to the orchestrator (dead at once: its streams move, what it had
+    not answered is fused without it); notes each grabber's end; a grabber that failed ends the run
+    (with --serve: it is said once and the services stay up), another service is restarted."""
+    grabbers = {id(stream.grabber): stream for stream in state.streams.values()}
+    for child in supervisor.exited():
+        if not child.reported:
+            child.reported = True
+            if (component_id := client.report_dead(child.process.pid)) is not None:
+                log.info("reported dead service=%s component_id=%s", child.name, component_id)
+        stream = grabbers.get(id(child))
+        if stream is None:
+            supervisor.restart_when_due(child)
+        elif child.process.returncode == 0:
+            stream.done_at = stream.done_at or time.monotonic()
+        elif not args.serve:
+            raise LaunchError(supervisor.failure(child))
+        elif not stream.warned:
+            stream.warned = True
+            stream.done_at = stream.done_at or time.monotonic()
+            print(f"esiaf: {supervisor.failure(child)}\nesiaf: stream {stream.stream_id} has no more audio; "
+                  f"still serving", file=sys.stderr, flush=True)
+
+
+def check_drained(state: Following, args: argparse.Namespace) -> int | None:
+    """Gives up on each stream that has not ended when nothing has come for DRAIN_TIMEOUT_S after its file
+    was played; the exit code once every stream has ended or been given up on (None: go on). With
+    --serve it only says so: the services stay up until the launcher is stopped."""
+    now = time.monotonic()
+    for stream in state.streams.values():
+        if not stream.done_at or stream.ended or stream.gave_up or \
+                now - max(stream.done_at, state.heard_at) <= DRAIN_TIMEOUT_S:
+            continue
+        if not args.serve:
+            stream.gave_up = True
+            print(f"esiaf: no end of stream {stream.stream_id} and no result {DRAIN_TIMEOUT_S:g} s after "
+                  f"{stream.source} was played; stopping{' it' if len(state.streams) > 1 else ''}", file=sys.stderr)
+        elif not stream.warned:  # --serve never stops the services on its own
+            stream.warned = True
+            print(f"esiaf: no end of stream {stream.stream_id} {DRAIN_TIMEOUT_S:g} s after {stream.source} was "
+                  f"played; still serving", file=sys.stderr, flush=True)
+    return run_over(state, args)
+
+
+def run_over(state: Following, args: argparse.Namespace) -> int | None:
+    """Without --serve, a file's run is over once every stream has ended (0) or been given up on (1)."""
+    if args.serve or args.mic or not all(s.ended or s.gave_up for s in state.streams.values()):
+        return None
+    return 1 if any(s.gave_up for s in state.streams.values()) else 0
+
+
+def show_message(state: Following, message: dict[str, Any], args: argparse.Namespace) -> int | None:
+    """Prints a fused result, or a stream's end; returns the exit code once the run is over."""
+    stream = state.streams.get(message.get("stream_id", ""))
+    if stream is None:
+        return None  # another source's stream (a second robot streaming into this pipeline)
+    state.heard_at = time.monotonic()  # results still arriving: the drain deadlines move on
+    several = len(state.streams) > 1
+    if message.get("type") == "stream_end":
+        stream.ended = True
+        if args.json:
+            print(json.dumps(message), flush=True)
+        print(f"esiaf: stream {stream.stream_id + ' ' if several else ''}ended, {stream.printed} fused result(s)",
+              file=sys.stderr, flush=True)
+        return run_over(state, args)
+    if message.get("type") == "fused_result":
+        stream.printed += 1
+        line = json.dumps(message) if args.json else format_line(message, stream.origin_ns)
+        print(f"[{stream.stream_id}] {line}" if several and not args.json else line, flush=True)
+    return None
+
+
+def report_health(client: OrchestratorClient, reported: str) -> str:
+    """Says on stderr when the orchestrator turns unhealthy (its database cannot be written) and
+    when it recovers; returns what is now reported."""
+    try:
+        problem = client.health_problem()
+    except httpx.HTTPError:
+        return reported  # restarting: the supervisor says so
+    if problem != reported:
+        print(f"esiaf: orchestrator unhealthy: {problem}" if problem else "esiaf: orchestrator healthy again",
+              file=sys.stderr, flush=True)
+    return problem
+
+
+def show_progress(client: OrchestratorClient, stream: Stream, several: bool) -> None:
+    """'esiaf: played 40 of 300 s (13 %)' on stderr, for files longer than LONG_FILE_S (with several
+    streams: 'esiaf: stream robot1-...: played ...')."""
+    try:
+        info = ((client.by_pid(stream.grabber.process.pid) or {}).get("stats") or {}).get("info", {})
+    except httpx.HTTPError:
+        return
+    played_s, duration_s = info.get("played_s"), info.get("duration_s")
+    if played_s is not None and duration_s and duration_s > LONG_FILE_S:
+        print(f"esiaf: {f'stream {stream.stream_id}: ' if several else ''}played {played_s:.0f} of "
+              f"{duration_s:.0f} s ({100 * played_s / duration_s:.0f} %)", file=sys.stderr, flush=True)

@@ -1,0 +1,282 @@
+"""``esiaf run``: the launcher's wiring. It starts the orchestrator and every service as a local
+process, connects them (which topic each hears, which analysers the fusion waits for), waits
+until each has registered and subscribed, then plays the input and follows the results
+(esiaf/tools/cli_follow.py)."""
+from __future__ import annotations
+
+import argparse
+import functools
+import logging
+import os
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from esiaf import auth
+from esiaf.runner import known_services
+from esiaf.settings import unknown_variables
+from esiaf.tools.cli_args import (
+    check_array,
+    check_inputs,
+    check_port_free,
+    expand_inputs,
+    parse_replicas,
+    parse_without,
+    stream_ids,
+)
+from esiaf.tools.cli_follow import Stream, follow
+from esiaf.tools.feed import FusedFeed
+from esiaf.tools.launcher import (
+    START_TIMEOUT_S,
+    Child,
+    LaunchError,
+    OrchestratorClient,
+    Supervisor,
+    fixed_ports,
+    wait_until,
+)
+from esiaf.tools.plugins import resolve as resolve_plugin
+
+if TYPE_CHECKING:
+    from esiaf.arrays import ArrayGeometry
+
+log = logging.getLogger("esiaf")
+
+
+@dataclass
+class Pipeline:
+    """The services started for a run, and how the grabber is to feed them."""
+    services: dict[str, Child]
+    grabber_env: dict[str, str]
+    beamforming: bool  # grabber -> ssl -> beamformer -> vad
+    labellers: list[str]  # the analysers on the VAD's output besides the recogniser
+    replicas: dict[str, int]  # analysers on the VAD's output run as several instances (--replicas)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.input:  # every file and folder checked before anything starts
+        args.input = expand_inputs(args.input)
+    array, channels = check_array(args, check_inputs(args.input) if args.input else 0)
+    ids = stream_ids([path.stem for path in args.input] if args.input else ["mic"], args.stream_id)
+    without = parse_without(args.without)
+    replicas = parse_replicas(args.replicas, without)
+    wanted_plugins = [resolve_plugin(spec) for spec in args.plugins]  # a bad --with fails before anything starts
+    services = known_services() | {p.name for p in wanted_plugins}
+    for name in unknown_variables(os.environ, services):
+        print(f"esiaf: {name} names no service ({', '.join(sorted(services))}) and no common setting: "
+              "ignored; a typo?", file=sys.stderr, flush=True)
+    resolve_paths(args)
+    check_port_free(args.host, args.port)
+    args.stream_id = ids[0] if len(ids) == 1 else None
+    url = f"http://{args.host}:{args.port}"
+    workdir = args.workdir.resolve()
+    # one token per run (or the one given): every service presents it, every query needs it
+    os.environ[auth.TOKEN_ENV] = auth.token() or auth.new_token()
+    auth.write_token(workdir / "token", os.environ[auth.TOKEN_ENV])
+    supervisor = Supervisor(workdir, env={"ESIAF_ORCHESTRATOR_URL": url}
+                            | ({"ESIAF_STREAM_ID": ids[0]} if len(ids) == 1 else {}))
+    client = OrchestratorClient(url)
+    try:
+        start_orchestrator(args, supervisor, client, workdir)
+        # every service at once (their imports and models load in parallel), then each must register
+        pipeline = start_services(args, supervisor, array, channels, without, replicas)
+        plugins = {plugin.name: supervisor.start(plugin.name, target=plugin.target) for plugin in wanted_plugins}
+        kinds, on_speech = wait_for_registration(client, supervisor, pipeline.services, plugins)
+        pipeline.services.update(plugins)
+        wait_for_subscriptions(client, supervisor, pipeline, on_speech)
+        if replicas:
+            reserve_streams(client, supervisor, pipeline, ids, on_speech)
+        if plugins:
+            with_kinds = ", ".join(f"{n} ({k})" for n, k in zip(plugins, kinds, strict=True))
+            print(f"esiaf: with {with_kinds}", file=sys.stderr)
+        log.info("services: %s", ", ".join(pipeline.services))
+        for name, count in replicas.items():
+            print(f"esiaf: {name} as {count} instances sharing the streams ({name}-1 ... {name}-{count})",
+                  file=sys.stderr, flush=True)
+        # one stream: only its results; several: every stream's, each line told by its stream_id
+        feed_url = f"ws://{args.host}:{args.port}/ws/fused" + (f"?stream={ids[0]}" if len(ids) == 1 else "")
+        with FusedFeed(feed_url) as ws:
+            streams = start_grabbers(args, supervisor, pipeline, ids)
+            print(f"esiaf: orchestrator at {url} (API docs: {url}/docs; token in {shown_path(workdir / 'token')}); "
+                  f"logs in {shown_path(workdir / 'logs')}", file=sys.stderr, flush=True)
+            print(f"esiaf: dashboard at {url}/?token={os.environ[auth.TOKEN_ENV]}", file=sys.stderr, flush=True)
+            return follow(ws, supervisor, client, streams, args)
+    finally:
+        client.close()
+        supervisor.stop()
+
+
+def start_grabbers(args: argparse.Namespace, supervisor: Supervisor, pipeline: Pipeline,
+                   ids: list[str]) -> list[Stream]:
+    """A grabber per input, all at once, each playing its stream; with several, each is an instance of its
+    own (grabber-1, grabber-2, ...: logs/grabber-1.log, ...)."""
+    sources: list[list[str]] = [["--input", str(path.resolve())] for path in args.input] if args.input \
+        else [["--device", args.mic]]
+    streams = []
+    for n, (source, stream_id) in enumerate(zip(sources, ids, strict=True), start=1):
+        grabber = supervisor.start("grabber", source + (["--fast"] if args.fast else []),
+                                   env={**pipeline.grabber_env, "ESIAF_STREAM_ID": stream_id},
+                                   instance=f"grabber-{n}" if len(ids) > 1 else None)
+        shown = str(args.input[n - 1]) if args.input else args.mic
+        streams.append(Stream(stream_id, grabber, shown))
+        print(f"esiaf: playing {shown} as stream {stream_id}" + (f" ({grabber.name})" if len(ids) > 1 else ""),
+              file=sys.stderr, flush=True)
+    return streams
+
+
+def resolve_paths(args: argparse.Namespace) -> None:
+    """The grammar and array files as absolute paths: the services run elsewhere, relative ones would break."""
+    if args.grammar and args.grammar != "robocup":
+        if not Path(args.grammar).is_file():
+            raise LaunchError(f"grammar file {args.grammar} does not exist")
+        args.grammar = str(Path(args.grammar).resolve())
+    if args.array and Path(args.array).is_file():
+        args.array = str(Path(args.array).resolve())
+
+
+def start_orchestrator(args: argparse.Namespace, supervisor: Supervisor, client: OrchestratorClient,
+                       workdir: Path) -> None:
+    """Starts the orchestrator and waits until it answers. Its default fusion: each recognised utterance
+    with the ssl, emotion, gender and voice_id results within it; it waits only for those analysers
+    that are running."""
+    ports = fixed_ports(workdir)  # the same across restarts: components find it again, nothing is lost
+    orchestrator = supervisor.start("orchestrator", ["--host", args.host, "--port", str(args.port),
+                                                     "--db", str(workdir / "esiaf.db")]
+                                    + (["--recover"] if args.recover else []),
+                                    env={"ESIAF_ORCHESTRATOR_CONTROL_PORT": str(ports["control"]),
+                                         "ESIAF_ORCHESTRATOR_RESULTS_PORT": str(ports["results"])})
+    wait_until(client.healthy, supervisor, "the orchestrator to answer", START_TIMEOUT_S, orchestrator)
+    for line in client.recovered() if args.recover else []:
+        print(f"esiaf: --recover: {line}", file=sys.stderr, flush=True)
+
+
+def start_services(args: argparse.Namespace, supervisor: Supervisor, array: ArrayGeometry | None, channels: int,
+                   without: set[str], replicas: dict[str, int]) -> Pipeline:
+    """Starts the recogniser, the VAD (on the array steered at the talker, on the first channel or on
+    the mono input), the ssl service with an array, and the labellers on the VAD's output (those in
+    ``replicas`` as that many instances: asr-1, asr-2, ...)."""
+    services = start_replicas(supervisor, "asr", replicas.get("asr", 1),
+                              (["--grammar", args.grammar] if args.grammar else [])
+                              + (["--backend", args.asr] if args.asr else []))
+    grabber_env = {"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1", "ESIAF_GRABBER_CHUNK_MS": str(args.chunk_ms)}
+    vad_env = {"ESIAF_VAD_BACKEND": args.vad} if args.vad else {}
+    beamforming = array is not None and "ssl" not in without and not args.no_beamformer
+    if channels <= 1 and array is None:
+        services["vad"] = supervisor.start("vad", env=vad_env)
+    elif beamforming:  # grabber -> ssl -> beamformer -> vad: the analysers hear the array steered at the talker
+        services["vad"] = supervisor.start("vad", env={"ESIAF_VAD_INPUT_TOPIC": "beamformer/audio", **vad_env})
+        beam_env = array_env("BEAMFORMER", args, channels)
+        if args.beamformer:
+            beam_env["ESIAF_BEAMFORMER_METHOD"] = args.beamformer
+        services["beamformer"] = supervisor.start("beamformer", env=beam_env)
+        grabber_env["ESIAF_GRABBER_CHANNELS"] = str(channels)
+    else:  # the recogniser hears the first channel (microphone); ssl hears them all
+        services["vad"] = supervisor.start("vad", env={"ESIAF_VAD_INPUT_TOPIC": "splitter/ch0", **vad_env})
+        services["splitter"] = supervisor.start("splitter", env={
+            "ESIAF_SPLITTER_INPUT_CHANNELS": str(channels), "ESIAF_SPLITTER_CHANNELS": "[0]"})
+        grabber_env["ESIAF_GRABBER_CHANNELS"] = str(channels)
+    if array is not None and "ssl" not in without:
+        ssl_env = array_env("SSL", args, channels)
+        if args.ssl_algorithm:
+            ssl_env["ESIAF_SSL_ALGORITHM"] = args.ssl_algorithm
+        services["ssl"] = supervisor.start("ssl", env=ssl_env)
+        if not beamforming:
+            grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"] = "2"
+    labellers = [name for name in ("emotion", "gender", "voiceid") if name not in without]
+    for name in labellers:  # on the VAD's output, like the recogniser
+        services.update(start_replicas(supervisor, name, replicas.get(name, 1)))
+    return Pipeline(services, grabber_env, beamforming, labellers, replicas)
+
+
+def start_replicas(supervisor: Supervisor, name: str, count: int, args: Sequence[str] = ()) -> dict[str, Child]:
+    """One instance of a service (under its name), or ``count`` sharing the streams: name-1, name-2, ..."""
+    if count == 1:
+        return {name: supervisor.start(name, args)}
+    return {f"{name}-{n}": supervisor.start(name, args, instance=f"{name}-{n}") for n in range(1, count + 1)}
+
+
+def wait_for_registration(client: OrchestratorClient, supervisor: Supervisor, services: dict[str, Child],
+                          plugins: dict[str, Child]) -> tuple[list[str], int]:
+    """Waits until every service and plug-in has registered; adds the plug-ins' result kinds to the
+    fusion. Returns the plug-ins' kinds (in their order) and how many of them hear vad/speech."""
+    for name, child in services.items():
+        find = client.component if name in known_services() else client.instance  # asr, or asr-1 of --replicas
+        wait_until(functools.partial(find, name), supervisor, f"the {name} service to register",
+                   START_TIMEOUT_S, child)
+    registered = [wait_until(functools.partial(client.by_pid, child.process.pid), supervisor,
+                             f"{name} (--with) to register", START_TIMEOUT_S, child)
+                  for name, child in plugins.items()]
+    kinds = [component["designation"] for component in registered]
+    fuse_kinds(client, [kind for kind in kinds if kind != "other"])
+    on_speech = sum(any(i["topic"] == "vad/speech" for i in c["inputs"]) for c in registered)
+    return kinds, on_speech
+
+
+def wait_for_subscriptions(client: OrchestratorClient, supervisor: Supervisor, pipeline: Pipeline,
+                           on_speech: int) -> None:
+    """Waits until each topic between the grabber and the analysers has its consumers (``on_speech``:
+    the plug-ins on vad/speech), so no audio is played before anyone hears it."""
+    services = pipeline.services
+    if "splitter" in services:
+        wait_until(lambda: topic_ready(client, "splitter/ch0", 1), supervisor,
+                   "vad to subscribe to splitter/ch0", START_TIMEOUT_S, services["vad"])
+    if pipeline.beamforming:
+        wait_until(lambda: topic_ready(client, "ssl/audio", 1), supervisor,
+                   "the beamformer to subscribe to ssl/audio", START_TIMEOUT_S, services["beamformer"])
+        wait_until(lambda: topic_ready(client, "beamformer/audio", 1), supervisor,
+                   "vad to subscribe to beamformer/audio", START_TIMEOUT_S, services["vad"])
+    # replicas subscribe to a stream's audio once they are given the stream: here, only the others count
+    waited = [name for name in ("asr", *pipeline.labellers) if name not in pipeline.replicas]
+    wait_until(lambda: topic_ready(client, "vad/speech", len(waited) + on_speech), supervisor,
+               f"{', '.join(waited) or 'the plug-ins'} to subscribe to vad/speech", START_TIMEOUT_S, services["vad"])
+
+
+def reserve_streams(client: OrchestratorClient, supervisor: Supervisor, pipeline: Pipeline, ids: list[str],
+                    on_speech: int) -> None:
+    """With --replicas: announces the streams before their grabbers play and waits until an instance of
+    each replicated service has taken each stream (subscribed to its speech). A grabber announces its
+    stream only as it starts playing; a replica told of it then could miss its first utterance."""
+    for stream_id in ids:
+        client.announce(stream_id, {"announced_by": "esiaf run", "before": "its grabber"})
+    subscriptions = len(pipeline.replicas) * len(ids) + len(pipeline.labellers) + 1 - len(pipeline.replicas)
+    wait_until(lambda: topic_ready(client, "vad/speech", subscriptions + on_speech), supervisor,
+               f"the instances of {', '.join(pipeline.replicas)} to take the streams", START_TIMEOUT_S,
+               pipeline.services["vad"])
+
+
+def array_env(service: str, args: argparse.Namespace, channels: int) -> dict[str, str]:
+    """The settings every array consumer (ssl, beamformer) takes: the array, the channel count, the
+    microphones' channels."""
+    env = {f"ESIAF_{service}_ARRAY": args.array, f"ESIAF_{service}_CHANNELS": str(channels)}
+    if args.mic_channels:
+        env[f"ESIAF_{service}_MIC_CHANNELS"] = f"[{args.mic_channels}]"
+    return env
+
+
+def fuse_kinds(client: OrchestratorClient, kinds: list[str]) -> None:
+    """Adds the plug-ins' result kinds to every speech-anchored fusion, so their results are on
+    each line; the orchestrator then waits for them like for the built-in analysers."""
+    if not kinds:
+        return
+    fusions = client.fusions()
+    for fusion in fusions:
+        if fusion["anchor"] == "speech":
+            fusion["fuse"] = list(dict.fromkeys([*fusion["fuse"], *kinds]))
+    client.put_fusions(fusions)
+
+
+def shown_path(path: Path) -> Path:
+    """``path`` relative to the current directory where it is inside it (.esiaf/logs), else absolute."""
+    try:
+        return path.relative_to(Path.cwd())
+    except ValueError:
+        return path
+
+
+def topic_ready(client: OrchestratorClient, topic: str, consumers: int) -> bool:
+    for entry in client.topics():
+        if entry.get("topic") == topic:
+            return sum(p.get("subscribers") or 0 for p in entry.get("producers", [])) >= consumers
+    return False

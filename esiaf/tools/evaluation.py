@@ -1,0 +1,285 @@
+"""``esiaf eval robocup``: the RoboCup@Home Speech & Person Recognition task, simulated, through the pipeline.
+
+The thesis' second experiment (its Fig. 5.13) on rendered rooms instead of a convention hall. Each
+run is a recording made with :mod:`esiaf.scenes`:
+
+- a shoebox room (sides 6.5-9 m, RT60 drawn from 0.3-0.6 s) with the array (``--array``) near its
+  centre, 1.2 m high, at a random heading;
+- the riddle game: five questions from an operator in front of the robot (0° ± 10°);
+- the blind man's bluff game: five questions, each from one of four people standing at about 0, 90,
+  180 and 270° (± 10°);
+- every talker 1-2 m away, four flite voices, questions drawn from the 50 RoboCup@Home 2018 questions;
+- two loudspeakers in front of the robot (±20°, 2.5 m): babble (four voices saying the questions'
+  answers at once) on one, kitchen noise (dish washing) on the other, together at an SNR drawn
+  from ``--snr`` (each 3 dB quieter).
+
+Each recording is played through the real pipeline (``esiaf run --fast --json`` with the options
+given after ``--``) and scored against its truth:
+
+- a question is **recognised** when the fused result overlapping it most has its exact sentence;
+- its **direction** is right when that result's SSL aggregate is within 15° of the talker;
+- a fused result overlapping no question is **spurious**;
+- **points** as in the task: 10 per question recognised; in the blind man's bluff game 10 more per
+  question whose direction is right (the robot turns to the right person).
+
+A run whose pipeline fails (exits with an error, or does not finish in 10 minutes) is reported on
+its own line and scored as answering nothing; ``failed_runs`` counts them.
+
+The **oracle** row decodes each question's true segment of the first microphone with the same
+recogniser and grammar, without the pipeline: what a perfect segmenter would give with one
+microphone, so that a gain can be attributed to the front end.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from esiaf.tools.robocup_scoring import Question, RunScore, direction_right, oracle, score, summary, table
+
+REPO = Path(__file__).resolve().parents[2]
+DATA = Path(os.environ.get("ESIAF_SHARED_DATA") or REPO.parent / "shared" / "data")
+VOICES = ("slt", "kal16", "awb", "rms")
+KITCHEN = "noise/speech_commands_bg/doing_the_dishes.wav"
+QUESTIONS = "robocup/questions.tsv"
+RUN_TIMEOUT_S = 600.0
+DEFAULT_PIPELINE = ["--without", "emotion,gender,voiceid"]  # not scored: leave them out unless asked for
+
+
+class EvalError(ValueError):
+    """Options or material the harness cannot work with; the message says what to change."""
+
+
+def read_questions_and_answers(data: Path) -> list[tuple[str, str]]:
+    path = data / QUESTIONS
+    rows = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        fields = line.split("\t")
+        if line.startswith("#") or len(fields) < 3 or not fields[0].strip().isdigit():
+            continue
+        rows.append((fields[1].strip(), fields[2].strip()))
+    if not rows:
+        raise EvalError(f"{path} holds no questions (index<TAB>question<TAB>answer lines)")
+    return rows
+
+
+def babble_clip(rng: np.random.Generator, answers: list[str], out: Path, seconds: float = 40.0) -> Path:
+    """Four flite voices saying answers at once, one after the other, to ``out`` (16 kHz WAV)."""
+    import soundfile
+
+    from esiaf.scenes import speak
+    total = int(seconds * 16000)
+    mix = np.zeros(total)
+    for voice in VOICES:
+        track, at = np.zeros(total), int(rng.uniform(0, 1.5) * 16000)
+        while at < total:
+            clip = speak(str(rng.choice(answers)), voice, 16000)
+            clip = clip[:total - at]
+            track[at:at + len(clip)] += clip / (np.sqrt(np.mean(clip ** 2)) + 1e-9)
+            at += len(clip) + int(rng.uniform(0.1, 0.6) * 16000)
+        mix += track
+    soundfile.write(str(out), (0.5 * mix / np.max(np.abs(mix))).astype(np.float32), 16000)
+    return out
+
+
+def make_scene(index: int, seed: int, array: str, snr: tuple[float, float], data: Path, work: Path,
+               questions: list[tuple[str, str]]):
+    """The scene of run ``index``: (Scene, [(game, question)], snr_db)."""
+    from esiaf.scenes import NoiseSource, Scene, SpeechSource
+    rng = np.random.default_rng([seed, index])
+    room = (float(rng.uniform(6.5, 9.0)), float(rng.uniform(6.5, 9.0)), float(rng.uniform(2.7, 3.5)))
+    centre = (room[0] / 2 + rng.uniform(-0.3, 0.3), room[1] / 2 + rng.uniform(-0.3, 0.3), 1.2)
+    chosen = rng.choice(len(questions), size=10, replace=False)
+    operator = str(rng.choice(VOICES))
+    people = list(rng.permutation(VOICES))  # who stands at 0, 90, 180 and 270°
+    speech, games, onset = [], [], 1.0 + rng.uniform(0, 1)
+    for number, row in enumerate(chosen):
+        text = questions[int(row)][0]
+        if number < 5:
+            game, voice, azimuth = "riddle", operator, rng.uniform(-10, 10)
+        else:
+            place = int(rng.integers(4))
+            game, voice, azimuth = "bluff", str(people[place]), 90.0 * place + rng.uniform(-10, 10)
+        speech.append(SpeechSource(say=text, voice=voice, speaker=voice, azimuth_deg=float(azimuth % 360),
+                                   distance_m=float(rng.uniform(1.0, 2.0)), onset_s=float(onset)))
+        games.append(game)
+        onset += 2.2 + 0.075 * len(text) + rng.uniform(1.5, 3.0)  # the question's length and a pause
+    snr_db = float(rng.uniform(*snr))
+    babble = work / f"babble-{seed}-{index}.wav"
+    if not babble.exists():
+        babble_clip(np.random.default_rng([seed, index, 1]), [answer for _, answer in questions], babble)
+    noise = [NoiseSource(clip=str(babble), azimuth_deg=20.0, distance_m=2.5, snr_db=snr_db + 3.0),
+             NoiseSource(clip=str(data / KITCHEN), azimuth_deg=340.0, distance_m=2.5, snr_db=snr_db + 3.0)]
+    scene = Scene(array=array, room_m=room, rt60_s=float(rng.uniform(0.3, 0.6)), array_position_m=centre,
+                  array_heading_deg=float(rng.uniform(0, 360)), speech=speech, noise=noise, tail_s=1.5,
+                  seed=int(rng.integers(1 << 30)))
+    return scene, games, snr_db
+
+
+def run_pipeline(audio: Path, array: str, options: list[str], work: Path, port: int, name: str) -> tuple[list, float]:
+    """Plays ``audio`` through ``esiaf run --fast --json``; the fused results (latest revision of
+    each, ordered by start) with times relative to the stream's start, and the pipeline's wall time."""
+    stream = f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"  # a workdir used again keeps its database: a new stream
+    cmd = [sys.executable, "-m", "esiaf", "run", "--input", str(audio), "--array", array, "--fast", "--json",
+           "--grammar", "robocup", "--workdir", str(work), "--port", str(port), "--stream-id", stream, *options]
+    started = time.monotonic()
+    with open(work / "launcher.log", "w") as log:
+        try:
+            done = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=log, text=True, timeout=RUN_TIMEOUT_S,
+                                  cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+        except subprocess.TimeoutExpired:
+            raise EvalError(f"{name}: the pipeline did not finish within {RUN_TIMEOUT_S:g} s "
+                            f"(see {work / 'launcher.log'})") from None
+    if done.returncode != 0:
+        tail = (work / "launcher.log").read_text().strip().splitlines()[-3:]
+        raise EvalError(f"{name}: esiaf run exited with {done.returncode}: {' / '.join(tail)}")
+    origin: int | None = None
+    fused: dict[int, dict[str, Any]] = {}
+    for line in done.stdout.splitlines():
+        message = json.loads(line)
+        if message.get("type") == "stream_start":
+            origin = message["start_ns"]
+        elif message.get("type") == "fused_result" and (
+                message["id"] not in fused or message["revision"] >= fused[message["id"]]["revision"]):
+            fused[message["id"]] = message
+    if origin is None:
+        raise EvalError(f"{name}: esiaf run printed no stream start")
+    results = sorted(fused.values(), key=lambda m: m["anchor"]["span"]["start_ns"])
+    for message in results:
+        span = message["anchor"]["span"]
+        message["start_s"], message["end_s"] = (span["start_ns"] - origin) / 1e9, (span["end_ns"] - origin) / 1e9
+    return results, time.monotonic() - started
+
+
+def parse_snr(text: str) -> tuple[float, float]:
+    try:
+        low, high = (float(part) for part in text.split(":"))
+    except ValueError:
+        raise EvalError(f"--snr takes LOW:HIGH in dB (e.g. 5:15), not {text!r}") from None
+    if not -10 <= low <= high <= 60:
+        raise EvalError(f"--snr {text}: need -10 <= LOW <= HIGH <= 60 dB")
+    return low, high
+
+
+def parse_args(argv: Sequence[str]) -> tuple[argparse.Namespace, list[str]]:
+    argv = list(argv)
+    options = argv[argv.index("--") + 1:] if "--" in argv else []
+    argv = argv[:argv.index("--")] if "--" in argv else argv
+    parser = argparse.ArgumentParser(prog="esiaf eval", description="Evaluation harnesses (options after -- go to "
+                                     "esiaf run, e.g. -- --asr whisper --no-beamformer)")
+    parser.add_argument("task", choices=("robocup",), help="robocup: RoboCup@Home Speech & Person Recognition")
+    parser.add_argument("--runs", type=int, default=6, help="runs per array (default 6)")
+    parser.add_argument("--seed", type=int, default=1, help="random seed of the rooms and games (default 1)")
+    parser.add_argument("--snr", default="5:15", help="SNR range in dB, LOW:HIGH (default 5:15)")
+    parser.add_argument("--array", action="append", help="array preset (pepper4, respeaker4); repeatable "
+                        "(default: both)")
+    parser.add_argument("--workdir", type=Path, help="where recordings and logs go (default: a temporary folder)")
+    parser.add_argument("--port", type=int, default=8700, help="orchestrator port of the runs (default 8700)")
+    parser.add_argument("--no-oracle", action="store_true", help="skip the oracle row")
+    parser.add_argument("--json", type=Path, help="also write every run's scores to this file")
+    return parser.parse_args(argv), options
+
+
+def check(args: argparse.Namespace) -> None:
+    from esiaf.arrays import ArrayError, load_array
+    if not 1 <= args.runs <= 1000:
+        raise EvalError(f"--runs must be from 1 to 1000, not {args.runs}")
+    if not 1 <= args.port <= 65535:
+        raise EvalError(f"--port must be from 1 to 65535, not {args.port}")
+    args.snr_range = parse_snr(args.snr)
+    args.array = args.array or ["pepper4", "respeaker4"]
+    for array in args.array:
+        try:
+            load_array(array)
+        except ArrayError as exc:
+            raise EvalError(str(exc)) from None
+    for needed in (QUESTIONS, KITCHEN):
+        if not (DATA / needed).is_file():
+            raise EvalError(f"{DATA / needed} is missing: the harness needs the shared test data "
+                            f"(set ESIAF_SHARED_DATA to its folder)")
+    from esiaf.scenes import SceneError, speak
+    try:
+        speak("test", "slt", 16000)
+    except SceneError as exc:
+        raise EvalError(f"the harness synthesises its talkers with flite: {exc}") from None
+
+
+def evaluate(args: argparse.Namespace, options: list[str]) -> list[RunScore]:
+    import soundfile
+
+    from esiaf.scenes import render
+    pipeline = options if "--without" in options else DEFAULT_PIPELINE + options
+    questions = read_questions_and_answers(DATA)
+    work = args.workdir or Path(tempfile.mkdtemp(prefix="esiaf-eval-"))
+    work.mkdir(parents=True, exist_ok=True)
+    recogniser = None
+    if not args.no_oracle:
+        from esiaf_services.asr.lexicon import ROBOCUP_GRAMMAR
+        from esiaf_services.asr.recognizer import PocketsphinxRecognizer
+        recogniser = PocketsphinxRecognizer(16000, grammar=ROBOCUP_GRAMMAR)
+    print(f"eval: {args.runs} run(s) per array on {', '.join(args.array)}, SNR {args.snr} dB, seed {args.seed}; "
+          f"pipeline: esiaf run --fast {' '.join(pipeline)}; work in {work}", file=sys.stderr, flush=True)
+    scores = []
+    total = args.runs * len(args.array)
+    for array in args.array:
+        for index in range(args.runs):
+            name = f"{array}-run{index + 1}"
+            run_dir = work / name
+            run_dir.mkdir(exist_ok=True)
+            scene, games, snr_db = make_scene(index, args.seed, array, args.snr_range, DATA, work, questions)
+            signals, truth = render(scene)
+            audio = run_dir / "scene.flac"
+            soundfile.write(str(audio), np.round(signals * 32767).astype(np.int16), scene.sample_rate_hz)
+            (run_dir / "scene.json").write_text(json.dumps(truth, indent=2) + "\n")
+            asked = [Question(game, u["text"], u["azimuth_deg"], u["start_s"], u["end_s"])
+                     for game, u in zip(games, truth["utterances"], strict=True)]
+            try:
+                fused, wall_s = run_pipeline(audio, array, pipeline, run_dir, args.port, name)
+            except EvalError as exc:  # scored as a run that answered nothing; the others go on
+                print(f"eval: {exc}", file=sys.stderr, flush=True)
+                fused, wall_s = [], 0.0
+            run = RunScore(name, snr_db, scene.rt60_s, asked, audio_s=truth["duration_s"], pipeline_s=wall_s,
+                           fused=len(fused), failed=not wall_s)
+            run.spurious = score(asked, fused)
+            if recogniser is not None:
+                run.oracle_recognised = oracle(signals, asked, scene.sample_rate_hz, recogniser)
+            (run_dir / "fused.json").write_text(json.dumps(fused, indent=1) + "\n")
+            scores.append(run)
+            print(f"eval: [{len(scores)}/{total}] {name}: SNR {snr_db:.1f} dB, RT60 {scene.rt60_s:.2f} s: "
+                  f"{sum(q.recognised for q in asked)}/10 questions, "
+                  f"{sum(direction_right(q) for q in asked)}/10 directions, {run.spurious} spurious, "
+                  f"{run.points} points" + (f"; oracle {run.oracle_recognised}/10" if recogniser else ""),
+                  file=sys.stderr, flush=True)
+    return scores
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        args, options = parse_args(sys.argv[2:] if argv is None else argv)
+        check(args)
+        scores = evaluate(args, options)
+    except EvalError as exc:
+        print(f"eval: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("eval: stopped", file=sys.stderr)
+        return 130
+    figures = summary(scores, not args.no_oracle)
+    print(table(scores, figures, not args.no_oracle))
+    for name, value in figures.items():
+        print(f"{name}={value:.3f}" if isinstance(value, float) else f"{name}={value}")
+    if args.json:
+        args.json.write_text(json.dumps({"figures": figures, "runs": [
+            {"name": r.name, "snr_db": r.snr_db, "rt60_s": r.rt60_s, "spurious": r.spurious, "points": r.points,
+             "fused": r.fused, "oracle_recognised": r.oracle_recognised, "pipeline_s": r.pipeline_s,
+             "questions": [q.__dict__ for q in r.questions]} for r in scores]}, indent=1) + "\n")
+    return 0

@@ -1,0 +1,287 @@
+"""Runs ESIAF services as plain child processes and supervises them.
+
+Each service runs as ``python -m esiaf_services.<name>`` with its log in
+``<workdir>/logs/<name>.log``. A child that dies on its own is reported with
+the tail of its log. Stopping sends SIGTERM to every child (newest first),
+waits, then SIGKILLs what is left; children also get SIGTERM if the launcher
+itself dies (PR_SET_PDEATHSIG), so no process is left orphaned.
+"""
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from esiaf.api_client import OrchestratorHTTP
+
+log = logging.getLogger(__name__)
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+_PR_SET_PDEATHSIG = 1
+MAX_RESTARTS = 5  # a service that died this often is not restarted again: the run ends
+RESTART_BACKOFF_S = 0.5  # before the first restart; doubles with each, up to 10 s
+START_TIMEOUT_S = 60.0  # esiaf run: how long a service may take to answer, register, subscribe or start playing
+
+
+class LaunchError(Exception):
+    """A service did not come up; the message says which and why."""
+
+
+def _die_with_parent() -> None:
+    with contextlib.suppress(OSError):
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
+@dataclass
+class Child:
+    name: str
+    process: subprocess.Popen
+    log_path: Path
+    command: list[str] = field(default_factory=list)
+    env: dict[str, str] = field(default_factory=dict)
+    restarts: int = 0
+    died_at: float | None = None  # monotonic time its death was first seen
+    reported: bool = False  # its death was reported to the orchestrator
+
+    def restart_delay_s(self) -> float:
+        return min(RESTART_BACKOFF_S * 2 ** self.restarts, 10.0)
+
+    def how_it_ended(self) -> str:
+        code = self.process.returncode
+        if code is not None and code < 0:
+            try:
+                return f"killed by {signal.Signals(-code).name}"
+            except ValueError:
+                return f"killed by signal {-code}"
+        return f"exited with code {code}"
+
+    def tail(self, lines: int = 12) -> str:
+        try:
+            text = self.log_path.read_text(errors="replace").rstrip().splitlines()
+        except OSError:
+            return ""
+        return "\n".join(f"    {line}" for line in text[-lines:])
+
+
+@dataclass
+class Supervisor:
+    workdir: Path
+    env: dict[str, str] = field(default_factory=dict)
+    children: list[Child] = field(default_factory=list)
+
+    def start(self, name: str, args: Sequence[str] = (), env: dict[str, str] | None = None,
+              target: list[str] | None = None, instance: str | None = None) -> Child:
+        """Starts ``python -m esiaf_services.<name>`` (or ``python <target...>``, a plug-in) with ``args``;
+        ``instance``: one of several instances of the service, under this id (its child and log name)."""
+        logs = self.workdir / "logs"
+        logs.mkdir(parents=True, exist_ok=True)
+        log_path = logs / f"{instance or name}.log"
+        child_env = {**os.environ, **self.env, **(env or {})}
+        if instance:
+            child_env[f"ESIAF_{name.upper()}_INSTANCE"] = instance
+        child_env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), child_env.get("PYTHONPATH")]))
+        command = [sys.executable, *(target or ["-m", f"esiaf_services.{name}"]), *args]
+        child = Child(instance or name, self._spawn(command, child_env, log_path, "wb"), log_path, command, child_env)
+        self.children.append(child)
+        log.info("started service=%s pid=%d log=%s", child.name, child.process.pid, log_path)
+        return child
+
+    @staticmethod
+    def _spawn(command: list[str], env: dict[str, str], log_path: Path, mode: str) -> subprocess.Popen:
+        with log_path.open(mode) as out:
+            return subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                    env=env, cwd=REPO_ROOT, start_new_session=True, preexec_fn=_die_with_parent)
+
+    def restart(self, child: Child) -> None:
+        """Starts a dead child again with the same command and environment; its log goes on."""
+        child.restarts += 1
+        child.died_at, child.reported = None, False
+        with child.log_path.open("ab") as out:
+            out.write(f"\n--- esiaf: restart {child.restarts} ---\n".encode())
+        child.process = self._spawn(child.command, child.env, child.log_path, "ab")
+        log.info("restarted service=%s pid=%d restarts=%d", child.name, child.process.pid, child.restarts)
+
+    def restart_when_due(self, child: Child) -> None:
+        """A service died: say which and why, restart it after a back-off (doubling from
+        RESTART_BACKOFF_S), and give up with its log's tail after MAX_RESTARTS deaths."""
+        now = time.monotonic()
+        if child.died_at is None:
+            child.died_at = now
+            last_line = child.tail(1).strip()
+            if child.restarts >= MAX_RESTARTS:
+                raise LaunchError(f"{self.failure(child)}\n(not restarted: it died {child.restarts + 1} times)")
+            print(f"esiaf: service {child.name} {child.how_it_ended()}"
+                  f"{f' ({last_line})' if last_line else ''}; restarting it in {child.restart_delay_s():.1f} s "
+                  f"({child.restarts + 1} of {MAX_RESTARTS})", file=sys.stderr, flush=True)
+        if now - child.died_at >= child.restart_delay_s():
+            self.restart(child)
+
+    def exited(self) -> list[Child]:
+        return [c for c in self.children if c.process.poll() is not None]
+
+    def failure(self, child: Child) -> str:
+        return (f"service {child.name} {child.how_it_ended()}; "
+                f"its log ({child.log_path}) ends:\n{child.tail()}")
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        for child in reversed(self.children):
+            if child.process.poll() is None:
+                child.process.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + timeout_s
+        for child in reversed(self.children):
+            try:
+                child.process.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("service=%s did not stop in %g s: killing it", child.name, timeout_s)
+                child.process.kill()
+                child.process.wait()
+
+
+def wait_until(condition: Callable[[], Any], supervisor: Supervisor, what: str, timeout_s: float,
+               watch: Child | None = None) -> Any:
+    """Polls ``condition`` until it returns something truthy; fails if a child dies or time runs out."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            value = condition()
+        except httpx.HTTPError:
+            value = None
+        if value:
+            return value
+        for child in supervisor.exited():
+            if child is watch or child.process.returncode != 0:
+                raise LaunchError(supervisor.failure(child))
+        if time.monotonic() > deadline:
+            extra = f"; its log ({watch.log_path}) ends:\n{watch.tail()}" if watch else ""
+            raise LaunchError(f"timed out after {timeout_s:g} s waiting for {what}{extra}")
+        time.sleep(0.05)
+
+
+def fixed_ports(workdir: Path, names: tuple[str, ...] = ("control", "results")) -> dict[str, int]:
+    """The orchestrator's ZeroMQ ports of this workdir: chosen free once, kept in ports.json, so an
+    orchestrator restarted in the same workdir comes back where its components push results."""
+    path = workdir / "ports.json"
+    try:
+        ports = {name: int(port) for name, port in json.loads(path.read_text()).items() if name in names}
+    except (OSError, ValueError, AttributeError, TypeError):
+        ports = {}
+    for name in names:
+        if name not in ports or not _port_free(ports[name]):
+            ports[name] = _any_free_port()
+    workdir.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(ports))
+    return ports
+
+
+def _port_free(port: int) -> bool:
+    with socket.socket() as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def _any_free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+class OrchestratorClient:
+    def __init__(self, url: str):
+        self.url = url.rstrip("/")
+        self._http = OrchestratorHTTP(self.url, timeout_s=2.0)
+
+    def healthy(self) -> bool:
+        return self._http.get(f"{self.url}/health").status_code == 200
+
+    def recovered(self) -> list[str]:
+        """The orchestrator's report of a ``--recover`` that repaired its database (empty if sound)."""
+        response = self._http.get(f"{self.url}/health")
+        return [str(line) for line in response.json().get("recovered") or []] if response.status_code == 200 else []
+
+    def health_problem(self) -> str:
+        """'' while healthy, else what /health says is wrong."""
+        response = self._http.get(f"{self.url}/health")
+        if response.status_code == 200:
+            return ""
+        try:
+            return str(response.json().get("detail") or response.status_code)
+        except ValueError:
+            return f"/health answered {response.status_code}"
+
+    def components(self) -> list[dict[str, Any]]:
+        response = self._http.get(f"{self.url}/components")
+        response.raise_for_status()
+        return response.json()["items"]
+
+    def component(self, name: str) -> dict[str, Any] | None:
+        return next((c for c in self.components() if c.get("name") == name), None)
+
+    def instance(self, component_id: str) -> dict[str, Any] | None:
+        """The live component registered under this id (one of several instances of a service)."""
+        return next((c for c in self.components() if c.get("component_id") == component_id
+                     and c.get("status") == "alive"), None)
+
+    def by_pid(self, pid: int) -> dict[str, Any] | None:
+        """The live component a process registered (plug-ins: their name is their own)."""
+        return next((c for c in self.components() if c.get("pid") == pid and c.get("status") == "alive"), None)
+
+    def report_dead(self, pid: int) -> str | None:
+        """Tells the orchestrator that the process ``pid`` died, so that its component is dead now and
+        not only once silent for dead_after_s; the component's id, or None (none was registered, it
+        had left cleanly, or the orchestrator is not there: then its silence will tell)."""
+        try:
+            component = self.by_pid(pid)
+            if component is not None:
+                self._http.post(f"{self.url}/components/{component['component_id']}/dead").raise_for_status()
+                return str(component["component_id"])
+        except httpx.HTTPError as exc:
+            log.debug("could not report pid=%d dead: %s", pid, exc)
+        return None
+
+    def fusions(self) -> list[dict[str, Any]]:
+        response = self._http.get(f"{self.url}/fusions")
+        response.raise_for_status()
+        return response.json()["items"]
+
+    def put_fusions(self, fusions: list[dict[str, Any]]) -> None:
+        response = self._http.put(f"{self.url}/fusions", json={"items": fusions})
+        if response.status_code != 200:
+            raise LaunchError(f"the orchestrator refused the fusions {fusions}: {response.text}")
+
+    def topics(self) -> list[dict[str, Any]]:
+        response = self._http.get(f"{self.url}/topics")
+        response.raise_for_status()
+        return response.json()["items"]
+
+    def stream(self, stream_id: str) -> dict[str, Any] | None:
+        response = self._http.get(f"{self.url}/streams/{stream_id}")
+        if response.status_code == 404:
+            return None
+        response.raise_for_status()
+        return response.json()
+
+    def announce(self, stream_id: str, info: dict[str, Any]) -> None:
+        """Announces a stream ahead of its source (which announces it again, with its start)."""
+        response = self._http.put(f"{self.url}/streams/{stream_id}", json={"start_ns": time.time_ns(), "info": info})
+        if response.status_code != 200:
+            raise LaunchError(f"the orchestrator refused to announce stream {stream_id}: {response.text}")
+
+    def close(self) -> None:
+        self._http.close()

@@ -1,0 +1,4 @@
+from esiaf import main
+from esiaf_services.asr.service import Asr
+
+raise SystemExit(main(Asr))

@@ -1,0 +1,302 @@
+"""Streaming speech recogniser on pocketsphinx 5 with its bundled US English models.
+
+``PocketsphinxRecognizer`` decodes one utterance at a time: ``start()``, ``feed()`` chunks of int16
+mono PCM as they arrive (each chunk is decoded at once, so ``finish()`` only closes the search), then
+``finish()`` returns the n-best hypotheses.  Without a grammar the bundled en-us trigram language
+model is used; with a JSGF grammar file only its sentences can be recognised.  Streamed audio is
+normalised with a running cepstral mean carried from utterance to utterance, so the first utterance
+of a new recogniser is decoded with pocketsphinx's initial guess (``goforward.raw`` then gives "go
+forward ten years"); ``recognise()`` normalises over the whole utterance it is given.
+
+Hypotheses and probabilities.  The first hypothesis is the decoder's best path (``Decoder.hyp()``, with
+word timings from ``Decoder.seg()``); the others are the next distinct texts of pocketsphinx's A* n-best
+list (``Decoder.nbest()``), which have no word timings.  Probabilities are a softmax over this list:
+the Python API reports an n-best path score s (pocketsphinx's search keeps log-base-1.0001 scores
+shifted right by 10 bits) as ``1.0001**s``, so a path's log-likelihood is ``2**10 * ln(score)`` nats; it
+is divided by pocketsphinx's acoustic scale for confidences (config ``ascale``, 20), paths with the same
+text are summed, and the result is normalised over the list.  The A* search scores paths differently
+from the best-path search and its top text differs from ``hyp()`` on about a third of the shared
+recordings (with the language model; e.g. A* "five a five" where ``hyp()`` has the right "five five");
+the best path's text then gets the top n-best weight, so it is never less probable than an alternative.
+The values are
+relative to the alternatives pocketsphinx kept, not an absolute confidence: with a grammar the lattice
+usually holds a single sentence, which then gets probability 1.0.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import pocketsphinx
+
+from esiaf_services.asr.lexicon import (
+    BUNDLED_ACOUSTIC_MODEL,
+    BUNDLED_DICT,
+    BUNDLED_LANGUAGE_MODEL,
+    PROJECT_DICT,
+    DictionaryFormatError,
+    base_word,
+    read_dictionary,
+)
+from esiaf_services.asr.pocketsphinx_log import one_line, pocketsphinx_log
+
+LOGGER = logging.getLogger(__name__)
+
+DEFAULT_EXTRA_DICT = PROJECT_DICT
+UNRECOGNISED = "no words recognised"  # why a segment has no hypothesis: speech the recogniser could not make out
+MIN_SAMPLE_RATE_HZ = 16000  # the model's filter bank reaches 6800 Hz; 16 kHz is what it was trained on
+MAX_SAMPLE_RATE_HZ = 48000
+MAX_NBEST_PATHS = 200  # n-best paths read per utterance; many differ only in silences or pronunciations
+SCORE_SHIFT_BITS = 10  # pocketsphinx's SENSCR_SHIFT
+# pocketsphinx's default for its en-us model; 7.5 raised the word error on CMU ARCTIC from 42 to 48 %
+LANGUAGE_MODEL_WEIGHT = 6.5
+FILLER_WORDS = frozenset({"<s>", "</s>", "<sil>"})
+GRAMMAR_SEARCH = "grammar"
+
+
+class RecognizerError(Exception):
+    """The recogniser cannot be set up or used as asked."""
+
+
+@dataclass(frozen=True)
+class Word:
+    word: str
+    start_s: float  # relative to the first sample fed since start()
+    end_s: float
+    probability: float
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    text: str
+    probability: float
+    words: tuple[Word, ...]  # only for the hypothesis pocketsphinx segmented (its best path), else ()
+
+
+class PocketsphinxRecognizer:
+    """One pocketsphinx decoder; not thread-safe, use one instance per audio stream.
+
+    ``grammar``: None for the bundled en-us language model, else a JSGF file whose sentences are the only
+    ones recognised, weighted with ``language_weight`` (the language model keeps its own weight, 6.5).
+    ``extra_dictionary``: CMUdict-format words added to the bundled dictionary (None: none).
+    """
+
+    def __init__(self, sample_rate_hz: int = 16000, grammar: str | Path | None = None,
+                 extra_dictionary: str | Path | None = DEFAULT_EXTRA_DICT, language_weight: float = 7.5,
+                 nbest: int = 5) -> None:
+        if not MIN_SAMPLE_RATE_HZ <= sample_rate_hz <= MAX_SAMPLE_RATE_HZ:
+            raise RecognizerError(
+                f"sample rate {sample_rate_hz} Hz not supported: the bundled en-us model needs "
+                f"{MIN_SAMPLE_RATE_HZ}-{MAX_SAMPLE_RATE_HZ} Hz audio (resample to 16000 Hz)")
+        if nbest < 1:
+            raise RecognizerError(f"nbest must be at least 1, got {nbest}")
+        self.sample_rate_hz = sample_rate_hz
+        self.nbest = nbest
+        self._log = pocketsphinx_log()
+        grammar_path = Path(grammar) if grammar is not None else None
+        if grammar_path is not None:
+            _check_grammar_file(grammar_path)
+        mark = self._log.mark()
+        # nfft 0 (default): pocketsphinx picks the FFT size for the sample rate.  fwdflat off: the language
+        # model's second, flat-lexicon pass would run inside end_utt() (65-250 ms per utterance, measured)
+        # for no gain in word error on the shared test speech.
+        try:
+            self._decoder = pocketsphinx.Decoder(
+                hmm=str(BUNDLED_ACOUSTIC_MODEL), dict=str(BUNDLED_DICT),
+                lm=None if grammar_path is not None else str(BUNDLED_LANGUAGE_MODEL),
+                samprate=sample_rate_hz, fwdflat=False,
+                lw=language_weight if grammar_path is not None else LANGUAGE_MODEL_WEIGHT,
+                loglevel="ERROR", logfn=str(self._log.path))
+        except (RuntimeError, ValueError) as error:
+            raise RecognizerError(f"cannot start pocketsphinx: {one_line(self._log.since(mark)) or error}") \
+                from error
+        if extra_dictionary is not None:
+            self._add_words(Path(extra_dictionary))
+        if grammar_path is not None:
+            self._load_grammar(grammar_path)
+        self._frames_per_s = float(self._decoder.config["frate"])
+        # The Python API reports a path score s (log base 1.0001, shifted) as 1.0001**s, so ln(score) * 2**10
+        # is the log-likelihood in nats; dividing by ascale gives pocketsphinx's posterior scaling.
+        self._nats_per_ln_score = 2 ** SCORE_SHIFT_BITS / float(self._decoder.config["ascale"])
+        self._in_utterance = False
+        self._odd_byte = b""
+        self._live_cmn = False  # streamed audio: CMN is a running estimate carried across utterances
+        # Until one utterance has been heard, the running CMN starts from the model's generic estimate and the
+        # first streamed utterance decodes worse ("go forward ten years"). So the first utterance is buffered
+        # and decoded whole (CMN over all of it) at finish(), and its CMN seeds the running estimate.
+        self._cmn_seeded = False
+        self._first_utterance: list[bytes] | None = None  # buffered while the CMN is not seeded
+        LOGGER.info("pocketsphinx ready: %d Hz, %s", sample_rate_hz,
+                    f"grammar {grammar_path}" if grammar_path is not None else "en-us language model")
+
+    def _add_words(self, dictionary_path: Path) -> None:
+        try:
+            entries = read_dictionary(dictionary_path)
+        except FileNotFoundError as error:
+            raise RecognizerError(f"dictionary {dictionary_path} not found") from error
+        except (OSError, UnicodeDecodeError) as error:
+            raise RecognizerError(f"cannot read dictionary {dictionary_path}: {error}") from error
+        except DictionaryFormatError as error:
+            raise RecognizerError(f"bad word in dictionary {error}") from error
+        additions = []  # (entry name, phones) pocketsphinx does not have yet
+        for word, pronunciations in entries.items():
+            known: list[tuple[str, ...]] = []  # the word's pronunciations so far, by alternative number
+            while (phones := self._decoder.lookup_word(_entry_name(word, len(known) + 1))) is not None:
+                known.append(tuple(phones.split()))
+            for phones in pronunciations:
+                if phones not in known:
+                    known.append(phones)
+                    additions.append((_entry_name(word, len(known)), " ".join(phones)))
+        for number, (name, phones) in enumerate(additions, start=1):
+            mark = self._log.mark()
+            try:  # rebuilding the search once, after the last word, is enough
+                self._decoder.add_word(name, phones, number == len(additions))
+            except RuntimeError as error:
+                raise RecognizerError(f"bad word in dictionary {dictionary_path}: {name!r} "
+                                      f"({one_line(self._log.since(mark)) or error})") from error
+        LOGGER.debug("added %d pronunciations from %s", len(additions), dictionary_path)
+
+    def _load_grammar(self, grammar_path: Path) -> None:
+        mark = self._log.mark()
+        try:
+            self._decoder.add_jsgf_file(GRAMMAR_SEARCH, str(grammar_path))
+        except RuntimeError as error:
+            complaint = self._log.since(mark) or str(error)
+            raise RecognizerError(f"malformed grammar {grammar_path}: {one_line(complaint)}") from error
+        complaint = self._log.since(mark)
+        if complaint:  # e.g. a reference to an undefined rule is logged, yet the call succeeds
+            raise RecognizerError(f"malformed grammar {grammar_path}: {one_line(complaint)}")
+        self._decoder.activate_search(GRAMMAR_SEARCH)
+
+    def start(self) -> None:
+        """Begin an utterance; times of words are counted from the first sample fed after this."""
+        self._start(buffer_it=not self._cmn_seeded)
+
+    def _start(self, buffer_it: bool) -> None:
+        if self._in_utterance:
+            raise RecognizerError("start() called twice without finish()")
+        self._first_utterance = [] if buffer_it else None
+        self._decoder.start_utt()
+        self._in_utterance = True
+        self._odd_byte = b""
+
+    def feed(self, pcm: bytes) -> None:
+        """Decode a chunk of int16 little-endian mono PCM at ``sample_rate_hz`` (any size)."""
+        if self._first_utterance is not None and self._in_utterance:
+            self._first_utterance.append(bytes(pcm))
+            return
+        self._process(pcm, whole_utterance=False)
+
+    def finish(self) -> list[Hypothesis]:
+        """End the utterance: up to ``nbest`` distinct hypotheses, best first; [] if nothing recognised."""
+        if not self._in_utterance:
+            raise RecognizerError("finish() called without start()")
+        if self._first_utterance is not None:
+            return self._finish_first_utterance()
+        self._in_utterance = False
+        mark = self._log.mark()
+        try:
+            self._decoder.end_utt()
+        except RuntimeError as error:
+            complaint = one_line(self._log.since(mark)) or str(error)
+            raise RecognizerError(f"pocketsphinx failed to end the utterance: {complaint}") from error
+        for line in self._log.since(mark).splitlines():  # errors pocketsphinx logged while decoding
+            LOGGER.warning("pocketsphinx: %s", line)
+        return self._hypotheses()
+
+    def _finish_first_utterance(self) -> list[Hypothesis]:
+        assert self._first_utterance is not None  # called while it is buffered
+        pcm, self._first_utterance = b"".join(self._first_utterance), None
+        self._in_utterance = False
+        self._decoder.end_utt()  # nothing was fed to it
+        return self.recognise(pcm) if len(pcm) >= 2 else []
+
+    def recognise(self, pcm: bytes) -> list[Hypothesis]:
+        """Decode one whole utterance, with cepstral mean normalisation computed over all of it."""
+        if self._live_cmn:  # pocketsphinx switches to running CMN for good once audio was streamed
+            self._decoder.reinit_feat()  # back to batch CMN (0.1 ms); the words and grammar stay
+            self._live_cmn = False
+        self._start(buffer_it=False)
+        self._process(pcm, whole_utterance=True)
+        hypotheses = self.finish()
+        self._decoder.set_cmn(self._decoder.get_cmn(False))  # seeds the running CMN of later streamed audio
+        self._cmn_seeded = True
+        return hypotheses
+
+    def _process(self, pcm: bytes, whole_utterance: bool) -> None:
+        if not self._in_utterance:
+            raise RecognizerError("feed() called without start()")
+        data = self._odd_byte + pcm
+        usable_bytes = len(data) - len(data) % 2
+        self._odd_byte = data[usable_bytes:]
+        if usable_bytes:
+            self._live_cmn = self._live_cmn or not whole_utterance
+            mark = self._log.mark()
+            try:
+                self._decoder.process_raw(data[:usable_bytes], False, whole_utterance)
+            except RuntimeError as error:
+                complaint = one_line(self._log.since(mark)) or str(error)
+                raise RecognizerError(f"pocketsphinx failed to decode audio: {complaint}") from error
+
+    def _hypotheses(self) -> list[Hypothesis]:
+        best = self._decoder.hyp()
+        best_text = " ".join(best.hypstr.split()) if best is not None else ""
+        if not best_text:
+            return []
+        log_weights = self._nbest_log_weights()
+        # The decoder's best path comes first and is never weighted below an n-best alternative.
+        top_weight = max(log_weights.values(), default=0.0)
+        best_weight = max(log_weights.pop(best_text, top_weight), top_weight)
+        alternatives = sorted(log_weights.items(), key=lambda item: item[1], reverse=True)[:self.nbest - 1]
+        total = 1.0 + sum(math.exp(weight - best_weight) for _, weight in alternatives)
+        return [Hypothesis(text=best_text, probability=1.0 / total, words=self._words())] + [
+            Hypothesis(text=text, probability=math.exp(weight - best_weight) / total, words=())
+            for text, weight in alternatives]
+
+    def _nbest_log_weights(self) -> dict[str, float]:
+        """Distinct n-best texts -> log of their paths' summed likelihoods, scaled as described above."""
+        log_weights: dict[str, float] = {}
+        for path in itertools.islice(self._decoder.nbest() or (), MAX_NBEST_PATHS):
+            text = " ".join(path.hypstr.split())
+            if not text or path.score <= 0.0:  # score 0.0 is an underflowed likelihood
+                continue
+            log_weight = math.log(path.score) * self._nats_per_ln_score
+            previous = log_weights.get(text)
+            log_weights[text] = log_weight if previous is None else _log_add(previous, log_weight)
+        return log_weights
+
+    def _words(self) -> tuple[Word, ...]:
+        words = []
+        for segment in self._decoder.seg() or ():
+            word = base_word(segment.word)
+            if word in FILLER_WORDS or word.startswith(("[", "++")):
+                continue
+            words.append(Word(word=word, start_s=segment.start_frame / self._frames_per_s,
+                              end_s=(segment.end_frame + 1) / self._frames_per_s,
+                              probability=min(1.0, max(0.0, segment.prob))))
+        return tuple(words)
+
+
+def _check_grammar_file(grammar_path: Path) -> None:
+    """Check the grammar file before pocketsphinx sees it: pocketsphinx crashes on a missing file."""
+    try:
+        text = grammar_path.read_text(encoding="utf-8")
+    except FileNotFoundError as error:
+        raise RecognizerError(f"grammar file {grammar_path} not found") from error
+    except (OSError, UnicodeDecodeError) as error:
+        raise RecognizerError(f"cannot read grammar file {grammar_path}: {error}") from error
+    if not text.lstrip().startswith("#JSGF"):  # pocketsphinx's scanner would echo such text to stdout
+        raise RecognizerError(f"malformed grammar {grammar_path}: no '#JSGF V1.0;' header")
+
+
+def _entry_name(word: str, number: int) -> str:
+    return word if number == 1 else f"{word}({number})"
+
+
+def _log_add(first: float, second: float) -> float:
+    larger, smaller = max(first, second), min(first, second)
+    return larger + math.log1p(math.exp(smaller - larger))

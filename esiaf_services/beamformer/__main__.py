@@ -1,0 +1,4 @@
+from esiaf import main
+from esiaf_services.beamformer.service import Beamformer
+
+raise SystemExit(main(Beamformer))

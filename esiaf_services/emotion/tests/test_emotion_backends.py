@@ -1,0 +1,113 @@
+"""Backends: the ONNX one with a tiny hand-built model, the Python one with a toy class, and
+every way a model can be unusable giving one clear line."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import soundfile
+
+from esiaf.tools.testing import REPO, shared_data
+from esiaf_services.emotion.backends import BackendError, OnnxClassifier, load_backend
+from esiaf_services.emotion.features import FeatureExtractor, speech_span
+
+DATA = REPO / "esiaf_services" / "emotion" / "tests" / "data"
+TOY = "esiaf_services.emotion.tests.toy_backend:LoudnessClassifier"
+
+
+def tone(amplitude: float, seconds: float = 1.0, rate: int = 16000) -> np.ndarray:
+    t = np.arange(int(seconds * rate)) / rate
+    return (amplitude * np.sin(2 * np.pi * 220 * t) * (1 + 0.3 * np.sin(2 * np.pi * 3 * t))).astype(np.float32)
+
+
+def test_onnx_backend_runs_the_model_on_the_label_maps_features():
+    classifier = load_backend("onnx", str(DATA / "tiny.onnx"))
+    card = json.loads((DATA / "tiny.json").read_text())
+    assert classifier.labels == ("quiet", "loud")
+    for amplitude in (0.001, 0.5):
+        samples = tone(amplitude)
+        loudness = FeatureExtractor("eGeMAPSv02")(samples)[card["loudness_index"]]
+        expected_loud = 1 / (1 + np.exp(-card["gain"] * (loudness - card["threshold"])))
+        probabilities = classifier.classify(samples)
+        assert probabilities["loud"] == pytest.approx(expected_loud, abs=1e-4)
+        assert sum(probabilities.values()) == pytest.approx(1.0, abs=1e-5)
+    assert classifier.classify(tone(0.5))["loud"] > 0.9 > 0.1 > classifier.classify(tone(0.001))["loud"]
+
+
+def test_python_backend_builds_the_configured_class_with_its_options():
+    classifier = load_backend("python", TOY, {"threshold_rms": 0.01})
+    assert classifier.labels == ("quiet", "loud")
+    assert classifier.classify(tone(0.1))["loud"] == pytest.approx(0.9)
+    assert classifier.classify(tone(0.001))["quiet"] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("backend, model, options, message", [
+    ("onnx", "no/such/model.onnx", {}, "model file no/such/model.onnx does not exist"),
+    ("tflite", "emotion4", {}, "unknown backend 'tflite'; known: onnx, python"),
+    ("python", "esiaf_services.emotion.tests.toy_backend", {}, "is 'package.module:ClassName'"),
+    ("python", "esiaf_services.emotion.tests.toy_backend:Nope", {}, "cannot import the classifier"),
+    ("python", "numpy:ndarray", {}, "is not a subclass of esiaf_services.emotion.backends.Classifier"),
+    ("python", TOY, {"bogus": 1}, "failed: TypeError"),
+])
+def test_unusable_backends_are_refused_with_a_clear_message(backend, model, options, message):
+    with pytest.raises(BackendError, match=message.replace("(", r"\(").replace(".", r"\.")):
+        load_backend(backend, model, options)
+
+
+def copy_model(tmp_path, onnx_bytes: bytes | None = None, card: dict | None = None):
+    path = tmp_path / "model.onnx"
+    path.write_bytes(onnx_bytes if onnx_bytes is not None else (DATA / "tiny.onnx").read_bytes())
+    (tmp_path / "model.json").write_text(json.dumps(card) if card is not None else (DATA / "tiny.json").read_text())
+    return path
+
+
+def test_corrupt_model_file(tmp_path):
+    model = copy_model(tmp_path, onnx_bytes=(DATA / "tiny.onnx").read_bytes()[:300])
+    with pytest.raises(BackendError, match=f"model file {model} is not a usable ONNX model"):
+        OnnxClassifier(str(model))
+
+
+def test_label_map_that_does_not_fit_the_model(tmp_path):
+    model = copy_model(tmp_path, card={"labels": ["a", "b", "c"], "features": "eGeMAPSv02"})
+    with pytest.raises(BackendError, match=r"gives 2 probabilities but its label map .* names 3 labels"):
+        OnnxClassifier(str(model))
+    copy_model(tmp_path, card={"labels": ["a", "b"], "features": "ComParE_2016"})
+    with pytest.raises(BackendError, match="takes 88 features but ComParE_2016 has 6373"):
+        OnnxClassifier(str(model))
+    copy_model(tmp_path, card={"labels": ["a", "b"], "features": "MFCC"})
+    with pytest.raises(BackendError, match="unknown feature set 'MFCC'"):
+        OnnxClassifier(str(model))
+    (tmp_path / "model.json").write_text("{not json")
+    with pytest.raises(BackendError, match="is not JSON with 'labels' and 'features'"):
+        OnnxClassifier(str(model))
+    (tmp_path / "model.json").unlink()
+    with pytest.raises(BackendError, match="cannot read the label map"):
+        OnnxClassifier(str(model))
+
+
+@pytest.mark.parametrize("service", ["emotion", "gender"])
+def test_service_with_a_corrupt_model_exits_2_with_one_line(tmp_path, service):
+    model = copy_model(tmp_path, onnx_bytes=b"this is not an onnx file")
+    done = subprocess.run([sys.executable, "-m", f"esiaf_services.{service}", "--model", str(model)], cwd=REPO,
+                          capture_output=True, text=True, timeout=120,
+                          env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO),
+                               "ESIAF_ORCHESTRATOR_URL": "http://127.0.0.1:9"})
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip().splitlines()[-1].startswith(
+        f"{service}: {service} model: model file {model} is not a usable ONNX model: ")
+    assert "Traceback" not in done.stderr
+
+
+@pytest.mark.parametrize("task", ["emotion4", "gender"])
+def test_holdout_models_reproduce_the_training_scripts_predictions(task):
+    """The service's feature code + ONNX give what scikit-learn gave at training time."""
+    card = json.loads((REPO / "esiaf_services/emotion/models/holdout" / f"{task}.json").read_text())
+    classifier = load_backend("onnx", str(REPO / "esiaf_services/emotion/models/holdout" / f"{task}.onnx"))
+    for path, expected in list(card["predictions"].items())[:6]:
+        samples, rate = soundfile.read(shared_data(f"emodb/{path}"), dtype="float32")
+        first, end = speech_span(samples, rate)
+        probabilities = classifier.classify(samples[first:end])
+        assert max(probabilities, key=probabilities.get) == expected["predicted"], path

@@ -1,0 +1,289 @@
+"""Fusion engine units, no sockets: coverage, aggregates, timeouts and deadlines, revisions."""
+from __future__ import annotations
+
+import itertools
+from types import SimpleNamespace
+
+import pytest
+
+from esiaf_services.orchestrator.aggregate import label_aggregate, overlaps, ssl_aggregate
+from esiaf_services.orchestrator.coverage import GAP_TOLERANCE_NS, Coverage, StoredResult
+from esiaf_services.orchestrator.fusion import FusionEngine
+from esiaf_services.orchestrator.latency import Latencies
+from esiaf_services.orchestrator.orphans import Orphans, fuse_orphans, unanswered_segments
+from esiaf_services.orchestrator.settings import FusionSettings, TimeoutSettings
+
+MS = 1_000_000
+S = 1000 * MS
+
+
+def result(id_: int, component: str, type_: str, start: int, end: int, stream: str = "s", **payload) -> StoredResult:
+    json = {"id": id_, "component": component, "type": type_, "stream_id": stream,
+            "span": {"start_ns": start, "end_ns": end}, **payload}
+    return StoredResult.from_json(json)
+
+
+def direction(azimuth_deg: float, probability: float = 0.0) -> dict:
+    return {"source_id": "", "azimuth_deg": azimuth_deg, "elevation_deg": 0.0,
+            "probability": probability}
+
+
+def test_coverage_is_contiguous_from_start_to_end_in_any_order():
+    coverage = Coverage()
+    coverage.add(2 * S, 3 * S)
+    assert not coverage.covers(0, 3 * S)  # reaches the end, but from 2 s only
+    coverage.add(0, S)
+    assert not coverage.covers(0, 3 * S)  # a gap from 1 s to 2 s
+    coverage.add(S + GAP_TOLERANCE_NS // 2, 2 * S)  # rounding of stamps is no gap
+    assert coverage.covers(0, 3 * S) and coverage.starts == [0] and coverage.ends == [3 * S]
+    assert not coverage.covers(0, 4 * S)
+    coverage.forget_before(5 * S)
+    assert coverage.starts == []
+
+
+@pytest.mark.parametrize("span, inside", [((0, 10), True), ((20, 30), False), ((0, 5), False), ((12, 15), True),
+                                          ((-5, 30), True), ((20, 20), True), ((30, 40), False)])
+def test_overlap_means_sharing_time_and_touching_is_not_enough(span, inside):
+    assert overlaps(*span, 5, 20) is inside
+
+
+def test_ssl_aggregate_is_a_circular_mean_weighted_by_overlap():
+    window = (0, 4 * S)
+    results = [{"span": {"start_ns": 0, "end_ns": S}, "ssl": {"directions": [direction(350)]}},
+               {"span": {"start_ns": S, "end_ns": 2 * S}, "ssl": {"directions": [direction(10)]}}]
+    mean = ssl_aggregate(results, window)
+    assert min(mean["azimuth_deg"], 360 - mean["azimuth_deg"]) < 1e-6  # not 180
+    assert mean["concentration"] == pytest.approx(0.98481, abs=1e-4) and mean["overlap_s"] == 2.0
+    # three times the overlap at 90°: pulled towards it
+    results.append({"span": {"start_ns": S, "end_ns": 4 * S}, "ssl": {"directions": [direction(90)]}})
+    assert ssl_aggregate(results, window)["azimuth_deg"] == pytest.approx(56.7136, abs=1e-3)
+    # a direction's probability weighs too; outside the window weighs nothing
+    weighted = ssl_aggregate([
+        {"span": {"start_ns": 0, "end_ns": S}, "ssl": {"directions": [direction(0, 0.9), direction(90, 0.1)]}},
+        {"span": {"start_ns": 5 * S, "end_ns": 6 * S}, "ssl": {"directions": [direction(180)]}}], (0, S))
+    assert weighted["azimuth_deg"] == pytest.approx(6.3402, abs=1e-3)
+    assert ssl_aggregate([{"span": {"start_ns": 0, "end_ns": S}, "ssl": {"directions": []}}], window) is None
+
+
+def test_ssl_aggregate_is_the_talkers_track_not_the_loudspeakers():
+    def frame(start, *directions):
+        return {"span": {"start_ns": start * S, "end_ns": (start + 1) * S}, "ssl": {"directions": list(directions)}}
+
+    def on(source_id, azimuth_deg, probability=0.5, background=False):
+        return {**direction(azimuth_deg, probability), "source_id": source_id, "background": background}
+
+    loudspeaker = [frame(t, on("s1", 20, 0.9, background=True)) for t in range(4)]  # louder, all along
+    talker = [frame(1, on("s2", 90)), frame(2, on("s2", 94), on("s3", 200, 0.2))]  # and one stray peak
+    aggregate = ssl_aggregate(loudspeaker + talker, (0, 4 * S))
+    assert aggregate["source_id"] == "s2" and aggregate["azimuth_deg"] == pytest.approx(92, abs=0.01)
+    assert aggregate["tracks"] == 3 and aggregate["directions"] == 2 and not aggregate["background"]
+    # nothing but background: its direction, so marked
+    only = ssl_aggregate(loudspeaker, (0, 4 * S))
+    assert only["source_id"] == "s1" and only["background"] and only["azimuth_deg"] == pytest.approx(20)
+
+
+def test_label_aggregate_is_an_overlap_weighted_distribution():
+    results = [{"span": {"start_ns": 0, "end_ns": 3 * S},
+                "emotion": {"label": "sad", "probability": 0.6,
+                            "class_probabilities": {"sad": 0.6, "happy": 0.4}}},
+               {"span": {"start_ns": 3 * S, "end_ns": 4 * S},
+                "emotion": {"label": "happy", "probability": 0.9, "class_probabilities": {}}}]
+    aggregate = label_aggregate(results, "emotion", (0, 4 * S))
+    assert aggregate["distribution"] == {"happy": pytest.approx(0.55), "sad": pytest.approx(0.45)}
+    assert aggregate["label"] == "happy" and list(aggregate["distribution"]) == ["happy", "sad"]
+
+
+def test_timeouts_are_factor_times_running_mean_clamped_with_an_initial_value():
+    latencies = Latencies(TimeoutSettings(factor=1.5, factors={"slow": 3.0}, initial_s=2.0,
+                                          min_s=0.1, max_s=1.0))
+    assert latencies.timeout_ns("ssl") == 2 * S
+    for value in (100 * MS, 300 * MS):
+        latencies.add("ssl", value)
+        latencies.add("slow", value)
+    assert latencies.timeout_ns("ssl") == 300 * MS  # 1.5 x 200 ms
+    assert latencies.timeout_ns("slow") == 600 * MS
+    latencies.add("fast", 1 * MS)
+    latencies.add("late", 5 * S)
+    assert latencies.timeout_ns("fast") == 100 * MS and latencies.timeout_ns("late") == S
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 0
+
+    def __call__(self) -> int:
+        return self.now
+
+
+def engine_with(*components: tuple[str, str], **timeouts) -> tuple[FusionEngine, Clock]:
+    ids = itertools.count(1)
+    live = [SimpleNamespace(name=n, designation=d, stream_id="s") for n, d in components]
+    clock = Clock()
+    engine = FusionEngine([FusionSettings(name="u", anchor="speech", fuse=["ssl", "emotion"])],
+                          allocate_id=lambda: next(ids), live_components=lambda: live,
+                          timeouts=TimeoutSettings(**timeouts), clock_ns=clock)
+    return engine, clock
+
+
+def test_deadline_is_the_slowest_pending_components_own_and_dead_ones_are_not_waited_for():
+    engine, clock = engine_with(("ssl", "ssl"), ("emo", "emotion"), ("emo2", "emotion"))
+    engine.latencies.add("ssl", 100 * MS)   # timeout 150 ms
+    engine.latencies.add("emo", 400 * MS)   # timeout 600 ms
+    # emo2 unknown: initial 2 s
+    assert engine.on_result(result(1, "asr", "speech", 0, S), S) == []
+    assert engine.next_deadline_ns() == S + 2 * S
+    assert engine.on_component_gone("emo2") == []
+    assert engine.next_deadline_ns() == S + 600 * MS  # now the slowest is emo
+    assert engine.on_result(result(2, "emo", "emotion", 0, S, nothing={"reason": "silence"}),
+                            S + 10 * MS) == []
+    assert engine.next_deadline_ns() == S + 150 * MS
+    assert engine.on_timer(S + 149 * MS) == []
+    clock.now = S + 150 * MS
+    [fused] = engine.on_timer()
+    assert fused.json["completion"] == "timed_out" and fused.revision == 1
+    assert fused.json["missing"] == [{"component": "emo2", "type": "emotion", "reason": "gone"},
+                                     {"component": "ssl", "type": "ssl", "reason": "timed_out"}]
+    assert engine.next_deadline_ns() is None and not engine.open
+    # late: revision 2, ssl no longer missing; a late `nothing` revises nothing
+    [revised] = engine.on_result(result(3, "ssl", "ssl", 0, S, ssl={"directions": [direction(45)]}), 2 * S)
+    assert revised.id == fused.id and revised.revision == 2
+    assert [m["component"] for m in revised.json["missing"]] == ["emo2"]
+    assert revised.json["aggregates"]["ssl"]["azimuth_deg"] == pytest.approx(45)
+    assert engine.on_result(result(4, "emo2", "emotion", 0, S, nothing={"reason": "x"}), 2 * S) == []
+
+
+def test_restored_pending_fusion_waits_for_the_same_deadline_or_publishes_when_covered():
+    engine, clock = engine_with()
+    engine.restore_result(result(1, "asr", "speech", 0, S, speech={"hypotheses": []}))
+    engine.restore_result(result(2, "ssl", "ssl", 0, S, ssl={"directions": [direction(10)]}))
+    settings = FusionSettings(name="u", anchor="speech", fuse=["ssl", "emotion"])
+    anchor = result(1, "asr", "speech", 0, S, speech={"hypotheses": []})
+    engine.restore_open(7, settings, anchor, {"ssl": ("ssl", 5 * S), "emo": ("emotion", 3 * S)})
+    assert engine.next_deadline_ns() == 3 * S  # ssl covered before the restart
+    clock.now = 3 * S
+    [fused] = engine.on_timer()
+    assert fused.id == 7 and fused.json["missing_components"] == ["emo"]
+    assert [r["id"] for r in fused.json["results"]["ssl"]] == [2]
+
+
+def test_a_component_that_ended_the_stream_is_not_waited_for_until_it_sends_again():
+    engine, _ = engine_with(("ssl", "ssl"), ("emo", "emotion"))
+    engine.on_result(result(1, "emo", "emotion", 0, 3 * S, nothing={"reason": "silence"}), S)
+    assert engine.on_result(result(2, "asr", "speech", 0, S), S) == []  # waits for ssl
+    [fused] = engine.on_end_of_stream("s", "ssl")
+    assert fused.json["completion"] == "complete" and fused.json["missing"] == []
+    [fused] = engine.on_result(result(3, "asr", "speech", S, 2 * S), 2 * S)  # not waited for
+    assert fused.json["completion"] == "complete"
+    engine.on_result(result(4, "ssl", "ssl", 0, S // 2, nothing={"reason": "none"}), 2 * S)
+    assert engine.on_result(result(5, "asr", "speech", 2 * S, 3 * S), 3 * S) == []  # again
+
+
+def test_late_results_within_the_revision_interval_make_one_revision():
+    # issue 13: 1,000 late results made 1,000 revisions (and 400 MB of database)
+    engine, clock = engine_with(("ssl", "ssl"), revision_interval_s=0.5)
+    clock.now = S
+    engine.on_end_of_stream("s", "ssl")
+    [first] = engine.on_result(result(1, "asr", "speech", 0, S), S)  # nothing to wait for
+    assert first.revision == 1
+    late = [engine.on_result(result(10 + i, "ssl2", "ssl", 0, S, ssl={"directions": [direction(90)]}),
+                             S + (1 + i) * MS) for i in range(1000)]
+    assert not any(late) and engine.next_deadline_ns() == S + 500 * MS
+    assert engine.on_timer(S + 499 * MS) == []
+    [revised] = engine.on_timer(S + 500 * MS)
+    assert revised.revision == 2 and len(revised.json["results"]["ssl"]) == 1000
+    assert engine.next_deadline_ns() is None
+    # a late result after the interval revises at once
+    clock.now = S + 2 * S
+    [third] = engine.on_result(result(5000, "ssl2", "ssl", 0, S, ssl={"directions": [direction(80)]}), 3 * S)
+    assert third.revision == 3
+
+
+def test_latencies_are_learnt_from_real_time_streams_only():
+    """A --fast replay's capture times run ahead of the clock: its (negative) latencies must not set a
+    later real-time run's timeouts; nor may a result from a clock that runs ahead."""
+    engine, _ = engine_with(("asr", "speech"))
+    engine.on_result(result(1, "asr", "nothing", 0, S), received_ns=S + 200 * MS)
+    assert engine.latencies.by_component["asr"].mean_ns == 200 * MS
+    engine.mark_replayed("s")
+    engine.on_result(result(2, "asr", "nothing", 100 * S, 101 * S), received_ns=2 * S)  # 99 s "early"
+    engine.on_result(result(3, "asr", "nothing", 102 * S, 103 * S), received_ns=2 * S)
+    assert engine.latencies.by_component["asr"].count == 1
+    engine.replayed.clear()
+    engine.on_result(result(4, "asr", "nothing", 5 * S, 6 * S), received_ns=4 * S)  # a clock 2 s ahead
+    assert engine.latencies.by_component["asr"].count == 1 and engine.latencies.by_component["asr"].mean_ns == 200 * MS
+
+
+def test_a_capture_clock_3_s_behind_moves_deadlines_and_latencies_onto_ours():
+    """Stream s is captured on a host whose clock is 3 s behind ours: its window ends 3 s later on
+    our clock than its stamps say, so deadlines and latencies are measured from there."""
+    ids = itertools.count(1)
+    live = [SimpleNamespace(name="ssl", designation="ssl", stream_id="s")]
+    engine = FusionEngine([FusionSettings(name="u", anchor="speech", fuse=["ssl"])], allocate_id=lambda: next(ids),
+                          live_components=lambda: live, clock_ns=Clock(),
+                          capture_offset_ns=lambda stream_id: 3 * S if stream_id == "s" else 0)
+    engine.latencies.add("ssl", 100 * MS)  # timeout 150 ms
+    assert engine.on_result(result(1, "asr", "speech", 0, S), received_ns=4 * S + 50 * MS) == []
+    assert engine.next_deadline_ns() == 4 * S + 150 * MS  # not 1.15 s: long gone on our clock at arrival
+    assert engine.latencies.by_component["asr"].mean_ns == 50 * MS  # not 3.05 s
+
+
+def test_a_second_stream_waits_for_an_analyser_that_has_not_covered_it_yet():
+    """Issue 16: a second stream's first fused result was `complete` with emotion null, because an
+    analyser registered with another stream_id that had sent nothing for this one was assumed done."""
+    engine, clock = engine_with(("emo", "emotion"))
+    # emo registered with stream_id "s" and never sent anything for robot2: waited for
+    assert engine.on_result(result(1, "asr", "speech", 0, S, stream="robot2"), S) == []
+    emotion = result(2, "emo", "emotion", 0, S, stream="robot2", emotion={"label": "angry", "probability": 0.9})
+    [fused] = engine.on_result(emotion, S + 10 * MS)
+    assert fused.json["completion"] == "complete" and fused.json["results"]["emotion"][0]["id"] == 2
+    clock.now = 10 * S
+    # and one that never answers is reported missing, not assumed done
+    assert engine.on_result(result(3, "asr", "speech", 2 * S, 3 * S, stream="robot3"), 3 * S) == []
+    [timed_out] = engine.on_timer(10 * S)
+    assert timed_out.json["completion"] == "timed_out" and timed_out.json["missing_components"] == ["emo"]
+
+
+def test_segments_a_dead_recogniser_left_unanswered_are_fused_without_it_once():
+    engine, clock = engine_with(("emo", "emotion"))
+    vad = [result(10 + i, "vad", "vad", i * 3 * S, i * 3 * S + 2 * S, vad={"probability": 1.0}) for i in range(4)]
+    engine.on_result(vad[0], 2 * S)
+    assert engine.on_result(result(1, "asr", "speech", 0, 2 * S, speech={"hypotheses": [{"text": "hi"}]}),
+                            2 * S) == []
+    assert engine.open  # waiting for emo
+    engine.on_result(result(2, "emo", "emotion", 0, 2 * S, emotion={"label": "angry"}), 2 * S)
+    assert not engine.open
+    for segment in vad[1:3]:  # the recogniser takes them, then dies before answering
+        engine.on_result(segment, segment.end_ns)
+    engine.on_result(result(3, "emo", "emotion", 3 * S, 5 * S, emotion={"label": "sad"}), 5 * S)
+    assert [s.id for s in unanswered_segments(engine, "s", "asr")] == [11, 12]
+    assert unanswered_segments(engine, "s", "emo") == [vad[2]]  # (emo answered the first two)
+    clock.now = 9 * S
+    [fused] = fuse_orphans(engine, "s", "asr", "speech", 9 * S)  # segment 11: emo has covered it
+    assert fused.json["anchor"]["type"] == "vad" and fused.json["anchor"]["id"] == 11
+    assert fused.json["completion"] == "components_gone"
+    assert fused.json["missing"] == [{"component": "asr", "type": "speech", "reason": "gone"}]
+    assert fused.json["aggregates"]["emotion"]["label"] == "sad"
+    assert [f.anchor.id for f in engine.open.values()] == [12]  # waits for emo as any fusion does
+    assert fuse_orphans(engine, "s", "asr", "speech", 9 * S) == []  # once: 11 published, 12 open
+    [later] = engine.on_result(result(4, "emo", "emotion", 6 * S, 8 * S, emotion={"label": "sad"}), 10 * S)
+    assert later.json["anchor"]["id"] == 12 and later.json["completion"] == "components_gone"
+    assert fuse_orphans(engine, "s", "ssl", "ssl", 9 * S) == []  # no fusion is anchored on ssl
+
+
+def test_an_utterance_going_on_when_its_recogniser_died_is_fused_once_its_new_instance_says_nothing():
+    engine, _ = engine_with()
+    orphans = Orphans(engine)
+    engine.on_result(result(10, "vad", "vad", 0, 2 * S, vad={"probability": 1.0}), 2 * S)
+    engine.on_result(result(1, "asr", "speech", 0, 2 * S, speech={"hypotheses": [{"text": "hi"}]}), 2 * S)
+    assert orphans.on_death("s", "asr", "speech", 5 * S, 5 * S) == []  # nothing unanswered yet
+    # the utterance [4 s, 7 s] was going on: its segment ends, its new instance joined it late
+    engine.on_result(result(11, "vad", "vad", 4 * S, 7 * S, vad={"probability": 1.0}), 7 * S)
+    late = result(2, "asr", "speech", 4 * S, 7 * S, nothing={"reason": "joined the utterance 1000 ms after its start"})
+    assert engine.on_result(late, 7 * S) == []  # a `nothing` opens no fusion of its own
+    [fused] = orphans.on_result(late, 7 * S)
+    assert fused.json["anchor"]["id"] == 11 and fused.json["completion"] == "components_gone"
+    assert fused.json["missing"] == [{"component": "asr", "type": "speech", "reason": "gone"}]
+    # the next utterance, begun after the death, ends the watch: a later `nothing` is only that
+    nxt = result(3, "asr", "speech", 9 * S, 10 * S, speech={"hypotheses": [{"text": "go"}]})
+    assert orphans.on_result(nxt, 10 * S) == [] and not orphans.watched
+    assert orphans.on_result(result(4, "asr", "speech", 4 * S, 7 * S, nothing={"reason": "x"}), 11 * S) == []

@@ -1,0 +1,223 @@
+"""Enrolled voices: the ``voices`` table and the ``/voices`` routes.
+
+A voice is a name and one or more speaker embeddings (256 float32, unit length, from
+``esiaf_services/voiceid/encoder.py``). They live in the orchestrator's SQLite file, in a table of
+their own (``CREATE TABLE IF NOT EXISTS``, on a connection of their own), and every voiceid
+instance polls ``GET /voices?embeddings=1`` with the ETag it last saw.
+
+``POST /voices/{name}`` adds embeddings from a WAV of any rate (multipart field ``audio``,
+embedded here with the numpy encoder: enrolment then works whether or not a voiceid runs), from
+a past utterance (JSON ``{"stream", "start_ns", "end_ns"}``: the embeddings of the stored
+``voice_id`` results overlapping that span), or from an anonymous voice (JSON
+``{"stream", "anonymous": "voice-2"}``: every stored result of that stream with that label).
+"""
+from __future__ import annotations
+
+import asyncio
+import io
+import json
+import sqlite3
+import threading
+import time
+from math import gcd
+
+import numpy as np
+from fastapi import APIRouter, Depends, HTTPException, Request, Response
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, TypeAdapter, ValidationError
+
+from .api.deps import get_core
+from .codec import MAX_TIME_NS
+from .core import Orchestrator
+from .models import Problem
+
+router = APIRouter(tags=["voices"])
+EMBEDDING_SIZE = 256
+ENCODER_RATE_HZ = 16000
+MIN_ENROL_SPEECH_S = 1.0
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS voices (
+    id INTEGER PRIMARY KEY,
+    name TEXT NOT NULL,
+    embedding BLOB NOT NULL,
+    source TEXT NOT NULL,
+    added_ns INTEGER NOT NULL
+);
+CREATE INDEX IF NOT EXISTS voices_name ON voices (name);
+"""
+
+
+class VoiceTable:
+    def __init__(self, path: str) -> None:
+        self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False, timeout=5.0)
+        self._db.executescript(SCHEMA)
+        self._lock = threading.Lock()
+
+    def add(self, name: str, embeddings: list[np.ndarray], source: str) -> None:
+        with self._lock:
+            self._db.executemany("INSERT INTO voices (name, embedding, source, added_ns) VALUES (?, ?, ?, ?)",
+                                 [(name, np.asarray(e, "<f4").tobytes(), source, time.time_ns()) for e in embeddings])
+
+    def delete(self, name: str) -> int:
+        with self._lock:
+            return self._db.execute("DELETE FROM voices WHERE name = ?", (name,)).rowcount
+
+    def etag(self) -> str:
+        with self._lock:
+            count, last = self._db.execute("SELECT COUNT(*), COALESCE(MAX(id), 0) FROM voices").fetchone()
+        return f'"{count}-{last}"'
+
+    def listing(self, embeddings: bool) -> list[dict]:
+        voices: dict[str, dict] = {}
+        with self._lock:  # the sync routes run in a thread pool: one statement at a time
+            rows = self._db.execute("SELECT name, embedding, source FROM voices ORDER BY id").fetchall()
+        for name, blob, source in rows:
+            voice = voices.setdefault(name, {"name": name, "count": 0, "sources": []})
+            voice["count"] += 1
+            if source not in voice["sources"]:
+                voice["sources"].append(source)
+            if embeddings:
+                voice.setdefault("embeddings", []).append(np.frombuffer(blob, "<f4").tolist())
+        return list(voices.values())
+
+    def close(self) -> None:
+        self._db.close()
+
+
+class SpanEnrolment(BaseModel):
+    """Every stored voice_id embedding of a stream whose span overlaps [start_ns, end_ns]."""
+    model_config = ConfigDict(extra="forbid")
+    stream: str
+    start_ns: StrictInt = Field(ge=0, le=MAX_TIME_NS)
+    end_ns: StrictInt = Field(ge=0, le=MAX_TIME_NS)
+
+
+class AnonymousEnrolment(BaseModel):
+    """Every stored voice_id embedding of a stream labelled with an anonymous voice."""
+    model_config = ConfigDict(extra="forbid")
+    stream: str
+    anonymous: str = Field(examples=["voice-2"])
+
+
+ENROLMENT = TypeAdapter(SpanEnrolment | AnonymousEnrolment)
+ENROLMENT_BODY = {"required": True, "content": {
+    "application/json": {"schema": {"oneOf": [SpanEnrolment.model_json_schema(),
+                                              AnonymousEnrolment.model_json_schema()]}},
+    "multipart/form-data": {"schema": {"type": "object", "required": ["audio"], "properties": {
+        "audio": {"type": "string", "format": "binary", "description": "a WAV of any rate"}}}}}}
+
+
+def get_voices(request: Request, core: Orchestrator = Depends(get_core)) -> VoiceTable:
+    table = getattr(request.app.state, "voices", None)
+    if table is None:
+        table = request.app.state.voices = VoiceTable(str(core.store.path))
+    return table
+
+
+def check_name(name: str) -> str:
+    if not name.strip() or "/" in name or name != name.strip():
+        raise HTTPException(422, f"bad voice name {name!r}: it must be non-empty, without '/' or surrounding spaces")
+    if name.startswith("voice-"):
+        raise HTTPException(422, f"bad voice name {name!r}: voice-N names are for anonymous voices")
+    return name
+
+
+@router.get("/voices", summary="enrolled voices (with ?embeddings=1, their embeddings; ETag for polling)",
+            responses={304: {"description": "with ?embeddings=1: If-None-Match is the current ETag"}})
+def list_voices(request: Request, embeddings: bool = False, table: VoiceTable = Depends(get_voices)) -> Response:
+    etag = table.etag()
+    if embeddings and request.headers.get("if-none-match") == etag:
+        return Response(status_code=304, headers={"ETag": etag})
+    body = json.dumps({"voices": table.listing(embeddings)})
+    return Response(body, media_type="application/json", headers={"ETag": etag})
+
+
+@router.delete("/voices/{name:path}", summary="forget a voice and every embedding of theirs",
+               responses={404: {"model": Problem, "description": "no voice of that name"}})
+def delete_voice(name: str, table: VoiceTable = Depends(get_voices)) -> dict:
+    if not table.delete(name):
+        raise HTTPException(404, f"no voice named {name!r}")
+    return {"deleted": name}
+
+
+@router.post("/voices/{name:path}", summary="add to a voice: multipart WAV field 'audio', or JSON naming a "
+             "past utterance {stream, start_ns, end_ns} or an anonymous voice {stream, anonymous}",
+             openapi_extra={"requestBody": ENROLMENT_BODY},
+             responses={415: {"model": Problem, "description": "neither multipart nor JSON"}})
+async def enrol_voice(name: str, request: Request, core: Orchestrator = Depends(get_core),
+                      table: VoiceTable = Depends(get_voices)) -> dict:
+    check_name(name)
+    kind = request.headers.get("content-type", "")
+    if kind.startswith("multipart/form-data"):
+        form = await request.form()
+        upload = form.get("audio")
+        if upload is None or isinstance(upload, str):
+            raise HTTPException(422, "no audio: send the WAV file as multipart field 'audio'")
+        data = await upload.read()
+        embeddings = [await asyncio.to_thread(embed_wav, data)]
+        source = "wav"
+    elif kind.startswith("application/json"):
+        try:
+            body = ENROLMENT.validate_json(await request.body())
+        except ValidationError as exc:
+            raise HTTPException(422, "JSON enrolment needs {\"stream\", \"start_ns\", \"end_ns\"} (integers, "
+                                     "start_ns <= end_ns) or {\"stream\", \"anonymous\"}: "
+                                     + "; ".join(e["msg"] for e in exc.errors()[:3])) from None
+        embeddings, source = stored_embeddings(core, body)
+    else:
+        raise HTTPException(415, "no audio: send multipart field 'audio' (a WAV) or JSON {stream, start_ns, end_ns}")
+    table.add(name, embeddings, source)
+    return {"name": name, "added": len(embeddings), "source": source}
+
+
+def embed_wav(data: bytes) -> np.ndarray:
+    from scipy.io import wavfile
+    from scipy.signal import resample_poly
+
+    from esiaf_services.voiceid.encoder import shared_encoder
+    try:
+        rate_hz, samples = wavfile.read(io.BytesIO(data))
+    except (ValueError, EOFError) as exc:
+        raise HTTPException(422, f"audio is not a readable WAV file: {exc}") from None
+    if samples.dtype.kind in "iu":
+        info = np.iinfo(samples.dtype)
+        samples = (samples.astype(np.float64) - (info.max + info.min + 1) / 2) / (info.max + 1)
+    samples = samples.astype(np.float32)
+    if samples.ndim == 2:
+        samples = samples.mean(axis=1)
+    if rate_hz != ENCODER_RATE_HZ:  # any rate is converted, not refused
+        divisor = gcd(int(rate_hz), ENCODER_RATE_HZ)
+        samples = resample_poly(samples, ENCODER_RATE_HZ // divisor, int(rate_hz) // divisor).astype(np.float32)
+    if samples.size < MIN_ENROL_SPEECH_S * ENCODER_RATE_HZ or float(np.max(np.abs(samples))) < 1e-3:
+        raise HTTPException(422, f"audio has no speech to enrol: {samples.size / ENCODER_RATE_HZ:.2f} s, "
+                                 f"at least {MIN_ENROL_SPEECH_S:.0f} s of speech needed")
+    return shared_encoder().embed(samples)
+
+
+def stored_embeddings(core: Orchestrator, body: SpanEnrolment | AnonymousEnrolment) -> tuple[list[np.ndarray], str]:
+    stream = body.stream
+    start_ns: int | None
+    end_ns: int | None
+    if isinstance(body, SpanEnrolment):
+        anonymous = None
+        start_ns, end_ns = body.start_ns, body.end_ns
+        if start_ns > end_ns:
+            raise HTTPException(422, "JSON enrolment needs integer \"start_ns\" <= \"end_ns\" (a capture span)")
+        what = f"span {start_ns}..{end_ns} of stream {stream!r}"
+    else:
+        anonymous = body.anonymous
+        start_ns = end_ns = None
+        what = f"anonymous voice {anonymous!r} of stream {stream!r}"
+    embeddings, after_id = [], None
+    while True:
+        page = core.store.query_results(type_name="voice_id", stream=stream, start_ns=start_ns, end_ns=end_ns,
+                                        after_id=after_id, limit=500)
+        for text in page.items:
+            label = json.loads(text).get("voice_id") or {}
+            if label.get("embedding") and (anonymous is None or label.get("label") == anonymous):
+                embeddings.append(np.asarray(label["embedding"], np.float32))
+        if len(page.items) < 500:
+            break
+        after_id = page.next_after_id
+    if not embeddings:
+        raise HTTPException(422, f"no speech to enrol: no voice_id result with an embedding in {what}")
+    return embeddings, "anonymous" if anonymous else "span"

@@ -1,0 +1,4 @@
+from esiaf import main
+from esiaf_services.ssl.service import Ssl
+
+raise SystemExit(main(Ssl))

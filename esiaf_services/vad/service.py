@@ -1,0 +1,128 @@
+"""VAD service: forwards only speech audio and publishes a VAD result per segment.
+
+Two backends:
+
+- ``silero`` (the default): Silero VAD's speech probability per 32 ms window (ONNX, from the
+  silero-vad wheel, on onnxruntime) segmented with hysteresis, minimum speech and silence
+  durations, a pre-roll, and a maximum length cut at the least speech-like point
+  (:class:`~esiaf_services.vad.segmenter.ProbabilitySegmenter`). It hears speech, not loudness, so
+  babble and clatter 5-15 dB below the talker do not keep a segment open.
+- ``energy``: ESIAF's original double-threshold segmenter on the chunks' peak level.
+
+The VAD result of a segment carries its mean speech probability (1 with ``energy``).
+"""
+from __future__ import annotations
+
+import logging
+from typing import Any, ClassVar
+
+from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
+from esiaf_services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
+from esiaf_services.vad.silero import RATES_HZ, SileroError, SileroModel
+
+log = logging.getLogger(__name__)
+
+
+class VadSettings(ComponentSettings):
+    input_topic: str = "grabber/audio"
+    output_topic: str = "vad/speech"
+    sample_rate_hz: int = 16000
+    sample_type: str = "int16"
+    channels: int = 1
+    backend: str = "silero"  # silero | energy
+    max_ms: float = 8000.0
+    pre_roll_ms: float = 250.0
+    # silero
+    model_path: str = ""  # "" = silero_vad.onnx from the silero-vad wheel
+    threshold: float = 0.5
+    threshold_off: float = 0.35
+    min_speech_ms: float = 250.0
+    min_silence_ms: float = 400.0
+    cut_search_ms: float = 2000.0
+    onset_pad_ms: float = 100.0
+    # energy
+    db_min: float = 65.0  # Pepper: 70
+    db_keep_alive: float = 60.0  # Pepper: 65
+    keep_alive_ms: float = 400.0
+
+
+class Vad(Component):
+    """Voice activity detector: Silero VAD, or ESIAF's original double-threshold segmenter."""
+
+    service = "vad"
+    designation = "vad"
+    Settings = VadSettings
+    settings: VadSettings  # an instance of Settings: its fields, for type checkers
+    options: ClassVar[dict[str, str]] = {
+        "backend": "silero (default: a neural VAD, robust to noise) or energy (the original)"}
+
+    def __init__(self, settings: VadSettings):
+        super().__init__(settings)
+        if settings.backend not in ("silero", "energy"):
+            raise SetupError(f"unknown VAD backend {settings.backend!r}; known: silero, energy")
+        if settings.backend == "silero" and settings.sample_rate_hz not in RATES_HZ:
+            raise SetupError(f"the silero backend takes 8000 or 16000 Hz, not sample_rate_hz "
+                             f"{settings.sample_rate_hz}")
+        try:
+            fmt = AudioFormat(settings.sample_rate_hz, settings.sample_type, channels=settings.channels)
+            if settings.backend == "energy":
+                self.params: Any = SegmenterParams(settings.db_min, settings.db_keep_alive, settings.keep_alive_ms,
+                                                   settings.max_ms, settings.pre_roll_ms)
+            else:
+                self.params = ProbabilityParams(settings.threshold, settings.threshold_off, settings.min_speech_ms,
+                                                settings.min_silence_ms, settings.max_ms, settings.pre_roll_ms,
+                                                settings.cut_search_ms, settings.onset_pad_ms)
+        except ValueError as exc:
+            raise SetupError(f"bad VAD settings: {exc}") from None
+        self.add_input(settings.input_topic, fmt)
+        self.add_output(settings.output_topic, fmt)
+        self.model: SileroModel | None = None
+        self.segmenters: dict[str, Any] = {}  # per stream: (segmenter, Silero state or None)
+        self.segments = 0
+        self._ended_on_chunk: set[str] = set()  # streams whose end was forwarded with their last segment
+
+    def setup(self) -> None:
+        if self.settings.backend == "silero":
+            try:
+                self.model = SileroModel(self.settings.model_path)
+            except SileroError as exc:
+                raise SetupError(str(exc)) from None
+            log.info("silero VAD model=%s threshold=%g/%g", self.model.path, self.settings.threshold,
+                     self.settings.threshold_off)
+        self.info["backend"] = self.settings.backend
+
+    def _stream(self, stream_id: str):
+        if stream_id not in self.segmenters:
+            if self.model is None:
+                self.segmenters[stream_id] = (Segmenter(self.params), None)
+            else:
+                self.segmenters[stream_id] = (ProbabilitySegmenter(self.params),
+                                              self.model.stream(self.settings.sample_rate_hz))
+        return self.segmenters[stream_id]
+
+    def on_audio(self, audio: Audio) -> None:
+        segmenter, silero = self._stream(audio.stream_id)
+        if silero is not None:
+            score = silero.chunk_probability(audio.as_float()[:, 0]) if audio.frames else 0.0
+        else:
+            score = level_db(audio.peak()) if audio.frames else float("-inf")
+        for forward in segmenter.process(audio, audio.start_ns, audio.end_ns, score,
+                                         force_end=audio.end_of_stream):
+            chunk = forward.item
+            end_of_stream = forward.ended and chunk.end_of_stream
+            self.forward(self.settings.output_topic, chunk, segmentation_ended=forward.ended,
+                         segment=forward.segment, end_of_stream=end_of_stream)
+            if end_of_stream:
+                self._ended_on_chunk.add(chunk.stream_id)
+            if forward.ended:
+                self.segments += 1
+                self.info["segments"] = self.segments
+                self.emit("vad", forward.segment, stream_id=chunk.stream_id, vad={"probability": forward.probability})
+                log.info("segment stream_id=%s start_ns=%d end_ns=%d", chunk.stream_id, *forward.segment)
+
+    def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
+        self.segmenters.pop(stream_id, None)
+        if stream_id in self._ended_on_chunk:
+            self._ended_on_chunk.discard(stream_id)
+        else:  # no segment was open: tell consumers with an empty chunk
+            super().on_end_of_stream(stream_id, audio)

@@ -1,0 +1,4 @@
+from esiaf import main
+from esiaf_services.voiceid.service import VoiceId
+
+raise SystemExit(main(VoiceId))

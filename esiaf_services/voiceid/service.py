@@ -1,0 +1,106 @@
+"""Voiceid service: who is speaking, for each VAD segment.
+
+It is the emotion service's per-utterance component (``esiaf_services/emotion/service.py``) with a
+speaker encoder (``encoder.py``) instead of a classifier. Each segment's embedding is scored
+against the voices enrolled on the orchestrator (``scoring.py``); an unknown voice gets a
+per-stream anonymous id. The result is a ``voice_id`` label result: the top label (a name, or
+``voice-N``), its probability, every enrolled voice's score, and the embedding itself so the
+orchestrator can enrol a voice from a past segment. The enrolled voices are polled from the
+orchestrator's ``GET /voices?embeddings=1`` every ``voices_poll_s`` (ETag: unchanged lists
+cost one 304), so enrolments reach a running voiceid within that time.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+from typing import ClassVar
+
+import httpx
+import numpy as np
+
+from esiaf import SetupError
+from esiaf.api_client import OrchestratorHTTP
+from esiaf_services.emotion.service import UtteranceClassifier, UtteranceSettings
+from esiaf_services.voiceid.encoder import EncoderError, VoiceEncoder
+from esiaf_services.voiceid.scoring import AnonymousVoices, VoiceBook, probability
+
+log = logging.getLogger(__name__)
+
+
+class VoiceIdSettings(UtteranceSettings):
+    model: str = "resemblyzer"  # the resemblyzer wheel's GE2E encoder (the only one)
+    min_speech_ms: float = 1000.0  # shorter segments get "nothing": too short to tell voices apart
+    threshold: float = 0.78  # cosine a voice needs (near the EER point of EmoDB's neutral speech, bench/voiceid.py)
+    anonymous_threshold: float = 0.75  # cosine to an anonymous voice's mean to be that voice again
+    top_k: int = 3  # a voice's score: mean of its top_k best enrolled embeddings
+    anonymous_limit: int = 16  # anonymous voices remembered per stream
+    voices_poll_s: float = 1.0  # how often the enrolled voices are fetched from the orchestrator
+
+
+class VoiceId(UtteranceClassifier):
+    """Speaker identity of each speech segment: an enrolled name, ``voice-N``, or nothing."""
+
+    service = "voiceid"
+    kind = "voice_id"
+    Settings = VoiceIdSettings
+    settings: VoiceIdSettings  # an instance of Settings: its fields, for type checkers
+    options: ClassVar[dict[str, str]] = {"threshold": "cosine score an enrolled voice needs",
+                                         "min_speech_ms": "shortest segment judged"}
+
+    def __init__(self, settings: VoiceIdSettings):
+        super().__init__(settings)
+        self.encoder: VoiceEncoder | None = None
+        self.book = VoiceBook(top_k=settings.top_k)
+        self.anonymous: dict[str, AnonymousVoices] = {}
+        self._etag = ""
+        self._poller: threading.Thread | None = None
+        self._halt = threading.Event()
+
+    def setup(self) -> None:
+        try:
+            self.encoder = VoiceEncoder()
+        except EncoderError as exc:
+            raise SetupError(f"voiceid encoder: {exc}") from None
+        self.info.update(model="resemblyzer", threshold=self.settings.threshold)
+        self._poller = threading.Thread(target=self._poll_voices, name="voiceid-voices", daemon=True)
+        self._poller.start()
+
+    def teardown(self) -> None:
+        self._halt.set()
+        super().teardown()
+
+    def _poll_voices(self) -> None:
+        with OrchestratorHTTP(self.settings.orchestrator_url) as client:
+            while not self._halt.is_set():
+                try:
+                    self.refresh_voices(client)
+                except (httpx.HTTPError, ValueError, KeyError) as exc:
+                    log.warning("voices not fetched from %s: %s", self.settings.orchestrator_url, exc)
+                self._halt.wait(self.settings.voices_poll_s)
+
+    def refresh_voices(self, client: OrchestratorHTTP) -> None:
+        reply = client.get("/voices", params={"embeddings": 1}, headers={"If-None-Match": self._etag})
+        if reply.status_code == 304:
+            return
+        reply.raise_for_status()
+        voices = {v["name"]: np.asarray(v["embeddings"], np.float32) for v in reply.json()["voices"]
+                  if v["embeddings"]}
+        self.book = VoiceBook(voices, top_k=self.settings.top_k)  # replaced whole: the data thread reads it
+        self._etag = reply.headers.get("ETag", "")
+        self.info["voices"] = sorted(voices)
+        log.info("voices=%s version=%s", ",".join(sorted(voices)) or "-", self._etag)
+
+    def analyse(self, samples: np.ndarray, rate: int) -> dict:
+        stream_id = self.utterance_stream_id
+        assert self.encoder is not None  # setup() loads it
+        embedding = self.encoder.embed(samples)
+        s = self.settings
+        match = self.book.identify(embedding, s.threshold)
+        label, p = match.label, match.probability
+        if not label:
+            voices = self.anonymous.setdefault(stream_id, AnonymousVoices(s.anonymous_threshold, s.anonymous_limit))
+            label, similarity = voices.assign(embedding)
+            p = probability(similarity, s.anonymous_threshold)
+        log.info("segment stream_id=%s voice=%s p=%.2f score=%.2f", stream_id, label, p, match.score)
+        return {"label": label, "probability": p, "class_probabilities": match.scores,
+                "embedding": embedding.tolist()}

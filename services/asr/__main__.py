@@ -1,4 +1,0 @@
-from esiaf import main
-from services.asr.service import Asr
-
-raise SystemExit(main(Asr))

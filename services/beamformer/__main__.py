@@ -1,4 +1,0 @@
-from esiaf import main
-from services.beamformer.service import Beamformer
-
-raise SystemExit(main(Beamformer))

@@ -1,4 +1,0 @@
-from esiaf import main
-from services.emotion.service import Emotion
-
-raise SystemExit(main(Emotion))

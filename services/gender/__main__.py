@@ -1,4 +1,0 @@
-from esiaf import main
-from services.gender.service import Gender
-
-raise SystemExit(main(Gender))

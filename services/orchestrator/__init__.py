@@ -1,8 +1,0 @@
-"""ESIAF orchestrator: registration, heartbeats, results store, fusion, fused results API.
-
-Run it with ``python -m services.orchestrator``; build the app with :func:`create_app`.
-"""
-from .app import create_app
-from .settings import OrchestratorSettings
-
-__all__ = ["OrchestratorSettings", "create_app"]

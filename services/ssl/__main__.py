@@ -1,4 +1,0 @@
-from esiaf import main
-from services.ssl.service import Ssl
-
-raise SystemExit(main(Ssl))

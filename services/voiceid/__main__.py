@@ -1,4 +1,0 @@
-from esiaf import main
-from services.voiceid.service import VoiceId
-
-raise SystemExit(main(VoiceId))
