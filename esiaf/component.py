@@ -153,7 +153,8 @@ class Component:
         payload = audio if isinstance(audio, (bytes, bytearray, memoryview)) else encode(audio, link.declared)
         stream_id = stream_id or self.settings.stream_id
         sequence = 0
-        for out in link.messages(payload, start_ns, end_ns, stream_id, last=segmentation_ended or end_of_stream):
+        for out in link.messages(payload, start_ns, end_ns, stream_id, last=segmentation_ended or end_of_stream,
+                                 end_of_stream=end_of_stream):
             msg = pb.AugmentedAudio(stream_id=out.stream_id, topic=topic, format=out.format.to_proto(),
                                     start_ns=out.chunk.start_ns, end_ns=out.chunk.end_ns, payload=out.chunk.payload)
             if out.main:

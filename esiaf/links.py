@@ -3,8 +3,8 @@
 The orchestrator assigns each topic an internal (wire) format; each component
 declared an external format per topic (the one its code works in).
 
-- An :class:`OutputLink` (one per output topic) converts what the component
-  publishes to the assigned format. A new assignment takes effect at the next
+- An :class:`OutputLink` (one per output topic, with a resampler per stream)
+  converts what the component publishes to the assigned format. A new assignment takes effect at the next
   published chunk, a message boundary: the old resampler's held-back tail is
   sent first as a message of its own, in the old format, so nothing is dropped
   or duplicated and sequence numbers stay contiguous (they are the
@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections import OrderedDict
 from dataclasses import dataclass
 
 from esiaf.audio import Audio
@@ -52,42 +53,55 @@ class Outgoing:
 
 
 class OutputLink:
+    """Converts one output topic's chunks to its assigned format, with a resampler per stream: a
+    producer publishing several streams on one topic (a grabber with several inputs, a replica)
+    interleaves their chunks, and a stream's resampler must never see another's samples."""
+
+    MAX_STREAMS = 1024  # resamplers kept; past it the least recently used gives out its tail and goes
+
     def __init__(self, topic: str, declared: AudioFormat):
         self.topic = topic
         self.declared = declared
         self.assigned = declared  # what the orchestrator wants on the wire; applied at the next chunk
         self.wire = declared  # what is sent now
-        self._converter: StreamConverter | None = None
-        self._stream_id: str | None = None
+        self._converters: OrderedDict[str, StreamConverter] = OrderedDict()  # per stream, oldest use first
 
     @property
     def converts(self) -> bool:
         return self.wire != self.declared
 
     def messages(self, payload: bytes, start_ns: int, end_ns: int, stream_id: str,
-                 last: bool) -> list[Outgoing]:
-        """What to send for one published chunk (payload in the declared format)."""
+                 last: bool, end_of_stream: bool = False) -> list[Outgoing]:
+        """What to send for one published chunk (payload in the declared format): the chunk, after
+        any resampler tail that must go first (a format switch, or a gap in this stream)."""
         out: list[Outgoing] = []
         if self.assigned != self.wire:
-            out += self._flush()
+            for stream in list(self._converters):
+                out += self._flush(stream)
             log.info("format switch topic=%s from=%s to=%s", self.topic, self.wire, self.assigned)
             self.wire = self.assigned
-            self._converter = StreamConverter(self.declared, self.wire) if self.converts else None
-        elif self._converter is not None and payload and (
-                stream_id != self._stream_id or not self._converter.continues(start_ns)):
-            out += self._flush()
-        self._stream_id = stream_id
-        if self._converter is None:
-            chunk = Converted(bytes(payload), start_ns, end_ns)
-        else:
-            chunk = self._converter.convert(bytes(payload), start_ns, end_ns, last=last)
+        if not self.converts:
+            return [*out, Outgoing(self.wire, Converted(bytes(payload), start_ns, end_ns), stream_id, main=True)]
+        converter = self._converters.get(stream_id)
+        if converter is None:
+            while len(self._converters) >= self.MAX_STREAMS:
+                out += self._flush(next(iter(self._converters)))
+            converter = self._converters[stream_id] = StreamConverter(self.declared, self.wire)
+        elif payload and not converter.continues(start_ns):
+            out += self._flush(stream_id, keep=True)
+        self._converters.move_to_end(stream_id)
+        chunk = converter.convert(bytes(payload), start_ns, end_ns, last=last)
+        if end_of_stream:
+            del self._converters[stream_id]
         return [*out, Outgoing(self.wire, chunk, stream_id, main=True)]
 
-    def _flush(self) -> list[Outgoing]:
-        tail = self._converter.flush() if self._converter is not None else None
+    def _flush(self, stream_id: str, keep: bool = False) -> list[Outgoing]:
+        """A stream's resampler tail, as a message of its own; the resampler goes unless ``keep``."""
+        converter = self._converters[stream_id] if keep else self._converters.pop(stream_id)
+        tail = converter.flush()
         if tail is None or not tail.payload:
             return []
-        return [Outgoing(self.wire, tail, self._stream_id or "", main=False)]
+        return [Outgoing(self.wire, tail, stream_id, main=False)]
 
 
 class InputLink:

@@ -149,3 +149,34 @@ def test_a_switch_at_a_message_boundary_loses_and_duplicates_nothing():
     assert np.median(error) < 1e-3
     # a switch costs a short transient (the flushed resampler saw silence after its last chunk)
     assert np.mean(error > 0.05) < 0.01
+
+
+def test_two_streams_interleaved_on_one_topic_each_keep_their_own_resampler():
+    """A producer publishes two streams on one topic (a grabber with two inputs), chunk by chunk in
+    turn, declared 48 kHz and assigned 16 kHz. Each stream comes out as if it were alone: one message
+    per chunk (no resampler tail flushed at every change of stream), contiguous spans, every frame,
+    and its own sine without the transient a restarted resampler leaves."""
+    fmt48, fmt16 = AudioFormat(48000, "int16"), AudioFormat(16000, "int16")
+    producer = OutputLink("t", fmt48)
+    producer.assigned = fmt16
+    tones = {"a": 440, "b": 660}
+    signals = {s: encode(sine(fmt48, 1.0, hz=hz), fmt48) for s, hz in tones.items()}
+    clocks = {s: SampleClock(start, 48000) for s, start in (("a", 0), ("b", 5_000_000_000))}
+    chunk_bytes = 960 * fmt48.bytes_per_frame
+    sent: dict[str, list] = {"a": [], "b": []}
+    for index in range(50):
+        for stream in ("a", "b"):
+            last = index == 49
+            payload = signals[stream][index * chunk_bytes:(index + 1) * chunk_bytes]
+            for out in producer.messages(payload, *clocks[stream].advance(960), stream, last=last, end_of_stream=last):
+                assert out.stream_id == stream and out.format == fmt16
+                sent[stream].append(out)
+    for stream, hz in tones.items():
+        messages = sent[stream]
+        assert len(messages) == 50 and all(m.main for m in messages)
+        spans = [(m.chunk.start_ns, m.chunk.end_ns) for m in messages if m.chunk.payload]
+        assert all(a[1] == b[0] for a, b in itertools.pairwise(spans))
+        got = np.concatenate([decode(m.chunk.payload, fmt16)[:, 0] for m in messages]) / 32768
+        assert len(got) == 16000
+        expected = 0.5 * np.sin(2 * np.pi * hz * np.arange(len(got)) / 16000)
+        assert np.max(np.abs(got - expected)[:-200]) < 0.02  # the very end: the stream's own last flush
