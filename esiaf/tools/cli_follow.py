@@ -41,8 +41,10 @@ def format_line(fused: dict[str, Any], origin_ns: int) -> str:
             what = f"out of set: '{best.get('raw_text', '')}' (match {best.get('match_score', 0):.2f})"
         else:
             what = f"'{best['text']}' (p={best['probability']:.2f})"
-    elif any(m.get("type") == "speech" for m in fused.get("missing", [])):  # its recogniser died with it
-        what = "(speech lost: its recogniser died)"
+    elif lost := next((m for m in fused.get("missing", []) if m.get("type") == "speech"), None):
+        # its recogniser died with it, or passed it by (orphans.py)
+        what = "(speech lost: its recogniser skipped it)" if lost.get("reason") == "skipped" \
+            else "(speech lost: its recogniser died)"
     else:
         payload = next((k for k in ("vad", "ssl", "emotion", "gender", "voice_id") if k in anchor), "")
         what = f"{payload} {json.dumps(anchor.get(payload, {}))}"

@@ -376,7 +376,7 @@ class FusionEngine:
                 self.changes.closed.append(fusion.id)
             memory.published.add(fusion)
             reasons = {reason for _, reason in fusion.missing.values()}
-            fusion.completion = (TIMED_OUT if TIMED_OUT in reasons else
+            fusion.completion = (TIMED_OUT if reasons & {TIMED_OUT, "skipped"} else
                                  COMPONENTS_GONE if reasons else COMPLETE)
         else:  # a revision: components that have covered the window since are not missing
             fusion.missing = {c: m for c, m in fusion.missing.items()

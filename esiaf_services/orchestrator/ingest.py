@@ -322,7 +322,8 @@ class Ingest:
         stored = StoredResult(id=result_id, component=result.component, type=kind,
                               stream_id=result.stream_id, start_ns=result.span.start_ns,
                               end_ns=result.span.end_ns, json=as_json)
-        outgoing = [self._store_fused(fused) for fused in [*self.engine.on_result(stored, received_ns),
+        outgoing = [self._store_fused(fused) for fused in [*self.orphans.before_result(stored, received_ns),
+                                                           *self.engine.on_result(stored, received_ns),
                                                            *self.orphans.on_result(stored, received_ns)]]
         self.counters["results"] += 1  # stored and fused: counted once nothing can undo it
         if self.metrics is not None:
@@ -368,8 +369,9 @@ class Ingest:
         fused: list[Outgoing] = []
         if component is not None:
             component.touch()
-            fused = [self._store_fused(f)
-                     for f in self.engine.on_end_of_stream(stream_id, component.name)]
+            fused = [self._store_fused(f) for f in [
+                *self.engine.on_end_of_stream(stream_id, component.name),
+                *self.orphans.on_end_of_stream(stream_id, component.name, component.designation, self._clock_ns())]]
             service: str | None = component.name
         else:  # said by an instance since declared dead, or one we never knew: its service, if known
             departed = self.registry.departed.get(component_id)

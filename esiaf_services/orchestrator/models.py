@@ -297,7 +297,7 @@ class GenericAggregate(BaseModel):
 class Missing(BaseModel):
     component: str
     type: str
-    reason: Literal["timed_out", "gone"]
+    reason: Literal["timed_out", "gone", "skipped"]
 
 
 class FusedResult(BaseModel):

@@ -1,4 +1,5 @@
-"""Utterances whose anchor will never come: a recogniser instance died with them in flight.
+"""Utterances whose anchor will never come: a recogniser instance died with them in flight, or
+passed them by.
 
 A fusion opens on its anchor (a ``speech`` result), so an utterance the dead instance had taken
 but not answered would otherwise vanish without a trace. When an instance of an anchor type dies,
@@ -11,6 +12,13 @@ An utterance still going on when the instance died reaches the instance the stre
 its middle, which says ``nothing`` about it ("joined late") rather than a wrong sentence. So the
 streams a dead instance served are watched (:class:`Orphans`): an anchor-type ``nothing`` there
 over speech that began before the death is fused the same way, anchored on its VAD segment.
+
+A live recogniser can pass an utterance by too: its input lost the audio (a subscriber past its
+high-water mark when it cannot keep up), or its process stalled. A recogniser answers the
+utterances of a stream in order, so when it answers one, each VAD segment between its previous
+answer and this one that it said nothing about was passed by; and when it ends the stream, so was
+each one after its last answer. Those are fused the same way, with reason ``skipped`` (completion
+``timed_out``: a live component did not answer), instead of vanishing.
 """
 from __future__ import annotations
 
@@ -45,10 +53,24 @@ def anchored(engine: FusionEngine, anchor_type: str, stream_id: str) -> list[Fus
     return [s for s in engine.fusions if s.anchor == anchor_type and s.stream in (None, stream_id)]
 
 
+def passed_by(engine: FusionEngine, stream_id: str, service: str, before_ns: int) -> list[StoredResult]:
+    """The segments of ``stream_id`` wholly between ``service``'s last answer there and
+    ``before_ns``: it has said nothing about them. None if it never answered on the stream (it may
+    have joined it late)."""
+    memory = engine.streams.get(stream_id)
+    segments = memory.index.get(SEGMENT_TYPE) if memory is not None else None
+    coverage = memory.coverage.get(service) if memory is not None else None
+    if segments is None or coverage is None or not coverage.ends:
+        return []
+    since_ns = coverage.ends[-1]
+    return [segment for segment in segments.overlapping(since_ns, before_ns)
+            if segment.start_ns >= since_ns and segment.end_ns <= before_ns]
+
+
 def fuse_without(engine: FusionEngine, segment: StoredResult, service: str, anchor_type: str,
-                 received_ns: int, why: str) -> list[FusedResult]:
-    """Fuses ``segment`` for every fusion anchored on ``anchor_type``, ``service`` missing, unless
-    a fusion of that name is open or published over it already."""
+                 received_ns: int, why: str, reason: str = "gone") -> list[FusedResult]:
+    """Fuses ``segment`` for every fusion anchored on ``anchor_type``, ``service`` missing for
+    ``reason``, unless a fusion of that name is open or published over it already."""
     memory = engine.streams.get(segment.stream_id)
     span = (segment.start_ns, segment.end_ns)
     taken = {f.settings.name for f in [*memory.published.overlapping(*span),
@@ -59,7 +81,7 @@ def fuse_without(engine: FusionEngine, segment: StoredResult, service: str, anch
         if settings.name not in taken:
             log.warning("event=utterance_orphaned stream_id=%s service=%s start_ns=%d end_ns=%d fusion=%s why=%s",
                         segment.stream_id, service, *span, settings.name, why)
-            fused.extend(engine.open_orphan(settings, segment, {service: (anchor_type, "gone")}, received_ns))
+            fused.extend(engine.open_orphan(settings, segment, {service: (anchor_type, reason)}, received_ns))
     return fused
 
 
@@ -73,9 +95,20 @@ def fuse_orphans(engine: FusionEngine, stream_id: str, service: str, anchor_type
             for f in fuse_without(engine, segment, service, anchor_type, received_ns, "unanswered")]
 
 
+def fuse_passed_by(engine: FusionEngine, stream_id: str, service: str, anchor_type: str, before_ns: int,
+                   received_ns: int) -> list[FusedResult]:
+    """Fuses each segment ``service`` (producing ``anchor_type``) passed by on ``stream_id`` before
+    ``before_ns`` (:func:`passed_by`), without it, reason ``skipped``."""
+    if not anchored(engine, anchor_type, stream_id):
+        return []
+    return [f for segment in passed_by(engine, stream_id, service, before_ns)
+            for f in fuse_without(engine, segment, service, anchor_type, received_ns, "skipped", reason="skipped")]
+
+
 class Orphans:
     """What dead instances left: fused at their death (:func:`fuse_orphans`), and the utterances that
-    were going on then, once their new instance has said ``nothing`` about them."""
+    were going on then, once their new instance has said ``nothing`` about them. What live ones
+    passed by: fused when they answer a later utterance or end the stream (:func:`fuse_passed_by`)."""
 
     MAX_WATCHED = 10_000  # (stream, service) pairs watched at once, the oldest dropped
 
@@ -93,6 +126,16 @@ class Orphans:
         while len(self.watched) > self.MAX_WATCHED:
             del self.watched[next(iter(self.watched))]
         return fuse_orphans(self.engine, stream_id, service, anchor_type, received_ns)
+
+    def before_result(self, result: StoredResult, received_ns: int) -> list[FusedResult]:
+        """``result`` is about to be fused: the segments its service passed by before it."""
+        return fuse_passed_by(self.engine, result.stream_id, result.component, result.type, result.start_ns,
+                              received_ns)
+
+    def on_end_of_stream(self, stream_id: str, service: str, anchor_type: str,
+                         received_ns: int) -> list[FusedResult]:
+        """``service`` sent its last result for the stream: the segments it passed by after its last answer."""
+        return fuse_passed_by(self.engine, stream_id, service, anchor_type, 2**63 - 1, received_ns)
 
     def on_result(self, result: StoredResult, received_ns: int) -> list[FusedResult]:
         """``result`` just fused: if it is its new instance's ``nothing`` over an utterance that was

@@ -270,6 +270,39 @@ def test_segments_a_dead_recogniser_left_unanswered_are_fused_without_it_once():
     assert fuse_orphans(engine, "s", "ssl", "ssl", 9 * S) == []  # no fusion is anchored on ssl
 
 
+def test_segments_a_live_recogniser_passed_by_are_fused_without_it_when_it_answers_a_later_one_or_ends():
+    """A recogniser that cannot keep up loses an utterance's audio and answers the next one: the
+    segment between its two answers that it said nothing about is fused without it (reason
+    ``skipped``) when the later answer comes; those after its last answer when it ends the stream."""
+    engine, _ = engine_with()
+    orphans = Orphans(engine)
+    vad = [result(10 + i, "vad", "vad", i * 3 * S, i * 3 * S + 2 * S, vad={"probability": 1.0}) for i in range(5)]
+    first = result(1, "asr", "speech", 0, 2 * S, speech={"hypotheses": [{"text": "hi"}]})
+    engine.on_result(vad[0], 2 * S)
+    assert orphans.before_result(first, 2 * S) == [] and len(engine.on_result(first, 2 * S)) == 1
+    for segment in vad[1:3]:
+        engine.on_result(segment, segment.end_ns)
+    # segment 11 was passed by; segment 12 is answered, with `nothing`: an answer too
+    answer = result(2, "asr", "speech", 6 * S, 8 * S, nothing={"reason": "no speech"})
+    [skipped] = orphans.before_result(answer, 8 * S)
+    engine.on_result(answer, 8 * S)
+    assert skipped.json["anchor"]["type"] == "vad" and skipped.json["anchor"]["id"] == 11
+    assert skipped.json["completion"] == "timed_out"
+    assert skipped.json["missing"] == [{"component": "asr", "type": "speech", "reason": "skipped"}]
+    assert orphans.before_result(result(3, "asr", "speech", 6 * S, 8 * S, nothing={"reason": "x"}), 8 * S) == []
+    # results of a type no fusion anchors on, and a stream the recogniser never answered on, say nothing
+    assert orphans.before_result(result(4, "ssl", "ssl", 9 * S, 10 * S, ssl={"azimuth_deg": 1.0}), 10 * S) == []
+    engine.on_result(result(20, "vad", "vad", 0, 2 * S, stream="other", vad={"probability": 1.0}), 2 * S)
+    assert orphans.before_result(result(5, "asr", "speech", 3 * S, 4 * S, stream="other",
+                                        speech={"hypotheses": [{"text": "go"}]}), 4 * S) == []
+    # the stream ends with two segments after its last answer: both fused, once
+    for segment in vad[3:]:
+        engine.on_result(segment, segment.end_ns)
+    ended = orphans.on_end_of_stream("s", "asr", "speech", 15 * S)
+    assert [f.json["anchor"]["id"] for f in ended] == [13, 14]
+    assert orphans.on_end_of_stream("s", "asr", "speech", 16 * S) == []
+
+
 def test_an_utterance_going_on_when_its_recogniser_died_is_fused_once_its_new_instance_says_nothing():
     engine, _ = engine_with()
     orphans = Orphans(engine)

@@ -259,3 +259,37 @@ def test_an_utterance_in_flight_on_a_recogniser_that_dies_is_fused_with_it_missi
             beating.stop()
             vad.close()
             asr.close()
+
+
+def test_an_utterance_a_live_recogniser_passed_by_is_fused_with_it_missing(make_orchestrator, zctx):
+    """Issue 16: past saturation a recogniser loses an utterance's audio and answers the next one.
+    The passed-by segment is fused without it (reason ``skipped``) when the later answer comes, and
+    one after its last answer when it ends the stream: reported, not silently lost."""
+    orch = make_orchestrator()
+    second = 2_000_000_000
+    spans = [(START_NS + i * 3 * second, START_NS + i * 3 * second + second) for i in range(4)]
+    with httpx.Client(base_url=orch.url, timeout=5.0) as http, connect(f"{orch.ws_url}/ws/fused?stream=s5") as ws:
+        vad = FakeComponent(zctx, http, component_body("vad", designation="vad", inputs=["audio/raw"],
+                                                       outputs=["vad/speech"]))
+        asr = FakeComponent(zctx, http, component_body("asr", designation="speech", inputs=["vad/speech"]))
+        try:
+            for start, end in spans:
+                vad.send_result(stream_id="s5", start_ns=start, end_ns=end, type_=pb.RESULT_TYPE_VAD)
+            wait_until(lambda: stored_count(http, type="vad") == 4, what="the segments stored")
+            asr.send_result(stream_id="s5", start_ns=spans[0][0], end_ns=spans[0][1], text="bring me a coke")
+            assert recv_json(ws)["anchor"]["type"] == "speech"
+            asr.send_result(stream_id="s5", start_ns=spans[2][0], end_ns=spans[2][1], text="go to the kitchen")
+            skipped, answered = recv_json(ws), recv_json(ws)
+            assert skipped["anchor"]["type"] == "vad" and skipped["completion"] == "timed_out"
+            assert skipped["anchor"]["span"] == {"start_ns": spans[1][0], "end_ns": spans[1][1]}
+            assert skipped["missing"] == [{"component": "asr", "type": "speech", "reason": "skipped"}]
+            assert answered["anchor"]["type"] == "speech"
+            asr.end_of_stream("s5")
+            last = recv_json(ws)
+            assert last["anchor"]["span"] == {"start_ns": spans[3][0], "end_ns": spans[3][1]}
+            assert last["missing"][0]["reason"] == "skipped"
+            with pytest.raises(TimeoutError):
+                recv_json(ws, timeout_s=1.0)  # each once
+        finally:
+            vad.close()
+            asr.close()
