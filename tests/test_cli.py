@@ -31,6 +31,39 @@ def test_an_utterance_whose_recogniser_died_says_its_speech_was_lost():
     assert format_line(orphan, ORIGIN_NS) == \
         "[12.31–14.05 s] (speech lost: its recogniser died) components_gone, missing asr"
 
+    skipped = fused(completion="timed_out", missing_components=["asr"],
+                    missing=[{"component": "asr", "type": "speech", "reason": "skipped"}])
+    skipped["anchor"] = orphan["anchor"]
+    assert format_line(skipped, ORIGIN_NS) == \
+        "[12.31–14.05 s] (speech lost: its recogniser skipped it) timed_out, missing asr"
+
+
+def test_a_service_is_given_up_after_a_crash_loop_but_a_rare_crash_starts_the_count_again(tmp_path, monkeypatch):
+    """MAX_RESTARTS deaths in a row end the run only when each came soon after its start: a service
+    of a long --serve run that crashes now and then is restarted every time."""
+    from esiaf.tools import launcher
+    monkeypatch.setattr(launcher, "RESTART_BACKOFF_S", 0.0)
+    monkeypatch.setattr(launcher, "STABLE_AFTER_S", 0.6)
+
+    def deaths_until_given_up(seconds_alive: float, at_most: int) -> int:
+        """Restarts a child that dies ``seconds_alive`` after each start: deaths until given up, or ``at_most``."""
+        supervisor = launcher.Supervisor(tmp_path)
+        child = supervisor.start("crashy",
+                                 target=["-c", f"import time; time.sleep({seconds_alive}); raise SystemExit(3)"])
+        try:
+            for died in range(1, at_most + 1):
+                assert child.process.wait(timeout=30) == 3
+                try:
+                    supervisor.restart_when_due(child)  # its death first seen: given up, or restarted at once
+                except launcher.LaunchError as exc:
+                    assert "not restarted: it died" in str(exc)
+                    return died
+            return at_most
+        finally:
+            supervisor.stop()
+
+    assert deaths_until_given_up(0.0, 10) == launcher.MAX_RESTARTS + 1  # a crash loop: given up
+    assert deaths_until_given_up(0.8, launcher.MAX_RESTARTS + 3) == launcher.MAX_RESTARTS + 3  # never
 
 class Client:
     def __init__(self, info):

@@ -31,7 +31,8 @@ log = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 _PR_SET_PDEATHSIG = 1
-MAX_RESTARTS = 5  # a service that died this often is not restarted again: the run ends
+MAX_RESTARTS = 5  # a service that died this often in a row is not restarted again: the run ends
+STABLE_AFTER_S = 60.0  # a service that ran this long before dying was not crash-looping: its count starts again
 RESTART_BACKOFF_S = 0.5  # before the first restart; doubles with each, up to 10 s
 START_TIMEOUT_S = 60.0  # esiaf run: how long a service may take to answer, register, subscribe or start playing
 
@@ -54,6 +55,7 @@ class Child:
     env: dict[str, str] = field(default_factory=dict)
     restarts: int = 0
     died_at: float | None = None  # monotonic time its death was first seen
+    started_at: float = field(default_factory=time.monotonic)  # of its current process
     reported: bool = False  # its death was reported to the orchestrator
 
     def restart_delay_s(self) -> float:
@@ -112,14 +114,19 @@ class Supervisor:
         with child.log_path.open("ab") as out:
             out.write(f"\n--- esiaf: restart {child.restarts} ---\n".encode())
         child.process = self._spawn(child.command, child.env, child.log_path, "ab")
+        child.started_at = time.monotonic()
         log.info("restarted service=%s pid=%d restarts=%d", child.name, child.process.pid, child.restarts)
 
     def restart_when_due(self, child: Child) -> None:
         """A service died: say which and why, restart it after a back-off (doubling from
-        RESTART_BACKOFF_S), and give up with its log's tail after MAX_RESTARTS deaths."""
+        RESTART_BACKOFF_S), and give up with its log's tail after MAX_RESTARTS deaths in a row, each
+        within STABLE_AFTER_S of its start (a crash loop); a death after a longer run counts as the
+        first, so that a long --serve run survives a rare crash."""
         now = time.monotonic()
         if child.died_at is None:
             child.died_at = now
+            if now - child.started_at >= STABLE_AFTER_S:
+                child.restarts = 0
             last_line = child.tail(1).strip()
             if child.restarts >= MAX_RESTARTS:
                 raise LaunchError(f"{self.failure(child)}\n(not restarted: it died {child.restarts + 1} times)")
