@@ -160,8 +160,8 @@ def test_bad_inputs_fail_with_a_clear_message_before_anything_starts(tmp_path):
         ("--input", str(wav), "--replicas", "asr=9"): "--replicas takes SERVICE=N with N from 1 to 8",
         ("--input", str(wav), "--replicas", "asr"): "--replicas takes SERVICE=N",
         ("--input", str(wav), "--replicas", "emotion=2", "--without", "emotion"):
-            "--replicas emotion=2: emotion is not an analyser this run starts on the VAD's output (asr, gender, "
-            "voiceid)",
+            "--replicas emotion=2: emotion is not an analyser this run starts on the VAD's output or a plug-in "
+            "(asr, gender, voiceid)",
         ("--input", str(wav), "--replicas", "orchestrator=2"): "--replicas orchestrator=2: orchestrator is not",
     }
     for args, message in cases.items():

@@ -78,3 +78,30 @@ def test_with_something_that_is_no_component_is_one_line(tmp_path):
                                  "--with", spec, "--workdir", str(tmp_path / "w")], cwd=REPO, capture_output=True,
                                 text=True, timeout=60)
         assert result.returncode == 2 and complaint in result.stderr and "Traceback" not in result.stderr
+
+
+def test_replicas_of_a_plugin_share_the_streams(launch, tmp_path_factory):
+    """``--replicas duration=2`` with ``--with``: two instances of the plug-in, each serving a stream
+    of its own; every utterance of both streams gets exactly one duration result."""
+    import shutil
+    folder = tmp_path_factory.mktemp("analysers") / "duration"
+    folder.mkdir()
+    (folder / "__main__.py").write_text(DURATION)
+    wavs = tmp_path_factory.mktemp("wavs")
+    for name in ("left", "right"):
+        shutil.copy(REPO / "examples/robocup_questions.wav", wavs / f"{name}.wav")
+    run = launch("--input", str(wavs), "--grammar", "robocup", "--fast", "--without", "emotion,gender,voiceid",
+                 "--with", str(folder), "--replicas", "duration=2", "--json", "--serve")
+    ended: set[str] = set()  # stream ids: the file's stem and the run's start time
+    run.wait_for_line(lambda line: line.get("type") == "stream_end" and ended.add(line["stream_id"]) is None
+                      and len(ended) == 2, timeout_s=240)
+    instances = httpx.get(f"{run.url}/components", headers=run.headers).json()["services"]["duration"]["instances"]
+    assert sorted(instances) == ["duration-1", "duration-2"]
+    served_by = {}
+    for stream in ended:
+        fused = [line for line in run.lines if line.get("type") == "fused_result" and line["stream_id"] == stream
+                 and line["revision"] == 1]
+        assert len(fused) == 5, stream
+        [served_by[stream]] = {result["instance"] for line in fused for result in line["results"]["duration"]}
+        assert all(len(line["results"]["duration"]) == 1 for line in fused)
+    assert sorted(served_by.values()) == ["duration-1", "duration-2"]  # a stream each

@@ -148,10 +148,10 @@ def parse_without(text: str | None) -> set[str]:
     return names
 
 
-def parse_replicas(texts: Sequence[str], without: set[str]) -> dict[str, int]:
-    """``--replicas SERVICE=N`` (repeatable): how many instances of each analyser on the VAD's output
-    to start; each must be one this run starts."""
-    started = [name for name in ON_SPEECH if name not in without]
+def parse_replicas(texts: Sequence[str], without: set[str], plugins: Sequence[str] = ()) -> dict[str, int]:
+    """``--replicas SERVICE=N`` (repeatable): how many instances of each analyser on the VAD's output,
+    or plug-in (``--with``), to start; each must be one this run starts."""
+    started = [*(name for name in ON_SPEECH if name not in without), *plugins]
     replicas: dict[str, int] = {}
     for text in texts:
         name, _, count = text.partition("=")
@@ -160,7 +160,7 @@ def parse_replicas(texts: Sequence[str], without: set[str]) -> dict[str, int]:
             raise LaunchError(f"--replicas takes SERVICE=N with N from 1 to {MAX_REPLICAS} (e.g. asr=2), not {text!r}")
         if name not in started:
             raise LaunchError(f"--replicas {text}: {name or 'no service'} is not an analyser this run starts on the "
-                              f"VAD's output ({', '.join(started)})")
+                              f"VAD's output or a plug-in ({', '.join(started)})")
         replicas[name] = int(count)
     return replicas
 
@@ -194,8 +194,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     run.add_argument("--without", metavar="ANALYSERS", help="analysers to leave out, separated by commas: "
                      "emotion, gender, voiceid, ssl (e.g. --without emotion,gender on a slow robot)")
     run.add_argument("--replicas", action="append", default=[], metavar="SERVICE=N", help="start N instances "
-                     f"(1 to {MAX_REPLICAS}) of an analyser on the VAD's output ({', '.join(ON_SPEECH)}), named "
-                     "SERVICE-1 ... SERVICE-N, that share the streams; repeatable (e.g. --replicas asr=2)")
+                     f"(1 to {MAX_REPLICAS}) of an analyser on the VAD's output ({', '.join(ON_SPEECH)}) or of a "
+                     "--with plug-in, named SERVICE-1 ... SERVICE-N, that share the streams; repeatable (e.g. "
+                     "--replicas asr=2)")
     run.add_argument("--with", dest="plugins", action="append", default=[], metavar="FOLDER_OR_NAME",
                      help="also run your own analyser: a folder with a __main__.py, an installed component "
                      "(entry point group esiaf.components) or a module; repeatable")

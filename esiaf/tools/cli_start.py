@@ -9,6 +9,7 @@ import functools
 import logging
 import os
 import sys
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,8 +62,8 @@ def run(args: argparse.Namespace) -> int:
     array, channels = check_array(args, check_inputs(args.input) if args.input else 0)
     ids = stream_ids([path.stem for path in args.input] if args.input else ["mic"], args.stream_id)
     without = parse_without(args.without)
-    replicas = parse_replicas(args.replicas, without)
     wanted_plugins = [resolve_plugin(spec) for spec in args.plugins]  # a bad --with fails before anything starts
+    replicas = parse_replicas(args.replicas, without, [plugin.name for plugin in wanted_plugins])
     services = known_services() | {p.name for p in wanted_plugins}
     for name in unknown_variables(os.environ, services):
         print(f"esiaf: {name} names no service ({', '.join(sorted(services))}) and no common setting: "
@@ -82,14 +83,22 @@ def run(args: argparse.Namespace) -> int:
         start_orchestrator(args, supervisor, client, workdir)
         # every service at once (their imports and models load in parallel), then each must register
         pipeline = start_services(args, supervisor, array, channels, without, replicas)
-        plugins = {plugin.name: supervisor.start(plugin.name, target=plugin.target) for plugin in wanted_plugins}
-        kinds, on_speech = wait_for_registration(client, supervisor, pipeline.services, plugins)
+        plugin_of: dict[str, str] = {}  # each plug-in instance's plug-in
+        plugins: dict[str, Child] = {}
+        for plugin in wanted_plugins:
+            started = start_replicas(supervisor, plugin.name, replicas.get(plugin.name, 1), target=plugin.target)
+            plugins.update(started)
+            plugin_of.update(dict.fromkeys(started, plugin.name))
+        registered = wait_for_registration(client, supervisor, pipeline.services, plugins)
         pipeline.services.update(plugins)
-        wait_for_subscriptions(client, supervisor, pipeline, on_speech)
+        on_speech = [plugin_of[name] for name, component in registered.items()
+                     if any(i["topic"] == "vad/speech" for i in component["inputs"])]
+        # replicas take their streams later (reserve_streams): here, the other plug-in instances count
+        wait_for_subscriptions(client, supervisor, pipeline, sum(name not in replicas for name in on_speech))
         if replicas:
             reserve_streams(client, supervisor, pipeline, ids, on_speech)
         if plugins:
-            with_kinds = ", ".join(f"{n} ({k})" for n, k in zip(plugins, kinds, strict=True))
+            with_kinds = ", ".join(f"{n} ({c['designation']})" for n, c in registered.items())
             print(f"esiaf: with {with_kinds}", file=sys.stderr)
         log.info("services: %s", ", ".join(pipeline.services))
         for name, count in replicas.items():
@@ -190,28 +199,30 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
     return Pipeline(services, grabber_env, beamforming, labellers, replicas)
 
 
-def start_replicas(supervisor: Supervisor, name: str, count: int, args: Sequence[str] = ()) -> dict[str, Child]:
-    """One instance of a service (under its name), or ``count`` sharing the streams: name-1, name-2, ..."""
+def start_replicas(supervisor: Supervisor, name: str, count: int, args: Sequence[str] = (),
+                   target: list[str] | None = None) -> dict[str, Child]:
+    """One instance of a service or plug-in (``target``), under its name, or ``count`` sharing the
+    streams: name-1, name-2, ..."""
     if count == 1:
-        return {name: supervisor.start(name, args)}
-    return {f"{name}-{n}": supervisor.start(name, args, instance=f"{name}-{n}") for n in range(1, count + 1)}
+        return {name: supervisor.start(name, args, target=target)}
+    return {f"{name}-{n}": supervisor.start(name, args, target=target, instance=f"{name}-{n}")
+            for n in range(1, count + 1)}
 
 
 def wait_for_registration(client: OrchestratorClient, supervisor: Supervisor, services: dict[str, Child],
-                          plugins: dict[str, Child]) -> tuple[list[str], int]:
+                          plugins: dict[str, Child]) -> dict[str, dict]:
     """Waits until every service and plug-in has registered; adds the plug-ins' result kinds to the
-    fusion. Returns the plug-ins' kinds (in their order) and how many of them hear vad/speech."""
+    fusion. Returns each plug-in instance's registration."""
     for name, child in services.items():
         find = client.component if name in known_services() else client.instance  # asr, or asr-1 of --replicas
         wait_until(functools.partial(find, name), supervisor, f"the {name} service to register",
                    START_TIMEOUT_S, child)
-    registered = [wait_until(functools.partial(client.by_pid, child.process.pid), supervisor,
-                             f"{name} (--with) to register", START_TIMEOUT_S, child)
-                  for name, child in plugins.items()]
-    kinds = [component["designation"] for component in registered]
+    registered = {name: wait_until(functools.partial(client.by_pid, child.process.pid), supervisor,
+                                   f"{name} (--with) to register", START_TIMEOUT_S, child)
+                  for name, child in plugins.items()}
+    kinds = dict.fromkeys(component["designation"] for component in registered.values())  # in order, once
     fuse_kinds(client, [kind for kind in kinds if kind != "other"])
-    on_speech = sum(any(i["topic"] == "vad/speech" for i in c["inputs"]) for c in registered)
-    return kinds, on_speech
+    return registered
 
 
 def wait_for_subscriptions(client: OrchestratorClient, supervisor: Supervisor, pipeline: Pipeline,
@@ -234,14 +245,16 @@ def wait_for_subscriptions(client: OrchestratorClient, supervisor: Supervisor, p
 
 
 def reserve_streams(client: OrchestratorClient, supervisor: Supervisor, pipeline: Pipeline, ids: list[str],
-                    on_speech: int) -> None:
+                    on_speech: list[str]) -> None:
     """With --replicas: announces the streams before their grabbers play and waits until an instance of
     each replicated service has taken each stream (subscribed to its speech). A grabber announces its
     stream only as it starts playing; a replica told of it then could miss its first utterance."""
     for stream_id in ids:
         client.announce(stream_id, {"announced_by": "esiaf run", "before": "its grabber"})
-    subscriptions = len(pipeline.replicas) * len(ids) + len(pipeline.labellers) + 1 - len(pipeline.replicas)
-    wait_until(lambda: topic_ready(client, "vad/speech", subscriptions + on_speech), supervisor,
+    # a replicated service subscribes once per stream (each instance to its own streams); any other, once
+    hearing = Counter(["asr", *pipeline.labellers, *on_speech])  # instances hearing vad/speech, by service
+    subscriptions = sum(len(ids) if name in pipeline.replicas else count for name, count in hearing.items())
+    wait_until(lambda: topic_ready(client, "vad/speech", subscriptions), supervisor,
                f"the instances of {', '.join(pipeline.replicas)} to take the streams", START_TIMEOUT_S,
                pipeline.services["vad"])
 

@@ -92,8 +92,8 @@ class Supervisor:
         logs.mkdir(parents=True, exist_ok=True)
         log_path = logs / f"{instance or name}.log"
         child_env = {**os.environ, **self.env, **(env or {})}
-        if instance:
-            child_env[f"ESIAF_{name.upper()}_INSTANCE"] = instance
+        if instance:  # the common setting: a plug-in's service may not be named as its folder
+            child_env["ESIAF_INSTANCE"] = instance
         child_env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), child_env.get("PYTHONPATH")]))
         command = [sys.executable, *(target or ["-m", f"esiaf_services.{name}"]), *args]
         child = Child(instance or name, self._spawn(command, child_env, log_path, "wb"), log_path, command, child_env)
