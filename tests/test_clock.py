@@ -77,5 +77,6 @@ def test_a_microphone_host_whose_clock_is_3_s_off_still_gets_complete_results(la
     firsts = [line for line in run.lines if line.get("type") == "fused_result" and line["revision"] == 1]
     assert sorted(normalise(f["anchor"]["speech"]["hypotheses"][0]["text"]) for f in firsts) == \
         sorted(normalise(t) for t in truth)
-    assert all(f["completion"] == "complete" and f["aggregates"]["emotion"] for f in firsts), firsts
+    assert all(f["completion"] == "complete" and f["aggregates"]["emotion"] for f in firsts), \
+        [(f["completion"], f["missing"], f["aggregates"]["emotion"]) for f in firsts]
     assert all(0 <= f["anchor"]["latency_ms"] < 1000 for f in firsts), [f["anchor"]["latency_ms"] for f in firsts]

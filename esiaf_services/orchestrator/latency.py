@@ -1,6 +1,8 @@
 """Per-component latency (time received − end of the audio a result covers) and the timeout
-a fusion grants each component: factor × its running mean latency, clamped, or an initial
-timeout before any latency is known."""
+a fusion grants each component: the larger of factor × its running mean latency and the mean plus
+``deviations`` × its running mean deviation (as TCP's retransmission timeout, RFC 6298: a component
+whose latency varies, e.g. on a loaded machine, is granted the spread it has shown), clamped; an
+initial timeout before any latency is known."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -8,14 +10,21 @@ from dataclasses import dataclass
 from .settings import TimeoutSettings
 
 MEAN_WINDOW = 100  # the running mean is exact over the first 100 results, then exponential
+DEVIATION_WINDOW = 4  # the deviation follows faster (RFC 6298's beta = 1/4): load comes and goes
 
 
 @dataclass
 class Latency:
     count: int = 0
     mean_ns: float = 0.0
+    deviation_ns: float = 0.0  # running mean absolute deviation from the mean (not persisted: relearnt)
+    deviations: int = 0  # samples of it
 
     def add(self, latency_ns: int) -> None:
+        if self.count:
+            self.deviations += 1
+            self.deviation_ns += (abs(latency_ns - self.mean_ns) - self.deviation_ns) / min(self.deviations,
+                                                                                           DEVIATION_WINDOW)
         self.count += 1
         self.mean_ns += (latency_ns - self.mean_ns) / min(self.count, MEAN_WINDOW)
 
@@ -44,7 +53,8 @@ class Latencies:
         if latency is None or latency.count == 0:
             return int(settings.initial_s * 1e9)
         factor = settings.factors.get(component, settings.factor)
-        seconds = min(max(factor * latency.mean_ns / 1e9, settings.min_s), settings.max_s)
+        wanted_ns = max(factor * latency.mean_ns, latency.mean_ns + settings.deviations * latency.deviation_ns)
+        seconds = min(max(wanted_ns / 1e9, settings.min_s), settings.max_s)
         return int(seconds * 1e9)
 
     def take_changed(self) -> list[tuple[str, Latency]]:

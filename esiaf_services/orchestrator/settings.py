@@ -45,9 +45,12 @@ class FusionSettings(StrictModel):
 
 
 class TimeoutSettings(StrictModel):
-    """How long a fusion waits for a component: factor x its running mean latency, clamped."""
+    """How long a fusion waits for a component: factor x its running mean latency, or its mean plus
+    deviations x its running mean deviation if that is longer, clamped."""
 
     factor: float = Field(default=1.5, gt=0, description="x the component's mean latency")
+    deviations: float = Field(default=4.0, ge=0, description="or its mean latency plus this many mean "
+                                                             "deviations, if longer (0: the factor alone)")
     factors: dict[str, float] = Field(default_factory=dict,
                                       description="per component name: its own factor")
     initial_s: float = Field(default=2.0, gt=0, description="before a latency is known")

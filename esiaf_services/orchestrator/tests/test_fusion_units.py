@@ -95,7 +95,7 @@ def test_label_aggregate_is_an_overlap_weighted_distribution():
 
 def test_timeouts_are_factor_times_running_mean_clamped_with_an_initial_value():
     latencies = Latencies(TimeoutSettings(factor=1.5, factors={"slow": 3.0}, initial_s=2.0,
-                                          min_s=0.1, max_s=1.0))
+                                          min_s=0.1, max_s=1.0, deviations=0))
     assert latencies.timeout_ns("ssl") == 2 * S
     for value in (100 * MS, 300 * MS):
         latencies.add("ssl", value)
@@ -106,6 +106,24 @@ def test_timeouts_are_factor_times_running_mean_clamped_with_an_initial_value():
     latencies.add("late", 5 * S)
     assert latencies.timeout_ns("fast") == 100 * MS and latencies.timeout_ns("late") == S
 
+
+
+def test_a_component_whose_latency_varies_is_granted_its_spread():
+    """Steady at 200 ms: 1.5 x the mean. Then the machine is loaded and the latency jumps between
+    200 ms and 1 s: the timeout follows the mean plus 4 mean deviations, so the slow answers are
+    still waited for; steady again, it comes back down."""
+    latencies = Latencies(TimeoutSettings(factor=1.5, min_s=0.05, max_s=10.0))
+    for _ in range(20):
+        latencies.add("voiceid", 200 * MS)
+    assert latencies.timeout_ns("voiceid") == 300 * MS
+    for value in (1000, 200, 1000, 200, 1000, 200):
+        latencies.add("voiceid", value * MS)
+    latency = latencies.by_component["voiceid"]
+    loaded = latencies.timeout_ns("voiceid")
+    assert loaded == int(latency.mean_ns + 4 * latency.deviation_ns) and loaded > 1000 * MS
+    for _ in range(30):
+        latencies.add("voiceid", 200 * MS)
+    assert latencies.timeout_ns("voiceid") < 450 * MS
 
 class Clock:
     def __init__(self) -> None:
