@@ -9,142 +9,29 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import subprocess
 import threading
 import time
 import uuid
-from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
 import soundfile
-from websockets.sync.client import connect
+from container_kit import (
+    EXAMPLE,
+    TRUTH,
+    at_least,
+    best_text,
+    http_status,
+    input_folder,
+    run,
+    subscribers,
+    websocket_collector,
+)
 
 from esiaf.tools.testing import REPO, free_port, normalise, poll
 
 pytestmark = [pytest.mark.containers, pytest.mark.timeout(3600)]  # the first one builds the images
-EXAMPLE = REPO / "examples" / "robocup_questions.wav"
-TRUTH = [s["text"] for s in json.loads((REPO / "examples" / "robocup_questions.json").read_text())["sentences"]]
-BUILD_TIMEOUT_S = 45 * 60
-
-
-def run(*cmd: str, timeout: float = 300, check: bool = True, **kwargs) -> subprocess.CompletedProcess:
-    result = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, stdin=subprocess.DEVNULL, **kwargs)
-    if check and result.returncode != 0:
-        raise AssertionError(f"{' '.join(cmd)} exited {result.returncode}:\n"
-                             f"{result.stdout[-3000:]}\n{result.stderr[-3000:]}")
-    return result
-
-
-def compose_command() -> list[str] | None:
-    if shutil.which("docker") and run("docker", "compose", "version", check=False).returncode == 0:
-        return ["docker", "compose"]
-    if shutil.which("docker-compose"):
-        return ["docker-compose"]
-    return None
-
-
-@pytest.fixture(scope="session")
-def docker_images():
-    """Builds every image offline (once per session); skips when no Docker engine answers."""
-    if not shutil.which("docker"):
-        pytest.skip("docker is not installed")
-    if run("docker", "info", check=False, timeout=60).returncode != 0:
-        pytest.skip("the Docker engine does not answer (docker info failed)")
-    started = time.monotonic()
-    result = run("bash", str(REPO / "scripts" / "build_images.sh"), timeout=BUILD_TIMEOUT_S, check=False)
-    print(result.stderr, end="")
-    assert result.returncode == 0, result.stderr[-3000:]
-    print(f"offline image build: {time.monotonic() - started:.0f} s")
-    return result.stderr
-
-
-def input_folder(folder: Path, wav: Path) -> Path:
-    """The grabber's mounted folder, holding ``wav`` as speech.wav, readable by the containers' user."""
-    folder.mkdir(parents=True)
-    shutil.copy(wav, folder / "speech.wav")
-    folder.chmod(0o755)
-    (folder / "speech.wav").chmod(0o644)
-    return folder
-
-
-def at_least(count: int, items: list) -> list | None:
-    return items if len(items) >= count else None
-
-
-def best_text(fused: dict) -> str:
-    """The recognised text ('' for an utterance fused without its dead recogniser: anchored on its VAD segment)."""
-    hypotheses = fused["anchor"].get("speech", {}).get("hypotheses")
-    return hypotheses[0]["text"] if hypotheses else ""
-
-
-class Project:
-    """One compose project of our own (its own name, port and input folder), downed at the end."""
-
-    def __init__(self, tmp_path: Path, wav: Path):
-        compose = compose_command()
-        if compose is None:
-            pytest.skip("neither `docker compose` nor `docker-compose` is installed")
-        self.name = f"esiaftest{uuid.uuid4().hex[:8]}"
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        inputs = tmp_path / "input"
-        input_folder(inputs, wav)
-        self.env = {**os.environ, "ESIAF_HTTP_PORT": str(self.port), "ESIAF_INPUT_DIR": str(inputs),
-                    "ESIAF_INPUT_FILE": "speech.wav", "ESIAF_STREAM_ID": self.name}
-        self.compose = [*compose, "-p", self.name]  # compose.yaml and compose.override.yaml, from REPO
-        self.http = httpx.Client(base_url=self.url, timeout=5)
-
-    def __call__(self, *args: str, timeout: float = 300, check: bool = True) -> subprocess.CompletedProcess:
-        return run(*self.compose, *args, timeout=timeout, check=check, env=self.env, cwd=REPO)
-
-    def leftovers(self) -> dict[str, list[str]]:
-        label = f"label=com.docker.compose.project={self.name}"
-        found = {kind: run("docker", kind, "ls", *(["-a"] if kind == "container" else []), "-q",
-                           "--filter", label).stdout.split() for kind in ("container", "network", "volume")}
-        return {kind: ids for kind, ids in found.items() if ids}
-
-    def fused(self, fusion: str = "speech") -> list[dict]:
-        params = {"stream": self.name, "fusion": fusion, "limit": 100}
-        return self.http.get("/fused", params=params).json()["items"]
-
-    def components(self) -> dict[str, dict]:
-        items = self.http.get("/components", params={"include_dead": "true"}).json()["items"]
-        return {c["component_id"]: c for c in items}
-
-    def logs(self) -> str:
-        return self("logs", "--no-color", "--tail", "60", check=False).stdout
-
-
-def websocket_collector(url: str, stream: str, into: list, stop: threading.Event) -> threading.Thread:
-    """Collects fused results from the websocket, as a client on the host would, until stopped."""
-    def collect():
-        ws_url = url.replace("http", "ws") + f"/ws/fused?stream={stream}&after_id=0"
-        with connect(ws_url, open_timeout=30) as ws:
-            while not stop.is_set():
-                try:
-                    message = json.loads(ws.recv(timeout=0.5))
-                except TimeoutError:
-                    continue
-                into.append(message)
-    thread = threading.Thread(target=collect, daemon=True)
-    thread.start()
-    return thread
-
-
-@pytest.fixture
-def project(docker_images, tmp_path):
-    projects: list[Project] = []
-
-    def make(wav: Path = EXAMPLE) -> Project:
-        projects.append(Project(tmp_path / f"p{len(projects)}", wav))
-        return projects[-1]
-
-    yield make
-    for p in projects:
-        p("down", "-v", "--remove-orphans", "-t", "5", check=False)
 
 
 OPTIONAL = ("fastapi", "uvicorn", "pocketsphinx", "alsaaudio", "pyroomacoustics", "opensmile", "onnxruntime")
@@ -296,10 +183,10 @@ def test_stack_deploy_on_a_single_node_swarm_gives_the_same_sentences(swarm, tmp
     try:
         run("docker", "stack", "deploy", "-c", str(REPO / "compose.yaml"), "-c", str(REPO / "compose.swarm.yaml"),
             name, env=env, cwd=REPO)
-        poll(lambda: _get(http, "/health") == 200, timeout_s=120)
+        poll(lambda: http_status(http, "/health") == 200, timeout_s=120)
         # Swarm has no start order: play once the analysers are registered and connected
         poll(lambda: {"vad", "asr"} <= {c["name"] for c in http.get("/components").json()["items"]}, timeout_s=120)
-        poll(lambda: _subscribers(http, "vad/speech") >= 1, timeout_s=60)
+        poll(lambda: subscribers(http, "vad/speech") >= 1, timeout_s=60)
         run("docker", "service", "scale", "-d", f"{name}_grabber=1")
         fused = poll(lambda: at_least(len(TRUTH), http.get("/fused", params={"stream": name}).json()["items"]),
                      timeout_s=150)
@@ -313,126 +200,3 @@ def test_stack_deploy_on_a_single_node_swarm_gives_the_same_sentences(swarm, tmp
         volumes = run("docker", "volume", "ls", "-q", "--filter", f"label=com.docker.stack.namespace={name}")
         for volume in volumes.stdout.split():
             run("docker", "volume", "rm", volume, check=False)
-
-
-def _get(http: httpx.Client, path: str) -> int:
-    try:
-        return http.get(path).status_code
-    except httpx.HTTPError:
-        return 0
-
-
-def _subscribers(http: httpx.Client, topic: str) -> int:
-    """Subscribers of a topic's producers, as they report them (the asr connected to the vad)."""
-    for item in http.get("/topics").json()["items"]:
-        if item["topic"] == topic:
-            return sum(p["subscribers"] or 0 for p in item["producers"])
-    return 0
-
-
-
-class Replicated:
-    """A compose project with ``asr`` instances of the recogniser, no grabber, emotion, gender or
-    voiceid: grabbers are started one by one, each with a stream of its own, playing the example
-    ``copies`` times over."""
-
-    def __init__(self, project, tmp_path: Path, asr: int, copies: int):
-        samples, rate = soundfile.read(EXAMPLE, dtype="int16")
-        longer = tmp_path / f"example-x{copies}.wav"
-        soundfile.write(longer, np.concatenate([samples] * copies), rate)
-        self.p = p = project(longer)
-        p.env.update(ESIAF_GRABBER_REPLICAS="0", ESIAF_EMOTION_REPLICAS="0", ESIAF_GENDER_REPLICAS="0",
-                     ESIAF_VOICEID_REPLICAS="0")
-        p("up", "-d", "--scale", f"asr={asr}", timeout=600)
-        poll(lambda: len(self.services().get("asr", {}).get("instances", [])) == asr, timeout_s=120)
-
-    def services(self) -> dict:
-        return self.p.http.get("/components").json()["services"]
-
-    def fused(self, stream: str) -> list[dict]:
-        return self.p.http.get("/fused", params={"stream": stream, "limit": 100}).json()["items"]
-
-    def grabber(self, stream: str) -> None:
-        """A one-off container of the grabber service, playing its stream."""
-        self.p("run", "-d", "-e", f"ESIAF_STREAM_ID={stream}", "grabber")
-
-
-def test_three_asr_replicas_share_six_streams_each_utterance_decoded_once_and_a_killed_ones_move(project, tmp_path):
-    """`--scale asr=3` (issue 16): six grabbers, each its own stream, against three asr instances. Each
-    stream is served by one instance, every sentence is decoded once; a killed instance's streams
-    move to the survivors, which decode their next sentences."""
-    r = Replicated(project, tmp_path, asr=3, copies=2)  # 42 s, 10 sentences: room to kill
-    p, services, fused = r.p, r.services, r.fused
-    streams = [f"{p.name}-{i}" for i in range(1, 7)]
-    for stream in streams:
-        r.grabber(stream)
-    serving = poll(lambda: (s := services()["asr"]["serving"]) and set(streams) <= set(s) and s, timeout_s=60)
-    assert len({serving[s] for s in streams}) == 3, serving  # every instance serves some of them
-    first = poll(lambda: fused(streams[0]), timeout_s=120)
-    victim = first[0]["anchor"]["instance"]
-    assert victim == serving[streams[0]], (victim, serving)
-    moved = [s for s in streams if serving[s] == victim]
-    host = p.components()[victim]["host"]  # the container's hostname: its id
-    run("docker", "kill", host)
-    killed_ns = time.time_ns()
-    after = poll(lambda: (s := services()["asr"]) and victim not in s["instances"] and s["serving"], timeout_s=15)
-    assert all(after[s] != victim for s in moved), after
-
-    truth = [normalise(t) for t in TRUTH * 2]
-    results = {s: poll(lambda s=s: at_least(len(truth) - (3 if s in moved else 0), fused(s)), timeout_s=150)
-               for s in streams}
-    for stream, items in results.items():
-        heard = [normalise(best_text(f)) for f in items]
-        instances = {f["anchor"]["instance"] for f in items}
-        if stream not in moved:  # all of its sentences, each decoded once, by the one instance serving it
-            assert heard == truth, (stream, heard, p.logs())
-            assert instances == {serving[stream]}, (stream, instances)
-            continue
-        # moved: decoded before the kill by the victim, after it by the survivor, nothing twice; the
-        # survivor decodes whole sentences (the first it hears may be the tail of the utterance that
-        # was in flight on the victim: "not understood", or the words it heard); an utterance the
-        # victim had taken and not answered is fused without it, anchored on its VAD segment
-        orphans = [f for f in items if f["anchor"]["type"] != "speech"]
-        assert all(f["completion"] == "components_gone" and "asr" in f["missing_components"] for f in orphans), orphans
-        instances = {f["anchor"]["instance"] for f in items if f not in orphans}
-        assert instances <= {victim, after[stream]}, (stream, instances)
-        later = [normalise(best_text(f)) for f in items if f["anchor"]["received_ns"] > killed_ns]
-        assert any(text in truth for text in later), (stream, heard)
-        assert all(heard.count(text) <= truth.count(text) for text in truth), (stream, heard)
-
-
-def test_an_asr_replica_cut_off_the_network_is_dead_its_streams_move_and_reconnected_it_takes_work_again(
-        project, tmp_path):
-    """Network faults (issue 16): `docker network disconnect` on the asr instance serving a stream:
-    it is declared dead, its stream moves to the other replica, fusions stop waiting for it, and what
-    was stored stays; connected again, it registers again under its id and takes the next stream."""
-    r = Replicated(project, tmp_path, asr=2, copies=3)  # 63 s: a and b still play when c starts
-    p, services, fused = r.p, r.services, r.fused
-    a, b, c = (f"{p.name}-{x}" for x in "abc")
-    for stream in (a, b):
-        r.grabber(stream)
-    poll(lambda: fused(a) and fused(b), timeout_s=120)
-    serving = services()["asr"]["serving"]
-    victim = serving[a]
-    assert serving[b] != victim, serving  # balanced: one stream each
-    network = f"{p.name}_esiaf"
-    container = p.components()[victim]["host"]
-    stored_before = {f["id"] for f in fused(a)}
-    run("docker", "network", "disconnect", network, container)
-    cut_ns = time.time_ns()
-    try:
-        poll(lambda: p.components()[victim]["status"] == "dead", timeout_s=10)
-        assert services()["asr"]["serving"][a] == serving[b]  # moved to the survivor
-        # the survivor decodes a's next sentences
-        truth = {normalise(t) for t in TRUTH}
-        poll(lambda: [f for f in fused(a) if f["anchor"]["received_ns"] > cut_ns
-                      and normalise(best_text(f)) in truth and f["anchor"]["instance"] == serving[b]] or None,
-             timeout_s=60)
-    finally:
-        run("docker", "network", "connect", network, container, check=False)
-    poll(lambda: p.components().get(victim, {}).get("status") == "alive", timeout_s=30)  # registered again
-    assert stored_before <= {f["id"] for f in fused(a)}  # nothing stored is lost
-    r.grabber(c)  # a new stream: the least loaded instance takes it
-    poll(lambda: services()["asr"]["serving"].get(c) == victim, timeout_s=30)
-    taken = poll(lambda: fused(c), timeout_s=90)
-    assert taken[0]["anchor"]["instance"] == victim and normalise(best_text(taken[0])) in truth, taken[0]
