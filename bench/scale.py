@@ -10,8 +10,8 @@ hangover), as in bench/latency.py.
 
 Per run it reports, over all streams: questions played, fused results, questions with no fused
 result overlapping them (``lost``: silently), questions fused without their recogniser because it
-died with them in flight (``reported_lost``), questions recognised exactly (``right``), fused
-results not ``complete``, and the p50/p95/max latency.
+died with them in flight or, past saturation, passed them by (``reported_lost``), questions
+recognised exactly (``right``), fused results not ``complete``, and the p50/p95/max latency.
 
     python bench/scale.py [--streams 1,2,3,4,6,8] [--questions 6]     # the sweep
     python bench/scale.py --kill [--asr 3 --streams 8]                 # kill one asr mid-run
@@ -153,7 +153,7 @@ def score(streams: list[Stream], since_ns: int = 0, until_ns: int = 2**63) -> di
                 lost += 1
                 continue
             hit = hits[0]
-            orphaned += hit["anchor"]["type"] != "speech"  # fused without its dead recogniser: reported lost
+            orphaned += hit["anchor"]["type"] != "speech"  # fused without its recogniser: reported lost
             hyps = hit["anchor"].get("speech", {}).get("hypotheses", [])
             right += bool(hyps) and normalise(hyps[0]["text"]) == normalise(question["text"])
             incomplete += hit.get("completion") != "complete"
