@@ -295,3 +295,30 @@ def test_components_register_again_after_the_orchestrator_restarts(orchestrator)
     for component, thread in ((source, source_thread), (sink, sink_thread)):
         component.stop()
         thread.join(timeout=10)
+
+
+BLAS_THREADS = """
+import json
+import numpy
+from threadpoolctl import threadpool_info
+from esiaf.runner import limit_native_threads
+before = max(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+limit_native_threads()
+after = max(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+print(json.dumps([before, after]))
+"""
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one core: BLAS has one thread anyway")
+def test_a_service_process_runs_numpy_on_one_blas_thread_unless_the_user_chose():
+    """Several services share the cores: each process's BLAS runs one thread (a pool per process
+    spun against the others, ten times the CPU of one voiceid embedding on a loaded machine)."""
+    import json
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
+                                                             "MKL_NUM_THREADS")}
+    run = subprocess.run([sys.executable, "-c", BLAS_THREADS], env=env, capture_output=True, text=True, timeout=60)
+    before, after = json.loads(run.stdout)
+    assert before > 1 and after == 1, run.stderr
+    chosen = subprocess.run([sys.executable, "-c", BLAS_THREADS], env={**env, "OPENBLAS_NUM_THREADS": "2"},
+                            capture_output=True, text=True, timeout=60)
+    assert json.loads(chosen.stdout) == [2, 2], chosen.stderr

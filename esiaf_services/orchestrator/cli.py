@@ -9,7 +9,7 @@ import logging
 import os
 import sys
 
-from esiaf.runner import known_services
+from esiaf.runner import known_services, limit_native_threads
 from esiaf.settings import SettingsError, unknown_variables
 
 from .core import StartupError
@@ -36,6 +36,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    limit_native_threads()  # the enrolment's speaker embeddings (voices.py) share the cores too
     args = parse_args(argv)
     try:
         settings = load(args.config, host=args.host, port=args.port, db_path=args.db)
