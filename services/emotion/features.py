@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from esiaf.features import SharedExtractor, shared
 from services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
 
 FEATURE_SETS = ("eGeMAPSv02", "ComParE_2016")
@@ -53,6 +54,13 @@ class FeatureExtractor:
         if vector.shape[0] != self.size:
             raise FeatureError(f"{self.feature_set} gave {vector.shape[0]} values, expected {self.size}")
         return np.nan_to_num(vector, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def shared_extractor(feature_set: str, sample_rate_hz: int = 16000) -> SharedExtractor[FeatureExtractor]:
+    """The process's one :class:`FeatureExtractor` of ``feature_set``: every classifier of this
+    process that uses the set gets the same features of an utterance, computed once
+    (``esiaf/features.py``); ``.extractor`` is the FeatureExtractor."""
+    return shared(f"{feature_set}@{sample_rate_hz}", lambda: FeatureExtractor(feature_set, sample_rate_hz))
 
 
 VADS = ("silero", "energy")  # the vad service's backends; silero is its default
