@@ -1,0 +1,65 @@
+"""Gender as a guest in the emotion service's process: the same results as two processes, with each
+utterance's features computed once (real processes, sockets and models, EmoDB speech)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from esiaf.testing import poll, shared_data
+from services.emotion.tools.pipeline import EmotionPipeline, build_recording
+
+pytestmark = pytest.mark.e2e
+FEATURES = "ComParE_2016@16000"  # what both bundled models classify
+
+
+def play(tmp_path: Path, files: list[Path], hosted: bool) -> tuple[dict, dict]:
+    """Each fused result's (kind, span from the stream's start) -> its label and probabilities, and
+    each service's registration, once both have reported every utterance they analysed."""
+    workdir = tmp_path / ("hosted" if hosted else "apart")
+    workdir.mkdir()
+    build_recording(files, workdir / "utterances.wav", 1.2)
+    pipeline = EmotionPipeline(workdir, "emotion4", "gender", "s", hosted=hosted)
+    try:
+        arrived, origin_ns = pipeline.play(workdir / "utterances.wav", fast=True, timeout_s=150)
+        results = {}
+        for _, fused in arrived:
+            kind, anchor = fused["fusion"], fused["anchor"]
+            span = (anchor["span"]["start_ns"] - origin_ns, anchor["span"]["end_ns"] - origin_ns)
+            results[kind, span] = anchor[kind]
+        counted = sum(1 for (kind, _), result in results.items() if kind == "emotion" and (result or {}).get("label"))
+
+        def reported() -> dict | None:
+            components = {c["name"]: c for c in pipeline.client.components() if c["status"] == "alive"}
+            infos = [components.get(name, {}).get("stats", {}).get("info", {}) for name in ("emotion", "gender")]
+            done = all(info.get("analysed") == counted for info in infos)
+            return components if done else None
+        components = poll(reported, timeout_s=10)
+    finally:
+        pipeline.close()
+    return results, components
+
+
+def test_a_guest_gives_the_same_results_as_its_own_process_and_the_features_are_computed_once(tmp_path):
+    files = [shared_data(f"emodb/wav/{name}.wav") for name in
+             ("03a01Fa", "03a04Nc", "03b09Wa", "08a02Ab", "08b03Tc", "08b02Nb")]
+    apart, alone = play(tmp_path, files, hosted=False)
+    hosted, together = play(tmp_path, files, hosted=True)
+
+    spans = {kind: {span for k, span in apart if k == kind} for kind in ("emotion", "gender")}
+    assert spans["emotion"] == spans["gender"] and len(spans["emotion"]) >= len(files), sorted(apart)
+    analysed = sum(1 for (kind, _), result in apart.items() if kind == "emotion" and (result or {}).get("label"))
+    assert analysed >= len(files), apart  # each utterance judged (some cut in two by the VAD)
+    assert hosted == apart  # the same labels and probabilities, to the last bit, over the same spans
+
+    # apart: two processes, each computing the features of every utterance itself
+    assert alone["emotion"]["pid"] != alone["gender"]["pid"]
+    for name in ("emotion", "gender"):
+        assert alone[name]["stats"]["info"]["features"] == {FEATURES: {"computed": analysed, "reused": 0}}
+    # hosted: one process, two services; the features of each utterance computed once, and reused once
+    assert together["emotion"]["pid"] == together["gender"]["pid"]
+    assert together["emotion"]["stats"]["info"]["guests"] == ["gender"]
+    assert together["gender"]["designation"] == "gender" and together["gender"]["component_id"].startswith("gender")
+    assert together["gender"]["stats"]["info"]["model"] == "gender"
+    for name in ("emotion", "gender"):
+        assert together[name]["stats"]["info"]["features"] == {FEATURES: {"computed": analysed, "reused": analysed}}
