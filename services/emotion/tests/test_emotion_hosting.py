@@ -2,6 +2,7 @@
 utterance's features computed once (real processes, sockets and models, EmoDB speech)."""
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import pytest
@@ -63,3 +64,20 @@ def test_a_guest_gives_the_same_results_as_its_own_process_and_the_features_are_
     assert together["gender"]["stats"]["info"]["model"] == "gender"
     for name in ("emotion", "gender"):
         assert together[name]["stats"]["info"]["features"] == {FEATURES: {"computed": analysed, "reused": analysed}}
+
+
+def test_a_dead_host_is_reported_dead_with_its_guest(tmp_path):
+    """esiaf run reports a process that died by its pid: the host and its guest are both dead at once,
+    not only once silent for dead_after_s, so nothing waits for the guest's results meanwhile."""
+    pipeline = EmotionPipeline(tmp_path, "emotion4", "gender", "s", hosted=True)
+    try:
+        host = next(child for child in pipeline.supervisor.children if child.name == "emotion")
+        ids = {c["name"]: c["component_id"] for c in pipeline.client.components() if c["status"] == "alive"}
+        host.process.send_signal(signal.SIGKILL)
+        host.process.wait()
+        reported = pipeline.client.report_dead(host.process.pid)
+        assert reported is not None and set(reported.split(", ")) == {ids["emotion"], ids["gender"]}
+        alive = {c["name"] for c in pipeline.client.components() if c["status"] == "alive"}
+        assert not alive & {"emotion", "gender"}, alive
+    finally:
+        pipeline.close()
