@@ -154,9 +154,11 @@ class UtteranceComponent(Component):
                 guest.start(self)
 
     def _dispatch(self, audio: Audio) -> None:
-        super()._dispatch(audio)
-        for guest in self.guests:
-            guest.dispatch(audio)
+        try:
+            super()._dispatch(audio)
+        finally:  # the guests hear every chunk, whatever the host's handlers did with it
+            for guest in self.guests:
+                guest.dispatch(audio)
 
     def stats(self) -> dict[str, Any]:
         counts = feature_counts()  # utterances whose shared features were computed, and answers reused

@@ -5,13 +5,33 @@ from __future__ import annotations
 import signal
 from pathlib import Path
 
+import numpy as np
 import pytest
+import soundfile
 
 from esiaf.testing import poll, shared_data
+from services.emotion.backends import load_backend
+from services.emotion.features import FeatureExtractor
 from services.emotion.tools.pipeline import EmotionPipeline, build_recording
 
 pytestmark = pytest.mark.e2e
 FEATURES = "ComParE_2016@16000"  # what both bundled models classify
+
+
+def test_classifiers_in_one_process_share_one_extractor_and_its_answers():
+    samples, _ = soundfile.read(shared_data("emodb/wav/03a01Fa.wav"), dtype="float32")
+    emotion, gender = load_backend("onnx", "emotion4"), load_backend("onnx", "gender")
+    assert emotion.features is gender.features  # type: ignore[attr-defined]
+    shared = emotion.features  # type: ignore[attr-defined]
+    before = shared.counts()
+    got = emotion.classify(samples), gender.classify(samples.copy())  # equal samples, another array
+    assert shared.counts() == {"computed": before["computed"] + 1, "reused": before["reused"] + 1}
+    fresh = FeatureExtractor("ComParE_2016")(samples)  # what each computed on its own before
+    assert np.array_equal(shared(samples), fresh)
+    assert got == (dict(zip(emotion.labels, emotion._run(fresh).tolist(), strict=True)),  # type: ignore[attr-defined]
+                   dict(zip(gender.labels, gender._run(fresh).tolist(), strict=True)))  # type: ignore[attr-defined]
+    with pytest.raises(ValueError):
+        shared(samples)[0] = 1.0  # one vector for every classifier: none may change it
 
 
 def play(tmp_path: Path, files: list[Path], hosted: bool) -> tuple[dict, dict]:
