@@ -20,7 +20,9 @@ backends with no transport, to show what the model itself costs. Figures, as ``n
 - ``thesis_cpu_s_per_speech_s_<service>``: the thesis' realistic pipeline, 30,120 (emotion) and
   5,960 (gender) CPU seconds for 83 minutes of speech.
 
-    python bench/emotion.py [--utterances 30] [--gap-s 1.5] [--modes apart,hosted]
+    python -m bench.emotion [--utterances 30] [--gap-s 1.5] [--modes apart,hosted] [--chunk-ms 20]
+
+(``-m``: run as a file, ``bench/ssl.py`` would shadow the standard library's ``ssl``.)
 """
 from __future__ import annotations
 
@@ -71,7 +73,8 @@ def model_cost(files: list[Path], speech_s: float) -> dict[str, float]:
     return figures
 
 
-def play(workdir: Path, hosted: bool, audio_s: float, speech_s: float) -> dict[str, float | int]:
+def play(workdir: Path, hosted: bool, audio_s: float, speech_s: float,
+         chunk_ms: float | None = None) -> dict[str, float | int]:
     """One run of the pipeline over the recording: CPU, memory and latency figures."""
     mode = "hosted" if hosted else "apart"
     print(f"pipeline ({mode}): playing {speech_s:.0f} s of speech ({audio_s:.0f} s in all) in real time ...",
@@ -81,7 +84,7 @@ def play(workdir: Path, hosted: bool, audio_s: float, speech_s: float) -> dict[s
     pipeline = EmotionPipeline(folder, MODELS["emotion"], MODELS["gender"], "bench", hosted=hosted)
     try:
         before = pipeline.cpu_s()
-        arrived, _ = pipeline.play(workdir / "utterances.wav", fast=False, timeout_s=audio_s + 120)
+        arrived, _ = pipeline.play(workdir / "utterances.wav", fast=False, timeout_s=audio_s + 120, chunk_ms=chunk_ms)
         after = pipeline.cpu_s()
         rss = pipeline.rss_mb()
     finally:
@@ -108,6 +111,7 @@ def main() -> None:
     parser.add_argument("--utterances", type=int, default=30)
     parser.add_argument("--gap-s", type=float, default=1.5)
     parser.add_argument("--modes", default="apart,hosted", help="apart, hosted or both (in this order)")
+    parser.add_argument("--chunk-ms", type=float, help="the grabber's chunk (default: its own, 20 ms)")
     args = parser.parse_args()
     emodb = SHARED_DATA / "emodb" / "wav"
     if not emodb.is_dir():
@@ -121,7 +125,7 @@ def main() -> None:
     figures: dict[str, float | int] = {"utterances": len(files), "speech_s": speech_s, "audio_s": audio_s}
     modes = args.modes.split(",")
     for mode in modes:
-        figures.update(play(workdir, mode == "hosted", audio_s, speech_s))
+        figures.update(play(workdir, mode == "hosted", audio_s, speech_s, args.chunk_ms))
     if set(modes) == {"apart", "hosted"}:
         figures["hosted_over_apart_cpu"] = (float(figures["hosted_cpu_s_per_speech_s_emotion_gender"])
                                             / float(figures["apart_cpu_s_per_speech_s_emotion_gender"]))

@@ -35,14 +35,16 @@ if TYPE_CHECKING:
     from esiaf.utterance import UtteranceComponent, UtteranceSettings
 
 log = logging.getLogger(__name__)
+BUILT_IN = "services"  # the built-in services' package: a guest named "gender" is BUILT_IN.gender.service
 
 
 def guest_class(spec: str) -> type[UtteranceComponent]:
-    """The utterance analyser a guest's name stands for: a service's (``gender``) or ``package.module:Class``."""
+    """The utterance analyser a guest's name stands for: a built-in service's (``gender``) or
+    ``package.module:Class``."""
     from esiaf.utterance import UtteranceComponent
     module_name, sep, class_name = spec.partition(":")
     if not sep:
-        module_name = f"services.{spec}.service"
+        module_name = f"{BUILT_IN}.{spec}.service"
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:

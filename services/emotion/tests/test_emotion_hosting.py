@@ -2,17 +2,23 @@
 utterance's features computed once (real processes, sockets and models, EmoDB speech)."""
 from __future__ import annotations
 
+import os
 import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import soundfile
 
-from esiaf.testing import poll, shared_data
+from esiaf.component import SetupError
+from esiaf.hosting import guest_class
+from esiaf.testing import REPO, poll, shared_data
 from services.emotion.backends import load_backend
 from services.emotion.features import FeatureExtractor
 from services.emotion.tools.pipeline import EmotionPipeline, build_recording
+from services.gender.service import Gender
 
 pytestmark = pytest.mark.e2e
 FEATURES = "ComParE_2016@16000"  # what both bundled models classify
@@ -101,3 +107,23 @@ def test_a_dead_host_is_reported_dead_with_its_guest(tmp_path):
         assert not alive & {"emotion", "gender"}, alive
     finally:
         pipeline.close()
+
+
+def test_a_guest_is_named_by_its_service_or_its_class():
+    assert guest_class("gender") is Gender
+    assert guest_class("services.gender.service:Gender") is Gender
+    for spec, message in (("nope", "cannot import services.nope.service"),
+                          ("services.gender.service:Nope", "has no utterance analyser Nope"),
+                          ("services.emotion.features:FeatureExtractor", "a subclass of UtteranceComponent")):
+        with pytest.raises(SetupError, match=message):
+            guest_class(spec)
+
+
+def test_a_guest_that_cannot_be_loaded_stops_its_host_at_start_up_with_one_line(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "services.emotion", "--set", "guests=[gender]"], cwd=REPO,
+                            env={**os.environ, "ESIAF_GENDER_MODEL": str(tmp_path / "missing.onnx"),
+                                 "ESIAF_ORCHESTRATOR_URL": "http://127.0.0.1:9"},
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().splitlines()[-1] == \
+        f"emotion: gender model: model file {tmp_path / 'missing.onnx'} does not exist", result.stderr

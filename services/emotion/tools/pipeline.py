@@ -101,13 +101,16 @@ class EmotionPipeline:
         """CPU seconds (user + system) each service has used so far."""
         return self._per_service(lambda process: sum(process.cpu_times()[:2]))
 
-    def play(self, wav: Path, fast: bool, timeout_s: float = 300.0) -> tuple[list[tuple[int, dict]], int]:
-        """Plays ``wav``; returns [(arrival wall-clock ns, fused result)] until stream end, and its origin."""
+    def play(self, wav: Path, fast: bool, timeout_s: float = 300.0,
+             chunk_ms: float | None = None) -> tuple[list[tuple[int, dict]], int]:
+        """Plays ``wav`` (in ``chunk_ms`` chunks: the grabber's default if None); returns [(arrival
+        wall-clock ns, fused result)] until stream end, and its origin."""
         fused = []
         url = self.url.replace("http", "ws") + f"/ws/fused?stream={self.stream_id}&after_id=0"
         with connect(url, open_timeout=10) as ws:
             self.supervisor.start("grabber", ["--input", str(wav)] + (["--fast"] if fast else []),
-                                  env={"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1"})
+                                  env={"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1"}
+                                  | ({"ESIAF_GRABBER_CHUNK_MS": str(chunk_ms)} if chunk_ms else {}))
             deadline = time.monotonic() + timeout_s
             while True:
                 message = json.loads(ws.recv(timeout=max(1.0, deadline - time.monotonic())))
