@@ -131,7 +131,8 @@ class Guest:
         finally:
             if self.analyser.control is not None:
                 self.analyser.control.stop()
-            if self._context is not None:
-                self._context.term()  # ends the watching thread
+            if self._context is not None:  # ends the watching thread; on a thread of its own, so that a
+                # control thread not yet finished (still registering) cannot hold the host's shutdown
+                threading.Thread(target=self._context.term, daemon=True, name="esiaf-guest-term").start()
             if self._state_thread is not None:
                 self._state_thread.join(timeout=3.0)
