@@ -3,6 +3,8 @@ type and channel count."""
 from __future__ import annotations
 
 import json
+import os
+import signal
 
 import httpx
 import numpy as np
@@ -168,3 +170,27 @@ def test_without_gender_emotion_runs_alone(launch, tmp_path):
     assert set(components) == {"emotion"}
     assert "guests" not in components["emotion"]["stats"]["info"]
     assert components["emotion"]["stats"]["info"]["features"] == {FEATURES: {"computed": analysed, "reused": 0}}
+
+
+def test_a_killed_host_comes_back_with_its_guest(launch, tmp_path):
+    """The process of emotion and its guest gender dies: esiaf run reports both dead at once and
+    restarts the process, which registers both again."""
+    mics, rate = first_two_questions()
+    mono = tmp_path / "two.wav"
+    soundfile.write(str(mono), mics[:, 0], rate, subtype="PCM_16")
+    run = launch("--input", str(mono), "--grammar", "robocup", "--without", "voiceid", "--fast", "--json", "--serve")
+    run.wait_for_line(lambda line: line.get("type") == "stream_end", timeout_s=150)
+    before = analysers_of(run)
+    pid = before["emotion"]["pid"]
+    assert before["gender"]["pid"] == pid
+    os.kill(pid, signal.SIGKILL)
+
+    def listed() -> dict[str, list[dict]]:
+        items = httpx.get(f"{run.url}/components?include_dead=true", headers=run.headers).json()["items"]
+        return {name: [c for c in items if c["name"] == name] for name in ("emotion", "gender")}
+    poll(lambda: all(any(c["component_id"] == before[name]["component_id"] and c["status"] == "dead"
+                         for c in listed()[name]) for name in ("emotion", "gender")), timeout_s=2)
+    after = poll(lambda: (c := analysers_of(run)) and len(c) == 2 and c["emotion"]["pid"] != pid and c,
+                 timeout_s=60)
+    assert after["gender"]["pid"] == after["emotion"]["pid"], after
+    assert "service emotion killed by SIGKILL" in "".join(run.stderr)
