@@ -1,20 +1,28 @@
-"""Emotion and gender services: CPU per second of speech, and latency from segment end to result.
+"""Emotion and gender services: CPU per second of speech, memory, and latency from segment end to result.
 
 EmoDB utterances (default: 30 of speakers 03 and 08, 1.5 s of silence between them) are played in
 real time through grabber → vad → emotion + gender → orchestrator, with the bundled models
-(``emotion4``, ``gender``). Beside it, in this process, the same utterances are classified by the
-same backends with no transport, to show what the model itself costs. Figures, as ``name=value``:
+(``emotion4``, ``gender``), twice in one run: ``apart``, emotion and gender each in a process of
+its own (``esiaf run --apart``; each computes the openSMILE features of every utterance), and
+``hosted``, gender a guest in emotion's process (``esiaf run``'s default; the features computed
+once per utterance). Beside it, in this process, the same utterances are classified by the same
+backends with no transport, to show what the model itself costs. Figures, as ``name=value``:
 
-- ``cpu_s_per_speech_s_<service>``: CPU seconds (psutil, user + system) a service used while the
-  file played, per second of speech played (the utterances' total duration), idle time included;
-- ``model_cpu_s_per_speech_s_<model>``: features + ONNX alone, in this process;
-- ``latency_<kind>_p50_ms`` / ``p90`` / ``max``: arrival of the fused result at a websocket client
-  minus (capture time of the end of the segment's speech + the VAD's 400 ms hang-over), i.e. from
-  the moment a segmenter could know the utterance had ended;
+- ``<mode>_cpu_s_per_speech_s_<service>``: CPU seconds (psutil, user + system) a service's process
+  used while the file played, per second of speech played (the utterances' total duration), idle
+  time included; ``<mode>_cpu_s_per_speech_s_emotion_gender``: both together (hosted: the one process);
+- ``<mode>_rss_mb_<service>``: its resident memory after the file played;
+- ``<mode>_latency_<kind>_p50_ms`` / ``p90`` / ``max``: arrival of the fused result at a websocket
+  client minus (capture time of the end of the segment's speech + the VAD's 400 ms hang-over),
+  i.e. from the moment a segmenter could know the utterance had ended;
+- ``model_cpu_s_per_speech_s_features`` / ``_onnx_<model>``: openSMILE (once for both models) and
+  each model's ONNX classifier alone, in this process;
 - ``thesis_cpu_s_per_speech_s_<service>``: the thesis' realistic pipeline, 30,120 (emotion) and
   5,960 (gender) CPU seconds for 83 minutes of speech.
 
-    python bench/emotion.py [--utterances 30] [--gap-s 1.5]
+    python -m bench.emotion [--utterances 30] [--gap-s 1.5] [--modes apart,hosted] [--chunk-ms 20]
+
+(``-m``: run as a file, ``bench/ssl.py`` would shadow the standard library's ``ssl``.)
 """
 from __future__ import annotations
 
@@ -49,15 +57,52 @@ def percentile(values: list[float], q: float) -> float:
 
 
 def model_cost(files: list[Path], speech_s: float) -> dict[str, float]:
-    """CPU seconds per second of speech of each bundled model, in this process."""
-    figures = {}
-    for model in MODELS.values():
-        classifier = load_backend("onnx", model)
-        samples = [soundfile.read(f, dtype="float32")[0] for f in files]
+    """CPU seconds per second of speech, in this process, of the openSMILE features (computed once for
+    both bundled models) and of each model's ONNX classifier over them."""
+    samples = [soundfile.read(f, dtype="float32")[0] for f in files]
+    classifiers = {model: load_backend("onnx", model) for model in MODELS.values()}
+    extractor = next(iter(classifiers.values())).features.extractor  # type: ignore[attr-defined]
+    started = time.process_time()
+    vectors = [extractor(s) for s in samples]
+    figures = {"model_cpu_s_per_speech_s_features": (time.process_time() - started) / speech_s}
+    for model, classifier in classifiers.items():
         started = time.process_time()
-        for s in samples:
-            classifier.classify(s)
-        figures[f"model_cpu_s_per_speech_s_{model}"] = (time.process_time() - started) / speech_s
+        for vector in vectors:
+            classifier._run(vector)  # type: ignore[attr-defined]
+        figures[f"model_cpu_s_per_speech_s_onnx_{model}"] = (time.process_time() - started) / speech_s
+    return figures
+
+
+def play(workdir: Path, hosted: bool, audio_s: float, speech_s: float,
+         chunk_ms: float | None = None) -> dict[str, float | int]:
+    """One run of the pipeline over the recording: CPU, memory and latency figures."""
+    mode = "hosted" if hosted else "apart"
+    print(f"pipeline ({mode}): playing {speech_s:.0f} s of speech ({audio_s:.0f} s in all) in real time ...",
+          file=sys.stderr, flush=True)
+    folder = workdir / mode
+    folder.mkdir()
+    pipeline = EmotionPipeline(folder, MODELS["emotion"], MODELS["gender"], "bench", hosted=hosted)
+    try:
+        before = pipeline.cpu_s()
+        arrived, _ = pipeline.play(workdir / "utterances.wav", fast=False, timeout_s=audio_s + 120, chunk_ms=chunk_ms)
+        after = pipeline.cpu_s()
+        rss = pipeline.rss_mb()
+    finally:
+        pipeline.close()
+    figures: dict[str, float | int] = {}
+    for kind in MODELS:
+        latencies = [(t - f["anchor"]["span"]["end_ns"] - HANGOVER_NS) / 1e6 for t, f in arrived if f["fusion"] == kind]
+        figures[f"{mode}_results_{kind}"] = len(latencies)
+        if latencies:
+            figures[f"{mode}_latency_{kind}_p50_ms"] = statistics.median(latencies)
+            figures[f"{mode}_latency_{kind}_p90_ms"] = percentile(latencies, 0.9)
+            figures[f"{mode}_latency_{kind}_max_ms"] = max(latencies)
+    for name in sorted(after):
+        figures[f"{mode}_cpu_s_per_speech_s_{name}"] = (after[name] - before.get(name, 0.0)) / speech_s
+    figures[f"{mode}_cpu_s_per_speech_s_emotion_gender"] = sum(
+        float(figures.get(f"{mode}_cpu_s_per_speech_s_{name}", 0.0)) for name in MODELS)
+    for name in sorted(rss):
+        figures[f"{mode}_rss_mb_{name}"] = rss[name]
     return figures
 
 
@@ -65,6 +110,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     parser.add_argument("--utterances", type=int, default=30)
     parser.add_argument("--gap-s", type=float, default=1.5)
+    parser.add_argument("--modes", default="apart,hosted", help="apart, hosted or both (in this order)")
+    parser.add_argument("--chunk-ms", type=float, help="the grabber's chunk (default: its own, 20 ms)")
     args = parser.parse_args()
     emodb = SHARED_DATA / "emodb" / "wav"
     if not emodb.is_dir():
@@ -75,29 +122,15 @@ def main() -> None:
     speech_s = sum(u.end_s - u.start_s for u in placed)
     audio_s = soundfile.info(str(workdir / "utterances.wav")).duration
 
-    print(f"pipeline: playing {len(files)} utterances ({speech_s:.0f} s of speech, {audio_s:.0f} s in all) in "
-          f"real time ...", file=sys.stderr, flush=True)
-    pipeline = EmotionPipeline(workdir, MODELS["emotion"], MODELS["gender"], "bench")
-    try:
-        before = pipeline.cpu_s()
-        arrived, _ = pipeline.play(workdir / "utterances.wav", fast=False, timeout_s=audio_s + 120)
-        after = pipeline.cpu_s()
-    finally:
-        pipeline.close()
-
     figures: dict[str, float | int] = {"utterances": len(files), "speech_s": speech_s, "audio_s": audio_s}
-    for kind in MODELS:
-        latencies = [(t - f["anchor"]["span"]["end_ns"] - HANGOVER_NS) / 1e6 for t, f in arrived if f["fusion"] == kind]
-        figures[f"results_{kind}"] = len(latencies)
-        if latencies:
-            figures[f"latency_{kind}_p50_ms"] = statistics.median(latencies)
-            figures[f"latency_{kind}_p90_ms"] = percentile(latencies, 0.9)
-            figures[f"latency_{kind}_max_ms"] = max(latencies)
-    for name in sorted(after):
-        figures[f"cpu_s_per_speech_s_{name}"] = (after[name] - before.get(name, 0.0)) / speech_s
+    modes = args.modes.split(",")
+    for mode in modes:
+        figures.update(play(workdir, mode == "hosted", audio_s, speech_s, args.chunk_ms))
+    if set(modes) == {"apart", "hosted"}:
+        figures["hosted_over_apart_cpu"] = (float(figures["hosted_cpu_s_per_speech_s_emotion_gender"])
+                                            / float(figures["apart_cpu_s_per_speech_s_emotion_gender"]))
     for kind, cpu_s in THESIS_CPU_S.items():
         figures[f"thesis_cpu_s_per_speech_s_{kind}"] = cpu_s / THESIS_SPEECH_S
-        figures[f"thesis_over_ours_{kind}"] = (cpu_s / THESIS_SPEECH_S) / figures[f"cpu_s_per_speech_s_{kind}"]
     print("in-process: the same utterances through the backends alone ...", file=sys.stderr, flush=True)
     figures.update(model_cost(files, speech_s))
     for name, value in figures.items():

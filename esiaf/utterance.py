@@ -13,6 +13,11 @@ The SDK collects each stream's segment separately, sends ``nothing`` for segment
 segment, so fusion never waits for a result that will not come. A kind that is not built in
 (emotion, gender, voice_id are) travels as a generic result and is stored, fused, aggregated
 (label distribution, mean value) and shown like the built-in ones.
+
+Analysers that need the same features of an utterance can run in one process: the ``guests``
+setting names the utterance analysers this one hosts (``esiaf/hosting.py``), each still its own
+service to the orchestrator; features asked for through ``esiaf.features.shared`` are then
+computed once per utterance for all of them.
 """
 from __future__ import annotations
 
@@ -23,10 +28,13 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
+from pydantic import Field
 
 from esiaf.audio import Audio
 from esiaf.component import Component
+from esiaf.features import feature_counts
 from esiaf.formats import AudioFormat
+from esiaf.hosting import Guest
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf.results import LABEL_PAYLOADS, valid_kind
 from esiaf.settings import ComponentSettings
@@ -40,6 +48,8 @@ class UtteranceSettings(ComponentSettings):
     sample_rate_hz: int = 16000
     min_speech_ms: float = 500.0  # shorter segments get "nothing": too short to judge
     silence_db: float = 45.0  # segments whose peak stays below this get "nothing" (96 dB = full scale)
+    # utterance analysers run in this process, each its own service (e.g. ["gender"]; esiaf/hosting.py)
+    guests: list[str] = Field(default_factory=list)
 
 
 @dataclass
@@ -69,6 +79,8 @@ class UtteranceComponent(Component):
         self.utterance_stream_id = ""  # the stream of the utterance analyse() is given
         self.analysed = 0
         self.nothing = 0
+        self.guests: list[Guest] = []  # started once registered: they register with the host's sockets
+        self._guests_started = False
 
     def analyse(self, samples: np.ndarray, rate: int) -> dict[str, Any]:
         """What this analyser says about one utterance (see the module's docstring)."""
@@ -122,6 +134,37 @@ class UtteranceComponent(Component):
         if level_db < self.settings.silence_db:
             return f"silence (peak {level_db:.0f} dB < {self.settings.silence_db:.0f} dB)"
         return ""
+
+    # -- hosting guests (esiaf/hosting.py) -------------------------------------------------
+    def run(self) -> int:
+        try:
+            if self.settings.guests:  # their models load before anything registers, as the host's does
+                self.guests = [Guest(spec) for spec in self.settings.guests]
+                self.info["guests"] = [guest.name for guest in self.guests]
+            return super().run()
+        finally:
+            for guest in self.guests:
+                guest.stop()
+
+    def _apply_state(self, state: dict[str, Any]) -> None:
+        super()._apply_state(state)
+        if not self._guests_started and not self.stopping:  # the first state: registered, sockets made
+            self._guests_started = True
+            for guest in self.guests:
+                guest.start(self)
+
+    def _dispatch(self, audio: Audio) -> None:
+        try:
+            super()._dispatch(audio)
+        finally:  # the guests hear every chunk, whatever the host's handlers did with it
+            for guest in self.guests:
+                guest.dispatch(audio)
+
+    def stats(self) -> dict[str, Any]:
+        counts = feature_counts()  # utterances whose shared features were computed, and answers reused
+        if counts:
+            self.info["features"] = counts
+        return super().stats()
 
     def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
         if stream_id in self.utterances:

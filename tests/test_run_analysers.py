@@ -3,18 +3,21 @@ type and channel count."""
 from __future__ import annotations
 
 import json
+import os
+import signal
 
 import httpx
 import numpy as np
 import pytest
 import soundfile
 
-from esiaf.tools.testing import REPO, normalise
+from esiaf.tools.testing import REPO, normalise, poll
 from tests.test_bad_input import assert_clear, esiaf_run
 
 pytestmark = pytest.mark.e2e
 SCENE = REPO / "examples" / "robocup_scene.flac"
 TRUTH = json.loads(SCENE.with_suffix(".json").read_text())["utterances"][:2]
+FEATURES = "ComParE_2016@16000"  # what the bundled emotion and gender models classify
 
 
 def first_two_questions() -> tuple[np.ndarray, int]:
@@ -104,3 +107,90 @@ def test_an_empty_file_is_refused(tmp_path):
     empty = tmp_path / "empty.wav"
     soundfile.write(str(empty), np.zeros((0, 1), dtype="int16"), 48000)
     assert_clear(esiaf_run("--input", str(empty), "--workdir", str(tmp_path)), "empty.wav holds no audio")
+
+
+def analysers_of(run) -> dict[str, dict]:
+    components = httpx.get(f"{run.url}/components", headers=run.headers).json()["items"]
+    return {c["name"]: c for c in components if c["status"] == "alive" and c["name"] in ("emotion", "gender")}
+
+
+def labels(run, kind: str) -> list[list[tuple]]:
+    """Per fused line, the ``kind`` results in it: label and probabilities."""
+    return [[(r[kind]["label"], r[kind]["class_probabilities"]) for r in f["results"].get(kind) or []]
+            for f in fused_results(run)]
+
+
+def test_gender_is_a_guest_of_emotion_unless_apart_and_the_results_are_the_same(launch, tmp_path):
+    """By default gender runs in emotion's process, each utterance's features computed once for both;
+    --apart runs them as two processes, each computing its own, with the same results."""
+    mics, rate = first_two_questions()
+    mono = tmp_path / "two.wav"
+    soundfile.write(str(mono), mics[:, 0], rate, subtype="PCM_16")
+    runs = {}
+    for mode in ("hosted", "apart"):
+        run = launch("--input", str(mono), "--grammar", "robocup", "--without", "voiceid", "--fast", "--json",
+                     "--serve", *(["--apart"] if mode == "apart" else []))
+        run.wait_for_line(lambda line: line.get("type") == "stream_end", timeout_s=150)
+        fused = fused_results(run)
+        assert len(fused) == len(TRUTH), fused
+        for f in fused:
+            assert f["completion"] == "complete" and not f["missing_components"], f
+            assert f["aggregates"]["emotion"] and f["aggregates"]["gender"], f
+        analysed = sum(len(f["results"]["emotion"]) for f in fused)
+        components = poll(lambda run=run, n=analysed: (c := analysers_of(run)) and all(
+            c[name]["stats"]["info"].get("analysed") == n for name in ("emotion", "gender")) and c, timeout_s=10)
+        runs[mode] = run, components, analysed
+        run.stop()
+    (hosted, together, analysed), (apart, alone, _) = runs["hosted"], runs["apart"]
+    assert together["emotion"]["pid"] == together["gender"]["pid"], together
+    assert together["emotion"]["stats"]["info"]["guests"] == ["gender"]
+    for name in ("emotion", "gender"):
+        assert together[name]["stats"]["info"]["features"] == {FEATURES: {"computed": analysed, "reused": analysed}}
+        assert alone[name]["stats"]["info"]["features"] == {FEATURES: {"computed": analysed, "reused": 0}}
+    assert alone["emotion"]["pid"] != alone["gender"]["pid"]
+    for kind in ("emotion", "gender"):
+        assert labels(hosted, kind) == labels(apart, kind)
+
+
+def test_without_gender_emotion_runs_alone(launch, tmp_path):
+    mics, rate = first_two_questions()
+    mono = tmp_path / "two.wav"
+    soundfile.write(str(mono), mics[:, 0], rate, subtype="PCM_16")
+    run = launch("--input", str(mono), "--grammar", "robocup", "--without", "gender,voiceid", "--fast", "--json",
+                 "--serve")
+    run.wait_for_line(lambda line: line.get("type") == "stream_end", timeout_s=150)
+    fused = fused_results(run)
+    assert len(fused) == len(TRUTH), fused
+    for f in fused:
+        assert f["completion"] == "complete" and not f["missing_components"], f
+        assert f["aggregates"]["emotion"] and not f["aggregates"].get("gender"), f
+    analysed = sum(len(f["results"]["emotion"]) for f in fused)
+    components = poll(lambda: (c := analysers_of(run)) and c["emotion"]["stats"]["info"].get("analysed") == analysed
+                      and c, timeout_s=10)
+    assert set(components) == {"emotion"}
+    assert "guests" not in components["emotion"]["stats"]["info"]
+    assert components["emotion"]["stats"]["info"]["features"] == {FEATURES: {"computed": analysed, "reused": 0}}
+
+
+def test_a_killed_host_comes_back_with_its_guest(launch, tmp_path):
+    """The process of emotion and its guest gender dies: esiaf run reports both dead at once and
+    restarts the process, which registers both again."""
+    mics, rate = first_two_questions()
+    mono = tmp_path / "two.wav"
+    soundfile.write(str(mono), mics[:, 0], rate, subtype="PCM_16")
+    run = launch("--input", str(mono), "--grammar", "robocup", "--without", "voiceid", "--fast", "--json", "--serve")
+    run.wait_for_line(lambda line: line.get("type") == "stream_end", timeout_s=150)
+    before = analysers_of(run)
+    pid = before["emotion"]["pid"]
+    assert before["gender"]["pid"] == pid
+    os.kill(pid, signal.SIGKILL)
+
+    def listed() -> dict[str, list[dict]]:
+        items = httpx.get(f"{run.url}/components?include_dead=true", headers=run.headers).json()["items"]
+        return {name: [c for c in items if c["name"] == name] for name in ("emotion", "gender")}
+    poll(lambda: all(any(c["component_id"] == before[name]["component_id"] and c["status"] == "dead"
+                         for c in listed()[name]) for name in ("emotion", "gender")), timeout_s=2)
+    after = poll(lambda: (c := analysers_of(run)) and len(c) == 2 and c["emotion"]["pid"] != pid and c,
+                 timeout_s=60)
+    assert after["gender"]["pid"] == after["emotion"]["pid"], after
+    assert "service emotion killed by SIGKILL" in "".join(run.stderr)

@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import argparse
 import functools
+import json
 import logging
 import os
 import sys
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -54,6 +55,7 @@ class Pipeline:
     beamforming: bool  # grabber -> ssl -> beamformer -> vad
     labellers: list[str]  # the analysers on the VAD's output besides the recogniser
     replicas: dict[str, int]  # analysers on the VAD's output run as several instances (--replicas)
+    guests: set[str] = field(default_factory=set)  # labellers run in another labeller's process (not --apart)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -194,9 +196,26 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
         if not beamforming:
             grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"] = "2"
     labellers = [name for name in ("emotion", "gender", "voiceid") if name not in without]
+    hosts = hosted_labellers(labellers, replicas, args.apart)
     for name in labellers:  # on the VAD's output, like the recogniser
-        services.update(start_replicas(supervisor, name, replicas.get(name, 1)))
-    return Pipeline(services, grabber_env, beamforming, labellers, replicas)
+        if name in hosts:
+            env = {f"ESIAF_{name.upper()}_GUESTS": json.dumps(hosts[name])}
+            services[name] = supervisor.start(name, env=env)
+            services.update({guest: services[name] for guest in hosts[name]})  # the same process
+            log.info("%s runs in the %s service's process", ", ".join(hosts[name]), name)
+        elif name not in services:
+            services.update(start_replicas(supervisor, name, replicas.get(name, 1)))
+    guests = {guest for names in hosts.values() for guest in names}
+    return Pipeline(services, grabber_env, beamforming, labellers, replicas, guests)
+
+
+def hosted_labellers(labellers: list[str], replicas: dict[str, int], apart: bool) -> dict[str, list[str]]:
+    """Which labellers host which others in their process: gender in emotion's, as both classify the
+    same openSMILE features of each utterance (computed once so); none with --apart, or when either
+    runs as several instances (a guest is not scaled apart from its host)."""
+    if apart or not {"emotion", "gender"} <= set(labellers) or {"emotion", "gender"} & set(replicas):
+        return {}
+    return {"emotion": ["gender"]}
 
 
 def start_replicas(supervisor: Supervisor, name: str, count: int, args: Sequence[str] = (),
@@ -240,7 +259,8 @@ def wait_for_subscriptions(client: OrchestratorClient, supervisor: Supervisor, p
                    "vad to subscribe to beamformer/audio", START_TIMEOUT_S, services["vad"])
     # replicas subscribe to a stream's audio once they are given the stream: here, only the others count
     waited = [name for name in ("asr", *pipeline.labellers) if name not in pipeline.replicas]
-    wait_until(lambda: topic_ready(client, "vad/speech", len(waited) + on_speech), supervisor,
+    subscribers = len([name for name in waited if name not in pipeline.guests])  # a host subscribes for its guests
+    wait_until(lambda: topic_ready(client, "vad/speech", subscribers + on_speech), supervisor,
                f"{', '.join(waited) or 'the plug-ins'} to subscribe to vad/speech", START_TIMEOUT_S, services["vad"])
 
 
@@ -251,8 +271,9 @@ def reserve_streams(client: OrchestratorClient, supervisor: Supervisor, pipeline
     stream only as it starts playing; a replica told of it then could miss its first utterance."""
     for stream_id in ids:
         client.announce(stream_id, {"announced_by": "esiaf run", "before": "its grabber"})
-    # a replicated service subscribes once per stream (each instance to its own streams); any other, once
-    hearing = Counter(["asr", *pipeline.labellers, *on_speech])  # instances hearing vad/speech, by service
+    # a replicated service subscribes once per stream (each instance to its own streams); any other, once; a
+    # guest not at all (its host subscribes for it)
+    hearing = Counter(["asr", *(name for name in pipeline.labellers if name not in pipeline.guests), *on_speech])
     subscriptions = sum(len(ids) if name in pipeline.replicas else count for name, count in hearing.items())
     wait_until(lambda: topic_ready(client, "vad/speech", subscriptions), supervisor,
                f"the instances of {', '.join(pipeline.replicas)} to take the streams", START_TIMEOUT_S,

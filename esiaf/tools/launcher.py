@@ -250,17 +250,19 @@ class OrchestratorClient:
         return next((c for c in self.components() if c.get("pid") == pid and c.get("status") == "alive"), None)
 
     def report_dead(self, pid: int) -> str | None:
-        """Tells the orchestrator that the process ``pid`` died, so that its component is dead now and
-        not only once silent for dead_after_s; the component's id, or None (none was registered, it
-        had left cleanly, or the orchestrator is not there: then its silence will tell)."""
+        """Tells the orchestrator that the process ``pid`` died, so that its components are dead now and
+        not only once silent for dead_after_s (a host and its guests: each of them); their ids, or None
+        (none was registered, they had left cleanly, or the orchestrator is not there: then their
+        silence will tell)."""
+        reported = []
         try:
-            component = self.by_pid(pid)
-            if component is not None:
-                self._http.post(f"{self.url}/components/{component['component_id']}/dead").raise_for_status()
-                return str(component["component_id"])
+            for component in self.components():
+                if component.get("pid") == pid and component.get("status") == "alive":
+                    self._http.post(f"{self.url}/components/{component['component_id']}/dead").raise_for_status()
+                    reported.append(str(component["component_id"]))
         except httpx.HTTPError as exc:
             log.debug("could not report pid=%d dead: %s", pid, exc)
-        return None
+        return ", ".join(reported) or None
 
     def fusions(self) -> list[dict[str, Any]]:
         response = self._http.get(f"{self.url}/fusions")

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from esiaf_services.emotion.features import FeatureError, FeatureExtractor
+from esiaf_services.emotion.features import FeatureError, shared_extractor
 
 MODELS = Path(__file__).resolve().parent / "models"
 
@@ -79,16 +79,18 @@ class OnnxClassifier(Classifier):
         except Exception as exc:  # onnxruntime raises its own Fail/InvalidGraph/... types
             raise BackendError(f"model file {path} is not a usable ONNX model: {str(exc).splitlines()[0]}") from None
         try:
-            self.features = FeatureExtractor(feature_set, self.sample_rate_hz)
+            # one per process and feature set: classifiers hosted together compute an utterance's features once
+            self.features = shared_extractor(feature_set, self.sample_rate_hz)
         except FeatureError as exc:
             raise BackendError(f"label map {map_path}: {exc}") from None
         self._input = self.session.get_inputs()[0].name
         outputs = [o.name for o in self.session.get_outputs()]
         self._output = "probabilities" if "probabilities" in outputs else outputs[-1]
         width = self.session.get_inputs()[0].shape[-1]
-        if isinstance(width, int) and width != self.features.size:
-            raise BackendError(f"model {path} takes {width} features but {feature_set} has {self.features.size}")
-        probe = self._run(np.zeros(self.features.size, dtype=np.float32), path)
+        size = self.features.extractor.size
+        if isinstance(width, int) and width != size:
+            raise BackendError(f"model {path} takes {width} features but {feature_set} has {size}")
+        probe = self._run(np.zeros(size, dtype=np.float32), path)
         if probe.shape != (len(self.labels),):
             raise BackendError(f"model {path} gives {probe.shape[0]} probabilities but its label map "
                                f"{map_path} names {len(self.labels)} labels")

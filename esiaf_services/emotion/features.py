@@ -11,13 +11,17 @@ model's accuracy on them from 0.85 to 0.50).
 from __future__ import annotations
 
 import functools
+import importlib.util
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from esiaf.features import SharedExtractor, shared
 from esiaf_services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
 
-FEATURE_SETS = ("eGeMAPSv02", "ComParE_2016")
+# each set's configuration, under opensmile's config/ (its FeatureSet values)
+FEATURE_SETS = {"eGeMAPSv02": "egemaps/v02/eGeMAPSv02", "ComParE_2016": "compare/ComParE_2016"}
 
 
 class FeatureError(Exception):
@@ -25,20 +29,38 @@ class FeatureError(Exception):
 
 
 class FeatureExtractor:
-    """openSMILE functionals over a whole utterance: float32 vector of a fixed length."""
+    """openSMILE functionals over a whole utterance: float32 vector of a fixed length.
+
+    It runs openSMILE's own binding (``opensmile/core/lib.py``, ctypes over libSMILEapi) with the
+    configuration and options ``opensmile.Smile`` gives it, and so computes exactly what
+    ``Smile.process_signal`` returns (tested bit for bit), without importing the ``opensmile``
+    package, whose pandas, pyarrow and audinterface would hold about 90 MB in every process."""
 
     def __init__(self, feature_set: str, sample_rate_hz: int = 16000):
         if feature_set not in FEATURE_SETS:
             raise FeatureError(f"unknown feature set {feature_set!r}; known: {', '.join(FEATURE_SETS)}")
-        try:
-            import opensmile
-        except ImportError:
-            raise FeatureError("the opensmile package is missing: pip install -e '.[emotion]'") from None
         self.feature_set = feature_set
         self.sample_rate_hz = sample_rate_hz
-        self._smile = opensmile.Smile(feature_set=getattr(opensmile.FeatureSet, feature_set),
-                                      feature_level=opensmile.FeatureLevel.Functionals)
-        self.names: list[str] = list(self._smile.feature_names)
+        self._lib, root = _smile_binding()
+        config = root / "config"
+        self._config = str(config / f"{FEATURE_SETS[feature_set]}.conf")
+        self._options: dict[str, object] = {  # Smile._options() and _extract(), functionals level
+            "sink": str(config / "shared" / "standard_external_data_output_single.conf.inc"),
+            "sinkLevel": "func",
+            "bufferModeRbConf": str(config / "shared" / "BufferModeRb.conf.inc"),
+            "frameModeFunctionalsConf": str(config / "shared" / "FrameModeFunctionals.conf.inc"),
+            "source": str(config / "shared" / "standard_external_wave_input.conf.inc")}
+        smile = self._smile(self._options)
+        try:
+            count = smile.external_sink_get_num_elements(SINK)
+            self.names: list[str] = [smile.external_sink_get_element_name(SINK, i) for i in range(count)]
+        finally:
+            smile.free()
+
+    def _smile(self, options: dict[str, object]) -> Any:
+        smile = self._lib.OpenSMILE()
+        smile.initialize(config_file=self._config, options=options, loglevel=2, log_file=None, debug=False)
+        return smile
 
     @property
     def size(self) -> int:
@@ -46,13 +68,46 @@ class FeatureExtractor:
 
     def __call__(self, samples: np.ndarray) -> np.ndarray:
         """``samples``: mono float in [-1, 1] or int16, at ``sample_rate_hz``."""
-        if samples.dtype == np.int16:
-            samples = samples.astype(np.float32) / 32768.0
-        values = self._smile.process_signal(np.asarray(samples, dtype=np.float32), self.sample_rate_hz)
-        vector = values.to_numpy(dtype=np.float32).reshape(-1)
+        if samples.dtype != np.int16:  # as Smile does: scaled by 32768 and truncated
+            samples = (np.asarray(samples, dtype=np.float32) * 32768).astype(np.int16)
+        frames: list[np.ndarray] = []
+        smile = self._smile({**self._options, "sampleRate": self.sample_rate_hz, "nBits": 16})
+        try:
+            smile.external_sink_set_callback_ex(SINK, lambda data, meta: frames.append(data.copy()))
+            smile.external_audio_source_write_data(SOURCE, samples.tobytes())
+            smile.external_audio_source_set_eoi(SOURCE)
+            smile.run()
+        finally:
+            smile.free()
+        vector = np.vstack(frames).astype(np.float32).reshape(-1) if frames else np.zeros(self.size, np.float32)
         if vector.shape[0] != self.size:
             raise FeatureError(f"{self.feature_set} gave {vector.shape[0]} values, expected {self.size}")
         return np.nan_to_num(vector, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+SOURCE, SINK = "extsource", "extsink"  # the components opensmile's external input and output configs name
+
+
+@functools.cache
+def _smile_binding() -> tuple[Any, Path]:
+    """opensmile's ctypes binding (core/lib.py) loaded alone, and its folder (config/ beside it)."""
+    spec = importlib.util.find_spec("opensmile")  # found, not imported
+    if spec is None or spec.origin is None:
+        raise FeatureError("the opensmile package is missing: pip install -e '.[emotion]'")
+    core = Path(spec.origin).parent / "core"
+    lib_spec = importlib.util.spec_from_file_location("esiaf_opensmile_binding", core / "lib.py")
+    if lib_spec is None or lib_spec.loader is None:
+        raise FeatureError(f"cannot load openSMILE's binding {core / 'lib.py'}")
+    module = importlib.util.module_from_spec(lib_spec)
+    lib_spec.loader.exec_module(module)
+    return module, core
+
+
+def shared_extractor(feature_set: str, sample_rate_hz: int = 16000) -> SharedExtractor[FeatureExtractor]:
+    """The process's one :class:`FeatureExtractor` of ``feature_set``: every classifier of this
+    process that uses the set gets the same features of an utterance, computed once
+    (``esiaf/features.py``); ``.extractor`` is the FeatureExtractor."""
+    return shared(f"{feature_set}@{sample_rate_hz}", lambda: FeatureExtractor(feature_set, sample_rate_hz))
 
 
 VADS = ("silero", "energy")  # the vad service's backends; silero is its default

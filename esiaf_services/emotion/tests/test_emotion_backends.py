@@ -111,3 +111,29 @@ def test_holdout_models_reproduce_the_training_scripts_predictions(task):
         first, end = speech_span(samples, rate)
         probabilities = classifier.classify(samples[first:end])
         assert max(probabilities, key=probabilities.get) == expected["predicted"], path
+
+
+@pytest.mark.parametrize("feature_set", ["ComParE_2016", "eGeMAPSv02"])
+def test_the_extractor_computes_exactly_what_opensmile_smile_computes(feature_set):
+    """FeatureExtractor runs openSMILE's binding without the opensmile package (pandas...): the same
+    configuration, so the same names and, bit for bit, the same values (what the models were trained on)."""
+    import opensmile
+    smile = opensmile.Smile(feature_set=getattr(opensmile.FeatureSet, feature_set),
+                            feature_level=opensmile.FeatureLevel.Functionals)
+    extractor = FeatureExtractor(feature_set)
+    assert extractor.names == list(smile.feature_names)
+    for name in ("03a01Fa", "08b02Nb", "10a01Ac", "16b10Td"):
+        samples, rate = soundfile.read(shared_data(f"emodb/wav/{name}.wav"), dtype="float32")
+        expected = smile.process_signal(samples, rate).to_numpy(dtype=np.float32).reshape(-1)
+        got = extractor(samples)
+        assert got.dtype == np.float32
+        assert np.array_equal(got, np.nan_to_num(expected, nan=0.0, posinf=0.0, neginf=0.0)), name
+        assert np.array_equal(extractor((samples * 32768).astype(np.int16)), got)  # int16 in: the same
+
+
+def test_a_classifier_process_does_not_load_pandas():
+    """The memory a classifier holds is its models and openSMILE's library, not pandas and pyarrow."""
+    code = ("import sys, numpy as np; from esiaf_services.emotion.backends import load_backend; "
+            "c = load_backend('onnx', 'emotion4'); c.classify(np.zeros(16000, np.float32) + 0.01); "
+            "assert not {'pandas', 'pyarrow', 'audinterface', 'opensmile'} & set(sys.modules), sorted(sys.modules)")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=REPO, timeout=60)

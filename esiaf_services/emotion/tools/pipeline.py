@@ -7,6 +7,7 @@ moment each arrived, from the orchestrator's websocket.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from dataclasses import dataclass
@@ -48,10 +49,11 @@ def build_recording(files: list[Path], wav: Path, gap_s: float) -> list[Placed]:
 
 
 class EmotionPipeline:
-    """orchestrator + emotion + gender + vad as processes; ``play`` adds the grabber."""
+    """orchestrator + emotion + gender + vad as processes; ``play`` adds the grabber. ``hosted``:
+    gender runs in the emotion service's process (its guest), the features computed once."""
 
     def __init__(self, workdir: Path, emotion_model: str, gender_model: str, stream_id: str = "emotion",
-                 vad_backend: str = "silero"):
+                 vad_backend: str = "silero", hosted: bool = False):
         self.stream_id = stream_id
         port = free_port()
         self.url = f"http://127.0.0.1:{port}"
@@ -64,10 +66,16 @@ class EmotionPipeline:
             self._start("orchestrator", ["--port", str(port), "--db", str(workdir / "esiaf.db"), "--config",
                                          str(config)], client_ready=self.client.healthy,
                         env={"ESIAF_ORCHESTRATOR_CONTROL_PORT": "0", "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"})
-            for service, model in (("emotion", emotion_model), ("gender", gender_model)):
-                self._start(service, ["--model", model])
+            if hosted:
+                self._start("emotion", ["--model", emotion_model], env={
+                    "ESIAF_EMOTION_GUESTS": '["gender"]', "ESIAF_GENDER_MODEL": gender_model})
+                wait_until(lambda: self.client.component("gender"), self.supervisor, "gender to come up",
+                           START_TIMEOUT_S)
+            else:
+                for service, model in (("emotion", emotion_model), ("gender", gender_model)):
+                    self._start(service, ["--model", model])
             self._start("vad", [], env={"ESIAF_VAD_BACKEND": vad_backend})
-            wait_until(lambda: topic_ready(self.client, "vad/speech", 2), self.supervisor,
+            wait_until(lambda: topic_ready(self.client, "vad/speech", 1 if hosted else 2), self.supervisor,
                        "emotion and gender to subscribe to vad/speech", START_TIMEOUT_S)
         except BaseException:
             self.close()
@@ -78,24 +86,31 @@ class EmotionPipeline:
         ready = client_ready or (lambda: self.client.component(name))
         wait_until(ready, self.supervisor, f"{name} to come up", START_TIMEOUT_S, child)
 
-    def cpu_s(self) -> dict[str, float]:
-        """CPU seconds (user + system) each service has used so far."""
+    def _per_service(self, measure) -> dict[str, float]:
         out = {}
         for child in self.supervisor.children:
-            try:
-                times = psutil.Process(child.process.pid).cpu_times()
-                out[child.name] = times.user + times.system
-            except psutil.NoSuchProcess:
-                pass
+            with contextlib.suppress(psutil.NoSuchProcess):
+                out[child.name] = measure(psutil.Process(child.process.pid))
         return out
 
-    def play(self, wav: Path, fast: bool, timeout_s: float = 300.0) -> tuple[list[tuple[int, dict]], int]:
-        """Plays ``wav``; returns [(arrival wall-clock ns, fused result)] until stream end, and its origin."""
+    def rss_mb(self) -> dict[str, float]:
+        """Resident memory (MB) of each service's process now."""
+        return self._per_service(lambda process: process.memory_info().rss / 1e6)
+
+    def cpu_s(self) -> dict[str, float]:
+        """CPU seconds (user + system) each service has used so far."""
+        return self._per_service(lambda process: sum(process.cpu_times()[:2]))
+
+    def play(self, wav: Path, fast: bool, timeout_s: float = 300.0,
+             chunk_ms: float | None = None) -> tuple[list[tuple[int, dict]], int]:
+        """Plays ``wav`` (in ``chunk_ms`` chunks: the grabber's default if None); returns [(arrival
+        wall-clock ns, fused result)] until stream end, and its origin."""
         fused = []
         url = self.url.replace("http", "ws") + f"/ws/fused?stream={self.stream_id}&after_id=0"
         with connect(url, open_timeout=10) as ws:
             self.supervisor.start("grabber", ["--input", str(wav)] + (["--fast"] if fast else []),
-                                  env={"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1"})
+                                  env={"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1"}
+                                  | ({"ESIAF_GRABBER_CHUNK_MS": str(chunk_ms)} if chunk_ms else {}))
             deadline = time.monotonic() + timeout_s
             while True:
                 message = json.loads(ws.recv(timeout=max(1.0, deadline - time.monotonic())))
