@@ -28,7 +28,7 @@ from typing import Any, ClassVar
 import numpy as np
 import zmq
 
-from esiaf import keys
+from esiaf import binding, keys
 from esiaf.audio import Audio
 from esiaf.control import ControlClient, announce_stream
 from esiaf.formats import AudioFormat, encode
@@ -380,7 +380,9 @@ class Component:
         log.info("end of stream stream_id=%s", audio.stream_id)
 
     def _send_results(self, frames: Sequence[bytes]) -> None:
-        if self._wire.send_results(frames):
+        """``[kind, body]``, sent with this registration's key id and MAC (esiaf/binding.py)."""
+        registration = self.control.registration if self.control is not None else None
+        if self._wire.send_results(binding.signed(frames[0], frames[1], registration)):
             self.results_sent += frames[0] == b"result"
         else:
             self.results_dropped += 1

@@ -18,6 +18,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parent.parent  # the repository (tests run from a checkout)
 # ../shared/data beside the repository; ESIAF_SHARED_DATA points elsewhere (e.g. from a git worktree)
@@ -151,6 +152,25 @@ def refused_control(metrics_text: str, *reasons: str) -> float:
     return sum(sample.value for family in text_string_to_metric_families(metrics_text) for sample in family.samples
                if sample.name == "esiaf_refused_control_messages_total"
                and (not reasons or sample.labels["reason"] in reasons))
+
+
+def refused_messages(metrics_text: str, *reasons: str) -> float:
+    """``esiaf_refused_messages_total`` in a ``GET /metrics`` answer: results-plane messages refused
+    for these reasons (``no_key``, ``wrong_key``, ``old_key``, ``wrong_peer_key``...; every reason if none)."""
+    from prometheus_client.parser import text_string_to_metric_families
+    return sum(sample.value for family in text_string_to_metric_families(metrics_text) for sample in family.samples
+               if sample.name == "esiaf_refused_messages_total" and (not reasons or sample.labels["reason"] in reasons))
+
+
+def signed_result(registration: dict[str, Any], result: Any) -> list[bytes]:
+    """The frames of ``result`` (a pb.Result) as the SDK sends it for ``registration`` (the answer of
+    ``POST /components``): named by its instance, with the registration's key id and MAC."""
+    from types import SimpleNamespace
+
+    from esiaf.binding import signed
+    result.instance = registration["component_id"]
+    return signed(b"result", result.SerializeToString(),
+                  SimpleNamespace(key_id=registration["key_id"], control_key=registration["control_key"]))
 
 
 class Orchestrator:

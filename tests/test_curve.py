@@ -22,7 +22,16 @@ from zmq.utils.monitor import recv_monitor_message
 from esiaf import keys
 from esiaf.component import SetupError
 from esiaf.results import make_result
-from esiaf.testing import REPO, Orchestrator, free_port, poll, refused_control, refused_peers
+from esiaf.testing import (
+    REPO,
+    Orchestrator,
+    free_port,
+    poll,
+    refused_control,
+    refused_messages,
+    refused_peers,
+    signed_result,
+)
 from esiaf.transport import Transport
 from tests.test_component import Sink, Source, run_on, start
 
@@ -114,7 +123,7 @@ def test_peers_without_keys_or_with_unknown_keys_are_refused_and_counted(curved,
             sock.connect(registration["results_endpoint"])
             result = make_result("asr", "speech", "s", (10**18, 10**18 + 5), 1,
                                  speech={"hypotheses": [{"text": f"from the {who}", "probability": 1.0}]})
-            sock.send_multipart([b"result", result.SerializeToString()])
+            sock.send_multipart(signed_result(registration, result))
         dealer = context.socket(zmq.DEALER)
         dealer.setsockopt(zmq.LINGER, 0)
         dealer.curve_publickey, dealer.curve_secretkey, dealer.curve_serverkey = rogue_public, rogue_secret, server_key
@@ -162,6 +171,37 @@ def test_a_registration_is_bound_to_the_curve_key_of_its_first_heartbeat(curved,
         context.destroy(linger=0)
 
 
+def test_results_are_bound_to_the_curve_key_of_the_registration(curved, curve_dir):
+    """Issue 13: a result with the right MAC but from another allowed CURVE key than the one the
+    registration is bound to (its first heartbeat's) is refused; the owner's is stored."""
+    registration = curved.http.post("/components", json={"name": "asr", "designation": "speech"}).json()
+    server_key = zmq.auth.load_certificate(curve_dir / "orchestrator.key")[0]
+    context = zmq.Context()
+    try:
+        dealer = context.socket(zmq.DEALER)
+        pushes = {}
+        for name, sock in [("dealer", dealer), *((n, pushes.setdefault(n, context.socket(zmq.PUSH)))
+                                                  for n in ("sink", "source"))]:
+            sock.setsockopt(zmq.LINGER, 0)
+            sock.curve_publickey, sock.curve_secretkey = keys.key_pair(
+                curve_dir / f"{'sink' if name == 'dealer' else name}.key_secret")
+            sock.curve_serverkey = server_key
+            sock.connect(registration["control_endpoint" if name == "dealer" else "results_endpoint"])
+        dealer.send(json.dumps({"type": "heartbeat", "component_id": registration["component_id"],
+                                "control_key": registration["control_key"], "stats": {}}).encode())
+        assert dealer.poll(10_000) and dealer.recv_json()["type"] == "state"  # bound to the sink's key
+        for who in ("source", "sink"):
+            result = make_result("asr", "speech", "s", (10**18, 10**18 + 5), 1,
+                                 speech={"hypotheses": [{"text": f"from the {who}", "probability": 1.0}]})
+            pushes[who].send_multipart(signed_result(registration, result))
+        poll(lambda: refused_messages(curved.http.get("/metrics").text, "wrong_peer_key") == 1, timeout_s=10)
+        texts = poll(lambda: [r["speech"]["hypotheses"][0]["text"] for r in
+                              curved.http.get("/results").json()["items"]], timeout_s=10)
+        assert texts == ["from the sink"]
+    finally:
+        context.destroy(linger=0)
+
+
 def handshake_failed(sock: zmq.Socket) -> zmq.Socket:
     return sock.get_monitor_socket(zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL | zmq.EVENT_HANDSHAKE_FAILED_AUTH
                                    | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL)
@@ -184,7 +224,7 @@ def test_a_new_robots_key_is_let_in_on_sighup_without_a_restart(curved, curve_di
         sock.connect(registration["results_endpoint"])
         result = make_result("asr", "speech", "s", (10**18, 10**18 + 5), 1,
                              speech={"hypotheses": [{"text": text, "probability": 1.0}]})
-        sock.send_multipart([b"result", result.SerializeToString()])
+        sock.send_multipart(signed_result(registration, result))
 
     def reloads() -> list[str]:
         return re.findall(r"event=keys_reloaded dir=\S+ (clients=\d+)", (tmp_path / "orchestrator.log").read_text())
