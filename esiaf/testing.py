@@ -176,14 +176,17 @@ def signed_result(registration: dict[str, Any], result: Any) -> list[bytes]:
 class Orchestrator:
     """The real orchestrator as a process on random loopback ports, with a real SQLite file."""
 
-    def __init__(self, tmp_path: Path, config: dict | None = None, env: dict[str, str] | None = None):
+    def __init__(self, tmp_path: Path, config: dict | None = None, env: dict[str, str] | None = None,
+                 ca: Path | None = None):
         """``config``: orchestrator settings written to a YAML file (fusions, timeouts, ...);
-        ``env``: more environment variables for its process (ESIAF_TOKEN, ESIAF_CURVE_DIR, ...)."""
+        ``env``: more environment variables for its process (ESIAF_TOKEN, ESIAF_CURVE_DIR, ...);
+        ``ca``: with ``tls_cert`` in ``config``, the CA file its certificate is checked against."""
         import httpx
         import yaml
         self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.ws_url = f"ws://127.0.0.1:{self.port}"
+        secure = "s" if config and config.get("tls_cert") else ""
+        self.url = f"http{secure}://127.0.0.1:{self.port}"
+        self.ws_url = f"ws{secure}://127.0.0.1:{self.port}"
         self.db_path = tmp_path / "o.db"
         self.env = env or {}
         self.config_args: list[str] = []
@@ -192,7 +195,10 @@ class Orchestrator:
             config_path.write_text(yaml.safe_dump(config))
             self.config_args = ["--config", str(config_path)]
         self.log = (tmp_path / "orchestrator.log").open("ab")
-        self.http = httpx.Client(base_url=self.url, timeout=5)
+        verify = httpx.create_ssl_context()
+        if ca is not None:
+            verify.load_verify_locations(cafile=str(ca))
+        self.http = httpx.Client(base_url=self.url, timeout=5, verify=verify)
         self.process: subprocess.Popen  # start() makes it
         self.start()
 
