@@ -12,7 +12,7 @@ from .settings import FusionSettings
 if TYPE_CHECKING:
     from .ingest import Ingest
 
-log = logging.getLogger("services.orchestrator.ingest")  # its log lines, as before the split
+log = logging.getLogger(f"{__package__}.ingest")  # its log lines, as before the split
 
 
 def restore(ingest: Ingest) -> None:

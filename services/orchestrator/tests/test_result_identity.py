@@ -7,6 +7,8 @@ the orchestrator is still recognised (the key is derived from a secret kept in t
 from __future__ import annotations
 
 import json
+import logging
+import re
 import time
 from types import SimpleNamespace
 
@@ -155,3 +157,15 @@ def test_messages_without_a_key_are_refused_before_anything_is_stored(orch, comp
     counters = orch.core.ingest.counters
     assert counters["refused_no_key"] == 1 and counters["refused_bad_key"] == 1
     assert pb.Result.FromString(speech("asr", asr.id, "s", 1, "x")).instance == asr.id
+
+
+def test_refusals_are_logged_the_first_and_every_100th(orch, component, http, caplog):
+    asr = component("asr", designation="speech", inputs=["vad/speech"])
+    caplog.set_level(logging.WARNING, logger="services.orchestrator.ingest")
+    for i in range(250):
+        asr.push.send_multipart([b"result", speech("asr", asr.id, "s", i, "no key")])
+    asr.send_result(stream_id="marker")  # after them on the same socket
+    wait_until(lambda: stored_texts(http, "marker"), what="the marker")
+    lines = [r.getMessage() for r in caplog.records if "reason=no_key" in r.getMessage()]
+    assert [re.search(r"count=(\d+)", line).group(1) for line in lines] == ["1", "100", "200"]
+    assert "control_key" not in " ".join(lines) and asr.registration["control_key"] not in caplog.text
