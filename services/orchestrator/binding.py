@@ -32,12 +32,13 @@ def refusal(registry: Registry, frames: list[bytes], component_id: str, peer_key
     if not 0 < len(key_id) <= MAX_KEY_ID_BYTES or len(tag) != MAC_BYTES or not key_id.isascii():
         return "bad_key"
     component = registry.get(component_id) or registry.departed.get(component_id)
-    derived = derive_key(registry.secret, component_id, key_id.decode())
-    if component is None:
-        return None if hmac.compare_digest(mac(derived, kind, body), tag) else "wrong_key"
-    if not hmac.compare_digest(key_id, component.key_id.encode()):
+    if component is None or not hmac.compare_digest(key_id, component.key_id.encode()):
+        derived = derive_key(registry.secret, component_id, key_id.decode())
+        proven = hmac.compare_digest(mac(derived, kind, body), tag)
+        if component is None:
+            return None if proven else "wrong_key"
         # a registration of this id that we gave, but not its current one: it registered again since
-        return "old_key" if hmac.compare_digest(mac(derived, kind, body), tag) else "wrong_key"
+        return "old_key" if proven else "wrong_key"
     if not hmac.compare_digest(mac(component.control_key, kind, body), tag):
         return "wrong_key"
     if peer_key is not None:

@@ -81,7 +81,7 @@ class Ingest:
         self._arm_timer()  # fusions restored from the database may be due
         while True:
             try:
-                batch = [await self.socket.recv_multipart(copy=False)]
+                batch: list[Any] = [await self.socket.recv_multipart(copy=not self.bind_peer_key)]
             except zmq.Again:  # libzmq may signal a message that is not there (seen with heartbeats)
                 self.counters["spurious_wakeups"] += 1
                 if self.counters["spurious_wakeups"] in (1, 100, 10_000):
@@ -89,12 +89,14 @@ class Ingest:
                 continue
             while len(batch) < MAX_BATCH and cast(int, self.socket.get(zmq.EVENTS)) & zmq.POLLIN:
                 try:
-                    batch.append(cast("asyncio.Future[list[zmq.Frame]]",
-                                      self.socket.recv_multipart(zmq.NOBLOCK, copy=False)).result())
+                    batch.append(cast("asyncio.Future[list[Any]]", self.socket.recv_multipart(
+                        zmq.NOBLOCK, copy=not self.bind_peer_key)).result())
                 except zmq.Again:
                     break
-            self.handle_batch([[f.bytes for f in frames] for frames in batch],
-                              [peer_key(frames) if self.bind_peer_key else None for frames in batch])
+            if self.bind_peer_key:  # CURVE: frames (copy=False) carry their peer's public key
+                self.handle_batch([[f.bytes for f in frames] for frames in batch], [peer_key(f) for f in batch])
+            else:
+                self.handle_batch(batch)
 
     def handle_batch(self, batch: list[list[bytes]], peer_keys: list[str | None] | None = None) -> None:
         """``peer_keys``: with CURVE, the public key each message came with."""
