@@ -35,7 +35,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from esiaf.results import make_result, ssl_direction  # noqa: E402
-from esiaf.tools.testing import Orchestrator, poll  # noqa: E402
+from esiaf.tools.testing import Orchestrator, poll, signed_result  # noqa: E402
 from esiaf_services.orchestrator.latency import percentile  # noqa: E402
 
 S = 1_000_000_000
@@ -47,16 +47,18 @@ CONFIG = {"heartbeat_interval_s": 600.0, "dead_after_s": 3600.0, "timeouts": {"i
 FMT = {"sample_rate_hz": 16000, "sample_type": "int16", "endianness": "little", "channels": 1}
 
 
-def register(orchestrator: Orchestrator, streams: int) -> str:
-    endpoint = ""
+def register(orchestrator: Orchestrator, streams: int) -> tuple[str, dict[str, dict]]:
+    """The results endpoint, and each component's registration (its results are signed with it)."""
+    endpoint, registrations = "", {}
     for i in range(streams):
         for name, designation in (("asr", "speech"), ("ssl", "ssl"), ("emotion", "emotion")):
             response = orchestrator.http.post("/components", json={
                 "name": f"{name}-{i}", "designation": designation, "stream_id": f"s{i}",
                 "inputs": [{"topic": f"in/{i}", "format": FMT}]})
             response.raise_for_status()
+            registrations[f"{name}-{i}"] = response.json()
             endpoint = response.json()["results_endpoint"]
-    return endpoint
+    return endpoint, registrations
 
 
 class Receiver(threading.Thread):
@@ -84,7 +86,7 @@ def overhead_run(streams: int, utterances: int) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as tmp:
         orchestrator = Orchestrator(Path(tmp), CONFIG)
         try:
-            endpoint = register(orchestrator, streams)
+            endpoint, registrations = register(orchestrator, streams)
             ctx = zmq.Context()
             push = ctx.socket(zmq.PUSH)
             push.setsockopt(zmq.LINGER, 0)
@@ -109,19 +111,17 @@ def overhead_run(streams: int, utterances: int) -> dict[str, float]:
                     chunk = UTTERANCE_NS // CHUNKS
                     for c in range(CHUNKS):
                         sequence += 1
-                        push.send_multipart([b"result", make_result(
+                        push.send_multipart(signed_result(registrations[f"ssl-{i}"], make_result(
                             f"ssl-{i}", "ssl", stream, (begin + c * chunk, begin + (c + 1) * chunk),
-                            sequence, ssl={"directions": [ssl_direction(30.0 * c)]}
-                        ).SerializeToString()])
-                    push.send_multipart([b"result", make_result(
+                            sequence, ssl={"directions": [ssl_direction(30.0 * c)]})))
+                    push.send_multipart(signed_result(registrations[f"asr-{i}"], make_result(
                         f"asr-{i}", "speech", stream, (begin, end), sequence,
-                        speech={"hypotheses": [{"text": "hello", "probability": 0.9}]}
-                    ).SerializeToString()])
-                    last = make_result(f"emotion-{i}", "emotion", stream, (begin, end), sequence,
-                                       emotion={"label": "happy", "probability": 0.8}
-                                       ).SerializeToString()
+                        speech={"hypotheses": [{"text": "hello", "probability": 0.9}]})))
+                    last = signed_result(registrations[f"emotion-{i}"], make_result(
+                        f"emotion-{i}", "emotion", stream, (begin, end), sequence,
+                        emotion={"label": "happy", "probability": 0.8}))
                     sent[(stream, begin)] = time.time_ns()
-                    push.send_multipart([b"result", last])
+                    push.send_multipart(last)
             poll(lambda: len(receiver.arrived) >= len(sent), timeout_s=60)
             stats = orchestrator.http.get("/fusions/stats").json()
             receiver.ws.close()
@@ -142,7 +142,7 @@ def timeout_run(fusions: int) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as tmp:
         orchestrator = Orchestrator(Path(tmp), {**CONFIG, "timeouts": {"initial_s": 0.2}})
         try:
-            endpoint = register(orchestrator, 1)
+            endpoint, registrations = register(orchestrator, 1)
             ctx = zmq.Context()
             push = ctx.socket(zmq.PUSH)
             push.setsockopt(zmq.LINGER, 0)
@@ -153,9 +153,8 @@ def timeout_run(fusions: int) -> dict[str, float]:
                 for name, type_name, payload in (
                         ("ssl-0", "ssl", {"ssl": {"directions": [ssl_direction(90.0)]}}),
                         ("asr-0", "speech", {"speech": {"hypotheses": []}})):
-                    push.send_multipart([b"result", make_result(
-                        name, type_name, "s0", (end - window_ns, end), n + 1, **payload
-                    ).SerializeToString()])
+                    push.send_multipart(signed_result(registrations[name], make_result(
+                        name, type_name, "s0", (end - window_ns, end), n + 1, **payload)))
                 time.sleep(window_ns / 1e9)
             stats = poll(lambda: (s := orchestrator.http.get("/fusions/stats").json())
                          ["timed_out_samples"] >= fusions and s, timeout_s=30)
@@ -171,7 +170,7 @@ def ingest_run(count: int, streams: int = 100) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as tmp:
         orchestrator = Orchestrator(Path(tmp), CONFIG)
         try:
-            endpoint = register(orchestrator, streams)
+            endpoint, registrations = register(orchestrator, streams)
             ctx = zmq.Context()
             push = ctx.socket(zmq.PUSH)
             push.setsockopt(zmq.LINGER, 0)
@@ -179,13 +178,13 @@ def ingest_run(count: int, streams: int = 100) -> dict[str, float]:
             push.connect(endpoint)
             base = time.time_ns() - 3600 * S
             chunk = UTTERANCE_NS // CHUNKS
-            messages = [make_result(f"ssl-{n % streams}", "ssl", f"s{n % streams}",
-                                    (base + (n // streams) * chunk, base + (n // streams + 1) * chunk),
-                                    n + 1, ssl={"directions": [ssl_direction(float(n % 360))]}
-                                    ).SerializeToString() for n in range(count)]
+            messages = [signed_result(registrations[f"ssl-{n % streams}"], make_result(
+                f"ssl-{n % streams}", "ssl", f"s{n % streams}",
+                (base + (n // streams) * chunk, base + (n // streams + 1) * chunk),
+                n + 1, ssl={"directions": [ssl_direction(float(n % 360))]})) for n in range(count)]
             started = time.monotonic()
             for message in messages:
-                push.send_multipart([b"result", message])
+                push.send_multipart(message)
             poll(lambda: orchestrator.http.get("/fusions/stats").json()["counters"].get("results", 0)
                  >= count, timeout_s=120, interval_s=0.01)
             elapsed = time.monotonic() - started

@@ -40,7 +40,8 @@ class OrchestratorHTTP:
     def __init__(self, url: str, timeout_s: float = 5.0) -> None:
         self.url = url.rstrip("/")
         self.attempts = 0  # of the last request()
-        self._client = httpx.Client(base_url=self.url, timeout=timeout_s, headers=auth.headers())
+        self._client = httpx.Client(base_url=self.url, timeout=timeout_s, headers=auth.headers(),
+                                    verify=auth.tls_context() if self.url.startswith("https:") else True)
 
     def __enter__(self) -> OrchestratorHTTP:
         return self

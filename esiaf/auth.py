@@ -4,19 +4,24 @@ It comes from ``ESIAF_TOKEN``, or from the file ``ESIAF_TOKEN_FILE`` names (a Do
 with neither, no token is sent and an orchestrator without a token accepts that. ``esiaf run``
 makes a new one per run (``<workdir>/token``) and hands it to every service it starts.
 On ZeroMQ the token is a PLAIN password, in clear text: across hosts, CURVE keys (esiaf/keys.py)
-take its place.
+take its place. Over HTTPS (the orchestrator's ``tls_cert``) clients check its certificate against
+the system's CAs, or the CA file ``ESIAF_TLS_CA`` names (a private CA, a self-signed certificate).
 """
 from __future__ import annotations
 
 import os
 import secrets
 from pathlib import Path
+from typing import Any
+
+import httpx
 
 from esiaf.keys import Curve
 
 TOKEN_ENV = "ESIAF_TOKEN"
 TOKEN_FILE_ENV = "ESIAF_TOKEN_FILE"
 ZMQ_USER = "esiaf"  # the ZAP PLAIN user name; the token is the password
+TLS_CA_ENV = "ESIAF_TLS_CA"
 
 
 class TokenError(Exception):
@@ -35,6 +40,20 @@ def token() -> str:
         return Path(path).read_text().strip()
     except OSError as exc:
         raise TokenError(f"cannot read the token file {path} ({TOKEN_FILE_ENV}): {exc.strerror}") from None
+
+
+def tls_context() -> Any:
+    """An ``ssl.SSLContext`` (not named: for mypy, bench/ssl.py is ``ssl``) that checks the
+    orchestrator's HTTPS certificate against ``ESIAF_TLS_CA`` if set, else the system's CAs. A CA
+    file that cannot be read is a TokenError, one line."""
+    context = httpx.create_ssl_context()
+    cafile = os.environ.get(TLS_CA_ENV, "").strip()
+    if cafile:
+        try:
+            context.load_verify_locations(cafile=cafile)
+        except OSError as exc:  # ssl.SSLError is one
+            raise TokenError(f"cannot read the CA file {cafile} ({TLS_CA_ENV}): {exc.strerror or exc}") from None
+    return context
 
 
 def headers() -> dict[str, str]:

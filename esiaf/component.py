@@ -21,14 +21,14 @@ import socket
 import threading
 import time
 import uuid
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import asdict
 from typing import Any, ClassVar
 
 import numpy as np
 import zmq
 
-from esiaf import keys
+from esiaf import binding, keys
 from esiaf.audio import Audio
 from esiaf.control import ControlClient, announce_stream
 from esiaf.formats import AudioFormat, encode
@@ -193,7 +193,7 @@ class Component:
         result = make_result(self.settings.name, result_type, stream_id or self.settings.stream_id, span,
                              self._result_sequence, **payload)
         result.instance = self.instance_id
-        self._send_results([b"result", result.SerializeToString()])
+        self._send_results(b"result", result.SerializeToString())
         return result
 
     def clock_ns(self) -> int:  # this host's wall clock, ns since the epoch: what capture times are stamped with
@@ -271,6 +271,7 @@ class Component:
             return
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda signum, frame: self.stop())
+        signal.signal(signal.SIGHUP, lambda *_: self._transport.reload_keys_soon() if self._transport else None)
 
     def _registration_request(self) -> dict[str, Any]:
         def topics(declared: dict[str, AudioFormat]) -> list[dict[str, Any]]:
@@ -377,12 +378,12 @@ class Component:
         self.on_end_of_stream(audio.stream_id, audio)
         notice = {"component_id": self.control.component_id if self.control else "",
                   "component": self.settings.name, "stream_id": audio.stream_id}
-        self._send_results([b"end_of_stream", json.dumps(notice).encode()])
+        self._send_results(b"end_of_stream", json.dumps(notice).encode())
         log.info("end of stream stream_id=%s", audio.stream_id)
 
-    def _send_results(self, frames: Sequence[bytes]) -> None:
-        if self._wire.send_results(frames):
-            self.results_sent += frames[0] == b"result"
+    def _send_results(self, kind: bytes, body: bytes) -> None:  # signed: esiaf/binding.py
+        if self._wire.send_results(binding.signed(kind, body, self.control.registration if self.control else None)):
+            self.results_sent += kind == b"result"
         else:
             self.results_dropped += 1
             log.error("result dropped: orchestrator not taking results dropped=%d", self.results_dropped)

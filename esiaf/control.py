@@ -62,6 +62,7 @@ class Registration:
     heartbeat_interval_s: float
     dead_after_s: float
     control_key: str = ""  # this registration's control secret: every control message carries it
+    key_id: str = ""  # names this registration: results carry it with a MAC keyed with control_key
     peers: dict[str, list[str]] = field(default_factory=dict)
     formats: dict[str, dict[str, Any]] = field(default_factory=dict)
     peer_keys: dict[str, str] = field(default_factory=dict)  # producer endpoint -> its CURVE public key

@@ -13,21 +13,28 @@ orchestrator loads ``orchestrator.key_secret``, a component its key pair ``ESIAF
 producer's audio output) accepts only the keys in ``DIR/clients/``. ``esiaf.auth.secure_socket``
 makes a CURVE client of a socket, :func:`server` a server. A missing, unreadable or wrong key file
 is a :class:`KeyFileError` with one line, at start-up. Existing files are never overwritten: run
-again with new names to add components (then restart the servers: they read ``clients/`` once).
+again with new names to add components, and copy their ``NAME.key`` into the ``clients/`` of every
+process that is to let them in; SIGHUP makes a process read its ``clients/`` again
+(:func:`reload_clients`: the orchestrator's sockets, a producer's audio output, the producers a
+consumer connects to), no restart needed.
 """
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import shutil
 import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import zmq
 import zmq.auth
 from zmq.utils import z85
+
+log = logging.getLogger(__name__)
 
 CURVE_DIR_ENV = "ESIAF_CURVE_DIR"
 CURVE_KEY_ENV = "ESIAF_CURVE_KEY"
@@ -114,6 +121,24 @@ def load(orchestrator: bool, env: Mapping[str, str] = os.environ) -> Curve | Non
     public, secret = key_pair(root / f"{name}.key_secret")
     server_key = public if orchestrator else _read(root / f"{ORCHESTRATOR}.key")[0]
     return Curve(public, secret, server_key, root / CLIENTS, allowed_clients(root / CLIENTS))
+
+
+def reload_clients(curve: Curve | None, authenticator: Any = None) -> frozenset[bytes] | None:
+    """Reads the allowed client keys (``curve.clients_dir``) again, on SIGHUP, and gives them to
+    ``authenticator`` (a pyzmq ZAP handler, if this process serves any socket): the new set, or None
+    without CURVE keys or if a key file cannot be read (logged, never fatal: the old set stays)."""
+    if curve is None:
+        log.info("event=keys_not_reloaded reason=no CURVE keys (ESIAF_CURVE_DIR) in use")
+        return None
+    try:
+        allowed = allowed_clients(curve.clients_dir)
+        if authenticator is not None:
+            authenticator.configure_curve(domain="*", location=str(curve.clients_dir))
+    except (OSError, ValueError, KeyFileError) as exc:
+        log.error("event=keys_not_reloaded dir=%s reason=%s", curve.clients_dir, exc)
+        return None
+    log.info("event=keys_reloaded dir=%s clients=%d", curve.clients_dir, len(allowed))
+    return allowed
 
 
 def server(socket: zmq.Socket, curve: Curve) -> None:

@@ -10,6 +10,7 @@ With CURVE keys (``ESIAF_CURVE_DIR``, esiaf/keys.py) the XPUB is a CURVE server 
 allowed client keys, the SUB connects to each producer with the public key the orchestrator gave
 with its endpoint (an allowed key, or no connection), and the PUSH to the orchestrator's key;
 without, the PUSH presents the token (PLAIN) and audio is open to anyone who reaches the port.
+The allowed keys are read again on SIGHUP (:meth:`Transport.reload_keys_soon`, keys.reload_clients).
 
 One thread uses a Transport: the component's data thread.
 """
@@ -96,6 +97,8 @@ class Transport:
     def __init__(self, context: zmq.Context, *, inputs: Iterable[str], has_outputs: bool,
                  bind_host: str, audio_port: int = 0, advertise_host: str = "", curve: keys.Curve | None = None):
         self._curve = curve
+        self._clients = curve.clients if curve is not None else frozenset()  # SIGHUP reads them again
+        self._reload = False  # SIGHUP came: read the allowed keys again at the next poll
         self._authenticator: ThreadAuthenticator | None = None
         self._refusals: zmq.Socket | None = None  # the XPUB's monitor: subscribers refused at the handshake
         self._poller = zmq.Poller()
@@ -177,6 +180,8 @@ class Transport:
         while ready:
             if ready.pop(self._wake_read, None):
                 self._drain_wake()
+                if self._reload:
+                    self._reload_keys()
             # libzmq may say a socket is readable when it is not: each is read without blocking
             if self.state in ready and (frame := _take(self.state)) is not None:
                 yield "state", json.loads(frame)
@@ -191,6 +196,18 @@ class Transport:
             ready = dict(self._poller.poll(timeout=0))
             if not take_audio:
                 ready.pop(self.sub, None)
+
+    def reload_keys_soon(self) -> None:
+        """SIGHUP: the allowed client keys are read again at the next poll, on the data thread
+        (which owns the ZAP handler's pipe); safe from a signal handler."""
+        self._reload = True
+        self.wake()
+
+    def _reload_keys(self) -> None:
+        self._reload = False
+        allowed = keys.reload_clients(self._curve, self._authenticator)
+        if allowed is not None:
+            self._clients = allowed
 
     def wake(self) -> None:
         """Ends a wait in :meth:`events` now (safe from any thread and from signal handlers)."""
@@ -257,7 +274,7 @@ class Transport:
                 if not valid_endpoint(endpoint):
                     raise ValueError("tcp://HOST:PORT expected")
                 if self._curve is not None:
-                    self._secure_input(self.sub, self._curve,
+                    self._secure_input(self.sub, self._curve, self._clients,
                                        peer_keys.get(endpoint) if isinstance(peer_keys, dict) else None)
                 self.sub.connect(endpoint)
             except (ValueError, zmq.ZMQError) as exc:  # what a peer registered is never fatal here
@@ -273,9 +290,9 @@ class Transport:
         self._drop_departed()
 
     @staticmethod
-    def _secure_input(sub: zmq.Socket, curve: keys.Curve, key: object) -> None:
+    def _secure_input(sub: zmq.Socket, curve: keys.Curve, clients: frozenset[bytes], key: object) -> None:
         """Sets the server key of the next connect: libzmq takes the options at each connect."""
-        if not isinstance(key, str) or key.encode() not in curve.clients:
+        if not isinstance(key, str) or key.encode() not in clients:
             raise ValueError(f"its CURVE public key {str(key)[:40]!r} is not one of those in {curve.clients_dir}")
         auth.secure_socket(sub, curve, key.encode())
 

@@ -92,6 +92,7 @@ def test_esiaf_run_makes_a_token_and_its_services_use_it(launch):
 
 def test_results_and_control_sockets_take_only_peers_with_the_token(secured):
     from esiaf.results import make_result
+    from esiaf.tools.testing import signed_result
     registration = httpx.post(f"{secured}/components", json=BODY, headers=AUTH).json()
     forged = make_result("asr", "speech", "s", (10**18, 10**18 + 5), 1, speech={"hypotheses": [
         {"text": "open the front door and disable the alarm", "probability": 1.0}]})
@@ -105,7 +106,7 @@ def test_results_and_control_sockets_take_only_peers_with_the_token(secured):
             sock.setsockopt(zmq.LINGER, 0)
             sock.connect(registration["results_endpoint"])
         stranger.send_multipart([b"result", forged.SerializeToString()])
-        member.send_multipart([b"result", genuine.SerializeToString()])
+        member.send_multipart(signed_result(registration, genuine))
         poll(lambda: httpx.get(f"{secured}/results", headers=AUTH).json()["items"], timeout_s=10)
         # the stranger's handshake was refused (and counted), so its result can never arrive
         poll(lambda: refused_peers(httpx.get(f"{secured}/metrics", headers=AUTH).text, "results"), timeout_s=10)

@@ -22,7 +22,16 @@ from zmq.utils.monitor import recv_monitor_message
 from esiaf import keys
 from esiaf.component import SetupError
 from esiaf.results import make_result
-from esiaf.tools.testing import REPO, Orchestrator, free_port, poll, refused_control, refused_peers
+from esiaf.tools.testing import (
+    REPO,
+    Orchestrator,
+    free_port,
+    poll,
+    refused_control,
+    refused_messages,
+    refused_peers,
+    signed_result,
+)
 from esiaf.transport import Transport
 from tests.test_component import Sink, Source, run_on, start
 
@@ -114,7 +123,7 @@ def test_peers_without_keys_or_with_unknown_keys_are_refused_and_counted(curved,
             sock.connect(registration["results_endpoint"])
             result = make_result("asr", "speech", "s", (10**18, 10**18 + 5), 1,
                                  speech={"hypotheses": [{"text": f"from the {who}", "probability": 1.0}]})
-            sock.send_multipart([b"result", result.SerializeToString()])
+            sock.send_multipart(signed_result(registration, result))
         dealer = context.socket(zmq.DEALER)
         dealer.setsockopt(zmq.LINGER, 0)
         dealer.curve_publickey, dealer.curve_secretkey, dealer.curve_serverkey = rogue_public, rogue_secret, server_key
@@ -162,6 +171,37 @@ def test_a_registration_is_bound_to_the_curve_key_of_its_first_heartbeat(curved,
         context.destroy(linger=0)
 
 
+def test_results_are_bound_to_the_curve_key_of_the_registration(curved, curve_dir):
+    """Issue 13: a result with the right MAC but from another allowed CURVE key than the one the
+    registration is bound to (its first heartbeat's) is refused; the owner's is stored."""
+    registration = curved.http.post("/components", json={"name": "asr", "designation": "speech"}).json()
+    server_key = zmq.auth.load_certificate(curve_dir / "orchestrator.key")[0]
+    context = zmq.Context()
+    try:
+        dealer = context.socket(zmq.DEALER)
+        pushes = {}
+        for name, sock in [("dealer", dealer), *((n, pushes.setdefault(n, context.socket(zmq.PUSH)))
+                                                  for n in ("sink", "source"))]:
+            sock.setsockopt(zmq.LINGER, 0)
+            sock.curve_publickey, sock.curve_secretkey = keys.key_pair(
+                curve_dir / f"{'sink' if name == 'dealer' else name}.key_secret")
+            sock.curve_serverkey = server_key
+            sock.connect(registration["control_endpoint" if name == "dealer" else "results_endpoint"])
+        dealer.send(json.dumps({"type": "heartbeat", "component_id": registration["component_id"],
+                                "control_key": registration["control_key"], "stats": {}}).encode())
+        assert dealer.poll(10_000) and dealer.recv_json()["type"] == "state"  # bound to the sink's key
+        for who in ("source", "sink"):
+            result = make_result("asr", "speech", "s", (10**18, 10**18 + 5), 1,
+                                 speech={"hypotheses": [{"text": f"from the {who}", "probability": 1.0}]})
+            pushes[who].send_multipart(signed_result(registration, result))
+        poll(lambda: refused_messages(curved.http.get("/metrics").text, "wrong_peer_key") == 1, timeout_s=10)
+        texts = poll(lambda: [r["speech"]["hypotheses"][0]["text"] for r in
+                              curved.http.get("/results").json()["items"]], timeout_s=10)
+        assert texts == ["from the sink"]
+    finally:
+        context.destroy(linger=0)
+
+
 def handshake_failed(sock: zmq.Socket) -> zmq.Socket:
     return sock.get_monitor_socket(zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL | zmq.EVENT_HANDSHAKE_FAILED_AUTH
                                    | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL)
@@ -184,7 +224,7 @@ def test_a_new_robots_key_is_let_in_on_sighup_without_a_restart(curved, curve_di
         sock.connect(registration["results_endpoint"])
         result = make_result("asr", "speech", "s", (10**18, 10**18 + 5), 1,
                              speech={"hypotheses": [{"text": text, "probability": 1.0}]})
-        sock.send_multipart([b"result", result.SerializeToString()])
+        sock.send_multipart(signed_result(registration, result))
 
     def reloads() -> list[str]:
         return re.findall(r"event=keys_reloaded dir=\S+ (clients=\d+)", (tmp_path / "orchestrator.log").read_text())
@@ -213,6 +253,62 @@ def test_a_new_robots_key_is_let_in_on_sighup_without_a_restart(curved, curve_di
         assert "withdrawn" not in texts()
     finally:
         context.destroy(linger=0)
+
+
+PRODUCER = """
+import logging, sys
+logging.basicConfig(level=logging.INFO)
+from tests.test_component import Source
+sys.exit(Source(Source.Settings(name="source", orchestrator_url=sys.argv[1])).run())
+"""
+
+
+def test_a_producers_audio_output_lets_a_new_key_in_on_sighup(curved, curve_dir, tmp_path):
+    """A producer's audio output (a CURVE server) reads clients/ again on SIGHUP, as the
+    orchestrator does: a new consumer's key is let in, a withdrawn one kept out, no restart."""
+    assert make_keys(tmp_path / "later", "robot2").returncode == 0  # made on the new robot, not yet allowed
+    pair = keys.key_pair(tmp_path / "later" / "robot2.key_secret")
+    log = tmp_path / "source.log"
+    with open(log, "w") as out:
+        process = subprocess.Popen([sys.executable, "-c", PRODUCER, curved.url], cwd=REPO, stdout=out,
+                                   stderr=subprocess.STDOUT,
+                                   env={**os.environ, "PYTHONPATH": str(REPO), keys.CURVE_KEY_ENV: "source"})
+    context = zmq.Context()
+
+    def subscribe() -> str:  # a new connection each time: keys are checked at the handshake
+        sock = context.socket(zmq.SUB)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.curve_publickey, sock.curve_secretkey = pair
+        sock.curve_serverkey = registered["audio_public_key"].encode()
+        monitor = sock.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED | sum(keys.HANDSHAKE_FAILURES))
+        sock.connect(registered["audio_endpoint"])
+        try:
+            assert monitor.poll(10_000), "no handshake"
+            return "in" if recv_monitor_message(monitor)["event"] == zmq.EVENT_HANDSHAKE_SUCCEEDED else "refused"
+        finally:
+            monitor.close(linger=0)
+            sock.close(linger=0)
+
+    def reloads() -> list[str]:
+        return re.findall(r"event=keys_reloaded dir=\S+ (clients=\d+)", log.read_text())
+
+    try:
+        registered = poll(lambda: curved.component("source"), timeout_s=30)
+        assert subscribe() == "refused"
+        shutil.copyfile(tmp_path / "later" / "robot2.key", curve_dir / "clients" / "robot2.key")
+        assert subscribe() == "refused"  # copied, not yet reloaded
+        os.kill(process.pid, signal.SIGHUP)
+        poll(lambda: reloads() == ["clients=3"], timeout_s=10)  # source, sink, robot2
+        assert subscribe() == "in"
+        assert process.poll() is None  # SIGHUP does not end it
+        (curve_dir / "clients" / "robot2.key").unlink()  # withdrawn again
+        os.kill(process.pid, signal.SIGHUP)
+        poll(lambda: reloads() == ["clients=3", "clients=2"], timeout_s=10)
+        assert subscribe() == "refused"
+    finally:
+        context.destroy(linger=0)
+        process.terminate()
+        process.wait(timeout=20)
 
 
 def test_audio_goes_only_between_allowed_keys(curve_dir):
@@ -258,6 +354,26 @@ def test_a_consumer_connects_only_to_producers_with_an_allowed_key(curve_dir):
         unknown = zmq.curve_keypair()[0].decode()
         wanted = {"tcp://127.0.0.1:1": allowed, "tcp://127.0.0.1:2": unknown}
         consumer.connect_peers(set(wanted) | {"tcp://127.0.0.1:3"}, wanted)  # :3 gave no key
+        assert consumer._connected == {"tcp://127.0.0.1:1"}
+    finally:
+        consumer.close()
+        context.term()
+
+
+def test_a_consumer_connects_to_a_new_producers_key_after_sighup(curve_dir, tmp_path):
+    assert make_keys(tmp_path / "later", "robot2").returncode == 0
+    new_key = zmq.auth.load_certificate(tmp_path / "later" / "robot2.key")[0].decode()
+    sink_keys = keys.load(False, {keys.CURVE_DIR_ENV: str(curve_dir), keys.CURVE_KEY_ENV: "sink"})
+    context = zmq.Context()
+    consumer = Transport(context, inputs=["source/audio"], has_outputs=False, bind_host="127.0.0.1", curve=sink_keys)
+    try:
+        wanted = {"tcp://127.0.0.1:1": new_key}
+        consumer.connect_peers(set(wanted), wanted)
+        assert consumer._connected == set()  # not an allowed key yet
+        shutil.copyfile(tmp_path / "later" / "robot2.key", curve_dir / "clients" / "robot2.key")
+        consumer.reload_keys_soon()  # what its SIGHUP handler does; the data thread reads them at its next poll
+        list(consumer.events(100))
+        consumer.connect_peers(set(wanted), wanted)
         assert consumer._connected == {"tcp://127.0.0.1:1"}
     finally:
         consumer.close()

@@ -11,8 +11,9 @@ import zmq
 from test_component import run_on
 from test_hostile_input import forged, pair  # noqa: F401  (pair is a fixture)
 
+from esiaf.proto import esiaf_pb2 as pb
 from esiaf.results import make_result
-from esiaf.tools.testing import poll
+from esiaf.tools.testing import poll, signed_result
 from esiaf.transport import topic_frame
 
 SEED = 20261123
@@ -37,9 +38,9 @@ def mutate(rng: random.Random, data: bytes) -> bytes:
     return bytes(raw) * rng.randrange(2, 5)
 
 
-def valid_result(i: int, stream: str = "fuzz") -> bytes:
+def valid_result(i: int, stream: str = "fuzz") -> pb.Result:
     return make_result("asr", "speech", stream, (BASE_NS + i * 10**9, BASE_NS + i * 10**9 + 5), i,
-                       speech={"hypotheses": [{"text": f"valid {i}", "probability": 0.5}]}).SerializeToString()
+                       speech={"hypotheses": [{"text": f"valid {i}", "probability": 0.5}]})
 
 
 def test_results_and_control_sockets_survive_10000_fuzzed_frames(orchestrator):
@@ -56,11 +57,11 @@ def test_results_and_control_sockets_survive_10000_fuzzed_frames(orchestrator):
     heartbeat = json.dumps({"type": "heartbeat", "component_id": registration["component_id"],
                             "control_key": registration["control_key"], "stats": {}}).encode()
     try:
-        template = valid_result(0, stream="mutant")  # its mutants that still parse are not counted
+        template = valid_result(0, stream="mutant").SerializeToString()  # its mutants that still parse are not counted
         for n in range(10_000):
             if n % 20 == 0:
                 valid_sent += 1
-                push.send_multipart([b"result", valid_result(valid_sent)])
+                push.send_multipart(signed_result(registration, valid_result(valid_sent)))
             kind = rng.choice([b"result", b"end_of_stream", b"", rng.randbytes(4)])
             frames = [kind, mutate(rng, template)] + [rng.randbytes(3)] * rng.choice([0, 0, 0, 1])
             push.send_multipart(frames)

@@ -12,7 +12,7 @@ import pytest
 import zmq
 
 from esiaf.results import make_result
-from esiaf.tools.testing import REPO, Orchestrator, poll
+from esiaf.tools.testing import REPO, Orchestrator, poll, signed_result
 
 BASE_NS = 1_763_720_000_000_000_000
 
@@ -33,7 +33,7 @@ def small_disk(tmp_path):
 class Pusher:
     def __init__(self, orchestrator):
         body = {"name": "asr", "designation": "speech"}
-        registration = orchestrator.http.post("/components", json=body).json()
+        registration = self.registration = orchestrator.http.post("/components", json=body).json()
         self.context = zmq.Context()
         self.push = self.context.socket(zmq.PUSH)
         self.push.setsockopt(zmq.LINGER, 0)
@@ -45,7 +45,7 @@ class Pusher:
             self.sent += 1
             result = make_result("asr", "speech", "s", (BASE_NS + self.sent * 10**9, BASE_NS + self.sent * 10**9 + 5),
                                  self.sent, speech={"hypotheses": [{"text": text, "probability": 0.5}]})
-            self.push.send_multipart([b"result", result.SerializeToString()])
+            self.push.send_multipart(signed_result(self.registration, result))
 
     def close(self):
         self.push.close()

@@ -22,7 +22,9 @@ class FusedFeed:
     def __init__(self, url: str) -> None:
         self.url = url
         self.last_seq: int | None = None
-        self.ws: ClientConnection | None = connect(url, open_timeout=10, additional_headers=auth.headers())
+        self.ssl = auth.tls_context() if url.startswith("wss:") else None  # ws://: none
+        self.ws: ClientConnection | None = connect(url, open_timeout=10, additional_headers=auth.headers(),
+                                                   ssl=self.ssl)
 
     def __enter__(self) -> FusedFeed:
         return self
@@ -36,7 +38,7 @@ class FusedFeed:
             after = f"after_seq={self.last_seq}" if self.last_seq is not None else ""
             url = self.url + ("&" if "?" in self.url else "?") + after if after else self.url
             try:
-                self.ws = connect(url, open_timeout=timeout, additional_headers=auth.headers())
+                self.ws = connect(url, open_timeout=timeout, additional_headers=auth.headers(), ssl=self.ssl)
             except (OSError, TimeoutError, WebSocketException) as exc:  # not back yet, or going away again
                 log.debug("websocket not reconnected: %s: %s", type(exc).__name__, exc)
                 time.sleep(timeout)

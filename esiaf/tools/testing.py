@@ -18,6 +18,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[2]  # the repository (tests run from a checkout)
 # ../shared/data beside the repository; ESIAF_SHARED_DATA points elsewhere (e.g. from a git worktree)
@@ -153,17 +154,39 @@ def refused_control(metrics_text: str, *reasons: str) -> float:
                and (not reasons or sample.labels["reason"] in reasons))
 
 
+def refused_messages(metrics_text: str, *reasons: str) -> float:
+    """``esiaf_refused_messages_total`` in a ``GET /metrics`` answer: results-plane messages refused
+    for these reasons (``no_key``, ``wrong_key``, ``old_key``, ``wrong_peer_key``...; every reason if none)."""
+    from prometheus_client.parser import text_string_to_metric_families
+    return sum(sample.value for family in text_string_to_metric_families(metrics_text) for sample in family.samples
+               if sample.name == "esiaf_refused_messages_total" and (not reasons or sample.labels["reason"] in reasons))
+
+
+def signed_result(registration: dict[str, Any], result: Any) -> list[bytes]:
+    """The frames of ``result`` (a pb.Result) as the SDK sends it for ``registration`` (the answer of
+    ``POST /components``): named by its instance, with the registration's key id and MAC."""
+    from types import SimpleNamespace
+
+    from esiaf.binding import signed
+    result.instance = registration["component_id"]
+    return signed(b"result", result.SerializeToString(),
+                  SimpleNamespace(key_id=registration["key_id"], control_key=registration["control_key"]))
+
+
 class Orchestrator:
     """The real orchestrator as a process on random loopback ports, with a real SQLite file."""
 
-    def __init__(self, tmp_path: Path, config: dict | None = None, env: dict[str, str] | None = None):
+    def __init__(self, tmp_path: Path, config: dict | None = None, env: dict[str, str] | None = None,
+                 ca: Path | None = None):
         """``config``: orchestrator settings written to a YAML file (fusions, timeouts, ...);
-        ``env``: more environment variables for its process (ESIAF_TOKEN, ESIAF_CURVE_DIR, ...)."""
+        ``env``: more environment variables for its process (ESIAF_TOKEN, ESIAF_CURVE_DIR, ...);
+        ``ca``: with ``tls_cert`` in ``config``, the CA file its certificate is checked against."""
         import httpx
         import yaml
         self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.ws_url = f"ws://127.0.0.1:{self.port}"
+        secure = "s" if config and config.get("tls_cert") else ""
+        self.url = f"http{secure}://127.0.0.1:{self.port}"
+        self.ws_url = f"ws{secure}://127.0.0.1:{self.port}"
         self.db_path = tmp_path / "o.db"
         self.env = env or {}
         self.config_args: list[str] = []
@@ -172,7 +195,10 @@ class Orchestrator:
             config_path.write_text(yaml.safe_dump(config))
             self.config_args = ["--config", str(config_path)]
         self.log = (tmp_path / "orchestrator.log").open("ab")
-        self.http = httpx.Client(base_url=self.url, timeout=5)
+        verify = httpx.create_ssl_context()
+        if ca is not None:
+            verify.load_verify_locations(cafile=str(ca))
+        self.http = httpx.Client(base_url=self.url, timeout=5, verify=verify)
         self.process: subprocess.Popen  # start() makes it
         self.start()
 

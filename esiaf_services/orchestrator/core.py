@@ -5,6 +5,7 @@ import asyncio
 import contextlib
 import errno
 import logging
+import secrets
 import signal
 import sqlite3
 import time
@@ -140,9 +141,11 @@ class Orchestrator:
             self._store = Store(settings.db_path, fresh=self.fresh)
         except StoreError as exc:
             raise StartupError(str(exc)) from None
+        self.registry.secret = self.store.secret("control_keys", lambda: secrets.token_bytes(32))
         self._control = ControlPlane(control_socket, self.registry, bind_peer_key=self.guard.mechanism == "curve")
         self._ingest = Ingest(results_socket, self.store, engine, self.hub, self.registry, metrics=self.metrics,
-                             stream_end_grace_s=self.settings.stream_end_grace_s)
+                             stream_end_grace_s=self.settings.stream_end_grace_s,
+                             bind_peer_key=self.guard.mechanism == "curve")
         self._ingest.on_assignments_changed = self._push_soon
         try:
             self.ingest.restore()

@@ -16,15 +16,16 @@ from typing import Any, cast
 import zmq
 import zmq.asyncio
 
+from .binding import peer_key, refusal
 from .codec import BadResult, parse_result, result_to_json, type_name
 from .fusion import FusedResult, FusionEngine, StoredResult
 from .hub import Hub, Outgoing
 from .metrics import Metrics
 from .orphans import Orphans
 from .registry import Component, Registry
-from .settings import FusionSettings
 from .store import Store, StoreUnavailable
 from .streams import StreamEnds
+from .warmstart import restore
 
 log = logging.getLogger(__name__)
 
@@ -42,8 +43,10 @@ def _dumps(value: Any) -> str:
 class Ingest:
     def __init__(self, socket: zmq.asyncio.Socket, store: Store, engine: FusionEngine, hub: Hub,
                  registry: Registry, clock_ns: Callable[[], int] = time.time_ns,
-                 metrics: Metrics | None = None, stream_end_grace_s: float = 0.0) -> None:
+                 metrics: Metrics | None = None, stream_end_grace_s: float = 0.0,
+                 bind_peer_key: bool = False) -> None:
         self.socket = socket
+        self.bind_peer_key = bind_peer_key  # CURVE: each message comes with its peer's public key
         self.store = store
         self.engine = engine
         self.orphans = Orphans(engine)  # what dead recogniser instances left unanswered
@@ -71,36 +74,14 @@ class Ingest:
         self.on_assignments_changed: Callable[[], None] | None = None
 
     def restore(self) -> None:
-        """Warm start from the database: latencies (so timeouts), the recent results and fused
-        results of each stream (for late results), and the fusions that were still waiting."""
-        engine = self.engine
-        for component, count, mean_ns in self.store.latencies():
-            if mean_ns >= 0:  # a negative mean: learnt from replays by an older version; start again
-                engine.latencies.restore(component, count, mean_ns)
-        for stream_id, _start_ns, source, _announced_ns, info in self.store.streams():
-            self.on_stream_announced(stream_id, source, json.loads(info))
-        results, fused = self.store.recent(engine.memory_ns)
-        for text in results:
-            restored = StoredResult.from_json(json.loads(text))
-            engine.restore_result(restored)
-            # a stream heard from lately is taken to be going on: replicas serve it as their instances
-            # register again, not only from its next result on
-            self.registry.add_stream(restored.stream_id)
-        for text in fused:
-            engine.restore_published(json.loads(text))
-        pending = self.store.pending()
-        for fused_id, anchor, settings, waiting in pending:
-            engine.restore_open(fused_id, FusionSettings.model_validate_json(settings),
-                                StoredResult.from_json(json.loads(anchor)),
-                                {c: tuple(w) for c, w in json.loads(waiting).items()})
-        log.info("event=fusion_restored latencies=%d results=%d fused=%d pending=%d",
-                 len(engine.latencies.by_component), len(results), len(fused), len(pending))
+        """Warm start from the database (warmstart.py)."""
+        restore(self)
 
     async def run(self) -> None:
         self._arm_timer()  # fusions restored from the database may be due
         while True:
             try:
-                batch = [await self.socket.recv_multipart()]
+                batch: list[Any] = [await self.socket.recv_multipart(copy=not self.bind_peer_key)]
             except zmq.Again:  # libzmq may signal a message that is not there (seen with heartbeats)
                 self.counters["spurious_wakeups"] += 1
                 if self.counters["spurious_wakeups"] in (1, 100, 10_000):
@@ -108,24 +89,31 @@ class Ingest:
                 continue
             while len(batch) < MAX_BATCH and cast(int, self.socket.get(zmq.EVENTS)) & zmq.POLLIN:
                 try:
-                    batch.append(cast("asyncio.Future[list[bytes]]", self.socket.recv_multipart(zmq.NOBLOCK)).result())
+                    batch.append(cast("asyncio.Future[list[Any]]", self.socket.recv_multipart(
+                        zmq.NOBLOCK, copy=not self.bind_peer_key)).result())
                 except zmq.Again:
                     break
-            self.handle_batch(batch)
+            if self.bind_peer_key:  # CURVE: frames (copy=False) carry their peer's public key
+                self.handle_batch([[f.bytes for f in frames] for frames in batch], [peer_key(f) for f in batch])
+            else:
+                self.handle_batch(batch)
 
-    def handle_batch(self, batch: list[list[bytes]]) -> None:
+    def handle_batch(self, batch: list[list[bytes]], peer_keys: list[str | None] | None = None) -> None:
+        """``peer_keys``: with CURVE, the public key each message came with."""
+        keys = peer_keys or [None] * len(batch)
+
         def work() -> list[Outgoing]:
-            return [message for frames in batch for message in self._isolated(frames)]
+            return [message for frames, key in zip(batch, keys, strict=True) for message in self._isolated(frames, key)]
         self._transaction(work, lost=len(batch), after="batch")
 
-    def _isolated(self, frames: list[bytes]) -> list[Outgoing]:
+    def _isolated(self, frames: list[bytes], peer_key: str | None = None) -> list[Outgoing]:
         """One message in a savepoint of the batch's transaction: if handling it fails, it alone
         is undone and refused (counted with its reason); its neighbours are stored."""
         mark = self.store.savepoint()
         counters = self.counters.copy()
         observed = len(self._observed)
         try:
-            outgoing = self._handle(frames)
+            outgoing = self._handle(frames, peer_key)
         except Exception as exc:  # a poison message must not take its batch with it
             self.store.rollback_savepoint(mark)
             self.counters = counters
@@ -284,18 +272,25 @@ class Ingest:
                                      else self.metrics.timer_lateness)
                         histogram.observe((now_ns - since_ns) / 1e9)
 
-    def _handle(self, frames: list[bytes]) -> list[Outgoing]:
+    def _handle(self, frames: list[bytes], peer_key: str | None) -> list[Outgoing]:
         kind = frames[0] if frames else b""
-        if kind == b"result" and len(frames) == 2:
-            return self._on_result(frames[1])
-        if kind == b"end_of_stream" and len(frames) == 2:
-            return self._on_end_of_stream(frames[1])
+        if kind == b"result" and len(frames) in (2, 4):
+            return self._on_result(frames, peer_key)
+        if kind == b"end_of_stream" and len(frames) in (2, 4):
+            return self._on_end_of_stream(frames, peer_key)
         self.counters["bad_messages"] += 1
         self._refuse("bad_frames", f"kind={kind[:40]!r} frames={len(frames)}")
         return []
 
-    def _on_result(self, data: bytes) -> list[Outgoing]:
-        received_ns = self._clock_ns()
+    def _proven(self, frames: list[bytes], component_id: str, peer_key: str | None) -> bool:
+        """The message comes from ``component_id``'s registration (binding.py); else refused, counted."""
+        reason = refusal(self.registry, frames, component_id, peer_key)
+        if reason is not None:
+            self._refuse(reason, f"kind={frames[0]!r} component_id={component_id[:80]!r}")
+        return reason is None
+
+    def _on_result(self, frames: list[bytes], peer_key: str | None) -> list[Outgoing]:
+        received_ns, data = self._clock_ns(), frames[1]
         try:
             result = parse_result(data, self._stream_reference_ns)
             result_id = self.store.next_result_id
@@ -305,13 +300,15 @@ class Ingest:
             self.counters["bad_results"] += 1
             self._refuse("bad_result", str(exc))
             return []
+        if not self._proven(frames, result.instance, peer_key):
+            return []  # neither stored nor fused nor life: not its registration's
         self.store.allocate_result_id()
         kind = type_name(result)
         self.store.add_result(
             result_id=result_id, component=result.component, type_name=kind,
             stream_id=result.stream_id, start_ns=result.span.start_ns, end_ns=result.span.end_ns,
             produced_ns=result.produced_ns, received_ns=received_ns, proto=data, json_text=text)
-        component = self.registry.get(result.instance) if result.instance else self.registry.by_name(result.component)
+        component = self.registry.get(result.instance)
         if component is not None:  # any message counts as life
             component.touch()
             component.results_received += 1
@@ -353,7 +350,8 @@ class Ingest:
             self._triggers[message] = (self.timer_lateness_ns, fused.due_ns)
         return message
 
-    def _on_end_of_stream(self, data: bytes) -> list[Outgoing]:
+    def _on_end_of_stream(self, frames: list[bytes], peer_key: str | None) -> list[Outgoing]:
+        data = frames[1]
         try:
             if len(data) > MAX_NOTICE_BYTES:
                 raise ValueError(f"{len(data)} bytes, more than {MAX_NOTICE_BYTES}")
@@ -364,6 +362,8 @@ class Ingest:
         except (ValueError, KeyError, TypeError, RecursionError) as exc:
             self.counters["bad_messages"] += 1
             self._refuse("bad_end_of_stream", f"{type(exc).__name__}: {exc} data={data[:100]!r}")
+            return []
+        if not self._proven(frames, component_id, peer_key):
             return []
         component = self.registry.get(component_id)
         fused: list[Outgoing] = []

@@ -104,6 +104,9 @@ class RegisterResponse(BaseModel):
     control_endpoint: str = Field(examples=["tcp://127.0.0.1:5560"])
     control_key: str = Field(description="this registration's control secret (a new one for every registration): "
                              "every control message must carry it as `control_key`, else it is refused")
+    key_id: str = Field(description="names this registration: every result and end_of_stream notice carries it "
+                        "with an HMAC-SHA256 keyed with `control_key` (docs/protocol.md, \"Results\"), else it is "
+                        "refused")
     results_endpoint: str = Field(examples=["tcp://127.0.0.1:5561"])
     heartbeat_interval_s: float
     dead_after_s: float

@@ -13,6 +13,8 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
 
+from esiaf.binding import derive_key
+
 from .assignment import Assignments
 from .negotiation import Declaration, Format, Strategy, choose
 
@@ -54,6 +56,7 @@ class Component:
     # registration); the routing id that last presented it (state is pushed there only); with CURVE,
     # the public key its first such message came with (every later one must come with it too)
     control_key: str = field(default_factory=lambda: secrets.token_urlsafe(32))
+    key_id: str = ""  # names this registration: its results carry it with their MAC (esiaf/binding.py)
     control_route: bytes | None = None
     control_peer_key: str | None = None
     registered_ns: int = field(default_factory=time.time_ns)
@@ -106,6 +109,9 @@ class Registry:
         self.departed: OrderedDict[str, Component] = OrderedDict()
         self.assigned: dict[str, Format] = {}  # each topic's internal format
         self.assignments = Assignments()  # which instance of a replicated service serves each stream
+        # what control keys are derived from (esiaf/binding.py): the orchestrator sets the one its
+        # database keeps, so that it can check results of registrations made before a restart
+        self.secret = secrets.token_bytes(32)
 
     # changes
     def register(self, *, name: str, designation: str, stream_id: str,
@@ -127,10 +133,12 @@ class Registry:
             previous.status = "replaced"
         component_id = instance or self._new_id(name)
         self.departed.pop(component_id, None)
+        key_id = secrets.token_urlsafe(12)
         component = Component(component_id=component_id, name=name, designation=designation,
                               stream_id=stream_id, inputs=inputs, outputs=outputs,
                               audio_endpoint=audio_endpoint, host=host, pid=pid, info=info,
-                              audio_public_key=audio_public_key, incarnation=incarnation)
+                              audio_public_key=audio_public_key, incarnation=incarnation, key_id=key_id,
+                              control_key=derive_key(self.secret, component_id, key_id))
         self.live[component_id] = component
         self.recompute()
         component.offer(self.state_of(component))

@@ -66,4 +66,11 @@ MIGRATIONS: list[str] = [
     CREATE UNIQUE INDEX fused_seq ON fused (seq);
     CREATE INDEX results_stream_end ON results (stream_id, end_ns);
     """,
+    # 4: secrets the orchestrator keeps across restarts (what control keys are derived from)
+    """
+    CREATE TABLE secrets (
+        name TEXT PRIMARY KEY,
+        value BLOB NOT NULL
+    );
+    """,
 ]

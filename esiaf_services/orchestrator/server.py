@@ -80,15 +80,22 @@ async def serve(settings: OrchestratorSettings, *, fresh: bool = False, recovere
     sock = listen_socket(settings.host, settings.port)
     core = Orchestrator(settings, fresh=fresh)
     core.recovered = list(recovered or [])
+    config = uvicorn.Config(create_app(settings, orchestrator=core), log_config=None,
+                            log_level=settings.log_level.lower(),
+                            access_log=settings.log_level == "DEBUG", lifespan="on",
+                            timeout_graceful_shutdown=3,
+                            ssl_certfile=settings.tls_cert or None, ssl_keyfile=settings.tls_key or None)
+    try:
+        config.load()  # with tls_cert: its certificate and key are loaded here
+    except OSError as exc:  # ssl.SSLError is one
+        sock.close()
+        raise StartupError(f"cannot use the TLS certificate {settings.tls_cert} with the key {settings.tls_key} "
+                           f"(tls_cert, tls_key): {exc.strerror or exc}") from None
     try:
         await core.start()
     except BaseException:
         sock.close()
         raise
-    config = uvicorn.Config(create_app(settings, orchestrator=core), log_config=None,
-                            log_level=settings.log_level.lower(),
-                            access_log=settings.log_level == "DEBUG", lifespan="on",
-                            timeout_graceful_shutdown=3)
     server = _Server(config)
 
     def on_signal(signum: int) -> None:
@@ -99,7 +106,7 @@ async def serve(settings: OrchestratorSettings, *, fresh: bool = False, recovere
     for signum in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(signum, on_signal, signum)
     http_host, http_port = sock.getsockname()[:2]
-    log.info("event=listening http=http://%s:%d control=%s results=%s",
+    log.info("event=listening http=%s://%s:%d control=%s results=%s", "https" if settings.tls_cert else "http",
              http_host, http_port, core.control_endpoint, core.results_endpoint)
     try:
         await server.serve(sockets=[sock])

@@ -97,6 +97,10 @@ class OrchestratorSettings(StrictModel):
     max_body_bytes: int = Field(default=1024 * 1024, gt=0)  # HTTP request bodies larger than this get 413
     token: str = ""  # required on every request but /health once set; default ESIAF_TOKEN / ESIAF_TOKEN_FILE
     allowed_origins: list[str] = Field(default_factory=list)  # browser origins whose websockets are accepted
+    # HTTPS and wss: the certificate (chain) and its private key, PEM files; clients check it against
+    # the system's CAs or the file ESIAF_TLS_CA names. Both or neither.
+    tls_cert: str = ""
+    tls_key: str = ""
 
     @field_validator("log_level")
     @classmethod
@@ -112,6 +116,8 @@ class OrchestratorSettings(StrictModel):
         duplicates = sorted({n for n in names if names.count(n) > 1})
         if duplicates:
             raise ValueError(f"fusion names must be unique; repeated: {', '.join(duplicates)}")
+        if bool(self.tls_cert) != bool(self.tls_key):
+            raise ValueError("tls_cert and tls_key go together: give both (HTTPS) or neither")
         if self.dead_after_s <= self.heartbeat_interval_s:
             raise ValueError(f"dead_after_s ({self.dead_after_s}) must be longer than "
                              f"heartbeat_interval_s ({self.heartbeat_interval_s})")

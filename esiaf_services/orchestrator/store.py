@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import sqlite3
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -114,6 +115,19 @@ class Store:
 
     def close(self) -> None:
         self._db.close()
+
+    def secret(self, name: str, make: Callable[[], bytes]) -> bytes:
+        """The secret kept under ``name``, made (and written at once) the first time; a database that
+        cannot be written now gives one for this run only (logged)."""
+        row = self._db.execute("SELECT value FROM secrets WHERE name = ?", (name,)).fetchone()
+        if row is not None:
+            return bytes(row[0])
+        value = make()
+        try:
+            self._db.execute("INSERT INTO secrets (name, value) VALUES (?, ?)", (name, value))
+        except sqlite3.Error as exc:
+            log.warning("event=secret_not_kept name=%s reason=%s", name, exc)
+        return value
 
     # writes: call begin(), the add_* methods, then commit(). The writes wait in memory until
     # commit() runs them in one transaction; if the database cannot take them (disk full, file

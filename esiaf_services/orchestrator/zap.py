@@ -52,19 +52,10 @@ class Guard:
             self._authenticator.configure_plain(domain="*", passwords={auth.ZMQ_USER: self.token})
 
     def reload(self) -> int | None:
-        """Reads the allowed client keys again (SIGHUP); their number, or None without CURVE keys.
-        A key file that cannot be read is logged and skipped, never fatal: the old set stays."""
-        if self.curve is None or self._authenticator is None:
-            log.info("event=keys_not_reloaded reason=no CURVE keys (ESIAF_CURVE_DIR) in use")
-            return None
-        try:
-            allowed = keys.allowed_clients(self.curve.clients_dir)
-        except (OSError, ValueError) as exc:
-            log.error("event=keys_not_reloaded dir=%s reason=%s", self.curve.clients_dir, exc)
-            return None
-        self._authenticator.configure_curve(domain="*", location=str(self.curve.clients_dir))
-        log.info("event=keys_reloaded dir=%s clients=%d", self.curve.clients_dir, len(allowed))
-        return len(allowed)
+        """Reads the allowed client keys again (SIGHUP; keys.reload_clients); their number, or None
+        without CURVE keys or if a key file cannot be read (logged, never fatal: the old set stays)."""
+        allowed = keys.reload_clients(self.curve if self._authenticator is not None else None, self._authenticator)
+        return None if allowed is None else len(allowed)
 
     def secure(self, socket: zmq.asyncio.Socket, name: str) -> None:
         """Before bind: makes ``socket`` a PLAIN or CURVE server and counts its refused peers."""

@@ -62,7 +62,7 @@ async def register(request: RegisterRequest,
     assert state is not None  # register() gives a new component its state
     return RegisterResponse(
         component_id=component.component_id, control_endpoint=core.control_endpoint,
-        control_key=component.control_key,
+        control_key=component.control_key, key_id=component.key_id,
         results_endpoint=core.results_endpoint,
         heartbeat_interval_s=core.settings.heartbeat_interval_s,
         dead_after_s=core.settings.dead_after_s, peers=state["peers"], formats=state["formats"],

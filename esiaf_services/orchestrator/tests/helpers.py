@@ -9,12 +9,14 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Sequence
+from types import SimpleNamespace
 from typing import Any
 
 import httpx
 import uvicorn
 import zmq
 
+from esiaf.binding import signed
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf.results import make_result
 from esiaf_services.orchestrator.app import create_app
@@ -146,7 +148,7 @@ class FakeComponent:
                     type_: pb.ResultType = pb.RESULT_TYPE_SPEECH) -> pb.Result:
         self.sequence += 1
         result = pb.Result(component=self.name, type=type_, stream_id=stream_id,
-                           produced_ns=time.time_ns(), sequence=self.sequence)
+                           produced_ns=time.time_ns(), sequence=self.sequence, instance=self.id)
         result.span.start_ns, result.span.end_ns = start_ns, end_ns
         if type_ == pb.RESULT_TYPE_SPEECH:
             hypothesis = result.speech.hypotheses.add(text=text, probability=0.93)
@@ -154,7 +156,7 @@ class FakeComponent:
                                  end_ns=start_ns + 100_000_000, probability=0.99)
         elif type_ == pb.RESULT_TYPE_VAD:
             result.vad.probability = 0.8
-        self.push.send_multipart([b"result", result.SerializeToString()])
+        self.send(b"result", result.SerializeToString())
         return result
 
     def emit(self, type_name: str, span: tuple[int, int], stream_id: str = "default",
@@ -162,12 +164,21 @@ class FakeComponent:
         """Sends one result of any type (payload as for esiaf.results.make_result)."""
         self.sequence += 1
         result = make_result(self.name, type_name, stream_id, span, self.sequence, **payload)
-        self.push.send_multipart([b"result", result.SerializeToString()])
+        result.instance = self.id
+        self.send(b"result", result.SerializeToString())
         return result
 
     def end_of_stream(self, stream_id: str = "default") -> None:
-        self.push.send_multipart([b"end_of_stream", json.dumps(
-            {"component_id": self.id, "component": self.name, "stream_id": stream_id}).encode()])
+        self.send(b"end_of_stream", json.dumps(
+            {"component_id": self.id, "component": self.name, "stream_id": stream_id}).encode())
+
+    def send(self, kind: bytes, body: bytes) -> None:
+        """On the results plane, as the SDK sends it: with this registration's key id and MAC."""
+        self.push.send_multipart(signed(kind, body, self.keys))
+
+    @property
+    def keys(self) -> SimpleNamespace:
+        return SimpleNamespace(key_id=self.registration["key_id"], control_key=self.registration["control_key"])
 
     def close(self) -> None:
         self.dealer.close(linger=0)
