@@ -18,8 +18,10 @@ rest keep their times, clipped to the segment.
 
 N-best (``n_best`` > 1): faster-whisper returns the beam's best hypothesis only, so the segment
 (< 30 s: one Whisper window) is decoded a second time by CTranslate2 directly, as faster-whisper
-does it (same features, prompt and suppressed tokens, language "en", no timestamps), with
-``num_hypotheses`` of the beam. The first hypothesis stays faster-whisper's, with its word times;
+does it (same prompt and suppressed tokens, language "en", no timestamps), with
+``num_hypotheses`` of the beam. The second beam search starts from the encoder output of the
+first decode's first window (kept as faster-whisper's ``encode`` returns it), so the audio is
+encoded once per segment. The first hypothesis stays faster-whisper's, with its word times;
 the others are the beam's next distinct texts (by normalised words), best first, without words,
 each with probability ``exp(avg_logprob)`` of its own tokens. ``n_best`` 1 is the single decode.
 """
@@ -27,6 +29,7 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -80,6 +83,15 @@ class WhisperRecognizer:
         self.beam_size = beam_size
         self.no_speech_threshold = no_speech_threshold
         self.n_best = max(1, n_best)
+        self._first = threading.local()  # the encoder output of the running decode's first window
+        encode = self.model.encode
+
+        def encode_keeping_the_first(features):
+            output = encode(features)
+            if getattr(self._first, "encoding", None) is None:
+                self._first.encoding = output
+            return output
+        self.model.encode = encode_keeping_the_first  # transcribe() encodes through it
 
     def recognise(self, samples: np.ndarray, rate_hz: int = 16000, prompt: str | None = None) -> WhisperResult:
         """One whole segment (float32 mono at 16 kHz) -> its best hypothesis, or why none. ``prompt``:
@@ -87,11 +99,13 @@ class WhisperRecognizer:
         duration_s = samples.size / rate_hz
         if duration_s < 0.1:
             return WhisperResult([], "too short to decode")
+        self._first.encoding = None
         segments, _ = self.model.transcribe(
             samples.astype(np.float32, copy=False), language="en", beam_size=self.beam_size, word_timestamps=True,
             condition_on_previous_text=False, vad_filter=False, no_speech_threshold=self.no_speech_threshold,
             initial_prompt=prompt or None)
         segments = list(segments)
+        encoded, self._first.encoding = self._first.encoding, None
         no_speech = max((segment.no_speech_prob for segment in segments), default=0.0)
         logprobs = [segment.avg_logprob for segment in segments]
         text, words = within_segment(segments, duration_s)
@@ -102,25 +116,28 @@ class WhisperRecognizer:
             return WhisperResult([], f"no speech (no-speech probability {no_speech:.2f})")
         best = Hypothesis(text, clamp(math.exp(avg_logprob)), tuple(words))
         decoded = " ".join(segment.text.strip() for segment in segments)  # before a tail was dropped
-        others = self.alternatives(samples, prompt, (best.text, decoded)) if self.n_best > 1 else []
+        others = self.alternatives(samples, encoded, prompt, (best.text, decoded)) if self.n_best > 1 else []
         return WhisperResult([best, *others], "")
 
-    def alternatives(self, samples: np.ndarray, prompt: str | None, best: tuple[str, ...]) -> list[Hypothesis]:
+    def alternatives(self, samples: np.ndarray, encoded, prompt: str | None,
+                     best: tuple[str, ...]) -> list[Hypothesis]:
         """Up to ``n_best`` - 1 hypotheses other than those in ``best`` (distinct normalised words),
-        best first: one beam search of CTranslate2 over the segment, without timestamps."""
+        best first: one beam search of CTranslate2 over the segment, without timestamps, from
+        ``encoded``, the first decode's encoder output (None: the segment is encoded again)."""
         from faster_whisper.audio import pad_or_trim
         from faster_whisper.tokenizer import Tokenizer
         from faster_whisper.transcribe import get_suppressed_tokens
 
         model = self.model
         tokenizer = Tokenizer(model.hf_tokenizer, model.model.is_multilingual, task="transcribe", language="en")
-        features = model.feature_extractor(samples.astype(np.float32, copy=False))
-        features = pad_or_trim(features[:, :features.shape[-1] - 1])  # as generate_segments cuts one window
+        if encoded is None:  # a faster-whisper that does not encode through WhisperModel.encode
+            features = model.feature_extractor(samples.astype(np.float32, copy=False))
+            encoded = model.encode(pad_or_trim(features[:, :features.shape[-1] - 1]))  # one window, as it does
         previous = tokenizer.encode(" " + prompt.strip()) if prompt else []
         tokens = model.get_prompt(tokenizer, previous, without_timestamps=True)
         wanted = 2 * self.n_best  # the beam repeats texts that differ only in punctuation or case
         result = model.model.generate(
-            model.encode(features), [tokens], beam_size=max(self.beam_size, wanted), num_hypotheses=wanted,
+            encoded, [tokens], beam_size=max(self.beam_size, wanted), num_hypotheses=wanted,
             return_scores=True, max_length=model.max_length, suppress_blank=True,
             suppress_tokens=list(get_suppressed_tokens(tokenizer, [-1])))[0]
         seen = {tuple(normalise(text)) for text in best}

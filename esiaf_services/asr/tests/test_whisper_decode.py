@@ -1,4 +1,5 @@
-"""Whisper's decode of one segment: no words past its end (fake and real tiny.en segments)."""
+"""Whisper's decode of one segment: no words past its end (fake and real tiny.en segments), and
+the n-best's second beam search from the first decode's encoder output."""
 from __future__ import annotations
 
 from types import SimpleNamespace
@@ -32,7 +33,7 @@ def test_words_timed_past_the_segments_end_are_dropped_from_words_and_text():
 def whisper():
     pytest.importorskip("faster_whisper", reason="the asr-whisper extra is not installed (setup.sh installs it)")
     from esiaf_services.asr.whisper import WhisperRecognizer
-    return WhisperRecognizer(n_best=5)
+    return WhisperRecognizer(n_best=10)  # the service's default
 
 
 def test_a_speaker_cut_off_is_not_given_the_words_whisper_guessed_after_the_cut(whisper):
@@ -45,3 +46,15 @@ def test_a_speaker_cut_off_is_not_given_the_words_whisper_guessed_after_the_cut(
     assert best.text.rstrip(".,").endswith("glad to") and best.words[-1].word == "to", best
     assert all(w.start_s < 1.68 - 0.04 for w in best.words)
     assert len({tuple(normalise(h.text)) for h in hypotheses}) == len(hypotheses)  # the n-best stays distinct
+
+
+def test_the_n_best_reuses_the_first_decodes_encoding_and_finds_the_same_hypotheses(whisper, monkeypatch):
+    """The audio is encoded once per segment with n_best 10 (twice before), and the n-best is the
+    one that encoding the segment again for the second beam search gives (as it was done before)."""
+    clip = soundfile.read(shared_data("speech/cmu_arctic/arctic_a0010.wav"), dtype="float32")[0]
+    encode, calls = whisper.model.encode, []
+    monkeypatch.setattr(whisper.model, "encode", lambda features: calls.append(features.shape) or encode(features))
+    hypotheses = whisper.recognise(clip).hypotheses
+    assert len(calls) == 1 and len(hypotheses) >= 5
+    assert whisper.alternatives(clip, None, None, (hypotheses[0].text,)) == hypotheses[1:]
+    assert len(calls) == 2  # encoded again for the comparison
