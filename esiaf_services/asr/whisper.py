@@ -11,10 +11,11 @@ low (avg_logprob below -1, Whisper's own rule), or that decodes to no words, is 
 "Thank you." is invented for noise.
 
 No text past the segment's end: Whisper times words in 20 ms steps within the audio it was given,
-and squeezes words it has no audio for (a sentence finished for a speaker cut off by the VAD, a
-hallucinated "Thank you.") into the last step, with no duration. Words that start within the
-last ``PAST_END_S`` (two steps) of the segment are dropped from the words and from the text; the
-rest keep their times, clipped to the segment.
+and squeezes words it has no audio for (a sentence finished for a speaker cut off by the VAD)
+into the last step, with no duration. Words that start within the last ``PAST_END_S`` (two
+steps) of the segment are dropped from the words and from the text; the rest keep their times,
+clipped to the segment. (A hallucination that Whisper times inside the segment, over a trailing
+breath, is not caught by this.)
 
 N-best (``n_best`` > 1): faster-whisper returns the beam's best hypothesis only, so the segment
 (< 30 s: one Whisper window) is decoded a second time by CTranslate2 directly, as faster-whisper
