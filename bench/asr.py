@@ -1,6 +1,6 @@
 """Both recognisers side by side on real speech: word error, false matches, speed.
 
-    python bench/asr.py
+    python bench/asr.py [--worst N] [--n-best N]
 
 Pocketsphinx (en-us language model, streamed as the service does) and Whisper tiny.en (the
 asr-whisper extra) decode the transcribed clips of ../shared/data/speech (the pocketsphinx folder
@@ -8,7 +8,10 @@ and CMU ARCTIC). Word error is on normalised text (esiaf_services/asr/matching.p
 numbers as words). False matches: each clip's transcript matched against the 50 RoboCup questions
 (none of them is one) and counted when it is not refused as out of set. The time from segment
 end to result is what each backend spends once the segment has closed (pocketsphinx: finishing its
-streamed decode; Whisper: the whole decode). Ends with name=value lines.
+streamed decode; Whisper: the whole decode). Ends with name=value lines; ``--worst N`` first
+prints each backend's N clips with the most word errors (reference and transcript), to stderr.
+``--n-best`` is Whisper's (1 by default: its first hypothesis is the same with any; the asr
+service's default, 10, adds the second beam search to its CPU time).
 """
 from __future__ import annotations
 
@@ -18,6 +21,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path[0] = str(REPO)  # not bench/: its ssl.py would shadow the standard library's
 
+import argparse  # noqa: E402
 import csv  # noqa: E402
 import os  # noqa: E402
 import time  # noqa: E402
@@ -65,8 +69,8 @@ def pocketsphinx_decoder():
     return decode
 
 
-def whisper_decoder():
-    recognizer = WhisperRecognizer()
+def whisper_decoder(n_best: int = 1):
+    recognizer = WhisperRecognizer(n_best=n_best)
 
     def decode(samples: np.ndarray) -> tuple[str, float]:
         started = time.perf_counter()
@@ -76,6 +80,10 @@ def whisper_decoder():
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description="both recognisers side by side on real speech")
+    parser.add_argument("--worst", type=int, default=0, metavar="N", help="print the N clips with most word errors")
+    parser.add_argument("--n-best", type=int, default=1, metavar="N", help="Whisper's n_best (1)")
+    args = parser.parse_args()
     if not (DATA / "manifest.tsv").is_file():
         raise SystemExit(f"bench/asr.py: no shared data at {DATA} (set ESIAF_SHARED_DATA)")
     material = clips()
@@ -85,10 +93,11 @@ def main() -> None:
     matcher = SentenceMatcher.from_file(grammar, threshold=0.6)
     print(f"bench/asr: {len(material)} clips, {audio_s:.0f} s of speech", file=sys.stderr)
     lines = []
-    for name, make in (("pocketsphinx", pocketsphinx_decoder), ("whisper", whisper_decoder)):
+    for name, make in (("pocketsphinx", pocketsphinx_decoder), ("whisper", lambda: whisper_decoder(args.n_best))):
         decode = make()
         errors: dict[str, list[int]] = {}
         after_end_s, busy_s, false_matches = [], 0.0, 0
+        worst: list[tuple[int, str, str, str]] = []
         for folder, samples, reference in material:
             cpu = time.process_time()
             text, tail_s = decode(samples)
@@ -96,9 +105,13 @@ def main() -> None:
             after_end_s.append(tail_s)
             ref = normalise(reference)
             pair = errors.setdefault(folder, [0, 0])
-            pair[0] += word_distance(ref, normalise(text))
+            distance = word_distance(ref, normalise(text))
+            worst.append((distance, folder, reference, text))
+            pair[0] += distance
             pair[1] += len(ref)
             false_matches += bool(text) and matcher.match(text).in_set
+        for distance, folder, reference, text in sorted(worst, key=lambda w: -w[0])[:args.worst]:
+            print(f"bench/asr: {name} {distance} word errors ({folder}): {reference!r} heard {text!r}", file=sys.stderr)
         for folder, (e, n) in sorted(errors.items()):
             lines.append(f"{name}_wer_{folder}={e / n:.3f}")
         lines.append(f"{name}_false_matches={false_matches / len(material):.3f}")

@@ -14,8 +14,8 @@ import zmq
 
 from esiaf import auth
 from esiaf.api_client import OrchestratorHTTP
-from esiaf.tools.feed import FusedFeed
 from esiaf.results import make_result
+from esiaf.tools.feed import FusedFeed
 from esiaf.tools.testing import REPO, Orchestrator, free_port, poll, signed_result
 from tests.test_component import Sink, start
 

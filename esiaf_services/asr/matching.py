@@ -1,9 +1,9 @@
 """Closed-set matching: a transcript to the nearest allowed sentence, or "out of set".
 
 The allowed sentences come from a file (one per line) or a finite JSGF grammar expanded into its
-sentences. Both sides are normalised (lower case, no punctuation, numbers as words, "mr." as
-"mister", dotted abbreviations joined: "R.C.M.P." is "rcmp", apostrophes kept: "what's") and
-compared two ways:
+sentences. Both sides are normalised (lower case, no punctuation, numbers as words, ordinals too:
+"20th" is "twentieth", "mr." as "mister", dotted abbreviations joined: "R.C.M.P." is "rcmp",
+apostrophes kept: "what's") and compared two ways:
 
 - word by word with the Levenshtein distance: ``1 - distance / max(len(transcript), len(sentence))``
   in words, 1 for the same sentence, 0 for nothing in common;
@@ -35,6 +35,8 @@ TENS = ["", "", "twenty", "thirty", "forty", "fifty", "sixty", "seventy", "eight
 ABBREVIATIONS = {"mr": "mister", "mrs": "missus", "dr": "doctor", "st": "saint", "vs": "versus", "&": "and",
                  "%": "percent", "what's": "what is", "who's": "who is", "where's": "where is", "how's": "how is",
                  "it's": "it is", "that's": "that is", "there's": "there is", "when's": "when is"}
+ORDINALS = {"one": "first", "two": "second", "three": "third", "five": "fifth", "eight": "eighth", "nine": "ninth",
+            "twelve": "twelfth"}  # the rest: -y to -ieth, else + th
 MAX_SENTENCES = 100_000
 
 
@@ -55,11 +57,19 @@ def number_words(n: int) -> str:
     return number_words(n // 1000) + " thousand" + ("" if n % 1000 == 0 else " " + number_words(n % 1000))
 
 
+def ordinal_words(n: int) -> str:
+    """An ordinal in words, its last word turned: 20 "twentieth", 21 "twenty first", 100 "one hundredth"."""
+    *head, last = number_words(n).split()
+    last = ORDINALS.get(last) or (last[:-1] + "ieth" if last.endswith("y") else last + "th")
+    return " ".join([*head, last])
+
+
 def normalise(text: str) -> list[str]:
     """The words of ``text`` as they are compared."""
     text = text.lower().replace("’", "'")
     text = re.sub(r"\b(?:[a-z]\.){2,}", lambda m: m.group(0).replace(".", "") + " ", text)  # r.c.m.p. -> rcmp
     text = re.sub(r"(\d),(\d{3})", r"\1\2", text)  # 1,000 -> 1000
+    text = re.sub(r"(?<!\d)(\d{1,6})(?:st|nd|rd|th)\b", lambda m: " " + ordinal_words(int(m.group(1))) + " ", text)
     text = re.sub(r"\d+", lambda m: " " + number_words(int(m.group(0))) + " " if len(m.group(0)) <= 6
                   else m.group(0), text)
     words: list[str] = []

@@ -8,13 +8,21 @@ Confidence rule: a hypothesis's probability is ``exp(avg_logprob)`` of its token
 the log-probabilities of the decoded tokens, as faster-whisper reports it), clamped to [0, 1].
 A segment whose no-speech probability is above ``no_speech_threshold`` while its confidence is
 low (avg_logprob below -1, Whisper's own rule), or that decodes to no words, is "nothing": no
-"Thank you." is invented for noise. Word times are clipped to the segment, so no text is placed
-past its end.
+"Thank you." is invented for noise.
+
+No text past the segment's end: Whisper times words in 20 ms steps within the audio it was given,
+and squeezes words it has no audio for (a sentence finished for a speaker cut off by the VAD)
+into the last step, with no duration. Words that start within the last ``PAST_END_S`` (two
+steps) of the segment are dropped from the words and from the text; the rest keep their times,
+clipped to the segment. (A hallucination that Whisper times inside the segment, over a trailing
+breath, is not caught by this.)
 
 N-best (``n_best`` > 1): faster-whisper returns the beam's best hypothesis only, so the segment
 (< 30 s: one Whisper window) is decoded a second time by CTranslate2 directly, as faster-whisper
-does it (same features, prompt and suppressed tokens, language "en", no timestamps), with
-``num_hypotheses`` of the beam. The first hypothesis stays faster-whisper's, with its word times;
+does it (same prompt and suppressed tokens, language "en", no timestamps), with
+``num_hypotheses`` of the beam. The second beam search starts from the encoder output of the
+first decode's first window (kept as faster-whisper's ``encode`` returns it), so the audio is
+encoded once per segment. The first hypothesis stays faster-whisper's, with its word times;
 the others are the beam's next distinct texts (by normalised words), best first, without words,
 each with probability ``exp(avg_logprob)`` of its own tokens. ``n_best`` 1 is the single decode.
 """
@@ -22,6 +30,7 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,6 +40,7 @@ from esiaf_services.asr.matching import normalise
 from esiaf_services.asr.recognizer import UNRECOGNISED, Hypothesis, RecognizerError, Word
 
 MODEL_FILES = ("model.bin", "config.json", "vocabulary.txt")
+PAST_END_S = 0.04  # a word starting this close to the segment's end has no audio of its own (docstring)
 
 
 def default_model_dir() -> Path:
@@ -74,6 +84,15 @@ class WhisperRecognizer:
         self.beam_size = beam_size
         self.no_speech_threshold = no_speech_threshold
         self.n_best = max(1, n_best)
+        self._first = threading.local()  # the encoder output of the running decode's first window
+        encode = self.model.encode
+
+        def encode_keeping_the_first(features):
+            output = encode(features)
+            if getattr(self._first, "encoding", None) is None:
+                self._first.encoding = output
+            return output
+        self.model.encode = encode_keeping_the_first  # transcribe() encodes through it
 
     def recognise(self, samples: np.ndarray, rate_hz: int = 16000, prompt: str | None = None) -> WhisperResult:
         """One whole segment (float32 mono at 16 kHz) -> its best hypothesis, or why none. ``prompt``:
@@ -81,48 +100,48 @@ class WhisperRecognizer:
         duration_s = samples.size / rate_hz
         if duration_s < 0.1:
             return WhisperResult([], "too short to decode")
+        self._first.encoding = None
         segments, _ = self.model.transcribe(
             samples.astype(np.float32, copy=False), language="en", beam_size=self.beam_size, word_timestamps=True,
             condition_on_previous_text=False, vad_filter=False, no_speech_threshold=self.no_speech_threshold,
             initial_prompt=prompt or None)
         segments = list(segments)
-        words, logprobs, no_speech = [], [], 0.0
-        for segment in segments:
-            no_speech = max(no_speech, segment.no_speech_prob)
-            logprobs.append(segment.avg_logprob)
-            for word in segment.words or []:
-                start, end = min(word.start, duration_s), min(word.end, duration_s)
-                if word.word.strip():
-                    words.append(Word(word.word.strip(), start, end, float(word.probability)))
-        text = " ".join(segment.text.strip() for segment in segments).strip()
+        encoded, self._first.encoding = self._first.encoding, None
+        no_speech = max((segment.no_speech_prob for segment in segments), default=0.0)
+        logprobs = [segment.avg_logprob for segment in segments]
+        text, words = within_segment(segments, duration_s)
         avg_logprob = float(np.mean(logprobs)) if logprobs else -math.inf
         if not text or not words:
             return WhisperResult([], UNRECOGNISED)
         if no_speech > self.no_speech_threshold and avg_logprob < -1.0:
             return WhisperResult([], f"no speech (no-speech probability {no_speech:.2f})")
         best = Hypothesis(text, clamp(math.exp(avg_logprob)), tuple(words))
-        others = self.alternatives(samples, prompt, best.text) if self.n_best > 1 else []
+        decoded = " ".join(segment.text.strip() for segment in segments)  # before a tail was dropped
+        others = self.alternatives(samples, encoded, prompt, (best.text, decoded)) if self.n_best > 1 else []
         return WhisperResult([best, *others], "")
 
-    def alternatives(self, samples: np.ndarray, prompt: str | None, best: str) -> list[Hypothesis]:
-        """Up to ``n_best`` - 1 hypotheses other than ``best`` (distinct normalised words), best first:
-        one beam search of CTranslate2 over the segment, without timestamps."""
+    def alternatives(self, samples: np.ndarray, encoded, prompt: str | None,
+                     best: tuple[str, ...]) -> list[Hypothesis]:
+        """Up to ``n_best`` - 1 hypotheses other than those in ``best`` (distinct normalised words),
+        best first: one beam search of CTranslate2 over the segment, without timestamps, from
+        ``encoded``, the first decode's encoder output (None: the segment is encoded again)."""
         from faster_whisper.audio import pad_or_trim
         from faster_whisper.tokenizer import Tokenizer
         from faster_whisper.transcribe import get_suppressed_tokens
 
         model = self.model
         tokenizer = Tokenizer(model.hf_tokenizer, model.model.is_multilingual, task="transcribe", language="en")
-        features = model.feature_extractor(samples.astype(np.float32, copy=False))
-        features = pad_or_trim(features[:, :features.shape[-1] - 1])  # as generate_segments cuts one window
+        if encoded is None:  # a faster-whisper that does not encode through WhisperModel.encode
+            features = model.feature_extractor(samples.astype(np.float32, copy=False))
+            encoded = model.encode(pad_or_trim(features[:, :features.shape[-1] - 1]))  # one window, as it does
         previous = tokenizer.encode(" " + prompt.strip()) if prompt else []
         tokens = model.get_prompt(tokenizer, previous, without_timestamps=True)
         wanted = 2 * self.n_best  # the beam repeats texts that differ only in punctuation or case
         result = model.model.generate(
-            model.encode(features), [tokens], beam_size=max(self.beam_size, wanted), num_hypotheses=wanted,
+            encoded, [tokens], beam_size=max(self.beam_size, wanted), num_hypotheses=wanted,
             return_scores=True, max_length=model.max_length, suppress_blank=True,
             suppress_tokens=list(get_suppressed_tokens(tokenizer, [-1])))[0]
-        seen = {tuple(normalise(best))}
+        seen = {tuple(normalise(text)) for text in best}
         scored = []
         for ids, score in zip(result.sequences_ids, result.scores, strict=True):
             text = tokenizer.decode(ids).strip()
@@ -134,6 +153,20 @@ class WhisperRecognizer:
             scored.append(Hypothesis(text, clamp(math.exp(avg_logprob)), ()))
         scored.sort(key=lambda h: -h.probability)
         return scored[:self.n_best - 1]
+
+
+def within_segment(segments: list, duration_s: float) -> tuple[str, list[Word]]:
+    """The text and words of faster-whisper's ``segments`` of one VAD segment ``duration_s`` long,
+    less the words timed past its end (those starting within ``PAST_END_S`` of it); the text is
+    faster-whisper's unless a word was dropped, then its kept words joined."""
+    heard = [word for segment in segments for word in segment.words or []]
+    kept = [word for word in heard if word.start < duration_s - PAST_END_S]
+    if len(kept) == len(heard):
+        text = " ".join(segment.text.strip() for segment in segments).strip()
+    else:
+        text = "".join(word.word for word in kept).strip()
+    return text, [Word(word.word.strip(), min(word.start, duration_s), min(word.end, duration_s),
+                       float(word.probability)) for word in kept if word.word.strip()]
 
 
 def clamp(probability: float) -> float:

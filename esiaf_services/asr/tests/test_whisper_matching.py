@@ -43,6 +43,17 @@ def test_normalisation_and_word_distance():
     assert word_distance(["a", "b", "c"], ["a", "x", "c", "d"]) == 2
 
 
+@pytest.mark.parametrize("written, spoken", [
+    ("For the 20th time", "for the twentieth time"),
+    ("the 1st, 2nd and 3rd", "the first second and third"),
+    ("his 21st birthday, the 12th of May", "his twenty first birthday the twelfth of may"),
+    ("the 100th and the 1,000th", "the one hundredth and the one thousandth"),
+    ("5 5, 10 of clubs", "five five ten of clubs"),
+])
+def test_numbers_and_ordinals_normalise_as_they_are_spoken(written, spoken):
+    assert normalise(written) == normalise(spoken) == spoken.split()
+
+
 def test_a_finite_jsgf_grammar_expands_and_an_infinite_one_is_refused():
     grammar = "#JSGF V1.0; grammar g; <c> = red | blue; public <s> = (go | move) [the] <c> car;"
     assert len(expand_jsgf(grammar)) == 8 and "move the blue car" in expand_jsgf(grammar)
