@@ -254,6 +254,7 @@ class Component:
                                          self.settings.register_timeout_s, self.settings.health_file, curve,
                                          self.clock_ns)
             self._output_links = {t: OutputLink(t, f) for t, f in self.outputs.items()}
+            self._wire.on_busy = self.control.busy  # audio or results moving: the heartbeat stays fast
             registration = self.control.start()
             self._apply_state(registration.state())
             if type(self).produce is not Component.produce:

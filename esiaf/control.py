@@ -61,6 +61,8 @@ class Registration:
     results_endpoint: str
     heartbeat_interval_s: float
     dead_after_s: float
+    # the interval to beat at once idle for as long (0: an orchestrator that does not know it: never slower)
+    idle_heartbeat_interval_s: float = 0.0
     control_key: str = ""  # this registration's control secret: every control message carries it
     peers: dict[str, list[str]] = field(default_factory=dict)
     formats: dict[str, dict[str, Any]] = field(default_factory=dict)
@@ -189,6 +191,10 @@ class ControlClient:
         os.set_blocking(self._wake_write, False)
         self._thread: threading.Thread | None = None
         self.registration: Registration | None = None
+        # busy() counts the data thread's work; while the heartbeat is slow (idle), it wakes the thread
+        self._activity = 0
+        self._slow = False
+        self.interval_s = 0.0  # the interval the last heartbeat said it beats at
 
     @property
     def component_id(self) -> str:
@@ -213,6 +219,20 @@ class ControlClient:
     def poke(self) -> None:
         """Sends a heartbeat now (something worth reporting changed)."""
         self._wake()
+
+    def busy(self) -> None:
+        """The data thread moved audio or results: the heartbeat stays at (or, now, goes back to)
+        its fast interval. Cheap enough for every chunk."""
+        self._activity += 1
+        if self._slow:
+            self._slow = False
+            self._wake()
+
+    def _interval(self, now: float, quiet_since: float) -> float:
+        """The fast interval, or the idle one after an idle interval with nothing to do."""
+        fast, idle = self._registered.heartbeat_interval_s, self._registered.idle_heartbeat_interval_s
+        self._slow = idle > fast and now - quiet_since >= idle
+        return idle if self._slow else fast
 
     def _wake(self) -> None:
         with contextlib.suppress(OSError):  # BlockingIOError: the pipe is full, the thread is woken already
@@ -255,28 +275,37 @@ class ControlClient:
         state_out.connect(STATE_ADDRESS)
         dealer = self._dealer()
         next_beat = 0.0
-        last_heard = time.monotonic()
+        last_heard = quiet_since = time.monotonic()
+        seen_activity = self._activity
+        # the orchestrator answers every beat: silent for dead_after_s plus this (how much longer than the
+        # fast interval the beats since the last answer were) means it is gone
+        extra_silence_s = 0.0
         poked = True
         poller: zmq.Poller | None = None
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
-                if now - last_heard > self._registered.dead_after_s:
+                if now - last_heard > self._registered.dead_after_s + extra_silence_s:
                     log.warning("orchestrator silent for %.1f s: registering again", now - last_heard)
                     dealer.close()
                     self._register_again(state_out)
                     dealer = self._dealer()
-                    last_heard = next_beat = time.monotonic()
+                    last_heard = next_beat = quiet_since = time.monotonic()
                     continue
                 if now >= next_beat or poked:
+                    if poked or self._activity != seen_activity:
+                        seen_activity, quiet_since = self._activity, now
+                    self.interval_s = self._interval(now, quiet_since)
+                    extra_silence_s = max(extra_silence_s, self.interval_s - self._registered.heartbeat_interval_s)
                     beat = {"type": "heartbeat", "component_id": self.component_id,
                             "control_key": self._registered.control_key, "stats": self._stats(),
                             "sent_ns": self._clock_ns(), "clock": self.clock.report(),
-                            "state_version": self._registered.state_version}
+                            "state_version": self._registered.state_version, "interval_s": self.interval_s}
                     dealer.send(json.dumps(beat, default=_jsonable).encode())
-                    next_beat = now + self._registered.heartbeat_interval_s
+                    next_beat = now + self.interval_s
                 # sleep until the next beat (or the orchestrator's silence deadline), a message or a poke
-                wait_s = max(0.0, min(next_beat, last_heard + self._registered.dead_after_s) - time.monotonic())
+                wait_s = max(0.0, min(next_beat, last_heard + self._registered.dead_after_s + extra_silence_s)
+                             - time.monotonic())
                 if poller is None or dealer not in poller:
                     poller = self._poller(dealer)
                 ready = dict(poller.poll(timeout=max(1, round(wait_s * 1000))))
@@ -291,6 +320,7 @@ class ControlClient:
                     continue
                 received_ns = self._clock_ns()
                 last_heard = time.monotonic()
+                extra_silence_s = self.interval_s - self._registered.heartbeat_interval_s
                 echo, answered = message.get("echo_ns"), message.get("orchestrator_ns")
                 if type(echo) is int and type(answered) is int:
                     self.clock.add(echo, answered, received_ns)
@@ -303,12 +333,15 @@ class ControlClient:
                     self._registered.peer_keys = message.get("peer_keys", {})
                     self._registered.streams = message.get("streams")
                     state_out.send(json.dumps(self._registered.state()).encode())
+                    quiet_since = last_heard  # a new state is something to do
+                    if self._slow:  # fast again, from a beat now
+                        next_beat = last_heard
                 elif message.get("type") == "unknown":
                     log.warning("orchestrator does not know component_id=%s: registering again", self.component_id)
                     dealer.close()
                     self._register_again(state_out)
                     dealer = self._dealer()
-                    last_heard = next_beat = time.monotonic()
+                    last_heard = next_beat = quiet_since = time.monotonic()
         except RegistrationError as exc:  # refused: the orchestrator will not have us any more
             log.error("%s", exc)
             state_out.send(json.dumps({"type": "fatal", "error": str(exc)}).encode())

@@ -88,6 +88,10 @@ def _take(sock: zmq.Socket, receive: Callable[..., Any] = zmq.Socket.recv) -> An
         return None
 
 
+def _nothing() -> None:
+    pass
+
+
 def topic_name(frame: bytes) -> str:
     return frame.split(b"\0", 1)[0].decode(errors="replace")
 
@@ -102,6 +106,8 @@ class Transport:
         self._connected: set[str] = set()
         self._leaving: dict[str, float] = {}  # producers gone, still to be drained: endpoint -> since (monotonic)
         self._results_endpoint = ""
+        # called whenever audio or results move (the control client's busy(): it keeps the heartbeat fast)
+        self.on_busy: Callable[[], None] = _nothing
         self.state = context.socket(zmq.PAIR)
         self.state.setsockopt(zmq.LINGER, 0)
         self.state.bind(STATE_ADDRESS)
@@ -187,6 +193,7 @@ class Transport:
                 yield "refused", keys.HANDSHAKE_FAILURES.get(event["event"], "other")
             if self.sub is not None and self.sub in ready and take_audio and (
                     frames := _take(self.sub, zmq.Socket.recv_multipart)) is not None:
+                self.on_busy()
                 yield "audio", frames
             ready = dict(self._poller.poll(timeout=0))
             if not take_audio:
@@ -229,6 +236,7 @@ class Transport:
             self.pub.send_multipart([topic_frame(topic, stream_id), message], flags=zmq.NOBLOCK)
         except zmq.Again:
             return False
+        self.on_busy()
         return True
 
     def send_results(self, frames: Sequence[bytes]) -> bool:
@@ -237,6 +245,7 @@ class Transport:
             self.push.send_multipart(frames, flags=zmq.NOBLOCK)
         except zmq.Again:
             return False
+        self.on_busy()
         return True
 
     def connect_peers(self, wanted: set[str], peer_keys: dict[str, str] | None = None) -> None:

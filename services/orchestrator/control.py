@@ -31,7 +31,8 @@ UNKNOWN = json.dumps({"type": "unknown"}).encode()
 
 
 class ControlPlane:
-    def __init__(self, socket: zmq.asyncio.Socket, registry: Registry, bind_peer_key: bool = False) -> None:
+    def __init__(self, socket: zmq.asyncio.Socket, registry: Registry, bind_peer_key: bool = False,
+                 intervals_s: tuple[float, float] = (0.5, 0.5)) -> None:
         self.socket = socket
         # the same socket, used synchronously: run() takes every message there is when its file
         # descriptor wakes the loop, and send() never waits (a ROUTER drops what it cannot send)
@@ -40,6 +41,7 @@ class ControlPlane:
         self.registry = registry
         self.bind_peer_key = bind_peer_key  # CURVE: the ZAP handler gives each message its peer's public key
         self.counters: Counter[str] = Counter()
+        self.intervals_s = intervals_s  # the heartbeat interval, and the longest a component may say it beats at
 
     async def run(self) -> None:
         """Takes and handles messages. The socket's ZMQ_FD is registered with the loop once, not
@@ -133,6 +135,7 @@ class ControlPlane:
         if isinstance(stats, dict):
             component.stats = stats
         component.note_clock(message.get("clock"))
+        component.beats_every(message.get("interval_s"), *self.intervals_s)
         component.offer(self.registry.state_of(component))
         # the state it says it has is the current one: a short ack; else (an older or no version) the full state
         has = message.get("state_version")

@@ -140,7 +140,8 @@ class Orchestrator:
             self._store = Store(settings.db_path, fresh=self.fresh)
         except StoreError as exc:
             raise StartupError(str(exc)) from None
-        self._control = ControlPlane(control_socket, self.registry, bind_peer_key=self.guard.mechanism == "curve")
+        self._control = ControlPlane(control_socket, self.registry, bind_peer_key=self.guard.mechanism == "curve",
+                                     intervals_s=(settings.heartbeat_interval_s, settings.idle_heartbeat_interval_s))
         self._ingest = Ingest(results_socket, self.store, engine, self.hub, self.registry, metrics=self.metrics,
                              stream_end_grace_s=self.settings.stream_end_grace_s)
         self._ingest.on_assignments_changed = self._push_soon
@@ -269,7 +270,7 @@ class Orchestrator:
 
     def _next_liveness_check_s(self) -> float:
         now_mono = time.monotonic()
-        due = [c.last_seen_mono + self.settings.dead_after_s - now_mono for c in self.registry.live.values()]
+        due = [c.silent_too_long_at(self.settings.dead_after_s) - now_mono for c in self.registry.live.values()]
         if self._ingest is not None and self._ingest.streams.pending():
             now_ns, grace_ns = time.time_ns(), self.settings.stream_end_grace_s * 1e9
             due += [((c.departed_ns or 0) + grace_ns - now_ns) / 1e9 for c in self.registry.departed.values()
