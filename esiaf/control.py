@@ -195,6 +195,8 @@ class ControlClient:
         self._activity = 0
         self._slow = False
         self.interval_s = 0.0  # the interval the last heartbeat said it beats at
+        self._monitor: zmq.Socket | None = None  # the DEALER's: connections made
+        self._handshakes = 0  # ... on this DEALER
 
     @property
     def component_id(self) -> str:
@@ -266,8 +268,19 @@ class ControlClient:
         dealer.setsockopt(zmq.LINGER, 0)
         # no IDENTITY: the ROUTER gives each connection a routing id no peer can claim, and the
         # heartbeat says who we are and proves it with the control key
+        # its monitor says when a connection is made (again): a beat then, so that the orchestrator,
+        # which saw the old one close, hears from the new one within its disconnect grace period
+        self._monitor = dealer.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
+        self._handshakes = 0
         dealer.connect(self._registered.control_endpoint)
         return dealer
+
+    def _close(self, dealer: zmq.Socket) -> None:
+        if self._monitor is not None:
+            dealer.disable_monitor()
+            self._monitor.close(linger=0)
+            self._monitor = None
+        dealer.close()
 
     def _run(self) -> None:
         state_out = self._context.socket(zmq.PAIR)
@@ -280,19 +293,19 @@ class ControlClient:
         # the orchestrator answers every beat: silent for dead_after_s plus this (how much longer than the
         # fast interval the beats since the last answer were) means it is gone
         extra_silence_s = 0.0
-        poked = True
+        poked = beat_now = True
         poller: zmq.Poller | None = None
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
                 if now - last_heard > self._registered.dead_after_s + extra_silence_s:
                     log.warning("orchestrator silent for %.1f s: registering again", now - last_heard)
-                    dealer.close()
+                    self._close(dealer)
                     self._register_again(state_out)
                     dealer = self._dealer()
                     last_heard = next_beat = quiet_since = time.monotonic()
                     continue
-                if now >= next_beat or poked:
+                if now >= next_beat or poked or beat_now:
                     if poked or self._activity != seen_activity:
                         seen_activity, quiet_since = self._activity, now
                     self.interval_s = self._interval(now, quiet_since)
@@ -302,7 +315,7 @@ class ControlClient:
                             "sent_ns": self._clock_ns(), "clock": self.clock.report(),
                             "state_version": self._registered.state_version, "interval_s": self.interval_s}
                     dealer.send(json.dumps(beat, default=_jsonable).encode())
-                    next_beat = now + self.interval_s
+                    next_beat, beat_now = now + self.interval_s, False
                 # sleep until the next beat (or the orchestrator's silence deadline), a message or a poke
                 wait_s = max(0.0, min(next_beat, last_heard + self._registered.dead_after_s + extra_silence_s)
                              - time.monotonic())
@@ -312,6 +325,11 @@ class ControlClient:
                 poked = self._wake_read in ready
                 if poked:
                     os.read(self._wake_read, 4096)
+                if self._monitor is not None and self._monitor in ready:
+                    with contextlib.suppress(zmq.Again):
+                        while self._monitor.recv_multipart(zmq.NOBLOCK):
+                            self._handshakes += 1
+                            beat_now = beat_now or self._handshakes > 1  # again: the first took what was queued
                 if dealer not in ready:
                     continue
                 try:
@@ -336,9 +354,11 @@ class ControlClient:
                     quiet_since = last_heard  # a new state is something to do
                     if self._slow:  # fast again, from a beat now
                         next_beat = last_heard
+                elif message.get("type") == "beat_now":  # the orchestrator saw a connection of ours close
+                    beat_now = True
                 elif message.get("type") == "unknown":
                     log.warning("orchestrator does not know component_id=%s: registering again", self.component_id)
-                    dealer.close()
+                    self._close(dealer)
                     self._register_again(state_out)
                     dealer = self._dealer()
                     last_heard = next_beat = quiet_since = time.monotonic()
@@ -350,13 +370,15 @@ class ControlClient:
             state_out.send(json.dumps({"type": "fatal", "error": f"heartbeat thread failed: "
                                                                  f"{type(exc).__name__}: {exc}"}).encode())
         finally:
-            dealer.close()
+            self._close(dealer)
             state_out.close()
 
     def _poller(self, dealer: zmq.Socket) -> zmq.Poller:
         poller = zmq.Poller()
         poller.register(dealer, zmq.POLLIN)
         poller.register(self._wake_read, zmq.POLLIN)
+        if self._monitor is not None:
+            poller.register(self._monitor, zmq.POLLIN)
         return poller
 
     def _register_again(self, state_out: zmq.Socket) -> None:

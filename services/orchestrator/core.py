@@ -102,6 +102,7 @@ class Orchestrator:
             await self.stop()
             raise
         self._tasks = [asyncio.create_task(self.control.run(), name="control"),
+                       asyncio.create_task(self.control.watch_disconnects(), name="disconnects"),
                        asyncio.create_task(self.ingest.run(), name="ingest"),
                        asyncio.create_task(self._watch_liveness(), name="liveness"),
                        asyncio.create_task(self._checkpoint(), name="checkpoint"),
@@ -141,7 +142,9 @@ class Orchestrator:
         except StoreError as exc:
             raise StartupError(str(exc)) from None
         self._control = ControlPlane(control_socket, self.registry, bind_peer_key=self.guard.mechanism == "curve",
-                                     intervals_s=(settings.heartbeat_interval_s, settings.idle_heartbeat_interval_s))
+                                     intervals_s=(settings.heartbeat_interval_s, settings.idle_heartbeat_interval_s),
+                                     disconnect_grace_s=settings.disconnect_grace_s)
+        self._control.on_lost = self._disconnected
         self._ingest = Ingest(results_socket, self.store, engine, self.hub, self.registry, metrics=self.metrics,
                              stream_end_grace_s=self.settings.stream_end_grace_s)
         self._ingest.on_assignments_changed = self._push_soon
@@ -239,6 +242,11 @@ class Orchestrator:
         """A component whose process its launcher saw die: dead now, not dead_after_s later."""
         return await self._gone(self.registry.declare_dead(component_id), logging.WARNING, "component_dead",
                                 " reported=launcher")
+
+    async def _disconnected(self, component: Component) -> None:
+        """Its control connection closed and it has not spoken since: its process died."""
+        await self._gone(self.registry.declare_dead(component.component_id), logging.WARNING, "component_dead",
+                         " reported=disconnected")
 
     async def _gone(self, component: Component | None, level: int, event: str, detail: str = "") -> Component | None:
         if component is not None:

@@ -55,6 +55,7 @@ class Component:
     # the public key its first such message came with (every later one must come with it too)
     control_key: str = field(default_factory=lambda: secrets.token_urlsafe(32))
     control_route: bytes | None = None
+    control_fd: int | None = None  # the file descriptor of that connection (the monitor names a closed one by it)
     control_peer_key: str | None = None
     registered_ns: int = field(default_factory=time.time_ns)
     last_seen_ns: int = field(default_factory=time.time_ns)
