@@ -54,6 +54,7 @@ class ControlPlane:
         # called for a live component whose connection closed and that has not spoken since (its process died)
         self.on_lost: Callable[[Component], Awaitable[Any]] | None = None
         self._losing: set[asyncio.Task] = set()
+        self.deadline_sooner: Callable[[], object] = lambda: None  # a component's death may be due sooner
 
     async def run(self) -> None:
         """Takes and handles messages. The socket's ZMQ_FD is registered with the loop once, not
@@ -182,7 +183,8 @@ class ControlPlane:
         if isinstance(stats, dict):
             component.stats = stats
         component.note_clock(message.get("clock"))
-        component.beats_every(message.get("interval_s"), *self.intervals_s)
+        if component.beats_every(message.get("interval_s"), *self.intervals_s):
+            self.deadline_sooner()  # fast again: its death may be due before the liveness task wakes
         component.offer(self.registry.state_of(component))
         # the state it says it has is the current one: a short ack; else (an older or no version) the full state
         has = message.get("state_version")

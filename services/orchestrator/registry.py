@@ -94,11 +94,15 @@ class Component:
         self.state_version += 1
         return True
 
-    def beats_every(self, said: Any, fast_s: float, slowest_s: float) -> None:
-        """The interval a heartbeat says it beats at (a peer's: clamped to the settings' range)."""
-        if isinstance(said, (int, float)) and not isinstance(said, bool) and said == said:
-            self.beat_interval_s = min(max(float(said), fast_s), slowest_s)
-            self.extra_silence_s = self.beat_interval_s - fast_s
+    def beats_every(self, said: Any, fast_s: float, slowest_s: float) -> bool:
+        """The interval a heartbeat says it beats at (a peer's: clamped to the settings' range); True if
+        it is shorter than before (so may be its death, if it falls silent now)."""
+        if not isinstance(said, (int, float)) or isinstance(said, bool) or said != said:
+            return False
+        before = self.extra_silence_s
+        self.beat_interval_s = min(max(float(said), fast_s), slowest_s)
+        self.extra_silence_s = self.beat_interval_s - fast_s
+        return self.extra_silence_s < before
 
     def silent_too_long_at(self, dead_after_s: float) -> float:
         """When it is dead if it says nothing more (monotonic)."""
