@@ -41,21 +41,30 @@ ANY_HOST = ("0.0.0.0", "*", "::")
 LEAVE_GRACE_S = 1.0  # a departed producer's messages still arriving are taken this long at least
 
 
-# ZMTP heartbeats on every TCP socket: a peer cut off by the network (a cable, `docker network
-# disconnect`) is noticed within seconds and the connection made again, instead of a half-open TCP
-# connection swallowing messages until the kernel gives up on it (minutes)
-HEARTBEAT_IVL_MS = 1_000
-HEARTBEAT_TIMEOUT_MS = 4_000
+# The kernel's TCP keepalive on every TCP socket, not ZMTP heartbeats (issue 18: those woke each
+# process's libzmq I/O thread about three times a second per connection, most of an idle component's
+# CPU): a peer cut off by the network (a cable, `docker network disconnect`) is noticed within seconds
+# (an idle connection's probes go unanswered for KEEPALIVE_IDLE_S + KEEPALIVE_CNT * KEEPALIVE_INTVL_S;
+# data goes unacknowledged for UNACKED_MS, TCP_USER_TIMEOUT) and the connection made again, instead
+# of a half-open TCP connection swallowing messages until the kernel gives up on it (minutes). The
+# probes are the kernel's: no process wakes while all is well. A peer whose process is frozen but
+# whose kernel answers keeps its connection: the control plane's heartbeats find it (docs/protocol.md).
+KEEPALIVE_IDLE_S = 1
+KEEPALIVE_INTVL_S = 1
+KEEPALIVE_CNT = 3
+UNACKED_MS = 4_000
 
 
 SocketT = TypeVar("SocketT", bound=zmq.Socket)
 
 
 def keep_alive(sock: SocketT) -> SocketT:
-    """Turns ZMTP heartbeats on (before connect/bind): a silent connection is dropped and redone."""
-    sock.setsockopt(zmq.HEARTBEAT_IVL, HEARTBEAT_IVL_MS)
-    sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, HEARTBEAT_TIMEOUT_MS)
-    sock.setsockopt(zmq.HEARTBEAT_TTL, HEARTBEAT_TIMEOUT_MS)
+    """Turns TCP keepalive on (before connect/bind): a connection cut off is dropped and redone."""
+    sock.setsockopt(zmq.TCP_KEEPALIVE, 1)
+    sock.setsockopt(zmq.TCP_KEEPALIVE_IDLE, KEEPALIVE_IDLE_S)
+    sock.setsockopt(zmq.TCP_KEEPALIVE_INTVL, KEEPALIVE_INTVL_S)
+    sock.setsockopt(zmq.TCP_KEEPALIVE_CNT, KEEPALIVE_CNT)
+    sock.setsockopt(zmq.TCP_MAXRT, UNACKED_MS)
     return sock
 
 
