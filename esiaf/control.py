@@ -3,16 +3,17 @@
 Registration is HTTP (``POST /components``), retried with exponential back-off
 until ``register_timeout_s``. After it, a thread owns a DEALER socket (its
 routing id left to the orchestrator's ROUTER): it sends a heartbeat, which names the component
-and carries the registration's ``control_key``, every
-``heartbeat_interval_s`` (and at once when :meth:`ControlClient.poke` is
-called), and passes every state message the orchestrator pushes or answers with (peers and
-formats) to the data thread through an inproc PAIR socket. Each heartbeat gives back the number
-of the last state applied; while it is current the answer is a short ``ack``, and the data thread
-sleeps on. When the
+and carries the registration's ``control_key``, every ``heartbeat_interval_s`` (at once when
+:meth:`ControlClient.poke` is called, and on a connection made again); once idle for
+``idle_heartbeat_interval_s`` it beats that often instead, until :meth:`ControlClient.busy` says
+audio or results moved. It passes every state message the orchestrator pushes or answers with
+(peers and formats) to the data thread through an inproc PAIR socket. Each heartbeat gives back the
+number of the last state applied; while it is current the answer is a short ``ack``, and the data
+thread sleeps on. When the
 orchestrator answers ``unknown`` (it restarted, or thought us dead) the thread
 registers again; so it does when the orchestrator has been silent for longer
-than ``dead_after_s`` (it died, or came back on other ports), and it keeps
-trying for as long as the component runs. See docs/protocol.md.
+than ``dead_after_s`` (plus the idle interval's extra: it died, or came back on other ports), and it
+keeps trying for as long as the component runs. See docs/protocol.md.
 
 With a ``health_file``, the thread touches that file whenever the orchestrator
 answers (registration, state, heartbeat replies): its age tells a container's
