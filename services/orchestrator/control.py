@@ -10,10 +10,10 @@ its first accepted message. The ROUTER keeps libzmq's default for a routing id a
 the newcomer is ignored (no ROUTER_HANDOVER, which would let a peer naming a live routing id take
 its pushes). See docs/protocol.md, "Control".
 
-A component's process that dies closes its connection (its kernel does): the socket's monitor says
-which file descriptor closed, each proven message which descriptor it came on, and a component
-whose connection closed and that says nothing on a new one within ``disconnect_grace_s`` is lost
-(:attr:`ControlPlane.on_lost`), without waiting for its ``dead_after_s``.
+A component's process that dies closes its connection (its kernel does): the socket's monitor (the
+ZAP guard's, zap.py: one per socket) says which file descriptor closed, each proven message which
+descriptor it came on, and a component whose connection closed and that says nothing on a new one
+within ``disconnect_grace_s`` is lost (:attr:`ControlPlane.on_lost`), without its ``dead_after_s``.
 """
 from __future__ import annotations
 
@@ -27,7 +27,6 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 import zmq.asyncio
-from zmq.utils.monitor import parse_monitor_message
 
 from .codec import MAX_TIME_NS
 from .registry import Component, Registry
@@ -81,17 +80,6 @@ class ControlPlane:
                         log.exception("event=control_failed frames=%d", len(frames))
         finally:
             loop.remove_reader(fd)
-
-    async def watch_disconnects(self) -> None:
-        """Reads the control socket's monitor: every connection that closes, by file descriptor."""
-        monitor = self.socket.get_monitor_socket(zmq.EVENT_DISCONNECTED)
-        try:
-            while True:
-                event = parse_monitor_message(await monitor.recv_multipart())
-                self.disconnected(int(event["value"]))
-        finally:
-            self.socket.disable_monitor()
-            monitor.close(linger=0)
 
     def disconnected(self, fd: int) -> None:
         """The connection on ``fd`` closed: the component whose key last came on it is lost unless it

@@ -103,7 +103,6 @@ class Orchestrator:
             await self.stop()
             raise
         self._tasks = [asyncio.create_task(self.control.run(), name="control"),
-                       asyncio.create_task(self.control.watch_disconnects(), name="disconnects"),
                        asyncio.create_task(self.ingest.run(), name="ingest"),
                        asyncio.create_task(self._watch_liveness(), name="liveness"),
                        asyncio.create_task(self._checkpoint(), name="checkpoint"),
@@ -164,7 +163,7 @@ class Orchestrator:
         assert self._ctx is not None  # _start() makes it first
         socket = keep_alive(self._ctx.socket(kind))
         socket.setsockopt(zmq.LINGER, 0)
-        self.guard.secure(socket, what)
+        self.guard.secure(socket, what, on_disconnect=self._control_disconnected if what == "control" else None)
         if host.startswith("["):
             socket.setsockopt(zmq.IPV6, 1)
         address = f"tcp://{host}:{port or '*'}"
@@ -245,6 +244,10 @@ class Orchestrator:
         """A component whose process its launcher saw die: dead now, not dead_after_s later."""
         return await self._gone(self.registry.declare_dead(component_id), logging.WARNING, "component_dead",
                                 " reported=launcher")
+
+    def _control_disconnected(self, fd: int) -> None:
+        if self._control is not None:
+            self._control.disconnected(fd)
 
     async def _disconnected(self, component: Component) -> None:
         """Its control connection closed and it has not spoken since: its process died."""
