@@ -153,8 +153,7 @@ class Component:
         payload = audio if isinstance(audio, (bytes, bytearray, memoryview)) else encode(audio, link.declared)
         stream_id = stream_id or self.settings.stream_id
         sequence = 0
-        for out in link.messages(payload, start_ns, end_ns, stream_id, last=segmentation_ended or end_of_stream,
-                                 end_of_stream=end_of_stream):
+        for out in link.messages(payload, start_ns, end_ns, stream_id, segmentation_ended, end_of_stream):
             msg = pb.AugmentedAudio(stream_id=out.stream_id, topic=topic, format=out.format.to_proto(),
                                     start_ns=out.chunk.start_ns, end_ns=out.chunk.end_ns, payload=out.chunk.payload)
             if out.main:
@@ -255,6 +254,7 @@ class Component:
                                          self.settings.register_timeout_s, self.settings.health_file, curve,
                                          self.clock_ns)
             self._output_links = {t: OutputLink(t, f) for t, f in self.outputs.items()}
+            self._wire.on_busy = self.control.busy  # audio or results moving: the heartbeat stays fast
             registration = self.control.start()
             self._apply_state(registration.state())
             if type(self).produce is not Component.produce:

@@ -3,16 +3,17 @@
 Registration is HTTP (``POST /components``), retried with exponential back-off
 until ``register_timeout_s``. After it, a thread owns a DEALER socket (its
 routing id left to the orchestrator's ROUTER): it sends a heartbeat, which names the component
-and carries the registration's ``control_key``, every
-``heartbeat_interval_s`` (and at once when :meth:`ControlClient.poke` is
-called), and passes every state message the orchestrator pushes or answers with (peers and
-formats) to the data thread through an inproc PAIR socket. Each heartbeat gives back the number
-of the last state applied; while it is current the answer is a short ``ack``, and the data thread
-sleeps on. When the
+and carries the registration's ``control_key``, every ``heartbeat_interval_s`` (at once when
+:meth:`ControlClient.poke` is called, and on a connection made again); once idle for
+``idle_heartbeat_interval_s`` it beats that often instead, until :meth:`ControlClient.busy` says
+audio or results moved. It passes every state message the orchestrator pushes or answers with
+(peers and formats) to the data thread through an inproc PAIR socket. Each heartbeat gives back the
+number of the last state applied; while it is current the answer is a short ``ack``, and the data
+thread sleeps on. When the
 orchestrator answers ``unknown`` (it restarted, or thought us dead) the thread
 registers again; so it does when the orchestrator has been silent for longer
-than ``dead_after_s`` (it died, or came back on other ports), and it keeps
-trying for as long as the component runs. See docs/protocol.md.
+than ``dead_after_s`` (plus the idle interval's extra: it died, or came back on other ports), and it
+keeps trying for as long as the component runs. See docs/protocol.md.
 
 With a ``health_file``, the thread touches that file whenever the orchestrator
 answers (registration, state, heartbeat replies): its age tells a container's
@@ -61,6 +62,8 @@ class Registration:
     results_endpoint: str
     heartbeat_interval_s: float
     dead_after_s: float
+    # the interval to beat at once idle for as long (0: an orchestrator that does not know it: never slower)
+    idle_heartbeat_interval_s: float = 0.0
     control_key: str = ""  # this registration's control secret: every control message carries it
     key_id: str = ""  # names this registration: results carry it with a MAC keyed with control_key
     peers: dict[str, list[str]] = field(default_factory=dict)
@@ -190,6 +193,12 @@ class ControlClient:
         os.set_blocking(self._wake_write, False)
         self._thread: threading.Thread | None = None
         self.registration: Registration | None = None
+        # busy() counts the data thread's work; while the heartbeat is slow (idle), it wakes the thread
+        self._activity = 0
+        self._slow = False
+        self.interval_s = 0.0  # the interval the last heartbeat said it beats at
+        self._monitor: zmq.Socket | None = None  # the DEALER's: connections made
+        self._handshakes = 0  # ... on this DEALER
 
     @property
     def component_id(self) -> str:
@@ -214,6 +223,20 @@ class ControlClient:
     def poke(self) -> None:
         """Sends a heartbeat now (something worth reporting changed)."""
         self._wake()
+
+    def busy(self) -> None:
+        """The data thread moved audio or results: the heartbeat stays at (or, now, goes back to)
+        its fast interval. Cheap enough for every chunk."""
+        self._activity += 1
+        if self._slow:
+            self._slow = False
+            self._wake()
+
+    def _interval(self, now: float, quiet_since: float) -> float:
+        """The fast interval, or the idle one after an idle interval with nothing to do."""
+        fast, idle = self._registered.heartbeat_interval_s, self._registered.idle_heartbeat_interval_s
+        self._slow = idle > fast and now - quiet_since >= idle
+        return idle if self._slow else fast
 
     def _wake(self) -> None:
         with contextlib.suppress(OSError):  # BlockingIOError: the pipe is full, the thread is woken already
@@ -247,8 +270,19 @@ class ControlClient:
         dealer.setsockopt(zmq.LINGER, 0)
         # no IDENTITY: the ROUTER gives each connection a routing id no peer can claim, and the
         # heartbeat says who we are and proves it with the control key
+        # its monitor says when a connection is made (again): a beat then, so that the orchestrator,
+        # which saw the old one close, hears from the new one within its disconnect grace period
+        self._monitor = dealer.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
+        self._handshakes = 0
         dealer.connect(self._registered.control_endpoint)
         return dealer
+
+    def _close(self, dealer: zmq.Socket) -> None:
+        if self._monitor is not None:
+            dealer.disable_monitor()
+            self._monitor.close(linger=0)
+            self._monitor = None
+        dealer.close()
 
     def _run(self) -> None:
         state_out = self._context.socket(zmq.PAIR)
@@ -256,34 +290,48 @@ class ControlClient:
         state_out.connect(STATE_ADDRESS)
         dealer = self._dealer()
         next_beat = 0.0
-        last_heard = time.monotonic()
-        poked = True
+        last_heard = quiet_since = time.monotonic()
+        seen_activity = self._activity
+        # the orchestrator answers every beat: silent for dead_after_s plus this (how much longer than the
+        # fast interval the beats since the last answer were) means it is gone
+        extra_silence_s = 0.0
+        poked = beat_now = True
         poller: zmq.Poller | None = None
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
-                if now - last_heard > self._registered.dead_after_s:
+                if now - last_heard > self._registered.dead_after_s + extra_silence_s:
                     log.warning("orchestrator silent for %.1f s: registering again", now - last_heard)
-                    dealer.close()
+                    self._close(dealer)
                     self._register_again(state_out)
                     dealer = self._dealer()
-                    last_heard = next_beat = time.monotonic()
+                    last_heard = next_beat = quiet_since = time.monotonic()
                     continue
-                if now >= next_beat or poked:
+                if now >= next_beat or poked or beat_now:
+                    if poked or self._activity != seen_activity:
+                        seen_activity, quiet_since = self._activity, now
+                    self.interval_s = self._interval(now, quiet_since)
+                    extra_silence_s = max(extra_silence_s, self.interval_s - self._registered.heartbeat_interval_s)
                     beat = {"type": "heartbeat", "component_id": self.component_id,
                             "control_key": self._registered.control_key, "stats": self._stats(),
                             "sent_ns": self._clock_ns(), "clock": self.clock.report(),
-                            "state_version": self._registered.state_version}
+                            "state_version": self._registered.state_version, "interval_s": self.interval_s}
                     dealer.send(json.dumps(beat, default=_jsonable).encode())
-                    next_beat = now + self._registered.heartbeat_interval_s
+                    next_beat, beat_now = now + self.interval_s, False
                 # sleep until the next beat (or the orchestrator's silence deadline), a message or a poke
-                wait_s = max(0.0, min(next_beat, last_heard + self._registered.dead_after_s) - time.monotonic())
+                wait_s = max(0.0, min(next_beat, last_heard + self._registered.dead_after_s + extra_silence_s)
+                             - time.monotonic())
                 if poller is None or dealer not in poller:
                     poller = self._poller(dealer)
                 ready = dict(poller.poll(timeout=max(1, round(wait_s * 1000))))
                 poked = self._wake_read in ready
                 if poked:
                     os.read(self._wake_read, 4096)
+                if self._monitor is not None and self._monitor in ready:
+                    with contextlib.suppress(zmq.Again):
+                        while self._monitor.recv_multipart(zmq.NOBLOCK):
+                            self._handshakes += 1
+                            beat_now = beat_now or self._handshakes > 1  # again: the first took what was queued
                 if dealer not in ready:
                     continue
                 try:
@@ -292,6 +340,7 @@ class ControlClient:
                     continue
                 received_ns = self._clock_ns()
                 last_heard = time.monotonic()
+                extra_silence_s = self.interval_s - self._registered.heartbeat_interval_s
                 echo, answered = message.get("echo_ns"), message.get("orchestrator_ns")
                 if type(echo) is int and type(answered) is int:
                     self.clock.add(echo, answered, received_ns)
@@ -304,12 +353,17 @@ class ControlClient:
                     self._registered.peer_keys = message.get("peer_keys", {})
                     self._registered.streams = message.get("streams")
                     state_out.send(json.dumps(self._registered.state()).encode())
+                    quiet_since = last_heard  # a new state is something to do
+                    if self._slow:  # fast again, from a beat now
+                        next_beat = last_heard
+                elif message.get("type") == "beat_now":  # the orchestrator saw a connection of ours close
+                    beat_now = True
                 elif message.get("type") == "unknown":
                     log.warning("orchestrator does not know component_id=%s: registering again", self.component_id)
-                    dealer.close()
+                    self._close(dealer)
                     self._register_again(state_out)
                     dealer = self._dealer()
-                    last_heard = next_beat = time.monotonic()
+                    last_heard = next_beat = quiet_since = time.monotonic()
         except RegistrationError as exc:  # refused: the orchestrator will not have us any more
             log.error("%s", exc)
             state_out.send(json.dumps({"type": "fatal", "error": str(exc)}).encode())
@@ -318,13 +372,15 @@ class ControlClient:
             state_out.send(json.dumps({"type": "fatal", "error": f"heartbeat thread failed: "
                                                                  f"{type(exc).__name__}: {exc}"}).encode())
         finally:
-            dealer.close()
+            self._close(dealer)
             state_out.close()
 
     def _poller(self, dealer: zmq.Socket) -> zmq.Poller:
         poller = zmq.Poller()
         poller.register(dealer, zmq.POLLIN)
         poller.register(self._wake_read, zmq.POLLIN)
+        if self._monitor is not None:
+            poller.register(self._monitor, zmq.POLLIN)
         return poller
 
     def _register_again(self, state_out: zmq.Socket) -> None:

@@ -114,6 +114,8 @@ class Guest:
     def dispatch(self, audio: Audio) -> None:
         """A chunk the host received, handled by the guest as if it had received it."""
         analyser = self.analyser
+        if analyser.control is not None:
+            analyser.control.busy()  # its heartbeat stays fast while it works (the transport wakes the host)
         if (stats := analyser.input_stats.get(audio.topic)) is not None:
             stats.received += 1
         try:

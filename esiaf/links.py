@@ -71,9 +71,10 @@ class OutputLink:
         return self.wire != self.declared
 
     def messages(self, payload: bytes, start_ns: int, end_ns: int, stream_id: str,
-                 last: bool, end_of_stream: bool = False) -> list[Outgoing]:
+                 segmentation_ended: bool = False, end_of_stream: bool = False) -> list[Outgoing]:
         """What to send for one published chunk (payload in the declared format): the chunk, after
-        any resampler tail that must go first (a format switch, or a gap in this stream)."""
+        any resampler tail that must go first (a format switch, or a gap in this stream). A chunk
+        that ends a segment or the stream also carries what its resampler held back."""
         out: list[Outgoing] = []
         if self.assigned != self.wire:
             for stream in list(self._converters):
@@ -90,7 +91,7 @@ class OutputLink:
         elif payload and not converter.continues(start_ns):
             out += self._flush(stream_id, keep=True)
         self._converters.move_to_end(stream_id)
-        chunk = converter.convert(bytes(payload), start_ns, end_ns, last=last)
+        chunk = converter.convert(bytes(payload), start_ns, end_ns, last=segmentation_ended or end_of_stream)
         if end_of_stream:
             del self._converters[stream_id]
         return [*out, Outgoing(self.wire, chunk, stream_id, main=True)]

@@ -42,21 +42,30 @@ ANY_HOST = ("0.0.0.0", "*", "::")
 LEAVE_GRACE_S = 1.0  # a departed producer's messages still arriving are taken this long at least
 
 
-# ZMTP heartbeats on every TCP socket: a peer cut off by the network (a cable, `docker network
-# disconnect`) is noticed within seconds and the connection made again, instead of a half-open TCP
-# connection swallowing messages until the kernel gives up on it (minutes)
-HEARTBEAT_IVL_MS = 1_000
-HEARTBEAT_TIMEOUT_MS = 4_000
+# The kernel's TCP keepalive on every TCP socket, not ZMTP heartbeats (issue 18: those woke each
+# process's libzmq I/O thread about three times a second per connection, most of an idle component's
+# CPU): a peer cut off by the network (a cable, `docker network disconnect`) is noticed within seconds
+# (an idle connection's probes go unanswered for KEEPALIVE_IDLE_S + KEEPALIVE_CNT * KEEPALIVE_INTVL_S;
+# data goes unacknowledged for UNACKED_MS, TCP_USER_TIMEOUT) and the connection made again, instead
+# of a half-open TCP connection swallowing messages until the kernel gives up on it (minutes). The
+# probes are the kernel's: no process wakes while all is well. A peer whose process is frozen but
+# whose kernel answers keeps its connection: the control plane's heartbeats find it (docs/protocol.md).
+KEEPALIVE_IDLE_S = 1
+KEEPALIVE_INTVL_S = 1
+KEEPALIVE_CNT = 3
+UNACKED_MS = 4_000
 
 
 SocketT = TypeVar("SocketT", bound=zmq.Socket)
 
 
 def keep_alive(sock: SocketT) -> SocketT:
-    """Turns ZMTP heartbeats on (before connect/bind): a silent connection is dropped and redone."""
-    sock.setsockopt(zmq.HEARTBEAT_IVL, HEARTBEAT_IVL_MS)
-    sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, HEARTBEAT_TIMEOUT_MS)
-    sock.setsockopt(zmq.HEARTBEAT_TTL, HEARTBEAT_TIMEOUT_MS)
+    """Turns TCP keepalive on (before connect/bind): a connection cut off is dropped and redone."""
+    sock.setsockopt(zmq.TCP_KEEPALIVE, 1)
+    sock.setsockopt(zmq.TCP_KEEPALIVE_IDLE, KEEPALIVE_IDLE_S)
+    sock.setsockopt(zmq.TCP_KEEPALIVE_INTVL, KEEPALIVE_INTVL_S)
+    sock.setsockopt(zmq.TCP_KEEPALIVE_CNT, KEEPALIVE_CNT)
+    sock.setsockopt(zmq.TCP_MAXRT, UNACKED_MS)
     return sock
 
 
@@ -89,6 +98,10 @@ def _take(sock: zmq.Socket, receive: Callable[..., Any] = zmq.Socket.recv) -> An
         return None
 
 
+def _nothing() -> None:
+    pass
+
+
 def topic_name(frame: bytes) -> str:
     return frame.split(b"\0", 1)[0].decode(errors="replace")
 
@@ -105,6 +118,8 @@ class Transport:
         self._connected: set[str] = set()
         self._leaving: dict[str, float] = {}  # producers gone, still to be drained: endpoint -> since (monotonic)
         self._results_endpoint = ""
+        # called whenever audio or results move (the control client's busy(): it keeps the heartbeat fast)
+        self.on_busy: Callable[[], None] = _nothing
         self.state = context.socket(zmq.PAIR)
         self.state.setsockopt(zmq.LINGER, 0)
         self.state.bind(STATE_ADDRESS)
@@ -192,6 +207,7 @@ class Transport:
                 yield "refused", keys.HANDSHAKE_FAILURES.get(event["event"], "other")
             if self.sub is not None and self.sub in ready and take_audio and (
                     frames := _take(self.sub, zmq.Socket.recv_multipart)) is not None:
+                self.on_busy()
                 yield "audio", frames
             ready = dict(self._poller.poll(timeout=0))
             if not take_audio:
@@ -246,6 +262,7 @@ class Transport:
             self.pub.send_multipart([topic_frame(topic, stream_id), message], flags=zmq.NOBLOCK)
         except zmq.Again:
             return False
+        self.on_busy()
         return True
 
     def send_results(self, frames: Sequence[bytes]) -> bool:
@@ -254,6 +271,7 @@ class Transport:
             self.push.send_multipart(frames, flags=zmq.NOBLOCK)
         except zmq.Again:
             return False
+        self.on_busy()
         return True
 
     def connect_peers(self, wanted: set[str], peer_keys: dict[str, str] | None = None) -> None:

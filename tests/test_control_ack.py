@@ -3,6 +3,7 @@ number of the state it applied, passes on a full state however it arrives (an an
 and takes an ack as life and a clock sample, not as a state (docs/protocol.md, "Control")."""
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from collections.abc import Iterator
@@ -18,26 +19,40 @@ from esiaf.transport import STATE_ADDRESS
 FMT = {"sample_rate_hz": 16000, "sample_type": "int16", "endianness": "little", "channels": 1}
 
 
-@pytest.fixture
-def fake(monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[zmq.Socket, zmq.Socket, ControlClient]]:
-    """The orchestrator's ROUTER, the data thread's end of the state PAIR, and a started client."""
+@contextlib.contextmanager
+def fake_orchestrator(monkeypatch: pytest.MonkeyPatch, **registration: Any) -> Iterator[
+        tuple[zmq.Socket, zmq.Socket, ControlClient, list[Registration]]]:
+    """The orchestrator's ROUTER, the data thread's end of the state PAIR, a started client and the
+    registrations it made (with ``registration``'s fields)."""
     ctx = zmq.Context()
     router, states = ctx.socket(zmq.ROUTER), ctx.socket(zmq.PAIR)
     states.bind(STATE_ADDRESS)
     port = router.bind_to_random_port("tcp://127.0.0.1")
-    registration = Registration(component_id="vad-1", control_endpoint=f"tcp://127.0.0.1:{port}",
-                                results_endpoint="", heartbeat_interval_s=0.2, dead_after_s=5.0,
-                                control_key="key")
-    monkeypatch.setattr(control, "register", lambda *args, **kwargs: registration)
+    made: list[Registration] = []
+
+    def register(*args: Any, **kwargs: Any) -> Registration:
+        made.append(Registration(**{"component_id": "vad-1", "control_endpoint": f"tcp://127.0.0.1:{port}",
+                                    "results_endpoint": "", "heartbeat_interval_s": 0.2, "dead_after_s": 5.0,
+                                    "control_key": "key", **registration}))
+        return made[-1]
+
+    monkeypatch.setattr(control, "register", register)
     client = ControlClient(ctx, "http://127.0.0.1:1", {}, stats=dict, register_timeout_s=1.0)
     client.start()
     try:
-        yield router, states, client
+        yield router, states, client, made
     finally:
         client.stop(unregister_too=False)
         router.close(linger=0)
         states.close(linger=0)
         ctx.term()
+
+
+@pytest.fixture
+def fake(monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[zmq.Socket, zmq.Socket, ControlClient]]:
+    """The orchestrator's ROUTER, the data thread's end of the state PAIR, and a started client."""
+    with fake_orchestrator(monkeypatch) as (router, states, client, _):
+        yield router, states, client
 
 
 def beat(router: zmq.Socket) -> tuple[bytes, dict[str, Any]]:

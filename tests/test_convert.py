@@ -131,7 +131,7 @@ def test_a_switch_at_a_message_boundary_loses_and_duplicates_nothing():
         producer.assigned = {0: fmt16, 20: fmt48, 40: fmt16}.get(index, producer.assigned)
         payload = signal[index * chunk_bytes:(index + 1) * chunk_bytes]
         last = index == 59
-        for out in producer.messages(payload, *clock.advance(960), "s", last=last):
+        for out in producer.messages(payload, *clock.advance(960), "s", end_of_stream=last):
             sequence += 1
             meta = {"end_of_stream": last} if out.main else {}
             message = audio_message(out.format, out.chunk.payload, sequence, (out.chunk.start_ns, out.chunk.end_ns),
@@ -168,7 +168,7 @@ def test_two_streams_interleaved_on_one_topic_each_keep_their_own_resampler():
         for stream in ("a", "b"):
             last = index == 49
             payload = signals[stream][index * chunk_bytes:(index + 1) * chunk_bytes]
-            for out in producer.messages(payload, *clocks[stream].advance(960), stream, last=last, end_of_stream=last):
+            for out in producer.messages(payload, *clocks[stream].advance(960), stream, end_of_stream=last):
                 assert out.stream_id == stream and out.format == fmt16
                 sent[stream].append(out)
     for stream, hz in tones.items():

@@ -9,6 +9,11 @@ logged, the first and every 100th. With CURVE, a registration is also bound to t
 its first accepted message. The ROUTER keeps libzmq's default for a routing id already connected:
 the newcomer is ignored (no ROUTER_HANDOVER, which would let a peer naming a live routing id take
 its pushes). See docs/protocol.md, "Control".
+
+A component's process that dies closes its connection (its kernel does): the socket's monitor (the
+ZAP guard's, zap.py: one per socket) says which file descriptor closed, each proven message which
+descriptor it came on, and a component whose connection closed and that says nothing on a new one
+within ``disconnect_grace_s`` is lost (:attr:`ControlPlane.on_lost`), without its ``dead_after_s``.
 """
 from __future__ import annotations
 
@@ -18,6 +23,7 @@ import json
 import logging
 import time
 from collections import Counter
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 import zmq.asyncio
@@ -28,10 +34,12 @@ from .registry import Component, Registry
 log = logging.getLogger(__name__)
 
 UNKNOWN = json.dumps({"type": "unknown"}).encode()
+BEAT_NOW = json.dumps({"type": "beat_now"}).encode()
 
 
 class ControlPlane:
-    def __init__(self, socket: zmq.asyncio.Socket, registry: Registry, bind_peer_key: bool = False) -> None:
+    def __init__(self, socket: zmq.asyncio.Socket, registry: Registry, bind_peer_key: bool = False,
+                 intervals_s: tuple[float, float] = (0.5, 0.5), disconnect_grace_s: float = 1.0) -> None:
         self.socket = socket
         # the same socket, used synchronously: run() takes every message there is when its file
         # descriptor wakes the loop, and send() never waits (a ROUTER drops what it cannot send)
@@ -40,6 +48,12 @@ class ControlPlane:
         self.registry = registry
         self.bind_peer_key = bind_peer_key  # CURVE: the ZAP handler gives each message its peer's public key
         self.counters: Counter[str] = Counter()
+        self.intervals_s = intervals_s  # the heartbeat interval, and the longest a component may say it beats at
+        self.disconnect_grace_s = disconnect_grace_s
+        # called for a live component whose connection closed and that has not spoken since (its process died)
+        self.on_lost: Callable[[Component], Awaitable[Any]] | None = None
+        self._losing: set[asyncio.Task] = set()
+        self.deadline_sooner: Callable[[], object] = lambda: None  # a component's death may be due sooner
 
     async def run(self) -> None:
         """Takes and handles messages. The socket's ZMQ_FD is registered with the loop once, not
@@ -66,6 +80,28 @@ class ControlPlane:
                         log.exception("event=control_failed frames=%d", len(frames))
         finally:
             loop.remove_reader(fd)
+
+    def disconnected(self, fd: int) -> None:
+        """The connection on ``fd`` closed: the component whose key last came on it is lost unless it
+        speaks again within the grace period (a connection redone: the SDK beats at once on a new one).
+        It is asked to beat now, in case the connection its state goes to is a newer one on the same fd."""
+        since = time.monotonic()
+        for component in [c for c in self.registry.live.values() if c.control_fd == fd]:
+            component.control_fd = None
+            self.counters["disconnects"] += 1
+            if component.control_route is not None:
+                self._send(component.control_route, BEAT_NOW)
+            asyncio.get_running_loop().call_later(self.disconnect_grace_s, self._maybe_lost, component, since)
+
+    def _maybe_lost(self, component: Component, since: float) -> None:
+        if self.registry.get(component.component_id) is not component or component.last_seen_mono >= since:
+            return  # gone meanwhile, or it spoke
+        log.info("event=control_disconnected component_id=%s grace_s=%g", component.component_id,
+                 self.disconnect_grace_s)
+        if self.on_lost is not None:
+            task = asyncio.ensure_future(self.on_lost(component))
+            self._losing.add(task)
+            task.add_done_callback(self._losing.discard)
 
     def _bad(self, detail: str) -> None:
         """Counts a bad control message; logs the first and then every 100th."""
@@ -125,6 +161,8 @@ class ControlPlane:
             return  # neither life nor an answer: whoever sent it does not hold this registration
         component.touch()
         component.control_route = route  # state goes to the connection that proved the key last
+        fd = data.get(zmq.SRCFD)  # ... and the file descriptor it came on: its closing names it
+        component.control_fd = fd if type(fd) is int and fd >= 0 else None
         if kind != "heartbeat":
             self._bad(f"component_id={component.component_id} type={str(kind)[:50]!r}")
             return
@@ -133,6 +171,8 @@ class ControlPlane:
         if isinstance(stats, dict):
             component.stats = stats
         component.note_clock(message.get("clock"))
+        if component.beats_every(message.get("interval_s"), *self.intervals_s):
+            self.deadline_sooner()  # fast again: its death may be due before the liveness task wakes
         component.offer(self.registry.state_of(component))
         # the state it says it has is the current one: a short ack; else (an older or no version) the full state
         has = message.get("state_version")

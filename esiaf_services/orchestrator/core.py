@@ -31,7 +31,7 @@ from .zap import Guard
 log = logging.getLogger(__name__)
 
 LIVENESS_MAX_SLEEP_S = 5.0  # the liveness task wakes when the first component may be dead, at the latest this
-CHECKPOINT_INTERVAL_S = 1.0  # how often the SQLite WAL is copied into the database, if it was written
+CHECKPOINT_INTERVAL_S = 1.0  # the SQLite WAL is copied into the database this long after a write, at most this often
 ANY_HOST = ("0.0.0.0", "*", "")
 
 
@@ -75,6 +75,7 @@ class Orchestrator:
         self._guard: Guard | None = None
         self._tasks: list[asyncio.Task] = []
         self._pushes: set[asyncio.Task] = set()  # state pushes under way (_push_soon)
+        self._liveness_news = asyncio.Event()  # a component registered, or its death may be due sooner
 
     # the parts start() makes; the REST API, the metrics and the tasks use them only while running
     @property
@@ -142,7 +143,11 @@ class Orchestrator:
         except StoreError as exc:
             raise StartupError(str(exc)) from None
         self.registry.secret = self.store.secret("control_keys", lambda: secrets.token_bytes(32))
-        self._control = ControlPlane(control_socket, self.registry, bind_peer_key=self.guard.mechanism == "curve")
+        self._control = ControlPlane(control_socket, self.registry, bind_peer_key=self.guard.mechanism == "curve",
+                                     intervals_s=(settings.heartbeat_interval_s, settings.idle_heartbeat_interval_s),
+                                     disconnect_grace_s=settings.disconnect_grace_s)
+        self._control.on_lost = self._disconnected
+        self._control.deadline_sooner = self._liveness_news.set
         self._ingest = Ingest(results_socket, self.store, engine, self.hub, self.registry, metrics=self.metrics,
                              stream_end_grace_s=self.settings.stream_end_grace_s,
                              bind_peer_key=self.guard.mechanism == "curve")
@@ -161,7 +166,7 @@ class Orchestrator:
         assert self._ctx is not None  # _start() makes it first
         socket = keep_alive(self._ctx.socket(kind))
         socket.setsockopt(zmq.LINGER, 0)
-        self.guard.secure(socket, what)
+        self.guard.secure(socket, what, on_disconnect=self._control_disconnected if what == "control" else None)
         if host.startswith("["):
             socket.setsockopt(zmq.IPV6, 1)
         address = f"tcp://{host}:{port or '*'}"
@@ -213,6 +218,7 @@ class Orchestrator:
             name=name, designation=designation, stream_id=stream_id, inputs=inputs,
             outputs=outputs, audio_endpoint=audio_endpoint, host=host, pid=pid, info=info,
             audio_public_key=audio_public_key, instance=instance, incarnation=incarnation)
+        self._liveness_news.set()
         if replaced is not None:
             log.info("event=component_registered_again component_id=%s name=%s", component.component_id, name)
         log.info("event=component_registered component_id=%s name=%s designation=%s stream_id=%s "
@@ -242,6 +248,15 @@ class Orchestrator:
         return await self._gone(self.registry.declare_dead(component_id), logging.WARNING, "component_dead",
                                 " reported=launcher")
 
+    def _control_disconnected(self, fd: int) -> None:
+        if self._control is not None:
+            self._control.disconnected(fd)
+
+    async def _disconnected(self, component: Component) -> None:
+        """Its control connection closed and it has not spoken since: its process died."""
+        await self._gone(self.registry.declare_dead(component.component_id), logging.WARNING, "component_dead",
+                         " reported=disconnected")
+
     async def _gone(self, component: Component | None, level: int, event: str, detail: str = "") -> Component | None:
         if component is not None:
             log.log(level, "event=%s component_id=%s name=%s%s", event, component.component_id, component.name, detail)
@@ -256,9 +271,13 @@ class Orchestrator:
 
     async def _watch_liveness(self) -> None:
         """Declares silent components dead: it sleeps until the first of them may be (its last
-        message plus dead_after_s) or a dead one's stream-end grace runs out, not on a fixed tick."""
+        message plus dead_after_s, plus its idle interval's extra) or a dead one's stream-end grace runs
+        out, or a registration or a faster beat makes a death due sooner; not on a fixed tick, and not
+        at all while nothing is due."""
         while True:
-            await asyncio.sleep(self._next_liveness_check_s())
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(self._liveness_news.wait(), self._next_liveness_check_s())
+            self._liveness_news.clear()
             dead = self.registry.expire(self.settings.dead_after_s)
             for component in dead:
                 assert component.departed_ns is not None  # expire() sets it
@@ -270,24 +289,28 @@ class Orchestrator:
             elif self._ingest is not None and self._ingest.streams.pending():
                 self.ingest.check_stream_ends()  # a dead component's grace may have run out
 
-    def _next_liveness_check_s(self) -> float:
+    def _next_liveness_check_s(self) -> float | None:
         now_mono = time.monotonic()
-        due = [c.last_seen_mono + self.settings.dead_after_s - now_mono for c in self.registry.live.values()]
+        due = [c.silent_too_long_at(self.settings.dead_after_s) - now_mono for c in self.registry.live.values()]
         if self._ingest is not None and self._ingest.streams.pending():
             now_ns, grace_ns = time.time_ns(), self.settings.stream_end_grace_s * 1e9
             due += [((c.departed_ns or 0) + grace_ns - now_ns) / 1e9 for c in self.registry.departed.values()
                     if c.status == "dead" and c.inputs and now_ns - (c.departed_ns or 0) < grace_ns]
-        # a component registering meanwhile may be dead dead_after_s after it did, at the earliest
-        longest = min(LIVENESS_MAX_SLEEP_S, self.settings.dead_after_s)
-        return min(max(min(due, default=longest) + 0.005, 0.01), longest)
+        if not due:
+            return None  # until a registration
+        return min(max(min(due) + 0.005, 0.01), LIVENESS_MAX_SLEEP_S)
 
     async def _checkpoint(self) -> None:
         checkpointer = Checkpointer(self.store.path)
         checkpointed = -1
         job: asyncio.Future | None = None
+        written = asyncio.Event()
+        self.store.on_written = written.set  # from the loop's thread: every write is
         try:
             while True:
-                await asyncio.sleep(CHECKPOINT_INTERVAL_S)
+                await written.wait()  # idle: asleep until something is written, not woken every second
+                await asyncio.sleep(CHECKPOINT_INTERVAL_S)  # what is written meanwhile goes with it
+                written.clear()
                 if self.store.changes == checkpointed:
                     continue  # nothing written since the last one: no thread, no fsync
                 checkpointed = self.store.changes

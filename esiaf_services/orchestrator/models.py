@@ -110,6 +110,8 @@ class RegisterResponse(BaseModel):
     results_endpoint: str = Field(examples=["tcp://127.0.0.1:5561"])
     heartbeat_interval_s: float
     dead_after_s: float
+    idle_heartbeat_interval_s: float = Field(description="the longest interval it may beat at while it has "
+                                             "nothing to do (saying so in its heartbeats' `interval_s`)")
     peers: dict[str, list[str]] = Field(
         description="each input topic: the audio endpoints of its live producers")
     formats: dict[str, AudioFormat] = Field(
@@ -140,6 +142,8 @@ class ComponentInfo(BaseModel):
     heartbeats: int
     results_received: int
     stats: dict[str, Any] | None = Field(description="the stats of its last heartbeat")
+    heartbeat_interval_s: float | None = Field(default=None, description="the interval its last heartbeat said "
+                                               "it beats at (longer while it is idle); null: none said")
     clock_offset_ms: float | None = Field(default=None, description="the orchestrator's clock minus the "
                                           "component's host's, from its heartbeats' round trips (null until "
                                           "measured); capture times it stamps are corrected by it")

@@ -58,11 +58,16 @@ class Component:
     control_key: str = field(default_factory=lambda: secrets.token_urlsafe(32))
     key_id: str = ""  # names this registration: its results carry it with their MAC (esiaf/binding.py)
     control_route: bytes | None = None
+    control_fd: int | None = None  # the file descriptor of that connection (the monitor names a closed one by it)
     control_peer_key: str | None = None
     registered_ns: int = field(default_factory=time.time_ns)
     last_seen_ns: int = field(default_factory=time.time_ns)
     last_seen_mono: float = field(default_factory=time.monotonic)
     heartbeats: int = 0
+    # the interval its last heartbeat said it beats at (None: none said, the fast one), and how much
+    # longer than the fast one that is: it is dead once silent for dead_after_s plus this
+    beat_interval_s: float | None = None
+    extra_silence_s: float = 0.0
     results_received: int = 0
     stats: dict[str, Any] | None = None
     status: str = "alive"  # alive, dead (silent too long), replaced (its process registered again)
@@ -91,6 +96,20 @@ class Component:
         self.pushed_state = state
         self.state_version += 1
         return True
+
+    def beats_every(self, said: Any, fast_s: float, slowest_s: float) -> bool:
+        """The interval a heartbeat says it beats at (a peer's: clamped to the settings' range); True if
+        it is shorter than before (so may be its death, if it falls silent now)."""
+        if not isinstance(said, (int, float)) or isinstance(said, bool) or said != said:
+            return False
+        before = self.extra_silence_s
+        self.beat_interval_s = min(max(float(said), fast_s), slowest_s)
+        self.extra_silence_s = self.beat_interval_s - fast_s
+        return self.extra_silence_s < before
+
+    def silent_too_long_at(self, dead_after_s: float) -> float:
+        """When it is dead if it says nothing more (monotonic)."""
+        return self.last_seen_mono + dead_after_s + self.extra_silence_s
 
     def touch(self) -> None:
         self.last_seen_mono = time.monotonic()
@@ -160,9 +179,10 @@ class Registry:
         return component
 
     def expire(self, dead_after_s: float, now_mono: float | None = None) -> list[Component]:
-        """Drops and returns the components silent for more than ``dead_after_s``."""
+        """Drops and returns the components silent for more than ``dead_after_s`` (plus, for one that
+        said it beats slowly while idle, the difference to the fast interval)."""
         now_mono = time.monotonic() if now_mono is None else now_mono
-        dead = [c for c in self.live.values() if now_mono - c.last_seen_mono > dead_after_s]
+        dead = [c for c in self.live.values() if now_mono > c.silent_too_long_at(dead_after_s)]
         for component in dead:
             self._depart(component, "dead")
         if dead:

@@ -7,9 +7,12 @@ import errno
 import logging
 import signal
 import socket
+import time
 from collections.abc import Iterator
+from email.utils import formatdate
 
 import uvicorn
+from uvicorn.server import ServerState
 
 from .app import create_app
 from .core import Orchestrator, StartupError
@@ -44,16 +47,43 @@ def listen_socket(host: str, port: int) -> socket.socket:
     return sock
 
 
-TICK_S = 1.0  # uvicorn's main loop: how often it renews the Date header (its own loop wakes every 0.1 s)
+class _DatedState(ServerState):
+    """uvicorn's shared server state, whose ``default_headers`` carry a Date made when they are read
+    (for each request and websocket), renewed once a second at most: no tick is needed to keep it
+    current. What uvicorn assigns (its own Date, if any, and the configured headers) is kept apart."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._dated = False  # uvicorn's on_tick decides (config.date_header)
+        self._second = -1
+        self._with_date: list[tuple[bytes, bytes]] = []
+
+    @property  # type: ignore[override]  # an attribute in ServerState
+    def default_headers(self) -> list[tuple[bytes, bytes]]:
+        if not self._dated:
+            return self._headers
+        now = int(time.time())
+        if now != self._second:
+            self._second = now
+            self._with_date = [(b"date", formatdate(now, usegmt=True).encode()), *self._headers]
+        return self._with_date
+
+    @default_headers.setter
+    def default_headers(self, headers: list[tuple[bytes, bytes]]) -> None:
+        self._dated = any(name == b"date" for name, _ in headers)
+        self._headers = [(name, value) for name, value in headers if name != b"date"]
+        self._second = -1
 
 
 class _Server(uvicorn.Server):
     """uvicorn's server without its signal handling: serve() installs ours, which exit 0
-    instead of re-raising the signal after shutdown. Its main loop wakes once a second, not ten
-    times (issue 18); :meth:`exit` ends it at once."""
+    instead of re-raising the signal after shutdown. Its main loop does not wake while idle (uvicorn's
+    wakes ten times a second, to renew the Date header and look whether to exit: issue 18): the Date
+    is made when read (:class:`_DatedState`), and :meth:`exit` ends the loop at once."""
 
     def __init__(self, config: uvicorn.Config) -> None:
         super().__init__(config)
+        self.server_state = _DatedState()
         self._exit_now = asyncio.Event()  # bound to the loop that first waits on it
 
     @contextlib.contextmanager
@@ -61,11 +91,10 @@ class _Server(uvicorn.Server):
         yield
 
     async def main_loop(self) -> None:
-        counter = 0
-        while not await self.on_tick(counter):
-            counter = (counter + 10) % 864000  # on_tick does its once-a-second work when counter % 10 == 0
-            with contextlib.suppress(asyncio.TimeoutError):
-                await asyncio.wait_for(self._exit_now.wait(), TICK_S)
+        # on_tick (counter 0) sets the default headers, and says whether to exit; limit_max_requests
+        # and callback_notify, which it would also look after, are not used here
+        while not await self.on_tick(0):
+            await self._exit_now.wait()
 
     def exit(self, force: bool = False) -> None:
         """Starts the shutdown now (``force``: the second signal, without waiting for requests)."""

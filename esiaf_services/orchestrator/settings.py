@@ -82,6 +82,13 @@ class OrchestratorSettings(StrictModel):
     db_path: str = "esiaf.db"
     heartbeat_interval_s: float = Field(default=0.5, gt=0)
     dead_after_s: float = Field(default=2.5, gt=0)
+    # a component that has had nothing to do (no audio, no results, no state change) for this long beats
+    # this often instead, and is dead once silent for dead_after_s plus the difference; it goes back to
+    # heartbeat_interval_s at once when it has work. Equal to heartbeat_interval_s: it never slows down
+    idle_heartbeat_interval_s: float = Field(default=5.0, gt=0)
+    # a component whose control connection closed (its process died: the kernel closes its sockets) and
+    # that has not said anything on a new one this long after is dead, without waiting for dead_after_s
+    disconnect_grace_s: float = Field(default=1.0, ge=0)
     # a component with inputs that died without ending a stream (a stall of 2.5 s on a loaded machine
     # is enough) holds that stream's end this long, for it or a restarted instance of it to come back
     # and finish its backlog; after it, the stream ends without it. 0: the stream ends without it at once
@@ -121,6 +128,9 @@ class OrchestratorSettings(StrictModel):
         if self.dead_after_s <= self.heartbeat_interval_s:
             raise ValueError(f"dead_after_s ({self.dead_after_s}) must be longer than "
                              f"heartbeat_interval_s ({self.heartbeat_interval_s})")
+        if self.idle_heartbeat_interval_s < self.heartbeat_interval_s:
+            raise ValueError(f"idle_heartbeat_interval_s ({self.idle_heartbeat_interval_s}) must not be shorter "
+                             f"than heartbeat_interval_s ({self.heartbeat_interval_s})")
         return self
 
     def advertised_host(self) -> str:

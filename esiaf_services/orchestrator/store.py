@@ -68,6 +68,7 @@ class Store:
         self.max_queued = max_queued
         self.lost_writes = 0
         self.error: str | None = None  # why the last commit failed; None while writes succeed
+        self.on_written: Callable[[], object] = lambda: None  # after every write (the checkpoint task waits for one)
         try:
             if fresh:
                 remove_db_files(path)
@@ -149,6 +150,7 @@ class Store:
             for sql, params in self._queued:
                 self._db.execute(sql, params)
             self._db.execute("COMMIT")
+            self.on_written()
         except sqlite3.Error as exc:
             if self._db.in_transaction:
                 self._db.execute("ROLLBACK")
@@ -239,6 +241,7 @@ class Store:
             " ON CONFLICT (stream_id) DO UPDATE SET start_ns = excluded.start_ns, source = excluded.source,"
             " announced_ns = excluded.announced_ns, info = excluded.info",
             (stream_id, start_ns, source, announced_ns, info_json))
+        self.on_written()
 
     def streams(self, stream_id: str | None = None) -> list[tuple[str, int, str, int, str]]:
         """(stream_id, start_ns, source, announced_ns, info JSON), oldest announcement first."""

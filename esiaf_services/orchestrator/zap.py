@@ -10,13 +10,14 @@
 Every refused handshake is counted per socket and reason (``keys.HANDSHAKE_FAILURES``: ``auth``, a
 key or token not allowed; ``protocol``, another mechanism, e.g. no keys; ``other``, ended
 mid-handshake) and logged, the first and every 100th: a socket monitor sees them, whichever side
-gave up. ``GET /metrics`` shows them as ``esiaf_refused_peers``.
+gave up. ``GET /metrics`` shows them as ``esiaf_refused_peers``. The same monitor (libzmq allows
+one per socket) reports closed connections to whoever asks (the control plane: issue 18).
 """
 from __future__ import annotations
 
 import logging
 from collections import Counter
-from collections.abc import Coroutine
+from collections.abc import Callable, Coroutine
 from typing import Any
 
 import zmq.asyncio
@@ -35,7 +36,7 @@ class Guard:
         self.curve = curve
         self.refused: Counter[tuple[str, str]] = Counter()  # (socket, reason) -> handshakes refused
         self._authenticator: AsyncioAuthenticator | None = None
-        self._monitors: list[tuple[str, zmq.asyncio.Socket]] = []
+        self._monitors: list[tuple[str, zmq.asyncio.Socket, Callable[[int], object] | None]] = []
 
     @property
     def mechanism(self) -> str:
@@ -57,24 +58,33 @@ class Guard:
         allowed = keys.reload_clients(self.curve if self._authenticator is not None else None, self._authenticator)
         return None if allowed is None else len(allowed)
 
-    def secure(self, socket: zmq.asyncio.Socket, name: str) -> None:
-        """Before bind: makes ``socket`` a PLAIN or CURVE server and counts its refused peers."""
-        if self.mechanism == "null":
-            return
-        if self.curve is not None:
-            keys.server(socket, self.curve)
-        else:
-            socket.plain_server = True
-        self._monitors.append((name, socket.get_monitor_socket(sum(keys.HANDSHAKE_FAILURES))))
+    def secure(self, socket: zmq.asyncio.Socket, name: str,
+               on_disconnect: Callable[[int], object] | None = None) -> None:
+        """Before bind: makes ``socket`` a PLAIN or CURVE server and counts its refused peers; tells
+        ``on_disconnect`` the file descriptor of every connection of it that closes."""
+        events = zmq.EVENT_DISCONNECTED if on_disconnect is not None else 0
+        if self.mechanism != "null":
+            if self.curve is not None:
+                keys.server(socket, self.curve)
+            else:
+                socket.plain_server = True
+            events |= sum(keys.HANDSHAKE_FAILURES)
+        if events:
+            self._monitors.append((name, socket.get_monitor_socket(events), on_disconnect))
 
     def watchers(self) -> list[Coroutine[Any, Any, None]]:
-        """What the orchestrator runs as tasks: one loop per secured socket, counting refusals."""
-        return [self._watch(monitor, name) for name, monitor in self._monitors]
+        """What the orchestrator runs as tasks: one loop per monitored socket."""
+        return [self._watch(monitor, name, on_disconnect) for name, monitor, on_disconnect in self._monitors]
 
-    async def _watch(self, monitor: zmq.asyncio.Socket, name: str) -> None:
+    async def _watch(self, monitor: zmq.asyncio.Socket, name: str,
+                     on_disconnect: Callable[[int], object] | None) -> None:
         try:
             while True:
                 event = parse_monitor_message(await monitor.recv_multipart())
+                if event["event"] == zmq.EVENT_DISCONNECTED:
+                    if on_disconnect is not None:
+                        on_disconnect(int(event["value"]))
+                    continue
                 reason = keys.HANDSHAKE_FAILURES.get(event["event"], "other")
                 self.refused[name, reason] += 1
                 count = self.refused[name, reason]

@@ -34,6 +34,7 @@ def component_info(component: Component) -> ComponentInfo:
         registered_ns=component.registered_ns, last_seen_ns=component.last_seen_ns,
         departed_ns=component.departed_ns, heartbeats=component.heartbeats,
         results_received=component.results_received, stats=component.stats,
+        heartbeat_interval_s=component.beat_interval_s,
         clock_offset_ms=None if component.clock_offset_ns is None else component.clock_offset_ns / 1e6,
         clock_uncertainty_ms=None if component.clock_uncertainty_ns is None else component.clock_uncertainty_ns / 1e6)
 
@@ -65,7 +66,8 @@ async def register(request: RegisterRequest,
         control_key=component.control_key, key_id=component.key_id,
         results_endpoint=core.results_endpoint,
         heartbeat_interval_s=core.settings.heartbeat_interval_s,
-        dead_after_s=core.settings.dead_after_s, peers=state["peers"], formats=state["formats"],
+        dead_after_s=core.settings.dead_after_s, idle_heartbeat_interval_s=core.settings.idle_heartbeat_interval_s,
+        peers=state["peers"], formats=state["formats"],
         peer_keys=state.get("peer_keys", {}), streams=state.get("streams"))
 
 
