@@ -90,3 +90,40 @@ def test_speech_the_recogniser_cannot_make_out_is_reported_as_not_understood(unr
         assert (best.text, best.raw_text, best.probability, best.out_of_set) == ("", "", 0.0, False)
     else:
         assert emitted[0][2]["nothing"] == "no words recognised"
+
+
+def test_past_max_streams_no_utterance_loses_its_decoder_and_idle_decoders_are_reused():
+    """Three streams speak at once with ``max_streams`` 2: each keeps its decoder to the end of its
+    utterance (none is dropped mid-utterance, which lost it) and all three are recognised; a
+    fourth stream, later, takes the decoder of the least recently heard idle one instead of a new one."""
+    component = Asr(AsrSettings(grammar="robocup", max_streams=2))
+    component.setup()
+    made = []
+    new_decoder = component._new_decoder
+    component._new_decoder = lambda: made.append(1) or new_decoder()
+    samples, _ = soundfile.read(str(EXAMPLE), dtype="int16")
+    sentences = json.loads(EXAMPLE.with_suffix(".json").read_text())["sentences"][:3]
+    clips = {f"robot{i}": samples[int((s["start_s"] - 0.25) * RATE):int((s["end_s"] + 0.3) * RATE)]
+             for i, s in enumerate(sentences)}
+    emitted = []
+    component.emit = lambda kind, span, stream_id=None, **payload: emitted.append((stream_id, payload))
+    fmt = AudioFormat(RATE, "int16", channels=1)
+    for start in range(0, max(len(c) for c in clips.values()), 320):  # chunk by chunk, in turn
+        for stream_id, clip in clips.items():
+            chunk = clip[start:start + 320]
+            if not len(chunk):
+                continue
+            audio = Audio(topic="vad/speech", stream_id=stream_id, publisher="vad", sequence=1,
+                          start_ns=start * NS // RATE, end_ns=(start + len(chunk)) * NS // RATE, format=fmt,
+                          payload=chunk.tobytes())
+            if start + 320 >= len(clip):
+                audio.meta.segmentation_ended = True
+                audio.meta.segment.start_ns, audio.meta.segment.end_ns = 0, len(clip) * NS // RATE
+            component.on_audio(audio)
+            if audio.meta.segmentation_ended:
+                component.on_segment_end(audio)
+    heard = {stream_id: normalise(payload["speech"]["hypotheses"][0].text) for stream_id, payload in emitted}
+    assert heard == {f"robot{i}": normalise(s["text"]) for i, s in enumerate(sentences)}
+    assert len(made) == 2  # robot1 and robot2 (robot0's was made at start-up); the cap passed, none dropped
+    assert feed(component, clips["robot0"], "robot3")[0][2]["speech"]["hypotheses"]  # a fourth, later
+    assert len(made) == 2 and len(component.streams) == 3  # it took an idle stream's decoder
