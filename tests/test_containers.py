@@ -67,7 +67,7 @@ def test_compose_up_plays_the_example_and_down_leaves_nothing(project):
         assert first[0]["id"] == fused[0]["id"]
         assert [normalise(best_text(f)) for f in fused] == [normalise(t) for t in TRUTH], p.logs()
         for f in fused:  # the default fusion: speech with the emotion and gender containers' labels
-            assert f["completion"] == "complete", f
+            assert f["completion"] == "complete", (f["completion"], f["missing"], f["anchor"]["span"])
             for kind in ("emotion", "gender"):
                 assert f["aggregates"][kind]["label"] and 0 < f["aggregates"][kind]["probability"] <= 1, f
         ws_fused = poll(lambda: [m for m in from_ws if m["type"] == "fused_result"] if any(
@@ -105,7 +105,7 @@ def test_compose_with_a_microphone_array_fuses_text_direction_emotion_and_gender
     fused = poll(lambda: at_least(len(truth), p.fused()), timeout_s=150)
     assert [normalise(best_text(f)) for f in fused] == [normalise(u["text"]) for u in truth], p.logs()
     for f, utterance in zip(fused, truth, strict=True):
-        assert f["completion"] == "complete", f
+        assert f["completion"] == "complete", (f["completion"], f["missing"], f["anchor"]["span"])
         error = abs((f["aggregates"]["ssl"]["azimuth_deg"] - utterance["azimuth_deg"] + 180) % 360 - 180)
         assert error <= 15, (utterance, f["aggregates"]["ssl"])
         assert f["aggregates"]["emotion"]["label"] and f["aggregates"]["gender"]["label"], f

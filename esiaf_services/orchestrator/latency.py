@@ -21,7 +21,9 @@ class Latency:
     deviations: int = 0  # samples of it
 
     def add(self, latency_ns: int) -> None:
-        if self.count:
+        if not self.count:  # as RFC 6298 starts: half the first latency (one sample says nothing of the spread)
+            self.deviation_ns, self.deviations = latency_ns / 2, 1
+        else:
             self.deviations += 1
             self.deviation_ns += (abs(latency_ns - self.mean_ns) - self.deviation_ns) / min(self.deviations,
                                                                                            DEVIATION_WINDOW)
@@ -45,7 +47,8 @@ class Latencies:
         self.changed.add(component)
 
     def restore(self, component: str, count: int, mean_ns: float) -> None:
-        self.by_component[component] = Latency(count, mean_ns)
+        # the deviation is not kept: it starts again as after a first sample
+        self.by_component[component] = Latency(count, mean_ns, mean_ns / 2, 1)
 
     def timeout_ns(self, component: str) -> int:
         settings = self.settings
