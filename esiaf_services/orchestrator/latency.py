@@ -21,9 +21,7 @@ class Latency:
     deviations: int = 0  # samples of it
 
     def add(self, latency_ns: int) -> None:
-        if not self.count:  # as RFC 6298 starts: half the first latency (one sample says nothing of the spread)
-            self.deviation_ns, self.deviations = latency_ns / 2, 1
-        else:
+        if self.count:
             self.deviations += 1
             self.deviation_ns += (abs(latency_ns - self.mean_ns) - self.deviation_ns) / min(self.deviations,
                                                                                            DEVIATION_WINDOW)
@@ -47,8 +45,7 @@ class Latencies:
         self.changed.add(component)
 
     def restore(self, component: str, count: int, mean_ns: float) -> None:
-        # the deviation is not kept: it starts again as after a first sample
-        self.by_component[component] = Latency(count, mean_ns, mean_ns / 2, 1)
+        self.by_component[component] = Latency(count, mean_ns)
 
     def timeout_ns(self, component: str) -> int:
         settings = self.settings
