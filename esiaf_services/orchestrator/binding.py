@@ -4,7 +4,9 @@ The message must carry a key id and a MAC of its kind and body keyed with the co
 component it names (a result's ``instance``, a notice's ``component_id``):
 
 - a live or departed (dead) component: its registration's key id and key; a key id of one of its
-  earlier registrations (it registered again since, with a new key) is ``old_key``;
+  earlier registrations (it registered again since, with a new key) is accepted too: only that
+  instance was given it, and what it signed while it registered again (a long decode starved its
+  heartbeat, it was declared dead and came back) must not be lost;
 - a component we do not know (registered before a restart of ours): the key derived from our
   secret, its id and the key id, so only a key we gave can make the MAC;
 - with CURVE keys, it must also come with the public key its registration is bound to (the one of
@@ -37,8 +39,9 @@ def refusal(registry: Registry, frames: list[bytes], component_id: str, peer_key
         proven = hmac.compare_digest(mac(derived, kind, body), tag)
         if component is None:
             return None if proven else "wrong_key"
-        # a registration of this id that we gave, but not its current one: it registered again since
-        return "old_key" if proven else "wrong_key"
+        # a registration of this id that we gave, but not its current one: it registered again since,
+        # and this was signed before (the same instance: accepted, nothing it sent is lost)
+        return None if proven else "wrong_key"
     if not hmac.compare_digest(mac(component.control_key, kind, body), tag):
         return "wrong_key"
     if peer_key is not None:

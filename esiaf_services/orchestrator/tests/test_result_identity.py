@@ -112,7 +112,9 @@ def test_a_forged_end_of_stream_does_not_end_the_stream(orch, component, http, z
         assert json.loads(ws.recv(timeout=5)) == {"type": "stream_end", "stream_id": "s1"}
 
 
-def test_after_a_registration_again_the_old_key_is_refused(orch, http, zctx):
+def test_what_was_signed_before_a_registration_again_is_kept(orch, http, zctx):
+    """A long decode starved the asr's heartbeat: declared dead, it registered again (a new key) while
+    its result and stream end, signed with the old one, were on their way. They are its own: kept."""
     body = component_body("asr", designation="speech", inputs=["vad/speech"], instance="asr-a", incarnation="p1")
     asr = FakeComponent(zctx, http, body)
     old = asr.keys
@@ -121,10 +123,9 @@ def test_after_a_registration_again_the_old_key_is_refused(orch, http, zctx):
     asr.push.send_multipart(signed(b"result", speech("asr", "asr-a", "s", 1, "old key"), old))
     asr.push.send_multipart(signed(b"end_of_stream", eos(asr, "s"), old))
     asr.send(b"result", speech("asr", "asr-a", "s", 2, "new key"))
-    wait_until(lambda: stored_texts(http, "s"), what="the new key's result")
-    time.sleep(0.2)
-    assert stored_texts(http, "s") == ["new key"]
-    assert orch.core.ingest.counters["refused_old_key"] == 2
+    wait_until(lambda: len(stored_texts(http, "s")) == 2, what="both results")
+    assert stored_texts(http, "s") == ["old key", "new key"]
+    assert orch.core.ingest.counters["refused_old_key"] == 0
 
 
 def test_a_registration_made_before_a_restart_is_still_recognised(make_orchestrator, tmp_path, zctx):
