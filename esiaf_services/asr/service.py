@@ -115,8 +115,10 @@ class Asr(Component):
         state = self.streams.pop(stream_id, None)
         if state is None:
             idle = self._make_room()
-            decoder = None if self.whisper is not None else idle.recognizer if idle is not None else None
-            state = StreamState(decoder or (self._new_decoder() if self.whisper is None else None))
+            if self.whisper is not None:  # a segment buffer: nothing to hand on
+                state = StreamState()
+            else:  # an idle stream's decoder, or a new one
+                state = StreamState(idle.recognizer if idle is not None and idle.recognizer else self._new_decoder())
             log.info("new stream stream_id=%s decoders=%d", stream_id, len(self.streams) + 1)
         self.streams[stream_id] = state  # most recently heard last
         return state
