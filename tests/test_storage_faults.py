@@ -23,9 +23,11 @@ def small_disk(tmp_path):
     disk.mkdir()
     if os.geteuid() != 0:
         pytest.skip("mounting a small tmpfs needs root")
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(disk)], capture_output=True)
+    # 32 MB: room for the database and its write-ahead log before the test fills the rest
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=32m", "tmpfs", str(disk)], capture_output=True)
     if mounted.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.decode().strip()}")
+    (disk / "filler").touch()  # made now: opening it later must not need space the database may have taken
     yield disk
     subprocess.run(["umount", "-l", str(disk)], check=False)
 
@@ -64,7 +66,7 @@ def stored(orchestrator) -> int:
 
 
 def fill(disk) -> None:
-    with open(disk / "filler", "wb") as out:
+    with open(disk / "filler", "r+b") as out:
         try:
             while True:
                 out.write(b"\0" * 65536)
