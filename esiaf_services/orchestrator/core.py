@@ -76,6 +76,7 @@ class Orchestrator:
         self._tasks: list[asyncio.Task] = []
         self._pushes: set[asyncio.Task] = set()  # state pushes under way (_push_soon)
         self._liveness_news = asyncio.Event()  # a component registered, or its death may be due sooner
+        self.closing = asyncio.Event()  # set when the server begins to shut down: long polls answer at once
 
     # the parts start() makes; the REST API, the metrics and the tasks use them only while running
     @property

@@ -129,6 +129,7 @@ async def serve(settings: OrchestratorSettings, *, fresh: bool = False, recovere
 
     def on_signal(signum: int) -> None:
         log.info("event=signal signal=%s", signal.Signals(signum).name)
+        core.closing.set()
         server.exit(force=server.should_exit)
 
     loop = asyncio.get_running_loop()

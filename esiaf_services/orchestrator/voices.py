@@ -3,7 +3,10 @@
 A voice is a name and one or more speaker embeddings (256 float32, unit length, from
 ``esiaf_services/voiceid/encoder.py``). They live in the orchestrator's SQLite file, in a table of
 their own (``CREATE TABLE IF NOT EXISTS``, on a connection of their own), and every voiceid
-instance polls ``GET /voices?embeddings=1`` with the ETag it last saw.
+instance asks ``GET /voices?embeddings=1&wait_s=30`` with the ETag it last saw: a long poll, answered
+at once when the voices differ from that ETag, else when they change (an enrolment or a deletion
+here), when the server shuts down, or with a 304 after ``wait_s`` — so an enrolment reaches every
+voiceid at once, and an idle voiceid and orchestrator do not wake every second to ask (issue 18).
 
 ``POST /voices/{name}`` adds embeddings from a WAV of any rate (multipart field ``audio``,
 embedded here with the numpy encoder: enrolment then works whether or not a voiceid runs), from
@@ -22,7 +25,7 @@ import time
 from math import gcd
 
 import numpy as np
-from fastapi import APIRouter, Depends, HTTPException, Request, Response
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from pydantic import BaseModel, ConfigDict, Field, StrictInt, TypeAdapter, ValidationError
 
 from .api.deps import get_core
@@ -34,6 +37,7 @@ router = APIRouter(tags=["voices"])
 EMBEDDING_SIZE = 256
 ENCODER_RATE_HZ = 16000
 MIN_ENROL_SPEECH_S = 1.0
+MAX_WAIT_S = 60.0  # the longest long poll of GET /voices
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS voices (
     id INTEGER PRIMARY KEY,
@@ -51,6 +55,16 @@ class VoiceTable:
         self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False, timeout=5.0)
         self._db.executescript(SCHEMA)
         self._lock = threading.Lock()
+        self._changed = asyncio.Event()  # set, and replaced, at every change: long polls wait on it
+
+    def changed(self) -> asyncio.Event:
+        """An event set at the next change (add or delete through :meth:`notify`)."""
+        return self._changed
+
+    def notify(self) -> None:
+        """Wakes the long polls waiting for a change (call it on the event loop)."""
+        changed, self._changed = self._changed, asyncio.Event()
+        changed.set()
 
     def add(self, name: str, embeddings: list[np.ndarray], source: str) -> None:
         with self._lock:
@@ -122,20 +136,36 @@ def check_name(name: str) -> str:
 
 
 @router.get("/voices", summary="enrolled voices (with ?embeddings=1, their embeddings; ETag for polling)",
-            responses={304: {"description": "with ?embeddings=1: If-None-Match is the current ETag"}})
-def list_voices(request: Request, embeddings: bool = False, table: VoiceTable = Depends(get_voices)) -> Response:
-    etag = table.etag()
-    if embeddings and request.headers.get("if-none-match") == etag:
+            responses={304: {"description": "with ?embeddings=1: If-None-Match is the current ETag (with wait_s: "
+                                            "it still was after waiting that long for a change)"}})
+async def list_voices(request: Request, embeddings: bool = False,
+                      wait_s: float = Query(0.0, ge=0.0, le=MAX_WAIT_S, description=(
+                          "with ?embeddings=1 and If-None-Match the current ETag: wait up to this long for a "
+                          "change before answering 304 (a long poll)")),
+                      core: Orchestrator = Depends(get_core), table: VoiceTable = Depends(get_voices)) -> Response:
+    changed = table.changed()  # taken before the ETag is read: a change between the two is not missed
+    etag = await asyncio.to_thread(table.etag)
+    seen = request.headers.get("if-none-match")
+    if embeddings and seen == etag and wait_s > 0 and not core.closing.is_set():
+        waits = [asyncio.ensure_future(changed.wait()), asyncio.ensure_future(core.closing.wait())]
+        try:
+            await asyncio.wait(waits, timeout=wait_s, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for waiting in waits:
+                waiting.cancel()
+        etag = await asyncio.to_thread(table.etag)
+    if embeddings and seen == etag:
         return Response(status_code=304, headers={"ETag": etag})
-    body = json.dumps({"voices": table.listing(embeddings)})
+    body = json.dumps({"voices": await asyncio.to_thread(table.listing, embeddings)})
     return Response(body, media_type="application/json", headers={"ETag": etag})
 
 
 @router.delete("/voices/{name:path}", summary="forget a voice and every embedding of theirs",
                responses={404: {"model": Problem, "description": "no voice of that name"}})
-def delete_voice(name: str, table: VoiceTable = Depends(get_voices)) -> dict:
-    if not table.delete(name):
+async def delete_voice(name: str, table: VoiceTable = Depends(get_voices)) -> dict:
+    if not await asyncio.to_thread(table.delete, name):
         raise HTTPException(404, f"no voice named {name!r}")
+    table.notify()
     return {"deleted": name}
 
 
@@ -165,7 +195,8 @@ async def enrol_voice(name: str, request: Request, core: Orchestrator = Depends(
         embeddings, source = stored_embeddings(core, body)
     else:
         raise HTTPException(415, "no audio: send multipart field 'audio' (a WAV) or JSON {stream, start_ns, end_ns}")
-    table.add(name, embeddings, source)
+    await asyncio.to_thread(table.add, name, embeddings, source)
+    table.notify()
     return {"name": name, "added": len(embeddings), "source": source}
 
 

@@ -5,9 +5,11 @@ speaker encoder (``encoder.py``) instead of a classifier. Each segment's embeddi
 against the voices enrolled on the orchestrator (``scoring.py``); an unknown voice gets a
 per-stream anonymous id. The result is a ``voice_id`` label result: the top label (a name, or
 ``voice-N``), its probability, every enrolled voice's score, and the embedding itself so the
-orchestrator can enrol a voice from a past segment. The enrolled voices are polled from the
-orchestrator's ``GET /voices?embeddings=1`` every ``voices_poll_s`` (ETag: unchanged lists
-cost one 304), so enrolments reach a running voiceid within that time.
+orchestrator can enrol a voice from a past segment. The enrolled voices come from the
+orchestrator's ``GET /voices?embeddings=1`` as a long poll (``wait_s`` = ``voices_wait_s``, with the
+ETag last seen): it answers as soon as a voice is enrolled or deleted, so enrolments reach a running
+voiceid at once, and otherwise a 304 every ``voices_wait_s`` — nothing wakes while nothing changes.
+After a failed request it asks again ``voices_retry_s`` later.
 """
 from __future__ import annotations
 
@@ -25,6 +27,7 @@ from esiaf_services.voiceid.encoder import EncoderError, VoiceEncoder
 from esiaf_services.voiceid.scoring import AnonymousVoices, VoiceBook, probability
 
 log = logging.getLogger(__name__)
+MAX_WAIT_S = 60.0  # the orchestrator's longest long poll of GET /voices (orchestrator/voices.py)
 
 
 class VoiceIdSettings(UtteranceSettings):
@@ -34,7 +37,8 @@ class VoiceIdSettings(UtteranceSettings):
     anonymous_threshold: float = 0.75  # cosine to an anonymous voice's mean to be that voice again
     top_k: int = 3  # a voice's score: mean of its top_k best enrolled embeddings
     anonymous_limit: int = 16  # anonymous voices remembered per stream
-    voices_poll_s: float = 1.0  # how often the enrolled voices are fetched from the orchestrator
+    voices_wait_s: float = 30.0  # the long poll for enrolled voices: the orchestrator answers a change at once
+    voices_retry_s: float = 1.0  # after a failed request for the voices, ask again this much later
 
 
 class VoiceId(UtteranceClassifier):
@@ -57,6 +61,8 @@ class VoiceId(UtteranceClassifier):
         self._halt = threading.Event()
 
     def setup(self) -> None:
+        if not 0 < self.settings.voices_wait_s <= MAX_WAIT_S:
+            raise SetupError(f"voices_wait_s must be in (0, {MAX_WAIT_S:g}] s, not {self.settings.voices_wait_s}")
         try:
             self.encoder = VoiceEncoder()
         except EncoderError as exc:
@@ -70,16 +76,19 @@ class VoiceId(UtteranceClassifier):
         super().teardown()
 
     def _poll_voices(self) -> None:
-        with OrchestratorHTTP(self.settings.orchestrator_url) as client:
+        wait_s = self.settings.voices_wait_s
+        with OrchestratorHTTP(self.settings.orchestrator_url, timeout_s=wait_s + 10) as client:
             while not self._halt.is_set():
                 try:
-                    self.refresh_voices(client)
+                    self.refresh_voices(client, wait_s)
                 except (httpx.HTTPError, ValueError, KeyError) as exc:
                     log.warning("voices not fetched from %s: %s", self.settings.orchestrator_url, exc)
-                self._halt.wait(self.settings.voices_poll_s)
+                    self._halt.wait(self.settings.voices_retry_s)
 
-    def refresh_voices(self, client: OrchestratorHTTP) -> None:
-        reply = client.get("/voices", params={"embeddings": 1}, headers={"If-None-Match": self._etag})
+    def refresh_voices(self, client: OrchestratorHTTP, wait_s: float = 0.0) -> None:
+        """The enrolled voices, if they differ from the ETag last seen; with ``wait_s``, waits up to that
+        long for them to change (the orchestrator's long poll)."""
+        reply = client.get("/voices", params={"embeddings": 1, "wait_s": wait_s}, headers={"If-None-Match": self._etag})
         if reply.status_code == 304:
             return
         reply.raise_for_status()
