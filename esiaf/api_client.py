@@ -27,6 +27,8 @@ log = logging.getLogger(__name__)
 
 BACKOFF_START_S = 0.1  # the first wait; it doubles with each attempt
 BACKOFF_MAX_S = 2.0
+ANNOUNCE_RETRY_S = 1.0  # a stream announcement is tried again this long while the orchestrator is away
+TOPIC_POLL_S = 0.2  # declared_format asks this often for a producer of its topic
 
 
 def transient(response: httpx.Response) -> bool:
@@ -112,3 +114,36 @@ class _StopWhen(tenacity.stop.stop_base):
 
     def __call__(self, retry_state: tenacity.RetryCallState) -> bool:
         return self._stopping()
+
+
+def announce_stream(url: str, stream_id: str, start_ns: int, source: str, info: dict[str, Any]) -> bool:
+    """Tells the orchestrator a stream's capture started (``PUT /streams/{id}``); False if it could not
+    (tried again for a few seconds while the orchestrator is unreachable)."""
+    try:
+        with OrchestratorHTTP(url) as http:
+            response = http.request("PUT", f"/streams/{stream_id}", retry_for_s=ANNOUNCE_RETRY_S,
+                                    json={"start_ns": start_ns, "source": source, "info": info})
+        response.raise_for_status()
+    except httpx.HTTPError as exc:
+        log.warning("could not announce stream_id=%s start_ns=%d error=%s", stream_id, start_ns, exc)
+        return False
+    return True
+
+
+def declared_format(url: str, topic: str, timeout_s: float,
+                    stopping: Callable[[], bool] = lambda: False) -> dict[str, Any] | None:
+    """The format a producer of ``topic`` declared (``GET /topics``), waiting up to ``timeout_s`` for
+    one to register; None if none did. For components that take whatever a topic carries."""
+    def producers() -> list[dict[str, Any]]:
+        try:
+            items = http.get("/topics").json()["items"]
+        except (httpx.HTTPError, ValueError, KeyError) as exc:
+            log.info("waiting for orchestrator url=%s error=%s", url, exc)
+            return []
+        return next((t["producers"] for t in items if t["topic"] == topic), [])
+
+    with OrchestratorHTTP(url) as http:
+        found = tenacity.Retrying(stop=tenacity.stop_after_delay(timeout_s), wait=tenacity.wait_fixed(TOPIC_POLL_S),
+                                  retry=tenacity.retry_if_result(lambda found: not found and not stopping()),
+                                  retry_error_callback=lambda state: None)(producers)
+    return found[0]["format"] if found else None

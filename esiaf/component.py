@@ -7,9 +7,8 @@ capture timestamps, format conversion between the declared formats and the ones 
 assigns to the topics (esiaf/links.py), the callback order (audio, then SSL meta, then VAD end,
 then end of stream) and shutdown on SIGTERM/SIGINT.
 
-All handlers run on one thread, in order; the heartbeat runs on another, so a long computation
-in a handler never makes the component look dead.
-
+All handlers run on one thread, in order; the heartbeat on another, so a long computation does not
+make the component look dead (a native call holding the GIL must say so: ControlClient.quiet_for).
 The input side (bounds on what peers send, loss counting, per-publisher conversion): esiaf/receiving.py.
 """
 from __future__ import annotations
@@ -29,8 +28,9 @@ import numpy as np
 import zmq
 
 from esiaf import binding, keys
+from esiaf.api_client import announce_stream
 from esiaf.audio import Audio
-from esiaf.control import ControlClient, announce_stream
+from esiaf.control import ControlClient
 from esiaf.formats import AudioFormat, encode
 from esiaf.links import OutputLink, OutputStats
 from esiaf.proto import esiaf_pb2 as pb

@@ -27,12 +27,11 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
 import httpx
-import tenacity
 import zmq
 
 from esiaf import auth
@@ -43,8 +42,6 @@ from esiaf.transport import STATE_ADDRESS, keep_alive
 
 log = logging.getLogger(__name__)
 
-ANNOUNCE_RETRY_S = 1.0  # a stream announcement is tried again this long while the orchestrator is away
-TOPIC_POLL_S = 0.2  # declared_format asks this often for a producer of its topic
 
 
 class RegistrationError(Exception):
@@ -118,39 +115,6 @@ def unregister(url: str, component_id: str) -> None:
         log.info("could not unregister component_id=%s error=%s", component_id, exc)
 
 
-def announce_stream(url: str, stream_id: str, start_ns: int, source: str, info: dict[str, Any]) -> bool:
-    """Tells the orchestrator a stream's capture started (``PUT /streams/{id}``); False if it could not
-    (tried again for a few seconds while the orchestrator is unreachable)."""
-    try:
-        with OrchestratorHTTP(url) as http:
-            response = http.request("PUT", f"/streams/{stream_id}", retry_for_s=ANNOUNCE_RETRY_S,
-                                    json={"start_ns": start_ns, "source": source, "info": info})
-        response.raise_for_status()
-    except httpx.HTTPError as exc:
-        log.warning("could not announce stream_id=%s start_ns=%d error=%s", stream_id, start_ns, exc)
-        return False
-    return True
-
-
-def declared_format(url: str, topic: str, timeout_s: float,
-                    stopping: Callable[[], bool] = lambda: False) -> dict[str, Any] | None:
-    """The format a producer of ``topic`` declared (``GET /topics``), waiting up to ``timeout_s`` for
-    one to register; None if none did. For components that take whatever a topic carries."""
-    def producers() -> list[dict[str, Any]]:
-        try:
-            items = http.get("/topics").json()["items"]
-        except (httpx.HTTPError, ValueError, KeyError) as exc:
-            log.info("waiting for orchestrator url=%s error=%s", url, exc)
-            return []
-        return next((t["producers"] for t in items if t["topic"] == topic), [])
-
-    with OrchestratorHTTP(url) as http:
-        found = tenacity.Retrying(stop=tenacity.stop_after_delay(timeout_s), wait=tenacity.wait_fixed(TOPIC_POLL_S),
-                                  retry=tenacity.retry_if_result(lambda found: not found and not stopping()),
-                                  retry_error_callback=lambda state: None)(producers)
-    return found[0]["format"] if found else None
-
-
 def _jsonable(value: Any) -> Any:
     """Heartbeat stats may hold numpy numbers or arrays (an analyser's ``info``): sent as numbers
     and lists; anything else as its text."""
@@ -199,6 +163,8 @@ class ControlClient:
         self.interval_s = 0.0  # the interval the last heartbeat said it beats at
         self._monitor: zmq.Socket | None = None  # the DEALER's: connections made
         self._handshakes = 0  # ... on this DEALER
+        self._quiet_s = 0.0  # quiet_for(): the data thread may hold the GIL this long; the beat says so
+        self._quiet_said = threading.Event()
 
     @property
     def component_id(self) -> str:
@@ -232,11 +198,29 @@ class ControlClient:
             self._slow = False
             self._wake()
 
+    @contextlib.contextmanager
+    def quiet_for(self, seconds: float) -> Iterator[None]:
+        """Around a native call that holds the GIL (pocketsphinx's decoder does not release it) for up to
+        ``seconds``: a heartbeat says first that the next may come that much later (at most the idle
+        interval later, the most the orchestrator allows), so neither side takes the silence for a
+        death; after it, a beat at the fast interval at once."""
+        if self.registration is None or not self._thread or seconds <= self._registered.heartbeat_interval_s:
+            yield
+            return
+        self._quiet_s, self._quiet_said = seconds, threading.Event()
+        self._wake()
+        self._quiet_said.wait(timeout=0.5)  # the thread beats within a millisecond unless it is stuck itself
+        try:
+            yield
+        finally:
+            self._quiet_s = 0.0
+            self._wake()
+
     def _interval(self, now: float, quiet_since: float) -> float:
         """The fast interval, or the idle one after an idle interval with nothing to do."""
         fast, idle = self._registered.heartbeat_interval_s, self._registered.idle_heartbeat_interval_s
         self._slow = idle > fast and now - quiet_since >= idle
-        return idle if self._slow else fast
+        return max(idle if self._slow else fast, min(self._quiet_s, idle))
 
     def _wake(self) -> None:
         with contextlib.suppress(OSError):  # BlockingIOError: the pipe is full, the thread is woken already
@@ -318,6 +302,7 @@ class ControlClient:
                             "state_version": self._registered.state_version, "interval_s": self.interval_s}
                     dealer.send(json.dumps(beat, default=_jsonable).encode())
                     next_beat, beat_now = now + self.interval_s, False
+                    self._quiet_said.set()
                 # sleep until the next beat (or the orchestrator's silence deadline), a message or a poke
                 wait_s = max(0.0, min(next_beat, last_heard + self._registered.dead_after_s + extra_silence_s)
                              - time.monotonic())

@@ -3,6 +3,7 @@ Whisper once it closes (``backend: whisper``); one decoder per stream, so severa
 never mixes; optionally matched to a closed set of allowed sentences (``matching.py``)."""
 from __future__ import annotations
 
+import contextlib
 import logging
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -173,7 +174,10 @@ class Asr(Component):
                      late_ms)
             return
         if state.recognizer is not None:
-            hypotheses = state.recognizer.finish()
+            # pocketsphinx holds the GIL while it decodes (a whole first utterance at once: seconds on a
+            # loaded machine), so the heartbeat says beforehand that it may be late
+            with self._quiet_for(1.0 + (audio.end_ns - origin_ns) / 1e9):
+                hypotheses = state.recognizer.finish()
         else:
             pcm, state.chunks = b"".join(state.chunks), []
             assert self.whisper is not None  # setup() loads it for the whisper backend
@@ -209,6 +213,9 @@ class Asr(Component):
             out.raw_text, out.match_score, out.out_of_set = h.text, match.score, not match.in_set
             out.text = match.sentence if match.in_set else ""
         return out
+
+    def _quiet_for(self, seconds: float) -> contextlib.AbstractContextManager[None]:
+        return self.control.quiet_for(seconds) if self.control is not None else contextlib.nullcontext()
 
     def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
         state = self.streams.get(stream_id)

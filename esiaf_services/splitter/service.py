@@ -14,7 +14,7 @@ from typing import Any, ClassVar
 from pydantic import Field
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
-from esiaf.control import declared_format
+from esiaf.api_client import declared_format
 
 log = logging.getLogger(__name__)
 
