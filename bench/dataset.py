@@ -14,10 +14,10 @@ flite-spoken RoboCup questions (text and gender), 2.5-3.5 s apart, each rendered
   is the first publication of the fused result. In real time ``vad`` is the VAD's own latency
   after the end of speech (capture time; its 400 ms of silence included), and ``end_of_speech``
   that of the fused result.
-- **monolith** (bench/monolith.py): the same VAD (silero), recogniser and grammar, emotion and
-  gender models (features computed once), voiceid encoder and SSL component in one loop in a
-  child process, on the first channel (no beamformer). Its stages run one after the other, so a
-  stage's latency includes those before it; CPU-s per stage.
+- **monolith** (bench/monolith.py): the same SSL and beamformer components, VAD (silero),
+  recogniser and grammar, emotion and gender models (features computed once) and voiceid encoder
+  in one loop in a child process. Its stages run one after the other, so a stage's latency
+  includes those before it; CPU-s per stage.
 
 Scoring, per utterance against the fused result (monolith: segment) overlapping it most: lost
 (none overlaps), spurious results (overlapping no utterance), text right (questions), direction
