@@ -31,6 +31,7 @@ import soundfile
 from esiaf import Audio
 from esiaf.audio import SampleClock
 from esiaf.formats import AudioFormat, encode, peak
+from esiaf.runner import limit_native_threads
 from esiaf_services.asr.recognizer import PocketsphinxRecognizer
 from esiaf_services.asr.service import resolve_grammar
 from esiaf_services.emotion.backends import load_backend
@@ -131,6 +132,7 @@ class _FrontEnd:
 def monolith(path: Path, grammar: str, *, fast: bool = False, vad: str = "energy", array: str = "",
              beamformer: bool = False, voiceid: bool = False, progress=None) -> MonolithRun:
     """Plays ``path`` through the models in this process; ``progress(seconds_played)`` every minute of audio."""
+    limit_native_threads()  # one BLAS thread, as every ESIAF process has (a pool spins on a loaded machine)
     audio, rate = soundfile.read(str(path), dtype="int16", always_2d=True)
     fmt_all, fmt = AudioFormat(rate, "int16", channels=audio.shape[1]), AudioFormat(rate, "int16")
     recognizer = PocketsphinxRecognizer(sample_rate_hz=rate, grammar=resolve_grammar(grammar))
