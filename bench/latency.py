@@ -35,9 +35,9 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import psutil
 import soundfile
 
@@ -46,14 +46,9 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != REPO / "bench"]
 sys.path.insert(0, str(REPO))
 
-from esiaf.audio import SampleClock  # noqa: E402
-from esiaf.formats import AudioFormat, peak  # noqa: E402
-from esiaf_services.asr.recognizer import PocketsphinxRecognizer  # noqa: E402
-from esiaf_services.asr.service import resolve_grammar  # noqa: E402
-from esiaf_services.emotion.backends import load_backend  # noqa: E402
-from esiaf_services.vad.segmenter import Segmenter, SegmenterParams, level_db  # noqa: E402
+from bench.monolith import monolith  # noqa: E402
+from esiaf_services.vad.segmenter import SegmenterParams  # noqa: E402
 
-CHUNK_MS = 20
 HANGOVER_NS = int(SegmenterParams().keep_alive_ms * 1_000_000)
 
 
@@ -67,57 +62,24 @@ def percentile(values: list[float], q: float) -> float:
 
 
 def baseline(path: Path, grammar: str) -> tuple[dict[str, list[float]], list[str], float]:
-    """Segmenter + recogniser + emotion and gender models in one loop, paced in real time, on the
-    first channel. Returns latencies (ms) after the recogniser ("asr") and after all ("full"),
-    texts, CPU s."""
-    audio, rate = soundfile.read(str(path), dtype="int16", always_2d=True)
-    audio = audio[:, :1]
-    fmt = AudioFormat(rate, "int16")
-    recognizer = PocketsphinxRecognizer(sample_rate_hz=rate, grammar=resolve_grammar(grammar))
-    labellers = [load_backend("onnx", model) for model in ("emotion4", "gender")]
-    segmenter: Segmenter[tuple[int, np.ndarray]] = Segmenter(SegmenterParams())
-    step = rate * CHUNK_MS // 1000
-    cpu_start = time.process_time()
-    origin_ns, started = time.time_ns(), time.monotonic()
-    clock = SampleClock(origin_ns, rate)
+    """The monolith (bench/monolith.py: energy segmenter, recogniser, emotion and gender models in one
+    loop), paced in real time, on the first channel. Returns latencies (ms) after the recogniser
+    ("asr") and after all ("full"), texts, CPU s."""
+    run = monolith(path, grammar)
     latencies: dict[str, list[float]] = {"asr": [], "full": []}
-    texts: list[str] = []
-    forwarded: list[tuple[int, np.ndarray]] = []
-    for offset in range(0, len(audio), step):
-        chunk = audio[offset:offset + step]
-        start_ns, end_ns = clock.advance(len(chunk))
-        delay = started + (end_ns - origin_ns) / 1e9 - time.monotonic()
-        if delay > 0:
-            time.sleep(delay)
-        last = offset + step >= len(audio)
-        for forward in segmenter.process((start_ns, chunk), start_ns, end_ns, level_db(peak(chunk, fmt)),
-                                         force_end=last):
-            if not forwarded:
-                recognizer.start()
-            forwarded.append(forward.item)
-            recognizer.feed(forward.item[1].tobytes())
-            if forward.ended:
-                assert forward.segment is not None  # an ended segment has its span
-                hypotheses = recognizer.finish()
-                texts.append(hypotheses[0].text if hypotheses else "")
-                speech_end_ns = forward.segment[1]
-                latencies["asr"].append((time.time_ns() - speech_end_ns - HANGOVER_NS) / 1e6)
-                first_ns = forwarded[0][0]  # the speech span only, as the services cut it
-                samples = np.concatenate([item for _, item in forwarded])[:, 0].astype(np.float32) / 32768
-                cut = samples[(forward.segment[0] - first_ns) * rate // 10**9:
-                              (speech_end_ns - first_ns) * rate // 10**9]
-                if cut.size >= rate // 2:  # the services' min_speech_ms
-                    for labeller in labellers:
-                        labeller.classify(cut)
-                latencies["full"].append((time.time_ns() - speech_end_ns - HANGOVER_NS) / 1e6)
-                forwarded = []
-    return latencies, texts, time.process_time() - cpu_start
+    for utterance in run.utterances:
+        latencies["asr"].append((utterance.done_ns["asr"] - utterance.end_ns - HANGOVER_NS) / 1e6)
+        latencies["full"].append((utterance.done_ns["all"] - utterance.end_ns - HANGOVER_NS) / 1e6)
+    return latencies, [u.text for u in run.utterances], sum(run.cpu_s.values())
 
 
-def pipeline(path: Path, grammar: str, port: int, extra: list[str]):
+def pipeline(path: Path, grammar: str, port: int, extra: list[str], workdir: Path | None = None,
+             on_ended: Callable[[], None] | None = None, progress_s: float = 0.0):
     """The launcher with every service as a process. Returns latencies (ms), texts, CPU s per
-    service while playing, CPU s per service at start-up, and the fused results."""
-    workdir = Path(tempfile.mkdtemp(prefix="esiaf-bench-"))
+    service while playing, CPU s per service at start-up, and the fused results. ``on_ended`` is
+    called once the stream has ended, before the services stop; with ``progress_s`` a line on
+    stderr says that often how many fused results have come."""
+    workdir = workdir or Path(tempfile.mkdtemp(prefix="esiaf-bench-"))
     cmd = [sys.executable, "-m", "esiaf", "run", "--input", str(path), "--json", "--serve",
            "--port", str(port), "--workdir", str(workdir), *extra] + (["--grammar", grammar] if grammar else [])
     launcher = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -155,13 +117,21 @@ def pipeline(path: Path, grammar: str, port: int, extra: list[str]):
     threads = [threading.Thread(target=f, daemon=True) for f in (read_stdout, read_stderr)]
     for thread in threads:
         thread.start()
-    deadline = time.monotonic() + soundfile.info(str(path)).duration + 120
+    started = time.monotonic()
+    deadline, report = started + soundfile.info(str(path)).duration + 120, started + progress_s
+    seen: dict[str, float] = {}  # a service that exits at the stream's end (the grabber) is gone by then
     while not ended.wait(timeout=0.5) and launcher.poll() is None and time.monotonic() < deadline:
-        pass
+        seen.update(children_cpu(launcher.pid))
+        if progress_s and time.monotonic() >= report:
+            report += progress_s
+            print(f"pipeline: {len(fused_results)} fused after {time.monotonic() - started:.0f} s",
+                  file=sys.stderr, flush=True)
     if not ended.is_set() or launcher.poll() is not None:
         launcher.kill()
         raise SystemExit("pipeline did not finish:\n" + "".join(stderr_lines))
-    cpu_at_end = children_cpu(launcher.pid)
+    cpu_at_end = {**seen, **children_cpu(launcher.pid)}
+    if on_ended is not None:
+        on_ended()
     launcher.send_signal(signal.SIGINT)
     try:
         launcher.wait(timeout=30)
@@ -173,11 +143,17 @@ def pipeline(path: Path, grammar: str, port: int, extra: list[str]):
 
 
 def children_cpu(pid: int) -> dict[str, float]:
-    """CPU seconds (user + system) so far of each service the launcher started."""
-    cpu = {}
-    for child in psutil.Process(pid).children():
-        name = next((a.split(".", 1)[1] for a in child.cmdline() if a.startswith("esiaf_services.")), str(child.pid))
-        times = child.cpu_times()
+    """CPU seconds (user + system) so far of the launcher and of each service it started."""
+    launcher = psutil.Process(pid)
+    times = launcher.cpu_times()
+    cpu = {"launcher": times.user + times.system}
+    for child in launcher.children():
+        try:
+            name = next((a.split(".", 1)[1] for a in child.cmdline() if a.startswith("esiaf_services.")),
+                        str(child.pid))
+            times = child.cpu_times()
+        except psutil.NoSuchProcess:  # it exited meanwhile
+            continue
         cpu[name] = times.user + times.system
     return cpu
 
