@@ -12,12 +12,10 @@ with its endpoint (an allowed key, or no connection), and the PUSH to the orches
 without, the PUSH presents the token (PLAIN) and audio is open to anyone who reaches the port.
 The allowed keys are read again on SIGHUP (:meth:`Transport.reload_keys_soon`, keys.reload_clients).
 
-Flow control (docs/protocol.md): a replay's audio (a stream in ``replays``, esiaf/receiving.py)
-waits for its consumers where live audio would be dropped and counted. libzmq's pipes count
-credit: a SUB whose queue is full stops reading its TCP connection, the XPUB's queue for it fills,
-and a send is refused (XPUB_NODROP); a replay's send then waits until the consumer has taken half
-of its queue (libzmq's low-water mark), on the socket's ZMQ_FD and the wake pipe, so stop() ends
-the wait at once. ``audio_queue`` bounds every queue (messages per connection and direction).
+Flow control (docs/protocol.md): a replay's audio (a stream in ``replays``, esiaf/receiving.py) waits
+for its consumers where live audio is dropped and counted: a SUB whose queue is full stops reading
+its TCP connection, the XPUB's queue fills and refuses (XPUB_NODROP); the send waits on the socket's
+ZMQ_FD (the consumer's credit) and the wake pipe (stop()). ``audio_queue`` bounds every queue.
 
 One thread uses a Transport: the component's data thread.
 """
@@ -49,10 +47,13 @@ log = logging.getLogger(__name__)
 STATE_ADDRESS = "inproc://esiaf-control-state"
 AUDIO_HWM = 100_000  # messages queued per connection before loss (minutes of audio): the audio_queue default
 RESULTS_HWM = 10_000
-# with a bounded audio_queue (below AUDIO_HWM), each audio connection's kernel buffers too: the kernel
-# would otherwise hold a few MB more per connection (a minute of 16 kHz audio) ahead of the consumer
+# With a bounded audio_queue (below AUDIO_HWM), each audio connection's kernel buffers too (the kernel would
+# otherwise hold some MB, a minute of 16 kHz audio, ahead of the consumer); and its data may go unacknowledged
+# (a consumer's zero window: it is busy, its queue full) STALL_MS, not UNACKED_MS, before it is dropped
 BOUNDED_TCP_BUFFER_BYTES = 64 * 1024
+STALL_MS = 60_000
 FLUSH_LINGER_MS = 2_000  # data sockets get this long to deliver the last messages at shutdown
+REPLAY_LINGER_MS = 60_000  # ... a replay's producer that ended (not stopped): its slowest consumer's pace
 ANY_HOST = ("0.0.0.0", "*", "::")
 LEAVE_GRACE_S = 1.0  # a departed producer's messages still arriving are taken this long at least
 
@@ -118,9 +119,10 @@ def _nothing() -> None:
 
 
 def _bound_buffers(sock: zmq.Socket, audio_queue: int, option: int) -> None:
-    """A bounded audio queue bounds the connection's kernel buffer too (BOUNDED_TCP_BUFFER_BYTES)."""
+    """A bounded audio queue bounds the kernel buffer too, and lets a busy consumer stall a while (STALL_MS)."""
     if audio_queue < AUDIO_HWM:
         sock.setsockopt(option, BOUNDED_TCP_BUFFER_BYTES)
+        sock.setsockopt(zmq.TCP_MAXRT, STALL_MS)
 
 
 def topic_name(frame: bytes) -> str:
@@ -134,6 +136,7 @@ class Transport:
         self._curve = curve
         self._replays = replays  # the streams whose audio and results wait for consumers (None: none)
         self._stopping = False  # stop(): no send waits any more
+        self._replayed = False  # a replay's audio was sent: at its end (not stopped) it gets REPLAY_LINGER_MS
         self._clients = curve.clients if curve is not None else frozenset()  # SIGHUP reads them again
         self._reload = False  # SIGHUP came: read the allowed keys again at the next poll
         self._authenticator: ThreadAuthenticator | None = None
@@ -195,7 +198,6 @@ class Transport:
         self.push.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
         self.push.setsockopt(zmq.SNDHWM, RESULTS_HWM)
         self._advertised_host = advertise_host or (socket.gethostname() if bind_host in ANY_HOST else bind_host)
-        self._room: dict[zmq.Socket, select.poll] = {}  # per output socket: waits for room (a replay's sends)
 
     @property
     def audio_endpoint(self) -> str | None:
@@ -293,6 +295,7 @@ class Transport:
         marked so and waits for room instead (False only if stop() came first)."""
         assert self.pub is not None, "audio sent without a declared output"
         replay = self._replays is not None and self._replays.mark(message)
+        self._replayed |= replay
         return self._send(self.pub, [topic_frame(topic, message.stream_id), message.SerializeToString()], replay)
 
     def send_results(self, frames: Sequence[bytes], stream_id: str = "") -> bool:
@@ -300,10 +303,9 @@ class Transport:
         return self._send(self.push, frames, self._replays is not None and stream_id in self._replays)
 
     def _send(self, sock: zmq.Socket, frames: Sequence[bytes], wait: bool) -> bool:
-        """Sends without blocking; if refused and ``wait``, waits until the peer has taken enough
-        (libzmq then signals the socket's ZMQ_FD: a command, activate_write) or stop() (the wake
-        pipe), and tries again. No timeout: nothing wakes while all is well. The poller cannot tell
-        (an XPUB says POLLOUT even while full)."""
+        """Sends without blocking; if refused and ``wait``, waits until the peer has taken enough (libzmq's
+        activate_write command signals the socket's ZMQ_FD) or stop() (the wake pipe), and tries again:
+        no timeout, nothing wakes while the peer is stalled. (An XPUB says POLLOUT even while full.)"""
         while True:
             try:
                 sock.send_multipart(frames, flags=zmq.NOBLOCK)
@@ -313,11 +315,9 @@ class Transport:
             else:
                 self.on_busy()
                 return True
-            room = self._room.get(sock)
-            if room is None:
-                room = self._room[sock] = select.poll()
-                room.register(cast(int, sock.getsockopt(zmq.FD)), select.POLLIN)
-                room.register(self._wake_read, select.POLLIN)
+            room = select.poll()  # made once a wait: the consumer takes half its queue between two
+            room.register(cast(int, sock.getsockopt(zmq.FD)), select.POLLIN)
+            room.register(self._wake_read, select.POLLIN)
             if any(fd == self._wake_read for fd, _ in room.poll()):
                 self._drain_wake()
                 if self._reload:
@@ -386,6 +386,8 @@ class Transport:
             self._results_endpoint = endpoint
 
     def close(self) -> None:
+        if self.pub is not None and not self.pub.closed and self._replayed and not self._stopping:
+            self.pub.setsockopt(zmq.LINGER, REPLAY_LINGER_MS)  # the end of a file: all of it reaches the consumers
         for sock in (self.state, self._refusals, self.sub, self.pub, self.push):
             if sock is not None and not sock.closed:
                 sock.close()

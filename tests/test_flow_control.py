@@ -18,7 +18,7 @@ import zmq
 from esiaf import Audio, AudioFormat, Component, SampleClock
 from esiaf.receiving import Replays
 from esiaf.tools.testing import REPO, poll
-from esiaf.transport import BOUNDED_TCP_BUFFER_BYTES, Transport
+from esiaf.transport import BOUNDED_TCP_BUFFER_BYTES, UNACKED_MS, Transport
 
 FMT = AudioFormat(16000, "int16")
 CHUNK = 1600  # 100 ms: a message of about 3.3 kB
@@ -33,10 +33,11 @@ class Source(Component):
     Before each chunk it notes how far ahead of the last consumer it is (``behind()``)."""
     service = "source"
 
-    def __init__(self, settings, chunks: int, replay: bool, behind=lambda: 0):
+    def __init__(self, settings, chunks: int, replay: bool, behind=lambda: 0, ends: bool = False,
+                 frames: int = CHUNK):
         super().__init__(settings)
         self.add_output("source/audio", FMT)
-        self.chunks, self.replay, self.behind = chunks, replay, behind
+        self.chunks, self.replay, self.behind, self.ends, self.frames = chunks, replay, behind, ends, frames
         self.ahead: list[int] = []
         self.done = threading.Event()
 
@@ -46,12 +47,12 @@ class Source(Component):
         self.announce_stream(clock.origin_ns, realtime=not self.replay)
         for n in range(self.chunks):
             self.ahead.append(n - self.behind())
-            self.publish("source/audio", np.full(CHUNK, n % 1000, dtype=np.int16), *clock.advance(CHUNK),
+            self.publish("source/audio", np.full(self.frames, n % 1000, dtype=np.int16), *clock.advance(self.frames),
                          end_of_stream=n == self.chunks - 1)
             if self.stopping:
                 break
         self.done.set()
-        while not self.stopping:
+        while not self.stopping and not self.ends:  # a file played to its end: run() returns
             self.sleep_until(time.monotonic() + 5)
 
 
@@ -148,6 +149,34 @@ def test_a_live_stream_is_dropped_and_counted_not_held_back(orchestrator, runnin
     # what was not dropped arrives, in order; a refused message takes no sequence number (no gap, no loss)
     assert sink.sequences == list(range(1, chunks - dropped + 1))
     assert sink.input_stats["source/audio"].lost == 0
+
+
+def test_the_end_of_a_replay_reaches_a_consumer_slower_than_the_flush_at_shutdown(orchestrator, running):
+    """A file played to its end: the producer leaves, its last queue of audio still on its way to a
+    consumer held longer than FLUSH_LINGER_MS (2 s); none of it, and not the end mark, is lost."""
+    chunks, gate = 2 * QUEUE, threading.Event()  # 1 s chunks: the queues hold them, the kernel's buffers few
+    sink = running(SlowSink(settings_of(SlowSink, orchestrator.url), "source/audio", delay_s=0, gate=gate))
+    source = Source(settings_of(Source, orchestrator.url), chunks, replay=True, ends=True, frames=16000)
+    finished = threading.Event()
+    threading.Thread(target=lambda: (source.run(), finished.set()), daemon=True).start()
+    assert source.done.wait(timeout=30)  # all published: at most two queues and the kernel's buffers behind
+    assert not finished.wait(timeout=3.0)  # its shutdown waits for the consumer, past FLUSH_LINGER_MS
+    gate.set()
+    assert sink.ended.wait(timeout=30) and finished.wait(timeout=10)
+    assert sink.sequences == list(range(1, chunks + 1))
+
+
+def test_a_consumer_busy_longer_than_the_unacknowledged_data_timeout_keeps_its_connection(orchestrator, running):
+    """A consumer whose queue is full stops reading, and its TCP window closes: its producer's data goes
+    unacknowledged. UNACKED_MS (4 s) would drop the connection, and every chunk sent after with it."""
+    chunks, gate = 300, threading.Event()
+    sink = running(SlowSink(settings_of(SlowSink, orchestrator.url), "source/audio", delay_s=0, gate=gate))
+    source = running(Source(settings_of(Source, orchestrator.url), chunks, replay=True))
+    poll(lambda: sink.sequences or source.output_stats["source/audio"].published > 2 * QUEUE, timeout_s=20)
+    assert not source.done.wait(timeout=UNACKED_MS / 1000 + 2)  # held back all along
+    gate.set()
+    assert sink.ended.wait(timeout=30), f"{len(sink.sequences)} of {chunks} chunks arrived"
+    assert sink.sequences == list(range(1, chunks + 1)) and source.output_stats["source/audio"].subscribers == 1
 
 
 def test_sigterm_ends_a_replay_blocked_on_a_stalled_consumer_at_once(orchestrator, running, tmp_path):
