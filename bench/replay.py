@@ -11,16 +11,18 @@ from the orchestrator (audio dropped at the high-water mark, lost on the way, re
 
 Prints ``name=value`` lines: per service the RSS at the start of the replay, its peak and its end
 (MB), the utterances fused beside those played, the drop counts, and the replay speed (audio
-seconds per wall second, from the first chunk played to the stream's end). Run it as a module
+seconds per wall second, from the grabber's first chunk to the stream's end). Run it as a module
 from the repository root (``python -m``): bench/ssl.py would shadow the standard library's ssl.
 """
 from __future__ import annotations
 
 import argparse
+import datetime
 import difflib
 import json
 import os
 import random
+import re
 import signal
 import subprocess
 import sys
@@ -95,7 +97,7 @@ class Sampler(threading.Thread):
                         rss[name] = child.memory_info().rss / 1e6
                     except psutil.Error:
                         continue
-            self.samples.append((time.monotonic(), rss))
+            self.samples.append((time.time(), rss))
 
 
 def components(url: str, token: str) -> list[dict]:
@@ -135,9 +137,9 @@ def replay(args: argparse.Namespace, wav: Path, truth: list[str]) -> dict[str, f
         for line in launcher.stdout:
             if line.startswith("{"):
                 lines.append(json.loads(line))
-                marks["last_line"] = time.monotonic()
+                marks["last_line"] = time.time()
                 if lines[-1].get("type") == "stream_end":
-                    marks["end"] = time.monotonic()
+                    marks["end"] = time.time()
                     ended.set()
 
     def read_stderr() -> None:
@@ -147,9 +149,9 @@ def replay(args: argparse.Namespace, wav: Path, truth: list[str]) -> dict[str, f
                 log.write(line)
                 log.flush()
                 if line.startswith("esiaf: playing"):
-                    marks["play"] = time.monotonic()
+                    marks["play"] = time.time()
                 if line.startswith("esiaf: no end of stream"):  # the launcher gave up waiting (and serves on)
-                    marks["gave_up"] = time.monotonic()
+                    marks["gave_up"] = time.time()
 
     for reader in (read_stdout, read_stderr):
         threading.Thread(target=reader, daemon=True).start()
@@ -157,12 +159,12 @@ def replay(args: argparse.Namespace, wav: Path, truth: list[str]) -> dict[str, f
     sampler.start()
     load_before = os.getloadavg()[0]
     try:
-        deadline = time.monotonic() + args.timeout
+        deadline = time.time() + args.timeout
         while not ended.wait(args.every):  # or the launcher gave up on the stream and no result came for QUIET_S
-            if "gave_up" in marks and time.monotonic() - marks.get("last_line", 0.0) > QUIET_S:
+            if "gave_up" in marks and time.time() - marks.get("last_line", 0.0) > QUIET_S:
                 marks["end"] = marks.get("last_line", marks["gave_up"])
                 break
-            if time.monotonic() > deadline:
+            if time.time() > deadline:
                 raise SystemExit(f"bench/replay: no stream end within {args.timeout:g} s; see {workdir}")
         time.sleep(args.every)  # one more sample after the end
         counts = components(f"http://127.0.0.1:{port}", (workdir / "token").read_text().strip())
@@ -173,7 +175,13 @@ def replay(args: argparse.Namespace, wav: Path, truth: list[str]) -> dict[str, f
             launcher.wait(timeout=30)
         except subprocess.TimeoutExpired:
             launcher.kill()
-    play, end = marks.get("play", 0.0), marks["end"]
+    # the replay starts when the grabber starts playing (its log says so; the launcher's "playing" line
+    # comes as it starts the grabber's process, before its imports)
+    grabber_log = (workdir / "logs" / "grabber.log").read_text(errors="replace")
+    played = re.search(r"^(\S+ \S+),(\d+) INFO \S+ \[grabber\] playing source=", grabber_log, re.MULTILINE)
+    play = marks.get("play", 0.0) if played is None else \
+        datetime.datetime.fromisoformat(played[1]).timestamp() + int(played[2]) / 1000
+    end = marks["end"]
     during = [(t, rss) for t, rss in sampler.samples if play <= t <= end] or sampler.samples
     result: dict[str, float] = {"audio_s": soundfile.info(str(wav)).duration, "wall_s": end - play,
                                 "load_avg_1min_before": load_before, "load_avg_1min_after": os.getloadavg()[0]}
@@ -196,7 +204,6 @@ def replay(args: argparse.Namespace, wav: Path, truth: list[str]) -> dict[str, f
         result[f"dropped_audio_{name}"], result[f"lost_audio_{name}"] = dropped, lost
         result[f"dropped_results_{name}"] = stats.get("results_dropped", 0)
     # the grabber has left by now (it leaves once it has played): what it dropped is in its log
-    grabber_log = (workdir / "logs" / "grabber.log").read_text(errors="replace")
     result["dropped_audio_grabber"] = grabber_log.count("audio dropped at high-water mark")
     print(f"bench/replay: logs in {workdir}", file=sys.stderr)
     return result

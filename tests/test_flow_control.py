@@ -24,8 +24,8 @@ FMT = AudioFormat(16000, "int16")
 CHUNK = 1600  # 100 ms: a message of about 3.3 kB
 QUEUE = 20  # audio_queue: messages per connection and direction
 # what a hop may hold besides the queues: the kernel's buffers of one TCP connection (it doubles the
-# size asked for, on both ends), in messages of this size
-KERNEL_MESSAGES = 2 * 2 * BOUNDED_TCP_BUFFER_BYTES // (2 * CHUNK)
+# size asked for, on both ends) and libzmq's 8 KiB batches at each end, in messages of this size
+KERNEL_MESSAGES = (2 * 2 * BOUNDED_TCP_BUFFER_BYTES + 2 * 8192) // (2 * CHUNK)
 
 
 class Source(Component):
