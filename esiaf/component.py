@@ -84,8 +84,6 @@ class Component:
         self.input_stats = self._receiver.stats
         self.refused = self._receiver.refused  # audio messages refused, by reason
         self.refused_by_publisher = self._receiver.refused_by_publisher  # ... by publisher (the most recent ones)
-        self._input_links = self._receiver.links  # per topic, publisher and stream
-        self._last_seen = self._receiver.last_seen
 
     @property
     def _wire(self) -> Transport:
@@ -137,7 +135,7 @@ class Component:
         self._exit_code = self._exit_code or exit_code
         self._stop.set()
         if self._transport is not None:
-            self._transport.wake()  # a long wait for input ends now
+            self._transport.stop()  # a long wait for input, or a replay's for a consumer, ends now
 
     def publish(self, topic: str, audio: bytes | np.ndarray, start_ns: int, end_ns: int, *,
                 stream_id: str | None = None, segmentation_ended: bool = False,
@@ -170,7 +168,7 @@ class Component:
         sequence = self._sequences.get(key, 0) + 1
         msg.publisher, msg.sequence = self.instance_id, sequence
         stats = self.output_stats[topic]
-        if not self._wire.send_audio(topic, msg.SerializeToString(), msg.stream_id):
+        if not self._wire.send_audio(topic, msg):  # a replay's waits for the consumers (esiaf/transport.py)
             stats.dropped += 1
             log.warning("audio dropped at high-water mark topic=%s sequence=%d dropped=%d",
                         topic, sequence, stats.dropped)
@@ -192,16 +190,16 @@ class Component:
         result = make_result(self.settings.name, result_type, stream_id or self.settings.stream_id, span,
                              self._result_sequence, **payload)
         result.instance = self.instance_id
-        self._send_results(b"result", result.SerializeToString())
+        self._send_results(b"result", result.SerializeToString(), result.stream_id)
         return result
 
     def clock_ns(self) -> int:  # this host's wall clock, ns since the epoch: what capture times are stamped with
         return time.time_ns() + round(self.settings.clock_skew_s * 1e9)
 
     def announce_stream(self, start_ns: int, stream_id: str | None = None, **info: Any) -> None:
-        """Sources call this when capture starts: the orchestrator records the stream's start time."""
-        announce_stream(self.settings.orchestrator_url, stream_id or self.settings.stream_id, start_ns,
-                        self.instance_id, info)
+        """Sources call this when capture starts (the orchestrator records it); not ``realtime``: a replay."""
+        stream_id = self._receiver.replays.note(stream_id or self.settings.stream_id, info.get("realtime") is False)
+        announce_stream(self.settings.orchestrator_url, stream_id, start_ns, self.instance_id, info)
 
     def wait_for_subscribers(self, topic: str, count: int, timeout_s: float) -> bool:
         """Services the sockets until ``topic`` has ``count`` subscribers, or the time is up."""
@@ -246,7 +244,8 @@ class Component:
             try:
                 self._transport = Transport(self._context, inputs=self.inputs, has_outputs=bool(self.outputs),
                                             bind_host=self.settings.bind_host, audio_port=self.settings.audio_port,
-                                            advertise_host=self.settings.advertise_host, curve=curve)
+                                            advertise_host=self.settings.advertise_host, curve=curve,
+                                            audio_queue=self.settings.audio_queue, replays=self._receiver.replays)
             except TransportError as exc:
                 raise SetupError(str(exc)) from None
             self.control = ControlClient(self._context, self.settings.orchestrator_url,
@@ -378,11 +377,12 @@ class Component:
         self.on_end_of_stream(audio.stream_id, audio)
         notice = {"component_id": self.control.component_id if self.control else "",
                   "component": self.settings.name, "stream_id": audio.stream_id}
-        self._send_results(b"end_of_stream", json.dumps(notice).encode())
+        self._send_results(b"end_of_stream", json.dumps(notice).encode(), audio.stream_id)
         log.info("end of stream stream_id=%s", audio.stream_id)
 
-    def _send_results(self, kind: bytes, body: bytes) -> None:  # signed: esiaf/binding.py
-        if self._wire.send_results(binding.signed(kind, body, self.control.registration if self.control else None)):
+    def _send_results(self, kind: bytes, body: bytes, stream_id: str) -> None:  # signed: esiaf/binding.py
+        registration = self.control.registration if self.control else None
+        if self._wire.send_results(binding.signed(kind, body, registration), stream_id):  # a replay's wait
             self.results_sent += kind == b"result"
         else:
             self.results_dropped += 1

@@ -9,6 +9,7 @@ MAX_PUBLISHERS are kept, so forged publisher names cannot grow the process.
 from __future__ import annotations
 
 import logging
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
@@ -64,6 +65,43 @@ class InputStats:
         return counts
 
 
+class Replays:
+    """The streams that are replays (``meta.replay``: played faster than real time, ``esiaf run --fast``),
+    as the audio received says, or as a source that announced its own stream not real time says;
+    the most recent MAX_STREAMS. A replay's audio and results wait for their consumers instead of
+    being dropped at the high-water mark (esiaf/transport.py); live audio never waits. A stream
+    heard live again is live again."""
+
+    MAX_STREAMS = 1024
+
+    def __init__(self) -> None:
+        self._streams: OrderedDict[str, None] = OrderedDict()  # oldest first
+
+    def note(self, stream_id: str, replay: bool) -> str:
+        """Remembers whether ``stream_id`` is a replay; returns it."""
+        if not replay:
+            self._streams.pop(stream_id, None)
+            return stream_id
+        self._streams[stream_id] = None
+        self._streams.move_to_end(stream_id)
+        while len(self._streams) > self.MAX_STREAMS:
+            self._streams.popitem(last=False)
+        return stream_id
+
+    def __contains__(self, stream_id: object) -> bool:
+        return stream_id in self._streams
+
+    def __len__(self) -> int:
+        return len(self._streams)
+
+    def mark(self, message: pb.AugmentedAudio) -> bool:
+        """Marks an outgoing message of a replay as such (every message: resampler tails too); True if it is."""
+        if message.stream_id not in self._streams:
+            return False
+        message.meta.replay = True
+        return True
+
+
 @dataclass
 class Received:
     """A message taken: its topic, the topic's counters, the message and the chunks it gives."""
@@ -86,6 +124,7 @@ class Receiver:
         self.links: dict[tuple[str, str, str], InputLink] = {}
         self.last_seen: dict[tuple[str, str, str], int] = {}  # the last sequence number
         self._on_loss = on_loss  # called when messages were lost
+        self.replays = Replays()  # the streams that are replays: their publications wait for consumers
 
     def receive(self, frames: list[bytes]) -> Received | None:
         """The chunks a message gives, in the declared format; None if the topic is not one of the
@@ -106,6 +145,7 @@ class Receiver:
             self.refuse(stats, "undecodable", "", f"{type(exc).__name__}: {exc}")
             return None
         stats.received += 1
+        self.replays.note(audio.stream_id, audio.meta.replay)
         self.count_gap(audio, stats)
         link = self.link(topic, audio.publisher, audio.stream_id)
         try:

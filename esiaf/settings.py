@@ -24,6 +24,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from esiaf import auth, keys
+from esiaf.transport import AUDIO_HWM
 
 ENV_PREFIX = "ESIAF_"
 
@@ -51,6 +52,9 @@ class ComponentSettings(StrictModel):
     advertise_host: str = ""  # how others reach it; defaults to bind_host (or the hostname if 0.0.0.0)
     audio_port: int = 0  # 0 = any free port
     register_timeout_s: float = 30.0  # keep retrying the orchestrator this long at start-up
+    # audio messages queued per connection, each way (ZeroMQ SNDHWM and RCVHWM): live audio past it is
+    # dropped and counted, a replay's waits (docs/protocol.md, "Flow control"); `esiaf run --fast` makes it small
+    audio_queue: int = Field(default=AUDIO_HWM, ge=1)
     log_level: str = "INFO"
     health_file: str = ""  # touched whenever the orchestrator answers (see esiaf.tools.health)
     # tests only: this component's clock runs this far ahead of the host's (capture times, heartbeats),

@@ -12,6 +12,11 @@ with its endpoint (an allowed key, or no connection), and the PUSH to the orches
 without, the PUSH presents the token (PLAIN) and audio is open to anyone who reaches the port.
 The allowed keys are read again on SIGHUP (:meth:`Transport.reload_keys_soon`, keys.reload_clients).
 
+Flow control (docs/protocol.md): a replay's audio (a stream in ``replays``, esiaf/receiving.py) waits
+for its consumers where live audio is dropped and counted: a SUB whose queue is full stops reading
+its TCP connection, the XPUB's queue fills and refuses (XPUB_NODROP); the send waits on the socket's
+ZMQ_FD (the consumer's credit) and the wake pipe (stop()). ``audio_queue`` bounds every queue.
+
 One thread uses a Transport: the component's data thread.
 """
 from __future__ import annotations
@@ -21,10 +26,11 @@ import json
 import logging
 import os
 import re
+import select
 import socket
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from typing import Any, TypeVar, cast
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 import zmq
 from zmq.auth.thread import ThreadAuthenticator
@@ -32,12 +38,22 @@ from zmq.utils.monitor import recv_monitor_message
 
 from esiaf import auth, keys
 
+if TYPE_CHECKING:
+    from esiaf.proto import esiaf_pb2 as pb
+    from esiaf.receiving import Replays
+
 log = logging.getLogger(__name__)
 
 STATE_ADDRESS = "inproc://esiaf-control-state"
-AUDIO_HWM = 100_000  # messages queued per socket before loss (minutes of audio)
+AUDIO_HWM = 100_000  # messages queued per connection before loss (minutes of audio): the audio_queue default
 RESULTS_HWM = 10_000
+# With a bounded audio_queue (below AUDIO_HWM), each audio connection's kernel buffers too (the kernel would
+# otherwise hold some MB, a minute of 16 kHz audio, ahead of the consumer); and its data may go unacknowledged
+# (a consumer's zero window: it is busy, its queue full) STALL_MS, not UNACKED_MS, before it is dropped
+BOUNDED_TCP_BUFFER_BYTES = 64 * 1024
+STALL_MS = 60_000
 FLUSH_LINGER_MS = 2_000  # data sockets get this long to deliver the last messages at shutdown
+REPLAY_LINGER_MS = 60_000  # ... a replay's producer that ended (not stopped): its slowest consumer's pace
 ANY_HOST = ("0.0.0.0", "*", "::")
 LEAVE_GRACE_S = 1.0  # a departed producer's messages still arriving are taken this long at least
 
@@ -102,14 +118,25 @@ def _nothing() -> None:
     pass
 
 
+def _bound_buffers(sock: zmq.Socket, audio_queue: int, option: int) -> None:
+    """A bounded audio queue bounds the kernel buffer too, and lets a busy consumer stall a while (STALL_MS)."""
+    if audio_queue < AUDIO_HWM:
+        sock.setsockopt(option, BOUNDED_TCP_BUFFER_BYTES)
+        sock.setsockopt(zmq.TCP_MAXRT, STALL_MS)
+
+
 def topic_name(frame: bytes) -> str:
     return frame.split(b"\0", 1)[0].decode(errors="replace")
 
 
 class Transport:
     def __init__(self, context: zmq.Context, *, inputs: Iterable[str], has_outputs: bool,
-                 bind_host: str, audio_port: int = 0, advertise_host: str = "", curve: keys.Curve | None = None):
+                 bind_host: str, audio_port: int = 0, advertise_host: str = "", curve: keys.Curve | None = None,
+                 audio_queue: int = AUDIO_HWM, replays: Replays | None = None):
         self._curve = curve
+        self._replays = replays  # the streams whose audio and results wait for consumers (None: none)
+        self._stopping = False  # stop(): no send waits any more
+        self._replayed = False  # a replay's audio was sent: at its end (not stopped) it gets REPLAY_LINGER_MS
         self._clients = curve.clients if curve is not None else frozenset()  # SIGHUP reads them again
         self._reload = False  # SIGHUP came: read the allowed keys again at the next poll
         self._authenticator: ThreadAuthenticator | None = None
@@ -129,7 +156,8 @@ class Transport:
         if has_outputs:
             self.pub = keep_alive(context.socket(zmq.XPUB))
             self.pub.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
-            self.pub.setsockopt(zmq.SNDHWM, AUDIO_HWM)
+            self.pub.setsockopt(zmq.SNDHWM, audio_queue)
+            _bound_buffers(self.pub, audio_queue, zmq.SNDBUF)
             self.pub.setsockopt(zmq.XPUB_VERBOSER, 1)
             self.pub.setsockopt(zmq.XPUB_NODROP, 1)
             if curve is not None:  # a CURVE server: only consumers with an allowed key may subscribe
@@ -153,7 +181,8 @@ class Transport:
         if topics:
             self.sub = keep_alive(context.socket(zmq.SUB))
             self.sub.setsockopt(zmq.LINGER, 0)
-            self.sub.setsockopt(zmq.RCVHWM, AUDIO_HWM)
+            self.sub.setsockopt(zmq.RCVHWM, audio_queue)
+            _bound_buffers(self.sub, audio_queue, zmq.RCVBUF)
             for topic in topics:
                 self.sub.setsockopt(zmq.SUBSCRIBE, topic_frame(topic))
             self._poller.register(self.sub, zmq.POLLIN)
@@ -225,6 +254,12 @@ class Transport:
         if allowed is not None:
             self._clients = allowed
 
+    def stop(self) -> None:
+        """The component is stopping: a wait for input or for a consumer's room ends now, and no send
+        waits any more (safe from any thread and from signal handlers)."""
+        self._stopping = True
+        self.wake()
+
     def wake(self) -> None:
         """Ends a wait in :meth:`events` now (safe from any thread and from signal handlers)."""
         with contextlib.suppress(OSError):  # full (already woken) or closed
@@ -255,24 +290,39 @@ class Transport:
         log.info("streams taken: %s", "all" if wanted is None else ", ".join(wanted) or "none")
         self._streams = wanted
 
-    def send_audio(self, topic: str, message: bytes, stream_id: str | None = None) -> bool:
-        """False if refused at the high-water mark."""
+    def send_audio(self, topic: str, message: pb.AugmentedAudio) -> bool:
+        """Sends a message on ``topic``; False if refused at the high-water mark. A replay's message is
+        marked so and waits for room instead (False only if stop() came first)."""
         assert self.pub is not None, "audio sent without a declared output"
-        try:
-            self.pub.send_multipart([topic_frame(topic, stream_id), message], flags=zmq.NOBLOCK)
-        except zmq.Again:
-            return False
-        self.on_busy()
-        return True
+        replay = self._replays is not None and self._replays.mark(message)
+        self._replayed |= replay
+        return self._send(self.pub, [topic_frame(topic, message.stream_id), message.SerializeToString()], replay)
 
-    def send_results(self, frames: Sequence[bytes]) -> bool:
-        """False if the orchestrator is not taking results (queue full)."""
-        try:
-            self.push.send_multipart(frames, flags=zmq.NOBLOCK)
-        except zmq.Again:
-            return False
-        self.on_busy()
-        return True
+    def send_results(self, frames: Sequence[bytes], stream_id: str = "") -> bool:
+        """False if the orchestrator is not taking results (queue full); a replay's results wait for room."""
+        return self._send(self.push, frames, self._replays is not None and stream_id in self._replays)
+
+    def _send(self, sock: zmq.Socket, frames: Sequence[bytes], wait: bool) -> bool:
+        """Sends without blocking; if refused and ``wait``, waits until the peer has taken enough (libzmq's
+        activate_write command signals the socket's ZMQ_FD) or stop() (the wake pipe), and tries again:
+        no timeout, nothing wakes while the peer is stalled. (An XPUB says POLLOUT even while full.)"""
+        while True:
+            try:
+                sock.send_multipart(frames, flags=zmq.NOBLOCK)
+            except zmq.Again:
+                if not wait or self._stopping:
+                    return False
+            else:
+                self.on_busy()
+                return True
+            room = select.poll()  # made once a wait: the consumer takes half its queue between two
+            room.register(cast(int, sock.getsockopt(zmq.FD)), select.POLLIN)
+            room.register(self._wake_read, select.POLLIN)
+            if any(fd == self._wake_read for fd, _ in room.poll()):
+                self._drain_wake()
+                if self._reload:
+                    self._reload_keys()
+            sock.getsockopt(zmq.EVENTS)  # libzmq takes its commands (the peer's credit) before the next try
 
     def connect_peers(self, wanted: set[str], peer_keys: dict[str, str] | None = None) -> None:
         """Connects the input socket to exactly these producer endpoints (with CURVE keys, each
@@ -336,6 +386,8 @@ class Transport:
             self._results_endpoint = endpoint
 
     def close(self) -> None:
+        if self.pub is not None and not self.pub.closed and self._replayed and not self._stopping:
+            self.pub.setsockopt(zmq.LINGER, REPLAY_LINGER_MS)  # the end of a file: all of it reaches the consumers
         for sock in (self.state, self._refusals, self.sub, self.pub, self.push):
             if sock is not None and not sock.closed:
                 sock.close()

@@ -76,7 +76,7 @@ def test_ten_thousand_publisher_names_do_not_grow_the_component(pair):
 
     run_on(source, send)
     poll(lambda: len(sink.events) == 10_000, timeout_s=60)
-    assert len(sink._input_links) <= 256 and len(sink._last_seen) <= 256
+    assert len(sink._receiver.links) <= 256 and len(sink._receiver.last_seen) <= 256
 
 
 @pytest.mark.parametrize("endpoint", ["foo://x", "tcp://", "tcp://host:99999", "ipc:///tmp/x", 7])

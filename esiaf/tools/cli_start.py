@@ -46,6 +46,12 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("esiaf")
 
+# --fast: every service's audio queues (ESIAF_AUDIO_QUEUE, messages per connection and direction): 5 s of
+# 20 ms chunks. A replay waits for its slowest consumer (docs/protocol.md, "Flow control"), so a small
+# queue loses nothing and keeps each process's memory flat; live use keeps the large default (a value
+# given in the environment wins)
+FAST_AUDIO_QUEUE = 250
+
 
 @dataclass
 class Pipeline:
@@ -79,7 +85,9 @@ def run(args: argparse.Namespace) -> int:
     os.environ[auth.TOKEN_ENV] = auth.token() or auth.new_token()
     auth.write_token(workdir / "token", os.environ[auth.TOKEN_ENV])
     supervisor = Supervisor(workdir, env={"ESIAF_ORCHESTRATOR_URL": url}
-                            | ({"ESIAF_STREAM_ID": ids[0]} if len(ids) == 1 else {}))
+                            | ({"ESIAF_STREAM_ID": ids[0]} if len(ids) == 1 else {})
+                            | ({"ESIAF_AUDIO_QUEUE": os.environ.get("ESIAF_AUDIO_QUEUE", str(FAST_AUDIO_QUEUE))}
+                               if args.fast else {}))
     client = OrchestratorClient(url)
     try:
         start_orchestrator(args, supervisor, client, workdir)
