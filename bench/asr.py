@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-sys.path[0] = str(REPO)  # not bench/: its ssl.py would shadow the standard library's
+sys.path[0] = str(REPO)  # the repository first: esiaf from this checkout
 
 import argparse  # noqa: E402
 import csv  # noqa: E402

@@ -21,8 +21,6 @@ backends with no transport, to show what the model itself costs. Figures, as ``n
   5,960 (gender) CPU seconds for 83 minutes of speech.
 
     python -m bench.emotion [--utterances 30] [--gap-s 1.5] [--modes apart,hosted] [--chunk-ms 20]
-
-(``-m``: run as a file, ``bench/ssl.py`` would shadow the standard library's ``ssl``.)
 """
 from __future__ import annotations
 

@@ -42,7 +42,7 @@ import psutil
 import soundfile
 
 REPO = Path(__file__).resolve().parent.parent
-# bench/ssl.py would shadow the standard library's ssl (which openSMILE's imports need)
+# the repository first, bench/ itself not on the path (its modules are bench.NAME)
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != REPO / "bench"]
 sys.path.insert(0, str(REPO))
 

@@ -12,7 +12,7 @@ from the orchestrator (audio dropped at the high-water mark, lost on the way, re
 Prints ``name=value`` lines: per service the RSS at the start of the replay, its peak and its end
 (MB), the utterances fused beside those played, the drop counts, and the replay speed (audio
 seconds per wall second, from the grabber's first chunk to the stream's end). Run it as a module
-from the repository root (``python -m``): bench/ssl.py would shadow the standard library's ssl.
+from the repository root (``python -m bench.replay``).
 """
 from __future__ import annotations
 

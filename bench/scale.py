@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != REPO / "bench"]  # bench/ssl.py shadows ssl
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != REPO / "bench"]  # its modules are bench.NAME
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "scripts"))
 

@@ -45,7 +45,7 @@ import soundfile
 import yaml
 
 REPO = Path(__file__).resolve().parent.parent
-sys.path[0] = str(REPO)  # not bench/: its ssl.py would shadow the standard library's ssl
+sys.path[0] = str(REPO)  # the repository first: esiaf from this checkout
 
 from esiaf.scenes import speech_bounds  # noqa: E402
 from esiaf.tools.testing import SHARED_DATA  # noqa: E402

@@ -43,9 +43,8 @@ def token() -> str:
 
 
 def tls_context() -> Any:
-    """An ``ssl.SSLContext`` (not named: for mypy, bench/ssl.py is ``ssl``) that checks the
-    orchestrator's HTTPS certificate against ``ESIAF_TLS_CA`` if set, else the system's CAs. A CA
-    file that cannot be read is a TokenError, one line."""
+    """An ``ssl.SSLContext`` that checks the orchestrator's HTTPS certificate against ``ESIAF_TLS_CA``
+    if set, else the system's CAs. A CA file that cannot be read is a TokenError, one line."""
     context = httpx.create_ssl_context()
     cafile = os.environ.get(TLS_CA_ENV, "").strip()
     if cafile:

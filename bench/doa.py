@@ -7,7 +7,7 @@ component's frame loop (128 ms frames, nfft 256, 300-5000 Hz, background bin sel
 same audio; CPU is this process's CPU time for it. FRIDA is very slow: it gets only the first
 ``--frida-seconds`` of each scene (its error figures are on those utterances only).
 
-    python bench/ssl.py [--arrays pepper4,respeaker4] [--algorithms NormMUSIC,SRP,...] [--frida-seconds 6]
+    python -m bench.doa [--arrays pepper4,respeaker4] [--algorithms NormMUSIC,SRP,...] [--frida-seconds 6]
 
 Ends with ``name=value`` lines: ``<array>_<algorithm>_cpu_per_audio_s``, ``..._median_error_deg``,
 ``..._within_15``, ``..._located_share``.
