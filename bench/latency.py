@@ -35,6 +35,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -114,18 +115,23 @@ def baseline(path: Path, grammar: str) -> tuple[dict[str, list[float]], list[str
     return latencies, texts, time.process_time() - cpu_start
 
 
-def pipeline(path: Path, grammar: str, port: int, extra: list[str]):
+def pipeline(path: Path, grammar: str, port: int, extra: list[str],
+             on_start: Callable[[dict[str, int]], None] | None = None, repo: Path = REPO):
     """The launcher with every service as a process. Returns latencies (ms), texts, CPU s per
-    service while playing, CPU s per service at start-up, and the fused results."""
+    service while playing, CPU s per service at start-up, and the fused results (with the moment
+    each arrived, ``arrived_ns``, and the stream's start, ``stream_start_ns``). ``on_start`` is called
+    with each service's process id when the stream starts (bench/framework.py's profiler); ``repo``
+    is the checkout whose code runs (this one unless another is compared with it)."""
     workdir = Path(tempfile.mkdtemp(prefix="esiaf-bench-"))
     cmd = [sys.executable, "-m", "esiaf", "run", "--input", str(path), "--json", "--serve",
            "--port", str(port), "--workdir", str(workdir), *extra] + (["--grammar", grammar] if grammar else [])
-    launcher = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                env={**os.environ, "PYTHONPATH": str(REPO)},  # Ctrl-C stops it even when the
+    launcher = subprocess.Popen(cmd, cwd=repo, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                env={**os.environ, "PYTHONPATH": str(repo)},  # Ctrl-C stops it even when the
                                 preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # bench runs in bg
     latencies, texts, fused_results = [], [], []
     ended = threading.Event()
     cpu_at_start: dict[str, float] = {}
+    stream_start_ns: list[int] = []
     stderr_lines: list[str] = []
 
     def read_stdout() -> None:
@@ -134,12 +140,15 @@ def pipeline(path: Path, grammar: str, port: int, extra: list[str]):
             arrived_ns = time.time_ns()
             fused = json.loads(line)
             if fused.get("type") == "stream_start":
+                stream_start_ns.append(fused["start_ns"])
                 cpu_at_start.update(children_cpu(launcher.pid))
+                if on_start is not None:
+                    on_start(service_pids(launcher.pid))
             if fused.get("type") != "fused_result":
                 continue
             if fused.get("revision", 1) > 1:
                 continue  # a revision of a result already counted: its latency is the first publication's
-            fused_results.append(fused)
+            fused_results.append({**fused, "arrived_ns": arrived_ns, "stream_start_ns": stream_start_ns[-1]})
             anchor = fused["anchor"]
             latencies.append((arrived_ns - anchor["span"]["end_ns"] - HANGOVER_NS) / 1e6)
             hyps = anchor.get("speech", {}).get("hypotheses", [])
@@ -172,14 +181,19 @@ def pipeline(path: Path, grammar: str, port: int, extra: list[str]):
         cpu_at_start, fused_results
 
 
+def services(pid: int) -> dict[str, psutil.Process]:
+    """Each service the launcher started, by name."""
+    return {next((a.split(".", 1)[1] for a in child.cmdline() if a.startswith("esiaf_services.")), str(child.pid)):
+            child for child in psutil.Process(pid).children()}
+
+
+def service_pids(pid: int) -> dict[str, int]:
+    return {name: child.pid for name, child in services(pid).items()}
+
+
 def children_cpu(pid: int) -> dict[str, float]:
     """CPU seconds (user + system) so far of each service the launcher started."""
-    cpu = {}
-    for child in psutil.Process(pid).children():
-        name = next((a.split(".", 1)[1] for a in child.cmdline() if a.startswith("esiaf_services.")), str(child.pid))
-        times = child.cpu_times()
-        cpu[name] = times.user + times.system
-    return cpu
+    return {name: (times := child.cpu_times()).user + times.system for name, child in services(pid).items()}
 
 
 def synthesised_input(count: int) -> Path | None:
