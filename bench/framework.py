@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import statistics
 import subprocess
 import sys
@@ -54,19 +55,27 @@ PROFILED = FRAMEWORK
 PY_SPY = str(Path(sys.executable).with_name("py-spy"))
 
 
-def true_latencies_ms(path: Path, fused: list[dict]) -> list[float]:
-    """Arrival - (the sentence's true end + the hangover), each fused line matched to the nearest
-    true end; empty without a truth file beside the input."""
+def against_truth(path: Path, fused: list[dict]) -> tuple[list[float], int]:
+    """Arrival - (the sentence's true end + the hangover) of each fused line, matched to the nearest
+    true end, and how many lines give that sentence's words; nothing without a truth file beside
+    the input."""
     truth = path.with_suffix(".json")
     if not truth.exists():
-        return []
-    ends_ns = [round(s["end_s"] * 1e9) for s in json.loads(truth.read_text())["sentences"]]
-    latencies = []
+        return [], 0
+    sentences = json.loads(truth.read_text())["sentences"]
+    latencies, right = [], 0
     for line in fused:
         end_ns = line["anchor"]["span"]["end_ns"] - line["stream_start_ns"]
-        true_end_ns = min(ends_ns, key=lambda e: abs(e - end_ns))
-        latencies.append((line["arrived_ns"] - line["stream_start_ns"] - true_end_ns - HANGOVER_NS) / 1e6)
-    return latencies
+        sentence = min(sentences, key=lambda s: abs(round(s["end_s"] * 1e9) - end_ns))
+        latencies.append((line["arrived_ns"] - line["stream_start_ns"] - round(sentence["end_s"] * 1e9)
+                          - HANGOVER_NS) / 1e6)
+        hypotheses = line["anchor"].get("speech", {}).get("hypotheses", [])
+        right += bool(hypotheses) and words(hypotheses[0]["text"]) == words(sentence["text"])
+    return latencies, right
+
+
+def words(text: str) -> list[str]:
+    return re.sub(r"[^a-z' ]", " ", text.lower()).split()
 
 
 def model_cpu_s(path: Path, chunk_ms: float) -> float:
@@ -163,7 +172,7 @@ def main() -> None:
     latency: dict[tuple[str, float], list[float]] = {c: [] for c in configs}
     true_latency: dict[tuple[str, float], list[float]] = {c: [] for c in configs}
     model: dict[tuple[str, float], list[float]] = {c: [] for c in configs}
-    texts: dict[tuple[str, float], list[list[str]]] = {c: [] for c in configs}
+    texts: dict[tuple[str, float], list[str]] = {c: [] for c in configs}  # per run: right / fused lines
     for repeat in range(args.repeats):
         for config in configs:
             code, chunk_ms = config
@@ -174,8 +183,9 @@ def main() -> None:
             port += 1
             cpu[config].append(per_service)
             latency[config] += ms
-            true_latency[config] += true_latencies_ms(args.input, fused)
-            texts[config].append(said)
+            from_true_end, right = against_truth(args.input, fused)
+            true_latency[config] += from_true_end
+            texts[config].append(f"{right}/{len(said)}")
             model[config].append(model_cpu_s(args.input, chunk_ms) if args.vad == "silero" else 0.0)
 
     info = soundfile.info(str(args.input))
@@ -183,7 +193,7 @@ def main() -> None:
           f"{f', against {args.against}' if args.against else ''}; CPU-s per hour of audio (median of repeats); "
           f"latency over all repeats")
     print("| chunk | code | framework | framework net of model | grabber | vad | vad model | orchestrator | asr "
-          "| latency p50 / p95 from segment end | from true end | grabber msg/s | utterances |")
+          "| latency p50 / p95 from segment end | from true end | grabber msg/s | sentences right / lines |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for config in configs:
         code, chunk_ms = config
@@ -192,7 +202,7 @@ def main() -> None:
         framework = statistics.median(sum(run.get(n, 0.0) for n in FRAMEWORK) for run in cpu[config]) / hours
         vad_model = statistics.median(model[config]) / hours
         messages = int(np.ceil(info.frames / max(1, round(info.samplerate * chunk_ms / 1000)))) / info.duration
-        utterances = "/".join(str(len(t)) for t in texts[config])
+        utterances = ", ".join(texts[config])
         print(f"| {chunk_ms:g} ms | {code} | {framework:.0f} | {framework - vad_model:.0f} | {per_hour('grabber'):.0f} "
               f"| {per_hour('vad'):.0f} | {vad_model:.0f} | {per_hour('orchestrator'):.0f} | {per_hour('asr'):.0f} "
               f"| {percentile(latency[config], 0.5):.1f} / {percentile(latency[config], 0.95):.1f} ms "
