@@ -1,6 +1,7 @@
 """End-of-speech-to-fused-line latency: the pipeline beside a monolithic baseline, in one run.
 
-All play the same file in real time, in 20 ms chunks stamped from sample counts:
+All play the same file in real time, in chunks of the grabber's default length (chunk_ms) stamped
+from sample counts:
 
 - pipeline ``full``: ``esiaf run --json --serve`` as a user runs it (grabber → vad → asr, emotion,
   gender [+ splitter, ssl with --array] → orchestrator fusing them → websocket client); a
@@ -52,9 +53,10 @@ from esiaf.formats import AudioFormat, peak  # noqa: E402
 from esiaf_services.asr.recognizer import PocketsphinxRecognizer  # noqa: E402
 from esiaf_services.asr.service import resolve_grammar  # noqa: E402
 from esiaf_services.emotion.backends import load_backend  # noqa: E402
+from esiaf_services.grabber.service import GrabberSettings  # noqa: E402
 from esiaf_services.vad.segmenter import Segmenter, SegmenterParams, level_db  # noqa: E402
 
-CHUNK_MS = 20
+CHUNK_MS = GrabberSettings.model_fields["chunk_ms"].default  # what esiaf run plays in, unless told
 HANGOVER_NS = int(SegmenterParams().keep_alive_ms * 1_000_000)
 
 
@@ -77,7 +79,7 @@ def baseline(path: Path, grammar: str) -> tuple[dict[str, list[float]], list[str
     recognizer = PocketsphinxRecognizer(sample_rate_hz=rate, grammar=resolve_grammar(grammar))
     labellers = [load_backend("onnx", model) for model in ("emotion4", "gender")]
     segmenter: Segmenter[tuple[int, np.ndarray]] = Segmenter(SegmenterParams())
-    step = rate * CHUNK_MS // 1000
+    step = round(rate * CHUNK_MS / 1000)
     cpu_start = time.process_time()
     origin_ns, started = time.time_ns(), time.monotonic()
     clock = SampleClock(origin_ns, rate)

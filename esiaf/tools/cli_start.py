@@ -171,7 +171,8 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
     services = start_replicas(supervisor, "asr", replicas.get("asr", 1),
                               (["--grammar", args.grammar] if args.grammar else [])
                               + (["--backend", args.asr] if args.asr else []))
-    grabber_env = {"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1", "ESIAF_GRABBER_CHUNK_MS": str(args.chunk_ms)}
+    grabber_env = {"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1",
+                   **({"ESIAF_GRABBER_CHUNK_MS": str(args.chunk_ms)} if args.chunk_ms is not None else {})}
     vad_env = {"ESIAF_VAD_BACKEND": args.vad} if args.vad else {}
     beamforming = array is not None and "ssl" not in without and not args.no_beamformer
     if channels <= 1 and array is None:
