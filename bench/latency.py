@@ -6,7 +6,7 @@ from sample counts:
 - pipeline ``full``: ``esiaf run --json --serve`` as a user runs it (grabber → vad → asr, emotion,
   gender [+ splitter, ssl with --array] → orchestrator fusing them → websocket client); a
   result's arrival is the moment its fused JSON line reaches this process;
-- pipeline ``asr``: the same with ``--without emotion,gender`` (what a slow robot would run);
+- pipeline ``asr``: the same with ``--without emotion,gender,voiceid`` (what a slow robot would run);
 - baseline: the same segmenter, the same pocketsphinx recogniser and the same emotion and gender
   models in this one process, no transport, one after the other; ``baseline_asr`` is the moment
   the recogniser returns, ``baseline_full`` the moment the gender model (the last) returns.
@@ -215,7 +215,7 @@ def synthesised_input(count: int) -> Path | None:
     return path
 
 
-VARIANTS = {"full": [], "asr": ["--without", "emotion,gender"]}
+VARIANTS = {"full": [], "asr": ["--without", "emotion,gender,voiceid"]}  # voiceid: the baseline has none
 
 
 def main() -> None:
@@ -225,7 +225,7 @@ def main() -> None:
     parser.add_argument("--questions", type=int, default=20, help="how many questions to synthesise (20)")
     parser.add_argument("--grammar", default="robocup", help="robocup (default), a JSGF file, or '' for the LM")
     parser.add_argument("--variants", default="full,asr", help="pipelines to run: full (emotion, gender), "
-                        "asr (--without emotion,gender); default both")
+                        "asr (--without emotion,gender,voiceid); default both")
     parser.add_argument("--port", type=int, default=8123)
     args = parser.parse_args()
     if args.input is None:
