@@ -1,11 +1,12 @@
 """End-of-speech-to-fused-line latency: the pipeline beside a monolithic baseline, in one run.
 
-All play the same file in real time, in 20 ms chunks stamped from sample counts:
+All play the same file in real time, in chunks of the grabber's default length (chunk_ms) stamped
+from sample counts:
 
 - pipeline ``full``: ``esiaf run --json --serve`` as a user runs it (grabber → vad → asr, emotion,
   gender [+ splitter, ssl with --array] → orchestrator fusing them → websocket client); a
   result's arrival is the moment its fused JSON line reaches this process;
-- pipeline ``asr``: the same with ``--without emotion,gender`` (what a slow robot would run);
+- pipeline ``asr``: the same with ``--without emotion,gender,voiceid`` (what a slow robot would run);
 - baseline: the same segmenter, the same pocketsphinx recogniser and the same emotion and gender
   models in this one process, no transport, one after the other; ``baseline_asr`` is the moment
   the recogniser returns, ``baseline_full`` the moment the gender model (the last) returns.
@@ -74,20 +75,25 @@ def baseline(path: Path, grammar: str) -> tuple[dict[str, list[float]], list[str
 
 
 def pipeline(path: Path, grammar: str, port: int, extra: list[str], workdir: Path | None = None,
-             on_ended: Callable[[], None] | None = None, progress_s: float = 0.0):
+             on_ended: Callable[[], None] | None = None, progress_s: float = 0.0,
+             on_start: Callable[[dict[str, int]], None] | None = None, repo: Path = REPO):
     """The launcher with every service as a process. Returns latencies (ms), texts, CPU s per
-    service while playing, CPU s per service at start-up, and the fused results. ``on_ended`` is
+    service while playing, CPU s per service at start-up, and the fused results (with the moment
+    each arrived, ``arrived_ns``, and the stream's start, ``stream_start_ns``). ``on_ended`` is
     called once the stream has ended, before the services stop; with ``progress_s`` a line on
-    stderr says that often how many fused results have come."""
+    stderr says that often how many fused results have come; ``on_start`` is called with each
+    service's process id when the stream starts (bench/framework.py's profiler); ``repo`` is the
+    checkout whose code runs (this one unless another is compared with it)."""
     workdir = workdir or Path(tempfile.mkdtemp(prefix="esiaf-bench-"))
     cmd = [sys.executable, "-m", "esiaf", "run", "--input", str(path), "--json", "--serve",
            "--port", str(port), "--workdir", str(workdir), *extra] + (["--grammar", grammar] if grammar else [])
-    launcher = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                env={**os.environ, "PYTHONPATH": str(REPO)},  # Ctrl-C stops it even when the
+    launcher = subprocess.Popen(cmd, cwd=repo, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                env={**os.environ, "PYTHONPATH": str(repo)},  # Ctrl-C stops it even when the
                                 preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # bench runs in bg
     latencies, texts, fused_results = [], [], []
     ended = threading.Event()
     cpu_at_start: dict[str, float] = {}
+    stream_start_ns: list[int] = []
     stderr_lines: list[str] = []
 
     def read_stdout() -> None:
@@ -96,12 +102,15 @@ def pipeline(path: Path, grammar: str, port: int, extra: list[str], workdir: Pat
             arrived_ns = time.time_ns()
             fused = json.loads(line)
             if fused.get("type") == "stream_start":
+                stream_start_ns.append(fused["start_ns"])
                 cpu_at_start.update(children_cpu(launcher.pid))
+                if on_start is not None:
+                    on_start(service_pids(launcher.pid))
             if fused.get("type") != "fused_result":
                 continue
             if fused.get("revision", 1) > 1:
                 continue  # a revision of a result already counted: its latency is the first publication's
-            fused_results.append(fused)
+            fused_results.append({**fused, "arrived_ns": arrived_ns, "stream_start_ns": stream_start_ns[-1]})
             anchor = fused["anchor"]
             latencies.append((arrived_ns - anchor["span"]["end_ns"] - HANGOVER_NS) / 1e6)
             hyps = anchor.get("speech", {}).get("hypotheses", [])
@@ -142,15 +151,29 @@ def pipeline(path: Path, grammar: str, port: int, extra: list[str], workdir: Pat
         cpu_at_start, fused_results
 
 
+def services(pid: int) -> dict[str, psutil.Process]:
+    """Each service the launcher started (and still running), by name."""
+    found = {}
+    for child in psutil.Process(pid).children():
+        try:
+            found[next((a.split(".", 1)[1] for a in child.cmdline() if a.startswith("esiaf_services.")),
+                       str(child.pid))] = child
+        except psutil.NoSuchProcess:  # it exited meanwhile
+            continue
+    return found
+
+
+def service_pids(pid: int) -> dict[str, int]:
+    return {name: child.pid for name, child in services(pid).items()}
+
+
 def children_cpu(pid: int) -> dict[str, float]:
     """CPU seconds (user + system) so far of the launcher and of each service it started."""
     launcher = psutil.Process(pid)
     times = launcher.cpu_times()
     cpu = {"launcher": times.user + times.system}
-    for child in launcher.children():
+    for name, child in services(pid).items():
         try:
-            name = next((a.split(".", 1)[1] for a in child.cmdline() if a.startswith("esiaf_services.")),
-                        str(child.pid))
             times = child.cpu_times()
         except psutil.NoSuchProcess:  # it exited meanwhile
             continue
@@ -175,7 +198,7 @@ def synthesised_input(count: int) -> Path | None:
     return path
 
 
-VARIANTS = {"full": [], "asr": ["--without", "emotion,gender"]}
+VARIANTS = {"full": [], "asr": ["--without", "emotion,gender,voiceid"]}  # voiceid: the baseline has none
 
 
 def main() -> None:
@@ -185,7 +208,7 @@ def main() -> None:
     parser.add_argument("--questions", type=int, default=20, help="how many questions to synthesise (20)")
     parser.add_argument("--grammar", default="robocup", help="robocup (default), a JSGF file, or '' for the LM")
     parser.add_argument("--variants", default="full,asr", help="pipelines to run: full (emotion, gender), "
-                        "asr (--without emotion,gender); default both")
+                        "asr (--without emotion,gender,voiceid); default both")
     parser.add_argument("--port", type=int, default=8123)
     args = parser.parse_args()
     if args.input is None:

@@ -1,8 +1,8 @@
 """The pipeline's models in one process, one after the other, without transport: the baseline of
 bench/latency.py and bench/dataset.py (the thesis' "pre-existing monolith", Fig. 5.7).
 
-One loop reads a sound file in 20 ms chunks stamped from sample counts (paced in real time, or as
-fast as it goes) and segments it with the VAD's segmenter (``energy``: the original double
+One loop reads a sound file in the grabber's default chunks (chunk_ms) stamped from sample counts
+(paced in real time, or as fast as it goes) and segments it with the VAD's segmenter (``energy``: the original double
 threshold; ``silero``: the neural VAD and its probability segmenter, the service's defaults),
 feeds the speech to pocketsphinx, and at each segment's end runs the emotion and gender models
 (one openSMILE feature vector for both, as the hosted services share it) and, if asked, the
@@ -35,9 +35,10 @@ from esiaf.runner import limit_native_threads
 from esiaf_services.asr.recognizer import PocketsphinxRecognizer
 from esiaf_services.asr.service import resolve_grammar
 from esiaf_services.emotion.backends import load_backend
+from esiaf_services.grabber.service import GrabberSettings
 from esiaf_services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
 
-CHUNK_MS = 20
+CHUNK_MS = GrabberSettings.model_fields["chunk_ms"].default  # what esiaf run plays in, unless told
 MIN_SPEECH_S = 0.5  # the utterance classifiers' min_speech_ms
 MODELS = {"emotion": "emotion4", "gender": "gender"}
 
@@ -150,7 +151,7 @@ def monolith(path: Path, grammar: str, *, fast: bool = False, vad: str = "energy
     else:
         silero, segmenter = None, Segmenter(SegmenterParams())
     cpu: dict[str, float] = defaultdict(float)
-    step = rate * CHUNK_MS // 1000
+    step = round(rate * CHUNK_MS / 1000)
     cpu_start = time.process_time()
     origin_ns, started = time.time_ns(), time.monotonic()
     clock = SampleClock(origin_ns, rate)

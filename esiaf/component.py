@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import signal
 import socket
 import threading
@@ -211,15 +212,13 @@ class Component:
         return True
 
     def sleep_until(self, deadline_monotonic: float) -> None:
-        """Waits (servicing sockets) until a monotonic time, or until stopped."""
+        """Waits (servicing sockets) until a monotonic time, or until stopped: up to 1 ms past it, as
+        zmq polls in whole milliseconds (rounded up: one wake-up per wait, not a poll and a sleep)."""
         while not self.stopping:
             remaining_ms = (deadline_monotonic - time.monotonic()) * 1000
             if remaining_ms <= 0:
                 return
-            if remaining_ms < 1:  # zmq polls in whole milliseconds: 0 would spin
-                time.sleep(remaining_ms / 1000)
-                return
-            self._service(int(remaining_ms))
+            self._service(math.ceil(remaining_ms))
 
     # -- running ---------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:

@@ -8,10 +8,13 @@ import time
 import pytest
 
 from esiaf.tools.testing import shared_data
+from esiaf_services.grabber.service import GrabberSettings
 
 pytestmark = pytest.mark.e2e
 RATE_HZ = 16000
-CHUNK_BYTES = RATE_HZ // 50 * 2  # 20 ms of s16le mono
+# one grabber chunk (its ALSA period) of s16le mono per write: the `file` PCM standing in for the
+# microphone reads its FIFO once per period and pads what is not there yet with the null PCM's silence
+CHUNK_BYTES = round(RATE_HZ * GrabberSettings.model_fields["chunk_ms"].default / 1000) * 2
 
 
 def feed_in_real_time(fifo, pcm: bytes, stop: threading.Event, channels: int = 1) -> None:

@@ -223,7 +223,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                      "of what can still be read (the orchestrator's log says what was lost; the damaged file is kept)")
     run.add_argument("--stream-id", help="name of this capture session (default: input name + time); "
                      "with a single input only")
-    run.add_argument("--chunk-ms", type=float, default=20.0, help="grabber chunk length (default 20 ms)")
+    run.add_argument("--chunk-ms", type=float, help="grabber chunk length in ms (default: the grabber's chunk_ms, "
+                     "50 ms)")
     run.add_argument("--json", action="store_true", help="print each fused result as JSON")
     run.add_argument("-v", "--verbose", action="store_true", help="log what the launcher does")
     sub.add_parser("eval", help="evaluation harnesses through the real pipeline: esiaf eval robocup --help")

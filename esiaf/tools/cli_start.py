@@ -46,8 +46,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("esiaf")
 
-# --fast: every service's audio queues (ESIAF_AUDIO_QUEUE, messages per connection and direction): 5 s of
-# 20 ms chunks. A replay waits for its slowest consumer (docs/protocol.md, "Flow control"), so a small
+# --fast: every service's audio queues (ESIAF_AUDIO_QUEUE, messages per connection and direction): 12.5 s
+# of the default 50 ms chunks. A replay waits for its slowest consumer (docs/protocol.md, "Flow control"), so a small
 # queue loses nothing and keeps each process's memory flat; live use keeps the large default (a value
 # given in the environment wins)
 FAST_AUDIO_QUEUE = 250
@@ -179,7 +179,8 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
     services = start_replicas(supervisor, "asr", replicas.get("asr", 1),
                               (["--grammar", args.grammar] if args.grammar else [])
                               + (["--backend", args.asr] if args.asr else []))
-    grabber_env = {"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1", "ESIAF_GRABBER_CHUNK_MS": str(args.chunk_ms)}
+    grabber_env = {"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1",
+                   **({"ESIAF_GRABBER_CHUNK_MS": str(args.chunk_ms)} if args.chunk_ms is not None else {})}
     vad_env = {"ESIAF_VAD_BACKEND": args.vad} if args.vad else {}
     beamforming = array is not None and "ssl" not in without and not args.no_beamformer
     if channels <= 1 and array is None:

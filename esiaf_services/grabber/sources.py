@@ -63,12 +63,13 @@ class FileSource:
                     yield decode(data[:usable], self.format)
             return
         import soundfile
+        # read about a second at a time and cut it into chunks: a libsndfile read per chunk was about a
+        # tenth of the real-time grabber's own samples in a profile (bench/framework.py --profile)
+        block_frames = self.chunk_frames * max(1, self.format.sample_rate_hz // self.chunk_frames)
         with soundfile.SoundFile(str(self.path)) as handle:
-            while True:
-                block = handle.read(self.chunk_frames, dtype=self._read_dtype, always_2d=True)
-                if not len(block):
-                    return
-                yield block
+            while len(block := handle.read(block_frames, dtype=self._read_dtype, always_2d=True)):
+                for offset in range(0, len(block), self.chunk_frames):
+                    yield block[offset:offset + self.chunk_frames]
 
 
 class AlsaSource:
