@@ -153,6 +153,9 @@ def main() -> None:
     port = args.port
 
     if args.profile:
+        if not Path(PY_SPY).exists():  # a dev tool: ./setup.sh does not install it
+            raise SystemExit(f"bench/framework.py: --profile needs py-spy beside the interpreter ({PY_SPY}): "
+                             ".venv/bin/pip install -e '.[dev]' (or pip install py-spy)")
         args.profile.mkdir(parents=True, exist_ok=True)
         for chunk_ms in chunks:
             profiler = Profiler(args.profile, chunk_ms, hours * 3600)
