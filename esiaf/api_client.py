@@ -29,6 +29,7 @@ BACKOFF_START_S = 0.1  # the first wait; it doubles with each attempt
 BACKOFF_MAX_S = 2.0
 ANNOUNCE_RETRY_S = 1.0  # a stream announcement is tried again this long while the orchestrator is away
 TOPIC_POLL_S = 0.2  # declared_format asks this often for a producer of its topic
+VOICES_MAX_WAIT_S = 60.0  # the longest long poll of GET /voices (wait_s)
 
 
 def transient(response: httpx.Response) -> bool:

@@ -199,7 +199,8 @@ class Component:
 
     def announce_stream(self, start_ns: int, stream_id: str | None = None, **info: Any) -> None:
         """Sources call this when capture starts (the orchestrator records it); not ``realtime``: a replay."""
-        stream_id = self._receiver.replays.note(stream_id or self.settings.stream_id, info.get("realtime") is False)
+        stream_id = stream_id or self.settings.stream_id
+        self._receiver.replays.note(stream_id, info.get("realtime") is False)
         announce_stream(self.settings.orchestrator_url, stream_id, start_ns, self.instance_id, info)
 
     def wait_for_subscribers(self, topic: str, count: int, timeout_s: float) -> bool:

@@ -77,16 +77,15 @@ class Replays:
     def __init__(self) -> None:
         self._streams: OrderedDict[str, None] = OrderedDict()  # oldest first
 
-    def note(self, stream_id: str, replay: bool) -> str:
-        """Remembers whether ``stream_id`` is a replay; returns it."""
+    def note(self, stream_id: str, replay: bool) -> None:
+        """Remembers whether ``stream_id`` is a replay."""
         if not replay:
             self._streams.pop(stream_id, None)
-            return stream_id
+            return
         self._streams[stream_id] = None
         self._streams.move_to_end(stream_id)
         while len(self._streams) > self.MAX_STREAMS:
             self._streams.popitem(last=False)
-        return stream_id
 
     def __contains__(self, stream_id: object) -> bool:
         return stream_id in self._streams

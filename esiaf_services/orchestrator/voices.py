@@ -28,6 +28,8 @@ import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from pydantic import BaseModel, ConfigDict, Field, StrictInt, TypeAdapter, ValidationError
 
+from esiaf.api_client import VOICES_MAX_WAIT_S
+
 from .api.deps import get_core
 from .codec import MAX_TIME_NS
 from .core import Orchestrator
@@ -37,7 +39,6 @@ router = APIRouter(tags=["voices"])
 EMBEDDING_SIZE = 256
 ENCODER_RATE_HZ = 16000
 MIN_ENROL_SPEECH_S = 1.0
-MAX_WAIT_S = 60.0  # the longest long poll of GET /voices
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS voices (
     id INTEGER PRIMARY KEY,
@@ -139,7 +140,7 @@ def check_name(name: str) -> str:
             responses={304: {"description": "with ?embeddings=1: If-None-Match is the current ETag (with wait_s: "
                                             "it still was after waiting that long for a change)"}})
 async def list_voices(request: Request, embeddings: bool = False,
-                      wait_s: float = Query(0.0, ge=0.0, le=MAX_WAIT_S, description=(
+                      wait_s: float = Query(0.0, ge=0.0, le=VOICES_MAX_WAIT_S, description=(
                           "with ?embeddings=1 and If-None-Match the current ETag: wait up to this long for a "
                           "change before answering 304 (a long poll)")),
                       core: Orchestrator = Depends(get_core), table: VoiceTable = Depends(get_voices)) -> Response:

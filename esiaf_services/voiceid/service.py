@@ -21,13 +21,12 @@ import httpx
 import numpy as np
 
 from esiaf import SetupError
-from esiaf.api_client import OrchestratorHTTP
+from esiaf.api_client import VOICES_MAX_WAIT_S, OrchestratorHTTP
 from esiaf_services.emotion.service import UtteranceClassifier, UtteranceSettings
 from esiaf_services.voiceid.encoder import EncoderError, VoiceEncoder
 from esiaf_services.voiceid.scoring import AnonymousVoices, VoiceBook, probability
 
 log = logging.getLogger(__name__)
-MAX_WAIT_S = 60.0  # the orchestrator's longest long poll of GET /voices (orchestrator/voices.py)
 
 
 class VoiceIdSettings(UtteranceSettings):
@@ -61,8 +60,9 @@ class VoiceId(UtteranceClassifier):
         self._halt = threading.Event()
 
     def setup(self) -> None:
-        if not 0 < self.settings.voices_wait_s <= MAX_WAIT_S:
-            raise SetupError(f"voices_wait_s must be in (0, {MAX_WAIT_S:g}] s, not {self.settings.voices_wait_s}")
+        wait_s = self.settings.voices_wait_s
+        if not 0 < wait_s <= VOICES_MAX_WAIT_S:
+            raise SetupError(f"voices_wait_s must be in (0, {VOICES_MAX_WAIT_S:g}] s, not {wait_s}")
         try:
             self.encoder = VoiceEncoder()
         except EncoderError as exc:
