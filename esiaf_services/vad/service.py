@@ -6,7 +6,9 @@ Two backends:
   silero-vad wheel, on onnxruntime) segmented with hysteresis, minimum speech and silence
   durations, a pre-roll, and a maximum length cut at the least speech-like point
   (:class:`~esiaf_services.vad.segmenter.ProbabilitySegmenter`). It hears speech, not loudness, so
-  babble and clatter 5-15 dB below the talker do not keep a segment open.
+  babble and clatter 5-15 dB below the talker do not keep a segment open. It decides per window,
+  not per transport chunk (:mod:`esiaf_services.vad.windows`): its segments are the same at any
+  chunk size, and what it forwards is cut at window boundaries.
 - ``energy``: ESIAF's original double-threshold segmenter on the chunks' peak level.
 
 The VAD result of a segment carries its mean speech probability (1 with ``energy``).
@@ -19,6 +21,7 @@ from typing import Any, ClassVar
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
 from esiaf_services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
 from esiaf_services.vad.silero import RATES_HZ, SileroError, SileroModel
+from esiaf_services.vad.windows import ChunkCutter, WindowCutter, messages
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +80,7 @@ class Vad(Component):
         self.add_input(settings.input_topic, fmt)
         self.add_output(settings.output_topic, fmt)
         self.model: SileroModel | None = None
-        self.segmenters: dict[str, Any] = {}  # per stream: (segmenter, Silero state or None)
+        self.segmenters: dict[str, tuple[Any, ChunkCutter | WindowCutter]] = {}  # per stream: segmenter, cutter
         self.segments = 0
         self._ended_on_chunk: set[str] = set()  # streams whose end was forwarded with their last segment
 
@@ -91,34 +94,39 @@ class Vad(Component):
                      self.settings.threshold_off)
         self.info["backend"] = self.settings.backend
 
-    def _stream(self, stream_id: str):
+    def _stream(self, stream_id: str, audio: Audio) -> tuple[Any, ChunkCutter | WindowCutter]:
         if stream_id not in self.segmenters:
             if self.model is None:
-                self.segmenters[stream_id] = (Segmenter(self.params), None)
+                self.segmenters[stream_id] = (Segmenter(self.params), ChunkCutter())
             else:
-                self.segmenters[stream_id] = (ProbabilitySegmenter(self.params),
-                                              self.model.stream(self.settings.sample_rate_hz))
+                self.segmenters[stream_id] = (ProbabilitySegmenter(self.params), WindowCutter(
+                    self.model.stream(self.settings.sample_rate_hz), audio.format.bytes_per_frame))
         return self.segmenters[stream_id]
 
     def on_audio(self, audio: Audio) -> None:
-        segmenter, silero = self._stream(audio.stream_id)
-        if silero is not None:
-            score = silero.chunk_probability(audio.as_float()[:, 0]) if audio.frames else 0.0
+        segmenter, cutter = self._stream(audio.stream_id, audio)
+        if isinstance(cutter, WindowCutter):  # one decision per Silero window, whatever the chunk
+            pieces = cutter.cut(audio.payload, audio.start_ns, audio.end_ns,
+                                audio.as_float()[:, 0], audio.end_of_stream)
         else:
-            score = level_db(audio.peak()) if audio.frames else float("-inf")
-        for forward in segmenter.process(audio, audio.start_ns, audio.end_ns, score,
-                                         force_end=audio.end_of_stream):
-            chunk = forward.item
-            end_of_stream = forward.ended and chunk.end_of_stream
-            self.forward(self.settings.output_topic, chunk, segmentation_ended=forward.ended,
-                         segment=forward.segment, end_of_stream=end_of_stream)
+            pieces = cutter.cut(audio.payload, audio.start_ns, audio.end_ns, audio.frames,
+                                level_db(audio.peak()) if audio.frames else float("-inf"), audio.end_of_stream)
+        forwards = []
+        for piece, score in pieces:
+            forwards += segmenter.process(piece, piece.start_ns, piece.end_ns, score, force_end=piece.end_of_stream)
+        for message in messages(forwards, audio.format.sample_rate_hz):
+            piece, forward = message.piece, message.forward
+            end_of_stream = forward.ended and piece.end_of_stream
+            self.publish(self.settings.output_topic, piece.payload, piece.start_ns, piece.end_ns,
+                         stream_id=audio.stream_id, segmentation_ended=forward.ended, segment=forward.segment,
+                         end_of_stream=end_of_stream)
             if end_of_stream:
-                self._ended_on_chunk.add(chunk.stream_id)
-            if forward.ended:
+                self._ended_on_chunk.add(audio.stream_id)
+            if forward.segment is not None:  # the segment ended: its speech span
                 self.segments += 1
                 self.info["segments"] = self.segments
-                self.emit("vad", forward.segment, stream_id=chunk.stream_id, vad={"probability": forward.probability})
-                log.info("segment stream_id=%s start_ns=%d end_ns=%d", chunk.stream_id, *forward.segment)
+                self.emit("vad", forward.segment, stream_id=audio.stream_id, vad={"probability": forward.probability})
+                log.info("segment stream_id=%s start_ns=%d end_ns=%d", audio.stream_id, *forward.segment)
 
     def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
         self.segmenters.pop(stream_id, None)
