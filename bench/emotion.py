@@ -109,7 +109,7 @@ def main() -> None:
     parser.add_argument("--utterances", type=int, default=30)
     parser.add_argument("--gap-s", type=float, default=1.5)
     parser.add_argument("--modes", default="apart,hosted", help="apart, hosted or both (in this order)")
-    parser.add_argument("--chunk-ms", type=float, help="the grabber's chunk (default: its own, 20 ms)")
+    parser.add_argument("--chunk-ms", type=float, help="the grabber's chunk (default: its own, 50 ms)")
     args = parser.parse_args()
     emodb = SHARED_DATA / "emodb" / "wav"
     if not emodb.is_dir():
