@@ -40,6 +40,7 @@ import re
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from collections import Counter
 from pathlib import Path
@@ -47,11 +48,13 @@ from pathlib import Path
 import numpy as np
 import soundfile
 
+from bench import threads
 from bench.latency import HANGOVER_NS, REPO, percentile, pipeline, synthesised_input
 from esiaf_services.vad.silero import SileroModel
 
 FRAMEWORK = ("grabber", "vad", "orchestrator")
 PROFILED = FRAMEWORK
+THREAD_MARGIN_S = 3.0  # the threads' CPU is taken this long before the stream ends: the processes still live
 PY_SPY = str(Path(sys.executable).with_name("py-spy"))
 
 
@@ -96,11 +99,18 @@ class Profiler:
     def __init__(self, folder: Path, chunk_ms: float, seconds: float):
         self.folder, self.chunk_ms, self.seconds = folder, chunk_ms, seconds
         self.running: list[subprocess.Popen] = []
+        # each thread's CPU and wake-ups (bench/threads.py) over the stream's first ``seconds`` less a margin
+        self.before: dict[str, tuple[int, dict]] = {}
+        self.threads: dict[str, dict[str, threads.Sample]] = {}
+        self._timer: threading.Timer | None = None
 
     def output(self, name: str) -> Path:
         return self.folder / f"{name}-{self.chunk_ms:g}ms.txt"
 
     def start(self, pids: dict[str, int]) -> None:
+        self.before = {name: (pids[name], threads.snapshot(pids[name])) for name in PROFILED if name in pids}
+        self._timer = threading.Timer(max(1.0, self.seconds - THREAD_MARGIN_S), self._take_threads)
+        self._timer.start()
         for name in PROFILED:
             if name in pids:
                 self.running.append(subprocess.Popen(
@@ -108,9 +118,24 @@ class Profiler:
                      "-o", str(self.output(name)), "--duration", str(int(self.seconds))],
                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
 
+    def _take_threads(self) -> None:
+        for name, (pid, before) in self.before.items():
+            if threads.alive(pid):
+                self.threads[name] = threads.difference(before, threads.snapshot(pid), pid)
+
     def wait(self) -> None:
         for process in self.running:
             process.wait(timeout=self.seconds + 30)
+        if self._timer is not None:
+            self._timer.join()
+
+    def thread_lines(self, name: str) -> list[str]:
+        """Per thread: CPU-s per hour of audio and wake-ups per chunk sent (the grabber's chunks)."""
+        if name not in self.threads:
+            return []
+        seconds = max(1.0, self.seconds - THREAD_MARGIN_S)
+        return [f"  threads ({seconds:.0f} s): "
+                + threads.describe(self.threads[name], seconds, seconds * 1000 / self.chunk_ms)]
 
 
 def top_functions(path: Path, count: int = 12) -> list[str]:
@@ -165,7 +190,8 @@ def main() -> None:
             profiler.wait()
             for name in PROFILED:
                 if profiler.output(name).exists():
-                    print(f"== {name}, {chunk_ms:g} ms chunks:", *top_functions(profiler.output(name)), sep="\n")
+                    print(f"== {name}, {chunk_ms:g} ms chunks:", *profiler.thread_lines(name),
+                          *top_functions(profiler.output(name)), sep="\n")
         return
 
     # one run of each (code, chunk size) per repeat, interleaved
