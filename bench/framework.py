@@ -28,7 +28,12 @@ with this one's, run by run: a change's saving, measured under the same load.
 ``--profile DIR`` samples the grabber, vad and orchestrator with py-spy (``pip install py-spy``,
 in the dev extra) while the audio plays, one run per chunk size, writes the collapsed stacks to
 DIR/<service>-<chunk>ms.txt and prints each process's top functions (inclusive and own samples;
-py-spy leaves out idle threads, so samples are CPU). The same by hand, for any process::
+py-spy leaves out idle threads, but counts a thread woken and waiting for a CPU as busy: under load
+most of a paced process's Poller.poll and Socket.send samples are that wait), and before them each
+thread's own account from /proc (bench/threads.py): CPU-s per hour, kernel share, time waiting for a
+CPU, wake-ups per chunk. ``perf record -e cpu-clock -p PID`` splits the CPU by library (libpython,
+libzmq, onnxruntime, the kernel); take it while the audio plays, not across start-up or exit, which
+collect garbage. The same by hand, for any process::
 
     py-spy record --pid PID --rate 250 --nonblocking --format raw -o vad.txt --duration 30
 """
