@@ -28,7 +28,12 @@ with this one's, run by run: a change's saving, measured under the same load.
 ``--profile DIR`` samples the grabber, vad and orchestrator with py-spy (``pip install py-spy``,
 in the dev extra) while the audio plays, one run per chunk size, writes the collapsed stacks to
 DIR/<service>-<chunk>ms.txt and prints each process's top functions (inclusive and own samples;
-py-spy leaves out idle threads, so samples are CPU). The same by hand, for any process::
+py-spy leaves out idle threads, but counts a thread woken and waiting for a CPU as busy: under load
+most of a paced process's Poller.poll and Socket.send samples are that wait), and before them each
+thread's own account from /proc (bench/threads.py): CPU-s per hour, kernel share, time waiting for a
+CPU, wake-ups per chunk. ``perf record -e cpu-clock -p PID`` splits the CPU by library (libpython,
+libzmq, onnxruntime, the kernel); take it while the audio plays, not across start-up or exit, which
+collect garbage. The same by hand, for any process::
 
     py-spy record --pid PID --rate 250 --nonblocking --format raw -o vad.txt --duration 30
 """
@@ -40,6 +45,7 @@ import re
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from collections import Counter
 from pathlib import Path
@@ -47,11 +53,13 @@ from pathlib import Path
 import numpy as np
 import soundfile
 
+from bench import threads
 from bench.latency import HANGOVER_NS, REPO, percentile, pipeline, synthesised_input
 from esiaf_services.vad.silero import SileroModel
 
 FRAMEWORK = ("grabber", "vad", "orchestrator")
 PROFILED = FRAMEWORK
+THREAD_MARGIN_S = 3.0  # the threads' CPU is taken this long before the stream ends: the processes still live
 PY_SPY = str(Path(sys.executable).with_name("py-spy"))
 
 
@@ -96,11 +104,18 @@ class Profiler:
     def __init__(self, folder: Path, chunk_ms: float, seconds: float):
         self.folder, self.chunk_ms, self.seconds = folder, chunk_ms, seconds
         self.running: list[subprocess.Popen] = []
+        # each thread's CPU and wake-ups (bench/threads.py) over the stream's first ``seconds`` less a margin
+        self.before: dict[str, tuple[int, dict]] = {}
+        self.threads: dict[str, dict[str, threads.Sample]] = {}
+        self._timer: threading.Timer | None = None
 
     def output(self, name: str) -> Path:
         return self.folder / f"{name}-{self.chunk_ms:g}ms.txt"
 
     def start(self, pids: dict[str, int]) -> None:
+        self.before = {name: (pids[name], threads.snapshot(pids[name])) for name in PROFILED if name in pids}
+        self._timer = threading.Timer(max(1.0, self.seconds - THREAD_MARGIN_S), self._take_threads)
+        self._timer.start()
         for name in PROFILED:
             if name in pids:
                 self.running.append(subprocess.Popen(
@@ -108,9 +123,24 @@ class Profiler:
                      "-o", str(self.output(name)), "--duration", str(int(self.seconds))],
                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
 
+    def _take_threads(self) -> None:
+        for name, (pid, before) in self.before.items():
+            if threads.alive(pid):
+                self.threads[name] = threads.difference(before, threads.snapshot(pid), pid)
+
     def wait(self) -> None:
         for process in self.running:
             process.wait(timeout=self.seconds + 30)
+        if self._timer is not None:
+            self._timer.join()
+
+    def thread_lines(self, name: str) -> list[str]:
+        """Per thread: CPU-s per hour of audio and wake-ups per chunk sent (the grabber's chunks)."""
+        if name not in self.threads:
+            return []
+        seconds = max(1.0, self.seconds - THREAD_MARGIN_S)
+        return [f"  threads ({seconds:.0f} s): "
+                + threads.describe(self.threads[name], seconds, seconds * 1000 / self.chunk_ms)]
 
 
 def top_functions(path: Path, count: int = 12) -> list[str]:
@@ -165,7 +195,8 @@ def main() -> None:
             profiler.wait()
             for name in PROFILED:
                 if profiler.output(name).exists():
-                    print(f"== {name}, {chunk_ms:g} ms chunks:", *top_functions(profiler.output(name)), sep="\n")
+                    print(f"== {name}, {chunk_ms:g} ms chunks:", *profiler.thread_lines(name),
+                          *top_functions(profiler.output(name)), sep="\n")
         return
 
     # one run of each (code, chunk size) per repeat, interleaved

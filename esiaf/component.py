@@ -87,8 +87,7 @@ class Component:
         self.refused_by_publisher = self._receiver.refused_by_publisher  # ... by publisher (the most recent ones)
 
     @property
-    def _wire(self) -> Transport:
-        """The sockets: made by run() before it registers, closed when it returns."""
+    def _wire(self) -> Transport:  # the sockets: made by run() before it registers, closed when it returns
         if self._transport is None:
             raise RuntimeError(f"{type(self).__name__}: the sockets are used before run() made them")
         return self._transport
@@ -176,7 +175,8 @@ class Component:
             return 0
         self._sequences[key] = sequence
         stats.published += 1
-        self._service(0)
+        if not self._handling:  # a producer; a handler's caller services the sockets when it returns
+            self._service(0)
         return sequence
 
     def forward(self, topic: str, audio: Audio, **meta: Any) -> int:

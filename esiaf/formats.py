@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -27,6 +28,11 @@ SAMPLE_TYPES = tuple(_TYPES)
 _PB_TYPE = {name: getattr(pb, f"SAMPLE_TYPE_{name.upper()}") for name in _TYPES}
 _PB_TYPE_NAME = {v: k for k, v in _PB_TYPE.items()}
 _PB_ENDIAN = {"little": pb.ENDIANNESS_LITTLE, "big": pb.ENDIANNESS_BIG}
+# formats read from messages, by their fields: every received message names its format, and a format
+# made anew (and validated) per message is a measurable share of a consumer's CPU per chunk (issue 18);
+# bounded, as peers choose what they send
+_FROM_PROTO: dict[tuple[int, int, int, int], AudioFormat] = {}
+MAX_FORMATS_KEPT = 64
 
 
 class FormatError(ValueError):
@@ -89,11 +95,17 @@ class AudioFormat:
 
     @classmethod
     def from_proto(cls, msg: pb.AudioFormat) -> AudioFormat:
+        key = (msg.sample_rate_hz, msg.sample_type, msg.endianness, msg.channels)
+        if cls is AudioFormat and (known := _FROM_PROTO.get(key)) is not None:
+            return known  # frozen: one instance serves every message in that format
         if msg.sample_type not in _PB_TYPE_NAME:
             raise FormatError(f"unknown sample type {msg.sample_type} in message")
-        return cls(sample_rate_hz=msg.sample_rate_hz, sample_type=_PB_TYPE_NAME[msg.sample_type],
-                   endianness="big" if msg.endianness == pb.ENDIANNESS_BIG else "little",
-                   channels=msg.channels)
+        fmt = cls(sample_rate_hz=msg.sample_rate_hz, sample_type=_PB_TYPE_NAME[msg.sample_type],
+                  endianness="big" if msg.endianness == pb.ENDIANNESS_BIG else "little",
+                  channels=msg.channels)
+        if cls is AudioFormat and len(_FROM_PROTO) < MAX_FORMATS_KEPT:
+            _FROM_PROTO[key] = fmt
+        return fmt
 
     def to_dict(self) -> dict[str, Any]:
         return {"sample_rate_hz": self.sample_rate_hz, "sample_type": self.sample_type,
@@ -104,17 +116,23 @@ class AudioFormat:
         return cls(**data)
 
 
+@lru_cache(maxsize=MAX_FORMATS_KEPT)
 def _dtype(fmt: AudioFormat) -> np.dtype:
     size, kind, _ = _TYPES[fmt.sample_type]
     order = ">" if fmt.endianness == "big" else "<"
     return np.dtype(order + (kind[0] + "1" if size == 3 else kind))
 
 
+@lru_cache(maxsize=MAX_FORMATS_KEPT)
+def _native_dtype(fmt: AudioFormat) -> np.dtype:
+    return _dtype(fmt).newbyteorder("=")
+
+
 def decode(payload: bytes, fmt: AudioFormat) -> np.ndarray:
     """Payload bytes -> array (frames, channels), native byte order."""
     frames = fmt.frames_in(payload)
     if fmt.bytes_per_sample != 3:
-        data = np.frombuffer(payload, dtype=_dtype(fmt)).astype(_dtype(fmt).newbyteorder("="), copy=False)
+        data = np.frombuffer(payload, dtype=_dtype(fmt)).astype(_native_dtype(fmt), copy=False)
         return data.reshape(frames, fmt.channels)
     raw = np.frombuffer(payload, dtype=np.uint8).reshape(-1, 3).astype(np.uint32)
     if fmt.endianness == "big":

@@ -118,6 +118,9 @@ class InputLink:
         if audio.format.channels != self.declared.channels:
             raise FormatError(f"message carries {audio.format}, this component takes {self.declared}; "
                               "channel counts are never converted")
+        if self._converter is None and audio.format == self.wire == self.declared:
+            self._last = audio  # the common case, nothing to convert: the message itself (issue 18)
+            return [audio]
         tail = None
         if audio.format != self.wire:
             tail = self._converter.flush() if self._converter is not None else None

@@ -37,6 +37,7 @@ from zmq.auth.thread import ThreadAuthenticator
 from zmq.utils.monitor import recv_monitor_message
 
 from esiaf import auth, keys
+from esiaf.frames import recv_frames, send_frames, topic_frame, topic_name  # topic_*: here of old
 
 if TYPE_CHECKING:
     from esiaf.proto import esiaf_pb2 as pb
@@ -98,14 +99,6 @@ class TransportError(Exception):
     """A socket could not be bound: the message says which address."""
 
 
-def topic_frame(topic: str, stream_id: str | None = None) -> bytes:
-    """Topics travel NUL-terminated, so subscribing to "vad" does not also match "vad2"; the stream
-    follows, NUL-terminated too, so a SUB can take one stream of a topic (``topic\0stream\0``) or
-    all of them (``topic\0``), and the producer's XPUB filters."""
-    frame = topic.encode() + b"\0"
-    return frame if stream_id is None else frame + stream_id.encode() + b"\0"
-
-
 def _take(sock: zmq.Socket, receive: Callable[..., Any] = zmq.Socket.recv) -> Any:
     """``receive(sock)`` without blocking, or None if nothing was there after all."""
     try:
@@ -123,10 +116,6 @@ def _bound_buffers(sock: zmq.Socket, audio_queue: int, option: int) -> None:
     if audio_queue < AUDIO_HWM:
         sock.setsockopt(option, BOUNDED_TCP_BUFFER_BYTES)
         sock.setsockopt(zmq.TCP_MAXRT, STALL_MS)
-
-
-def topic_name(frame: bytes) -> str:
-    return frame.split(b"\0", 1)[0].decode(errors="replace")
 
 
 class Transport:
@@ -235,7 +224,7 @@ class Transport:
                     event := _take(self._refusals, recv_monitor_message)) is not None:
                 yield "refused", keys.HANDSHAKE_FAILURES.get(event["event"], "other")
             if self.sub is not None and self.sub in ready and take_audio and (
-                    frames := _take(self.sub, zmq.Socket.recv_multipart)) is not None:
+                    frames := _take(self.sub, recv_frames)) is not None:
                 self.on_busy()
                 yield "audio", frames
             ready = dict(self._poller.poll(timeout=0))
@@ -308,7 +297,7 @@ class Transport:
         no timeout, nothing wakes while the peer is stalled. (An XPUB says POLLOUT even while full.)"""
         while True:
             try:
-                sock.send_multipart(frames, flags=zmq.NOBLOCK)
+                send_frames(sock, frames)
             except zmq.Again:
                 if not wait or self._stopping:
                     return False

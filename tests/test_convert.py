@@ -180,3 +180,14 @@ def test_two_streams_interleaved_on_one_topic_each_keep_their_own_resampler():
         assert len(got) == 16000
         expected = 0.5 * np.sin(2 * np.pi * hz * np.arange(len(got)) / 16000)
         assert np.max(np.abs(got - expected)[:-200]) < 0.02  # the very end: the stream's own last flush
+
+
+def test_a_message_in_the_declared_format_is_handed_on_as_it_came_until_the_format_changes():
+    fmt16, fmt48 = AudioFormat(16000, "int16"), AudioFormat(48000, "int16")
+    consumer = InputLink(fmt16)
+    first = audio_message(fmt16, encode(sine(fmt16, 0.02, hz=440), fmt16), 1, (0, 20_000_000))
+    assert consumer.receive(first) == [first] and consumer.receive(first)[0] is first  # nothing to convert
+    second = audio_message(fmt48, encode(sine(fmt48, 0.02, hz=440), fmt48), 2, (20_000_000, 40_000_000))
+    [converted] = consumer.receive(second)
+    assert converted.format == fmt16 and converted.sequence == 2 and converted.start_ns == 20_000_000
+    assert converted.frames <= 320  # converted (a resampler holds its first milliseconds back)

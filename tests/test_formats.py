@@ -3,8 +3,10 @@ import itertools
 import numpy as np
 import pytest
 
+from esiaf import formats
 from esiaf.audio import SampleClock
 from esiaf.formats import SAMPLE_TYPES, AudioFormat, FormatError, decode, encode, peak, to_float
+from esiaf.proto import esiaf_pb2 as pb
 
 
 def random_samples(fmt: AudioFormat, frames: int, rng) -> np.ndarray:
@@ -35,6 +37,20 @@ def test_proto_and_dict_round_trip():
     fmt = AudioFormat(44100, "uint24", "big", 4)
     assert AudioFormat.from_proto(fmt.to_proto()) == fmt
     assert AudioFormat.from_dict(fmt.to_dict()) == fmt
+
+
+def test_formats_read_from_messages_are_kept_but_bounded_and_bad_ones_always_refused():
+    fmt = AudioFormat(22050, "int16", "big", 2)
+    first, again = AudioFormat.from_proto(fmt.to_proto()), AudioFormat.from_proto(fmt.to_proto())
+    assert first == fmt and again is first  # one instance per format: not made anew per message
+    for rate in range(8000, 8000 + 3 * formats.MAX_FORMATS_KEPT):  # a peer forging formats
+        assert AudioFormat.from_proto(AudioFormat(rate).to_proto()).sample_rate_hz == rate
+    assert len(formats._FROM_PROTO) <= formats.MAX_FORMATS_KEPT
+    for _ in range(2):
+        with pytest.raises(FormatError, match="unknown sample type 99"):
+            AudioFormat.from_proto(pb.AudioFormat(sample_rate_hz=16000, sample_type=99, channels=1))
+        with pytest.raises(FormatError, match="sample rate must be positive"):
+            AudioFormat.from_proto(pb.AudioFormat(sample_rate_hz=0, sample_type=pb.SAMPLE_TYPE_INT16, channels=1))
 
 
 def test_float_scaling_and_peak():
