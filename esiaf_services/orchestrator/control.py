@@ -186,7 +186,7 @@ class ControlPlane:
         component.note_clock(message.get("clock"))
         if component.beats_every(message.get("interval_s"), *self.intervals_s):
             self.deadline_sooner()  # fast again: its death may be due before the liveness task wakes
-        component.offer(self.registry.state_of(component))
+        self.registry.offer_current(component)
         # the state it says it has is the current one: a short ack; else (an older or no version) the full state
         has = message.get("state_version")
         if type(has) is int and has == component.state_version:
