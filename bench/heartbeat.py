@@ -60,13 +60,19 @@ def clients(url: str, components: int, beats: int) -> None:
     time.sleep(1.0)  # the first beats and their full states
     print("ready", flush=True)
     sys.stdin.readline()
-    started = time.process_time()
+    import psutil
+    beating = {client._thread.native_id for client in running if client._thread is not None}
+
+    def beating_cpu_s() -> float:  # the heartbeat threads' alone (not this one's pokes)
+        return sum(t.user_time + t.system_time for t in psutil.Process().threads() if t.id in beating)
+    started, started_beating = time.process_time(), beating_cpu_s()
     for _ in range(beats):
         for client in running:  # one at a time, as the framework's beats come
             client.poke()
             time.sleep(1 / 400)
     time.sleep(0.2)  # the last answers
-    print(json.dumps({"cpu_s": time.process_time() - started}), flush=True)
+    print(json.dumps({"cpu_s": time.process_time() - started, "beating_cpu_s": beating_cpu_s() - started_beating}),
+          flush=True)
     for client in running:
         client.stop(unregister_too=False)
     context.term()
@@ -86,7 +92,7 @@ def one_run(repo: Path, port: int, components: int, beats: int, profile: Path | 
     client = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--clients", str(repo), url,
                                str(components), str(beats)], cwd=repo, env=env, stdin=subprocess.PIPE,
                               stdout=subprocess.PIPE, text=True)
-    spy = None
+    spies: list[subprocess.Popen] = []
     try:
         assert client.stdout is not None and client.stdin is not None
         if client.stdout.readline().strip() != "ready":
@@ -95,33 +101,36 @@ def one_run(repo: Path, port: int, components: int, beats: int, profile: Path | 
         def heartbeats() -> int:
             return sum(c["heartbeats"] for c in httpx.get(f"{url}/components").json()["items"])
         handle = psutil.Process(orchestrator.pid)
-        if profile is not None:
-            spy = subprocess.Popen([str(Path(sys.executable).with_name("py-spy")), "record", "--pid",
-                                    str(orchestrator.pid), "--rate", "500", "--gil", "--nonblocking", "--format", "raw",
-                                    "-o", str(profile / "orchestrator-heartbeats.txt")],
-                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        if profile is not None:  # --gil: only what holds the interpreter (py-spy counts a woken, runnable
+            for name, pid in (("orchestrator", orchestrator.pid), ("component", client.pid)):  # thread as busy)
+                spies.append(subprocess.Popen([str(Path(sys.executable).with_name("py-spy")), "record", "--pid",
+                                               str(pid), "--rate", "500", "--gil", "--nonblocking", "--format",
+                                               "raw", "-o", str(profile / f"{name}-heartbeats.txt")],
+                                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         if perf is not None:  # native: the kernel's, libzmq's and the interpreter's shares
-            spy = subprocess.Popen(["perf", "record", "-F", "2000", "-g", "-o", str(perf), "-p", str(orchestrator.pid)],
-                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        if spy is not None:
+            spies.append(subprocess.Popen(["perf", "record", "-F", "2000", "-g", "-o", str(perf),
+                                           "-p", str(orchestrator.pid)],
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        if spies:
             time.sleep(1.0)
         beats_before, cpu_before, threads_before = heartbeats(), sum(handle.cpu_times()[:2]), thread_cpu_s(handle)
         client.stdin.write("go\n")
         client.stdin.flush()
-        client_cpu_s = json.loads(client.stdout.readline())["cpu_s"]
+        client_cpu = json.loads(client.stdout.readline())
         cpu_s, beats_done = sum(handle.cpu_times()[:2]) - cpu_before, heartbeats() - beats_before
         threads = {name: used - threads_before.get(name, 0.0) for name, used in thread_cpu_s(handle).items()}
         client.wait(timeout=30)
     finally:
-        if spy is not None:
-            spy.send_signal(2)  # SIGINT: py-spy writes what it has
+        for spy in spies:
+            spy.send_signal(2)  # SIGINT: the sampler writes what it has
             spy.wait(timeout=30)
         for process in (client, orchestrator):
             if process.poll() is None:
                 process.terminate()
                 process.wait(timeout=10)
     return {"beats": beats_done, "orchestrator_us": cpu_s * 1e6 / beats_done,
-            "component_us": client_cpu_s * 1e6 / beats_done,
+            "component_us": client_cpu["cpu_s"] * 1e6 / beats_done,
+            "component_heartbeat_thread_us": client_cpu["beating_cpu_s"] * 1e6 / beats_done,
             **{f"orchestrator_{name}_us": used * 1e6 / beats_done for name, used in threads.items() if used > 0}}
 
 
@@ -152,7 +161,8 @@ def main() -> None:
         args.profile.mkdir(parents=True, exist_ok=True)
         print(one_run(REPO, args.port, args.components, args.beats, args.profile))
         from bench.framework import top_functions
-        print(*top_functions(args.profile / "orchestrator-heartbeats.txt", 25), sep="\n")
+        for name in ("orchestrator", "component"):
+            print(f"== {name}:", *top_functions(args.profile / f"{name}-heartbeats.txt", 30), sep="\n")
         return
     if args.perf is not None:
         print(one_run(REPO, args.port, args.components, args.beats, perf=args.perf))
@@ -168,7 +178,7 @@ def main() -> None:
     print(f"{args.components} components x {args.beats} heartbeats, {args.repeats} repeats; CPU-us per heartbeat "
           "(median; the runs)")
     for code, results in runs.items():
-        for side in ("orchestrator_us", "component_us"):
+        for side in ("orchestrator_us", "orchestrator_python_us", "component_us", "component_heartbeat_thread_us"):
             values = [r[side] for r in results]
             print(f"{code} {side}: {statistics.median(values):.0f} ({', '.join(f'{v:.0f}' for v in values)})")
     with open("/proc/loadavg") as handle:
