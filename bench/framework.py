@@ -20,10 +20,13 @@ falls on every size alike. Per chunk size it reports:
 - the grabber's audio messages per second.
 
 ``--against DIR`` runs another checkout's code (``git worktree add /tmp/base main``) interleaved
-with this one's, run by run: a change's saving, measured under the same load.
+with this one's, run by run: a change's saving, measured under the same load. ``--against-env
+NAME=VALUE`` sets a variable for those runs only (without ``--against``, this checkout's): a
+setting's saving, e.g. ``ESIAF_ORCHESTRATOR_HEARTBEAT_INTERVAL_S=2.5``.
 
     python -m bench.framework [--chunk-ms 10,20,40,50,100] [--repeats 2] [--questions 8 | --input FILE]
-                              [--vad silero|energy] [--against DIR] [--profile DIR]
+                              [--vad silero|energy] [--against DIR] [--against-env NAME=VALUE]
+                              [--profile DIR]
 
 ``--profile DIR`` samples the grabber, vad and orchestrator with py-spy (``pip install py-spy``,
 in the dev extra) while the audio plays, one run per chunk size, writes the collapsed stacks to
@@ -118,9 +121,12 @@ class Profiler:
         self._timer.start()
         for name in PROFILED:
             if name in pids:
+                # the orchestrator's own work holds the GIL; without --gil py-spy counts its loop, woken and
+                # runnable but not yet on a CPU (a loaded machine), as busy in epoll_wait or a send
+                gil = ["--gil"] if name == "orchestrator" else []
                 self.running.append(subprocess.Popen(
-                    [PY_SPY, "record", "--pid", str(pids[name]), "--rate", "250", "--nonblocking", "--format", "raw",
-                     "-o", str(self.output(name)), "--duration", str(int(self.seconds))],
+                    [PY_SPY, "record", "--pid", str(pids[name]), "--rate", "250", *gil, "--nonblocking",
+                     "--format", "raw", "-o", str(self.output(name)), "--duration", str(int(self.seconds))],
                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
 
     def _take_threads(self) -> None:
@@ -173,6 +179,9 @@ def main() -> None:
                         "py-spy (one run per chunk size, not measured) and print their top functions")
     parser.add_argument("--against", type=Path, metavar="DIR", help="another checkout (e.g. a worktree of main) "
                         "whose code runs interleaved with this one's: before and after a change, in one run")
+    parser.add_argument("--against-env", action="append", default=[], metavar="NAME=VALUE",
+                        help="an environment variable for the --against runs only (repeatable); without "
+                        "--against they run this checkout: e.g. ESIAF_ORCHESTRATOR_HEARTBEAT_INTERVAL_S=2.5")
     parser.add_argument("--port", type=int, default=19300, help="first orchestrator port (one per run)")
     args = parser.parse_args()
     chunks = [float(c) for c in args.chunk_ms.split(",") if c.strip()]
@@ -200,7 +209,8 @@ def main() -> None:
         return
 
     # one run of each (code, chunk size) per repeat, interleaved
-    codes = {"this": REPO, **({"against": args.against.resolve()} if args.against else {})}
+    against_env = dict(item.split("=", 1) for item in args.against_env)
+    codes = {"this": REPO, **({"against": (args.against or REPO).resolve()} if args.against or against_env else {})}
     configs = [(code, chunk_ms) for chunk_ms in chunks for code in codes]
     cpu: dict[tuple[str, float], list[dict[str, float]]] = {c: [] for c in configs}
     latency: dict[tuple[str, float], list[float]] = {c: [] for c in configs}
@@ -213,7 +223,8 @@ def main() -> None:
             print(f"repeat {repeat + 1}: {chunk_ms:g} ms chunks, {code} ...", file=sys.stderr, flush=True)
             ms, said, per_service, _startup, fused = pipeline(args.input, "robocup", port,
                                                                [*extra, "--chunk-ms", f"{chunk_ms:g}"],
-                                                               repo=codes[code])
+                                                               repo=codes[code],
+                                                               env=against_env if code == "against" else None)
             port += 1
             cpu[config].append(per_service)
             latency[config] += ms
@@ -223,8 +234,10 @@ def main() -> None:
             model[config].append(model_cpu_s(args.input, chunk_ms) if args.vad == "silero" else 0.0)
 
     info = soundfile.info(str(args.input))
+    against = f", against {codes['against']}" if "against" in codes else ""
+    against += f" with {' '.join(args.against_env)}" if args.against_env else ""
     print(f"audio {info.duration:.1f} s, vad {args.vad}, {args.repeats} repeats"
-          f"{f', against {args.against}' if args.against else ''}; CPU-s per hour of audio (median of repeats); "
+          f"{against}; CPU-s per hour of audio (median of repeats); "
           f"latency over all repeats")
     print("| chunk | code | framework | framework net of model | grabber | vad | vad model | orchestrator | asr "
           "| latency p50 / p95 from segment end | from true end | grabber msg/s | sentences right / lines |")
@@ -243,7 +256,7 @@ def main() -> None:
               f"| {percentile(true_latency[config], 0.5):.1f} / {percentile(true_latency[config], 0.95):.1f} ms "
               f"| {messages:.0f} | {utterances} |")
         for name in (*FRAMEWORK, "asr"):
-            runs = ", ".join(f"{run.get(name, float('nan')) / hours:.0f}" for run in cpu[config])
+            runs = ", ".join(f"{run.get(name, float('nan')) / hours:.1f}" for run in cpu[config])
             print(f"chunk_{chunk_ms:g}_{code}_cpu_s_per_hour_{name}={runs}")
     with open("/proc/loadavg") as handle:
         print("load average:", " ".join(handle.read().split()[:3]))

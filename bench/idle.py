@@ -1,6 +1,6 @@
 """Idle CPU: the orchestrator and a few services registered and heartbeating, with no audio.
 
-    python bench/idle.py [--seconds 30] [--services vad,asr,gender]
+    python bench/idle.py [--seconds 30] [--services vad,asr,gender] [--port 27200] [--repo DIR]
 
 Prints CPU seconds per minute of each process while idle, as ``name=value`` lines
 (``idle_cpu_s_per_min_vad=0.02``). Issue 18's target: at most 0.03 s per minute per service.
@@ -35,20 +35,28 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=30.0, help="how long to measure (default 30)")
     parser.add_argument("--services", default="vad,asr,gender", help="services to start beside the orchestrator "
                         "(each must register without a producer upstream: not the splitter)")
+    parser.add_argument("--port", type=int, default=0, help="the orchestrator's HTTP port; the next its control "
+                        "and results ports, then each service's audio port (default: any free ones)")
+    parser.add_argument("--repo", type=Path, default=REPO, help="the checkout whose code runs (default this one: "
+                        "e.g. a worktree of main, before a change)")
     args = parser.parse_args()
     if args.seconds <= 0:
         raise SystemExit("bench/idle.py: --seconds must be positive")
     workdir = Path(tempfile.mkdtemp(prefix="esiaf-idle-"))
-    port = free_port()
+    port = args.port or free_port()
     url = f"http://127.0.0.1:{port}"
-    env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_URL": url,
-           "ESIAF_ORCHESTRATOR_CONTROL_PORT": "0", "ESIAF_ORCHESTRATOR_RESULTS_PORT": "0"}
+    repo = args.repo.resolve()
+    env = {**os.environ, "PYTHONPATH": str(repo), "ESIAF_ORCHESTRATOR_URL": url,
+           "ESIAF_ORCHESTRATOR_CONTROL_PORT": str(port + 1 if args.port else 0),
+           "ESIAF_ORCHESTRATOR_RESULTS_PORT": str(port + 2 if args.port else 0)}
     names = ["orchestrator", *[s for s in args.services.split(",") if s]]
-    processes = {}
+    processes: dict[str, subprocess.Popen] = {}
     try:
         for name in names:
             extra = ["--port", str(port), "--db", str(workdir / "o.db")] if name == "orchestrator" else []
-            processes[name] = subprocess.Popen([sys.executable, "-m", f"esiaf_services.{name}", *extra], cwd=REPO,
+            if args.port and name != "orchestrator":  # each service's audio port after the orchestrator's
+                env[f"ESIAF_{name.upper()}_AUDIO_PORT"] = str(port + 2 + len(processes))
+            processes[name] = subprocess.Popen([sys.executable, "-m", f"esiaf_services.{name}", *extra], cwd=repo,
                                                env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             if name == "orchestrator":
                 poll(lambda: httpx.get(f"{url}/health").status_code == 200, timeout_s=60)

@@ -76,20 +76,23 @@ def baseline(path: Path, grammar: str) -> tuple[dict[str, list[float]], list[str
 
 def pipeline(path: Path, grammar: str, port: int, extra: list[str], workdir: Path | None = None,
              on_ended: Callable[[], None] | None = None, progress_s: float = 0.0,
-             on_start: Callable[[dict[str, int]], None] | None = None, repo: Path = REPO):
+             on_start: Callable[[dict[str, int]], None] | None = None, repo: Path = REPO,
+             env: dict[str, str] | None = None):
     """The launcher with every service as a process. Returns latencies (ms), texts, CPU s per
     service while playing, CPU s per service at start-up, and the fused results (with the moment
     each arrived, ``arrived_ns``, and the stream's start, ``stream_start_ns``). ``on_ended`` is
     called once the stream has ended, before the services stop; with ``progress_s`` a line on
     stderr says that often how many fused results have come; ``on_start`` is called with each
     service's process id when the stream starts (bench/framework.py's profiler); ``repo`` is the
-    checkout whose code runs (this one unless another is compared with it)."""
+    checkout whose code runs (this one unless another is compared with it); ``env``: more environment
+    variables for every process (e.g. an orchestrator setting)."""
     workdir = workdir or Path(tempfile.mkdtemp(prefix="esiaf-bench-"))
     cmd = [sys.executable, "-m", "esiaf", "run", "--input", str(path), "--json", "--serve",
            "--port", str(port), "--workdir", str(workdir), *extra] + (["--grammar", grammar] if grammar else [])
     launcher = subprocess.Popen(cmd, cwd=repo, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                env={**os.environ, "PYTHONPATH": str(repo)},  # Ctrl-C stops it even when the
-                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # bench runs in bg
+                                env={**os.environ, **(env or {}), "PYTHONPATH": str(repo)},
+                                # Ctrl-C stops it even when the bench runs in the background
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     latencies, texts, fused_results = [], [], []
     ended = threading.Event()
     cpu_at_start: dict[str, float] = {}

@@ -125,6 +125,9 @@ def _jsonable(value: Any) -> Any:
     return str(value)
 
 
+_ENCODER = json.JSONEncoder(default=_jsonable)  # one for every heartbeat: json.dumps(default=) makes one each call
+
+
 def _control_message(data: bytes) -> dict[str, Any]:
     """A message from the orchestrator's control socket; {} (ignored) if it is not a JSON object."""
     try:
@@ -300,9 +303,10 @@ class ControlClient:
                             "control_key": self._registered.control_key, "stats": self._stats(),
                             "sent_ns": self._clock_ns(), "clock": self.clock.report(),
                             "state_version": self._registered.state_version, "interval_s": self.interval_s}
-                    dealer.send(json.dumps(beat, default=_jsonable).encode())
+                    dealer.send(_ENCODER.encode(beat).encode())
                     next_beat, beat_now = now + self.interval_s, False
-                    self._quiet_said.set()
+                    if not self._quiet_said.is_set():  # set() takes a lock and notifies, at every beat
+                        self._quiet_said.set()
                 # sleep until the next beat (or the orchestrator's silence deadline), a message or a poke
                 wait_s = max(0.0, min(next_beat, last_heard + self._registered.dead_after_s + extra_silence_s)
                              - time.monotonic())

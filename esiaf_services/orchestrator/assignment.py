@@ -36,20 +36,26 @@ class Assignments:
     def __init__(self) -> None:
         self.active: OrderedDict[str, None] = OrderedDict()  # active streams, oldest first
         self._served_by: dict[str, dict[str, str]] = {}  # service -> stream -> instance id
+        self.version = 0  # a new number at every change (the registry recomputes states after one)
 
     def add_stream(self, stream_id: str, served_by: Instance | None = None) -> bool:
         """Makes a stream active (True if it was not); ``served_by``: an instance known to serve it
         already (it sent a result of it), which keeps it."""
         if served_by is not None:
-            self._served_by.setdefault(served_by.name, {}).setdefault(stream_id, served_by.component_id)
+            served = self._served_by.setdefault(served_by.name, {})
+            if stream_id not in served:
+                served[stream_id] = served_by.component_id
+                self.version += 1
         if stream_id in self.active:
             return False
         self.active[stream_id] = None
+        self.version += 1
         while len(self.active) > MAX_ACTIVE_STREAMS:
             self.end_stream(next(iter(self.active)))
         return True
 
     def end_stream(self, stream_id: str) -> None:
+        self.version += 1
         self.active.pop(stream_id, None)
         for streams in self._served_by.values():
             streams.pop(stream_id, None)
@@ -58,6 +64,7 @@ class Assignments:
         """Serves every active stream by one live instance of each service in ``instances`` (live
         components with inputs, in registration order). Returns the (service, stream, instance)
         assignments made, moved ones included."""
+        self.version += 1
         by_service: dict[str, list[str]] = {}
         for instance in instances:
             by_service.setdefault(instance.name, []).append(instance.component_id)

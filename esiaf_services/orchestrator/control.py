@@ -24,7 +24,7 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Awaitable, Callable
-from typing import Any
+from typing import Any, cast
 
 import zmq.asyncio
 
@@ -35,6 +35,7 @@ log = logging.getLogger(__name__)
 
 UNKNOWN = json.dumps({"type": "unknown"}).encode()
 BEAT_NOW = json.dumps({"type": "beat_now"}).encode()
+EVENTS, POLLIN = int(zmq.EVENTS), int(zmq.POLLIN)  # plain ints: pyzmq's enums cost a microsecond a use
 
 
 class ControlPlane:
@@ -44,7 +45,8 @@ class ControlPlane:
         # the same socket, used synchronously: run() takes every message there is when its file
         # descriptor wakes the loop, and send() never waits (a ROUTER drops what it cannot send)
         self._sync: zmq.Socket = zmq.Socket.shadow(socket.underlying)
-        self._look = asyncio.Event()  # there may be messages to take
+        self._draining = False  # _drain() is taking messages: it looks at the socket again after each
+        self._look_soon = False  # a _drain() is due (a send outside one read ZMQ_EVENTS)
         self.registry = registry
         self.bind_peer_key = bind_peer_key  # CURVE: the ZAP handler gives each message its peer's public key
         self.counters: Counter[str] = Counter()
@@ -56,30 +58,41 @@ class ControlPlane:
         self.deadline_sooner: Callable[[], object] = lambda: None  # a component's death may be due sooner
 
     async def run(self) -> None:
-        """Takes and handles messages. The socket's ZMQ_FD is registered with the loop once, not
-        per message as zmq.asyncio's futures do (two epoll_ctl calls and a future each: issue 18);
-        it is edge-triggered, and reading ZMQ_EVENTS, which any send does, resets it: so the socket
-        is drained until it says it holds nothing, and looked at again after every send."""
+        """Takes and handles messages until cancelled. The socket's ZMQ_FD is registered with the loop
+        once, not per message as zmq.asyncio's futures do (two epoll_ctl calls and a future each: issue
+        18), and its callback handles every message there is at once, without waking a task (a future,
+        a task step and one more turn of the loop per wake-up: issue 18 again). ZMQ_FD is
+        edge-triggered, and reading ZMQ_EVENTS, which any send does, resets it: so the socket is
+        drained until it says it holds nothing, and looked at again after a send made outside a drain."""
         loop = asyncio.get_running_loop()
         fd: int = self._sync.FD
-        loop.add_reader(fd, self._look.set)
+        loop.add_reader(fd, self._drain)
+        self._drain()  # what came before
         try:
-            while True:
-                await self._look.wait()
-                self._look.clear()
-                while int(self._sync.EVENTS) & zmq.POLLIN:
-                    try:
-                        frames = self._sync.recv_multipart(zmq.NOBLOCK, copy=False)
-                    except zmq.Again:  # libzmq may signal a message that is not there
-                        self.counters["spurious_wakeups"] += 1
-                        break
-                    try:
-                        await self.handle(frames)
-                    except Exception:  # a bug must not stop the heartbeats of everyone else
-                        self.counters["errors"] += 1
-                        log.exception("event=control_failed frames=%d", len(frames))
+            await loop.create_future()  # the callback does the work
         finally:
             loop.remove_reader(fd)
+
+    def _drain(self) -> None:
+        """Handles every message the socket holds (the loop calls it when its file descriptor wakes)."""
+        self._look_soon = False
+        if self._sync.closed:  # a look asked for by a send just before the orchestrator stopped
+            return
+        self._draining = True
+        try:
+            while cast(int, self._sync.get(EVENTS)) & POLLIN:
+                try:
+                    frames = self._sync.recv_multipart(zmq.NOBLOCK, copy=False)
+                except zmq.Again:  # libzmq may signal a message that is not there
+                    self.counters["spurious_wakeups"] += 1
+                    break
+                try:
+                    self.handle(frames)
+                except Exception:  # a bug must not stop the heartbeats of everyone else
+                    self.counters["errors"] += 1
+                    log.exception("event=control_failed frames=%d", len(frames))
+        finally:
+            self._draining = False
 
     def disconnected(self, fd: int) -> None:
         """The connection on ``fd`` closed: the component whose key last came on it is lost unless it
@@ -138,7 +151,7 @@ class ControlPlane:
                 return False
         return True
 
-    async def handle(self, frames: list[zmq.Frame]) -> None:
+    def handle(self, frames: list[zmq.Frame]) -> None:
         if len(frames) != 2:
             self._bad(f"frames={len(frames)}")
             return
@@ -173,7 +186,7 @@ class ControlPlane:
         component.note_clock(message.get("clock"))
         if component.beats_every(message.get("interval_s"), *self.intervals_s):
             self.deadline_sooner()  # fast again: its death may be due before the liveness task wakes
-        component.offer(self.registry.state_of(component))
+        self.registry.offer_current(component)
         # the state it says it has is the current one: a short ack; else (an older or no version) the full state
         has = message.get("state_version")
         if type(has) is int and has == component.state_version:
@@ -184,7 +197,7 @@ class ControlPlane:
         sent_ns = message.get("sent_ns")
         if type(sent_ns) is int and abs(sent_ns) < MAX_TIME_NS:  # its send time, echoed with ours: its clock's offset
             answer["echo_ns"], answer["orchestrator_ns"] = sent_ns, time.time_ns()
-        await self.send(component, answer)
+        self.send(component, answer)
 
     @staticmethod
     def versioned(component: Component) -> dict[str, Any]:
@@ -196,9 +209,9 @@ class ControlPlane:
         for component, _ in self.registry.changed_states():
             log.debug("event=state_pushed component_id=%s version=%d", component.component_id,
                       component.state_version)
-            await self.send(component, self.versioned(component))
+            self.send(component, self.versioned(component))
 
-    async def send(self, component: Component, message: dict[str, Any]) -> None:
+    def send(self, component: Component, message: dict[str, Any]) -> None:
         # Only to the routing id that last presented the component's key; none yet: its first
         # heartbeat's answer carries the full state. ROUTER drops messages to a peer that is gone.
         if component.control_route is None:
@@ -210,4 +223,6 @@ class ControlPlane:
             self._sync.send_multipart([route, data], zmq.NOBLOCK)
         except zmq.Again:  # its queue is full (ROUTER_MANDATORY is off: it drops, but to be sure)
             self.counters["dropped"] += 1
-        self._look.set()  # the send read ZMQ_EVENTS: a message that came meanwhile wakes no one
+        if not self._draining and not self._look_soon:  # the send read ZMQ_EVENTS: a message that came
+            self._look_soon = True  # meanwhile wakes no one; a drain under way looks again anyway
+            asyncio.get_running_loop().call_soon(self._drain)

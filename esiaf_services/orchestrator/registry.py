@@ -75,6 +75,7 @@ class Component:
     served_at_departure: list[str] = field(default_factory=list)  # the streams it served when it died or left
     pushed_state: dict[str, Any] | None = None  # the state this component last got from us
     state_version: int = 0  # pushed_state's number: a new one for every change (heartbeats say which they have)
+    offered_at: tuple[int, int] | None = None  # the registry's version when pushed_state was last computed
     # our clock minus its host's, and how sure (half the best round trip), as its heartbeats report
     # them (esiaf/clock.py); None until it has measured
     clock_offset_ns: int | None = None
@@ -128,6 +129,7 @@ class Registry:
         self.departed: OrderedDict[str, Component] = OrderedDict()
         self.assigned: dict[str, Format] = {}  # each topic's internal format
         self.assignments = Assignments()  # which instance of a replicated service serves each stream
+        self.generation = 0  # a new number at every recompute(): with the assignments' version, states may differ
         # what control keys are derived from (esiaf/binding.py): the orchestrator sets the one its
         # database keeps, so that it can check results of registrations made before a restart
         self.secret = secrets.token_bytes(32)
@@ -160,7 +162,7 @@ class Registry:
                               control_key=derive_key(self.secret, component_id, key_id))
         self.live[component_id] = component
         self.recompute()
-        component.offer(self.state_of(component))
+        self.offer_current(component)
         return component, previous
 
     def remove(self, component_id: str) -> Component | None:
@@ -190,7 +192,9 @@ class Registry:
         return dead
 
     def recompute(self) -> dict[str, Format]:
-        """Chooses every topic's format again; returns the topics whose format changed."""
+        """Chooses every topic's format again; returns the topics whose format changed. Called after
+        every change of who is live (any state may differ now)."""
+        self.generation += 1
         assigned, changed = {}, {}
         for topic in self.topic_names():
             current = self.assigned.get(topic)
@@ -312,9 +316,24 @@ class Registry:
         changed = []
         for component in self.live.values():
             state = self.state_of(component, formats)
+            component.offered_at = self.version()
             if component.offer(state):
                 changed.append((component, state))
         return changed
+
+    def version(self) -> tuple[int, int]:
+        """Changes whenever a state may have: every live set and format change (recompute()), every
+        stream assignment change."""
+        return self.generation, self.assignments.version
+
+    def offer_current(self, component: Component) -> None:
+        """Makes the state the registry now gives ``component`` the one it is to have (a new
+        ``state_version`` if that differs): what every heartbeat does, so a change no push has
+        carried yet is answered in full. Computed again only after a change (issue 18: not at
+        every heartbeat)."""
+        if component.offered_at != (version := self.version()):
+            component.offer(self.state_of(component))
+            component.offered_at = version
 
     def all(self, include_departed: bool = False) -> list[Component]:
         components = list(self.live.values())

@@ -186,6 +186,34 @@ def test_a_stream_first_heard_from_a_replica_stays_with_it():
     assert not registry.add_stream("x", served_by=a)  # known already: it stays
 
 
+def test_a_heartbeats_state_is_computed_again_after_every_change_and_only_then():
+    """offer_current() (what every heartbeat does) keeps the last state until the registry changed;
+    after each change below, each live component is offered the state state_of() gives now."""
+    registry = Registry()
+    computed = []
+    state_of = registry.state_of
+    registry.state_of = lambda component, formats=None: computed.append(component) or state_of(component, formats)
+    vad = register(registry, "vad", inputs=["raw"], outputs=["speech"])
+    a = register(registry, "asr", inputs=["speech"], instance="asr-a")
+    changes = [lambda: register(registry, "asr", inputs=["speech"], instance="asr-b"),
+               lambda: registry.add_stream("s1"), lambda: registry.add_stream("s2", served_by=a),
+               lambda: registry.end_stream("s1"), lambda: registry.remove("asr-b"),
+               lambda: register(registry, "mic", outputs=["raw"]), lambda: registry.declare_dead(vad.component_id)]
+    for change in changes:
+        before = set(registry.live)
+        change()
+        # once each after the change (one that registered just now got it then); not again
+        for expected_computed in (before & set(registry.live), set()):
+            computed.clear()
+            for component in registry.live.values():
+                registry.offer_current(component)
+                assert component.pushed_state == state_of(component)
+            assert {c.component_id for c in computed} == expected_computed
+    assert a.pushed_state is not None and a.pushed_state["peers"] == {"speech": []}  # the vad died
+    # registered; b came (streams: none), s1 given to it, s2 too, s1 ended, b left (all again), vad died
+    assert a.state_version == 7
+
+
 def test_registry_expires_silent_components():
     registry = Registry()
     component = register(registry, "vad", inputs=["raw"])
