@@ -3,7 +3,8 @@ bench/latency.py and bench/dataset.py (the thesis' "pre-existing monolith", Fig.
 
 One loop reads a sound file in the grabber's default chunks (chunk_ms) stamped from sample counts
 (paced in real time, or as fast as it goes) and segments it with the VAD's segmenter (``energy``: the original double
-threshold; ``silero``: the neural VAD and its probability segmenter, the service's defaults),
+threshold; ``silero``: the neural VAD and its probability segmenter, the service's defaults, deciding per
+32 ms window as the service does),
 feeds the speech to pocketsphinx, and at each segment's end runs the emotion and gender models
 (one openSMILE feature vector for both, as the hosted services share it) and, if asked, the
 voiceid encoder. With ``array`` the SSL component (the service's own class and default settings)
@@ -37,6 +38,8 @@ from esiaf_services.asr.service import resolve_grammar
 from esiaf_services.emotion.backends import load_backend
 from esiaf_services.grabber.service import GrabberSettings
 from esiaf_services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
+from esiaf_services.vad.silero import SileroModel
+from esiaf_services.vad.windows import Piece, WindowCutter
 
 CHUNK_MS = GrabberSettings.model_fields["chunk_ms"].default  # what esiaf run plays in, unless told
 MIN_SPEECH_S = 0.5  # the utterance classifiers' min_speech_ms
@@ -145,11 +148,10 @@ def monolith(path: Path, grammar: str, *, fast: bool = False, vad: str = "energy
     front = _FrontEnd(array, rate, beamformer) if array else None
     segmenter: Any
     if vad == "silero":
-        from esiaf_services.vad.silero import SileroModel
-        silero = SileroModel().stream(rate)
+        cutter: WindowCutter | None = WindowCutter(SileroModel().stream(rate), frame_bytes=2)
         segmenter = ProbabilitySegmenter(ProbabilityParams())
     else:
-        silero, segmenter = None, Segmenter(SegmenterParams())
+        cutter, segmenter = None, Segmenter(SegmenterParams())
     cpu: dict[str, float] = defaultdict(float)
     step = round(rate * CHUNK_MS / 1000)
     cpu_start = time.process_time()
@@ -209,15 +211,20 @@ def monolith(path: Path, grammar: str, *, fast: bool = False, vad: str = "energy
             cpu["beamformer"] += front.beamformer_cpu_s - beamformer_cpu  # within the ssl's forward
             t = stage("ssl", t + front.beamformer_cpu_s - beamformer_cpu)
         for mono, start_ns, end_ns, ended in heard:
-            score = (silero.chunk_probability(mono[:, 0].astype(np.float32) / 32768) if silero is not None
-                     else level_db(peak(mono, fmt)))
-            forwards = segmenter.process((start_ns, mono), start_ns, end_ns, score, force_end=ended)
+            if cutter is not None:  # per Silero window, as the vad service decides
+                pieces = cutter.cut(mono.tobytes(), start_ns, end_ns, mono[:, 0].astype(np.float32) / 32768, ended)
+            else:
+                pieces = [(Piece(mono.tobytes(), start_ns, end_ns, 0, len(mono), ended), level_db(peak(mono, fmt)))]
+            forwards = []
+            for piece, score in pieces:
+                forwards += segmenter.process(piece, piece.start_ns, piece.end_ns, score, force_end=piece.end_of_stream)
             t = stage("vad", t)
             for forward in forwards:
                 if not forwarded:
                     recognizer.start()
-                forwarded.append(forward.item)
-                recognizer.feed(forward.item[1].tobytes())
+                piece = forward.item
+                forwarded.append((piece.start_ns, np.frombuffer(piece.payload, dtype=np.int16).reshape(-1, 1)))
+                recognizer.feed(piece.payload)
                 t = stage("asr", t)
                 if forward.ended:
                     t = close(forward, t)
