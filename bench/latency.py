@@ -7,8 +7,9 @@ from sample counts:
   gender [+ splitter, ssl with --array] → orchestrator fusing them → websocket client); a
   result's arrival is the moment its fused JSON line reaches this process;
 - pipeline ``asr``: the same with ``--without emotion,gender,voiceid`` (what a slow robot would run);
-- baseline: the same segmenter (Silero, per window), the same pocketsphinx recogniser and the same emotion and gender
-  models in this one process, no transport, one after the other; ``baseline_asr`` is the moment
+- baseline: the same segmenter (Silero; per window with ESIAF_VAD_WINDOWS=true), the same
+  pocketsphinx recogniser and the same emotion and gender models in this one process, no
+  transport, one after the other; ``baseline_asr`` is the moment
   the recogniser returns, ``baseline_full`` the moment the gender model (the last) returns.
 
 Latency = arrival − (capture time of the utterance's last speech sample + the VAD hangover),
@@ -63,10 +64,12 @@ def percentile(values: list[float], q: float) -> float:
 
 
 def baseline(path: Path, grammar: str) -> tuple[dict[str, list[float]], list[str], float]:
-    """The monolith (bench/monolith.py: the Silero VAD deciding per window as the pipeline's does,
+    """The monolith (bench/monolith.py: the Silero VAD deciding as the pipeline's does, per window with
+    ESIAF_VAD_WINDOWS=true,
     recogniser, emotion and gender models in one loop), paced in real time, on the first channel.
     Returns latencies (ms) after the recogniser ("asr") and after all ("full"), texts, CPU s."""
-    run = monolith(path, grammar, vad="silero")
+    windows = os.environ.get("ESIAF_VAD_WINDOWS", "").lower() in ("1", "true")  # what the pipeline's vad reads
+    run = monolith(path, grammar, vad="silero", windows=windows)
     latencies: dict[str, list[float]] = {"asr": [], "full": []}
     for utterance in run.utterances:
         latencies["asr"].append((utterance.done_ns["asr"] - utterance.end_ns - HANGOVER_NS) / 1e6)

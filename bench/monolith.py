@@ -4,7 +4,7 @@ bench/latency.py and bench/dataset.py (the thesis' "pre-existing monolith", Fig.
 One loop reads a sound file in the grabber's default chunks (chunk_ms) stamped from sample counts
 (paced in real time, or as fast as it goes) and segments it with the VAD's segmenter (``energy``: the original double
 threshold; ``silero``: the neural VAD and its probability segmenter, the service's defaults, deciding per
-32 ms window as the service does),
+chunk, or with ``windows`` per 32 ms window, as the service does),
 feeds the speech to pocketsphinx, and at each segment's end runs the emotion and gender models
 (one openSMILE feature vector for both, as the hosted services share it) and, if asked, the
 voiceid encoder. With ``array`` the SSL component (the service's own class and default settings)
@@ -134,7 +134,7 @@ class _FrontEnd:
 
 
 def monolith(path: Path, grammar: str, *, fast: bool = False, vad: str = "energy", array: str = "",
-             beamformer: bool = False, voiceid: bool = False, progress=None) -> MonolithRun:
+             beamformer: bool = False, voiceid: bool = False, progress=None, windows: bool = False) -> MonolithRun:
     """Plays ``path`` through the models in this process; ``progress(seconds_played)`` every minute of audio."""
     limit_native_threads()  # one BLAS thread, as every ESIAF process has (a pool spins on a loaded machine)
     audio, rate = soundfile.read(str(path), dtype="int16", always_2d=True)
@@ -148,10 +148,11 @@ def monolith(path: Path, grammar: str, *, fast: bool = False, vad: str = "energy
     front = _FrontEnd(array, rate, beamformer) if array else None
     segmenter: Any
     if vad == "silero":
-        cutter: WindowCutter | None = WindowCutter(SileroModel().stream(rate), frame_bytes=2)
+        silero = SileroModel().stream(rate)
+        cutter: WindowCutter | None = WindowCutter(silero, frame_bytes=2) if windows else None
         segmenter = ProbabilitySegmenter(ProbabilityParams())
     else:
-        cutter, segmenter = None, Segmenter(SegmenterParams())
+        silero, cutter, segmenter = None, None, Segmenter(SegmenterParams())
     cpu: dict[str, float] = defaultdict(float)
     step = round(rate * CHUNK_MS / 1000)
     cpu_start = time.process_time()
@@ -211,10 +212,12 @@ def monolith(path: Path, grammar: str, *, fast: bool = False, vad: str = "energy
             cpu["beamformer"] += front.beamformer_cpu_s - beamformer_cpu  # within the ssl's forward
             t = stage("ssl", t + front.beamformer_cpu_s - beamformer_cpu)
         for mono, start_ns, end_ns, ended in heard:
-            if cutter is not None:  # per Silero window, as the vad service decides
+            if cutter is not None:  # per Silero window, as the vad service with `windows` decides
                 pieces = cutter.cut(mono.tobytes(), start_ns, end_ns, mono[:, 0].astype(np.float32) / 32768, ended)
             else:
-                pieces = [(Piece(mono.tobytes(), start_ns, end_ns, 0, len(mono), ended), level_db(peak(mono, fmt)))]
+                score = (silero.chunk_probability(mono[:, 0].astype(np.float32) / 32768) if silero is not None
+                         else level_db(peak(mono, fmt)))
+                pieces = [(Piece(mono.tobytes(), start_ns, end_ns, 0, len(mono), ended), score)]
             forwards = []
             for piece, score in pieces:
                 forwards += segmenter.process(piece, piece.start_ns, piece.end_ns, score, force_end=piece.end_of_stream)

@@ -6,9 +6,10 @@ Two backends:
   silero-vad wheel, on onnxruntime) segmented with hysteresis, minimum speech and silence
   durations, a pre-roll, and a maximum length cut at the least speech-like point
   (:class:`~esiaf_services.vad.segmenter.ProbabilitySegmenter`). It hears speech, not loudness, so
-  babble and clatter 5-15 dB below the talker do not keep a segment open. It decides per window,
-  not per transport chunk (:mod:`esiaf_services.vad.windows`): its segments are the same at any
-  chunk size, and what it forwards is cut at window boundaries.
+  babble and clatter 5-15 dB below the talker do not keep a segment open. By default it decides per
+  chunk (the mean of the windows the chunk completes); with ``windows`` per window
+  (:mod:`esiaf_services.vad.windows`): its segments are then the same at any chunk size, and what it
+  forwards is cut at window boundaries.
 - ``energy``: ESIAF's original double-threshold segmenter on the chunks' peak level.
 
 The VAD result of a segment carries its mean speech probability (1 with ``energy``).
@@ -20,7 +21,7 @@ from typing import Any, ClassVar
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
 from esiaf_services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
-from esiaf_services.vad.silero import RATES_HZ, SileroError, SileroModel
+from esiaf_services.vad.silero import RATES_HZ, SileroError, SileroModel, SileroStream
 from esiaf_services.vad.windows import ChunkCutter, WindowCutter, messages
 
 log = logging.getLogger(__name__)
@@ -33,6 +34,10 @@ class VadSettings(ComponentSettings):
     sample_type: str = "int16"
     channels: int = 1
     backend: str = "silero"  # silero | energy
+    # silero: decide per 32 ms window (the same segments at any chunk size, esiaf_services/vad/windows.py)
+    # instead of per chunk (a chunk's probability the mean of the windows it completes). Not yet the
+    # default: the bundled emotion models are trained on per-chunk spans (README "Benchmarks")
+    windows: bool = False
     max_ms: float = 8000.0
     pre_roll_ms: float = 250.0
     # silero
@@ -80,7 +85,8 @@ class Vad(Component):
         self.add_input(settings.input_topic, fmt)
         self.add_output(settings.output_topic, fmt)
         self.model: SileroModel | None = None
-        self.segmenters: dict[str, tuple[Any, ChunkCutter | WindowCutter]] = {}  # per stream: segmenter, cutter
+        # per stream: segmenter, cutter, and the Silero state when it decides per chunk
+        self.segmenters: dict[str, tuple[Any, ChunkCutter | WindowCutter, SileroStream | None]] = {}
         self.segments = 0
         self._ended_on_chunk: set[str] = set()  # streams whose end was forwarded with their last segment
 
@@ -94,20 +100,27 @@ class Vad(Component):
                      self.settings.threshold_off)
         self.info["backend"] = self.settings.backend
 
-    def _stream(self, stream_id: str, audio: Audio) -> tuple[Any, ChunkCutter | WindowCutter]:
+    def _stream(self, stream_id: str, audio: Audio) -> tuple[Any, ChunkCutter | WindowCutter, SileroStream | None]:
         if stream_id not in self.segmenters:
             if self.model is None:
-                self.segmenters[stream_id] = (Segmenter(self.params), ChunkCutter())
-            else:
+                self.segmenters[stream_id] = (Segmenter(self.params), ChunkCutter(), None)
+            elif self.settings.windows:
                 self.segmenters[stream_id] = (ProbabilitySegmenter(self.params), WindowCutter(
-                    self.model.stream(self.settings.sample_rate_hz), audio.format.bytes_per_frame))
+                    self.model.stream(self.settings.sample_rate_hz), audio.format.bytes_per_frame), None)
+            else:
+                self.segmenters[stream_id] = (ProbabilitySegmenter(self.params), ChunkCutter(),
+                                              self.model.stream(self.settings.sample_rate_hz))
         return self.segmenters[stream_id]
 
     def on_audio(self, audio: Audio) -> None:
-        segmenter, cutter = self._stream(audio.stream_id, audio)
+        segmenter, cutter, silero = self._stream(audio.stream_id, audio)
         if isinstance(cutter, WindowCutter):  # one decision per Silero window, whatever the chunk
             pieces = cutter.cut(audio.payload, audio.start_ns, audio.end_ns,
                                 audio.as_float()[:, 0], audio.end_of_stream)
+        elif silero is not None:  # one decision per chunk: the mean of the windows it completes
+            pieces = cutter.cut(audio.payload, audio.start_ns, audio.end_ns, audio.frames,
+                                silero.chunk_probability(audio.as_float()[:, 0]) if audio.frames else 0.0,
+                                audio.end_of_stream)
         else:
             pieces = cutter.cut(audio.payload, audio.start_ns, audio.end_ns, audio.frames,
                                 level_db(audio.peak()) if audio.frames else float("-inf"), audio.end_of_stream)
