@@ -78,17 +78,23 @@ def clients(url: str, components: int, beats: int) -> None:
     context.term()
 
 
-def one_run(repo: Path, port: int, components: int, beats: int, profile: Path | None = None,
-            perf: Path | None = None) -> dict[str, float]:
-    import httpx
-    import psutil
-    workdir = Path(tempfile.mkdtemp(prefix="esiaf-heartbeat-"))
-    url = f"http://127.0.0.1:{port}"
+def orchestrator_process(repo: Path, port: int, prefix: str) -> tuple[subprocess.Popen, str, dict[str, str]]:
+    """A real orchestrator of ``repo``'s code on ``port`` (control and results on the next two), with a
+    fresh database; returns the process, its URL and the environment it runs in."""
+    workdir = Path(tempfile.mkdtemp(prefix=prefix))
     env = {**os.environ, "PYTHONPATH": str(repo), "ESIAF_ORCHESTRATOR_CONTROL_PORT": str(port + 1),
            "ESIAF_ORCHESTRATOR_RESULTS_PORT": str(port + 2), "ESIAF_ORCHESTRATOR_LOG_LEVEL": "WARNING"}
     orchestrator = subprocess.Popen([sys.executable, "-m", "esiaf_services.orchestrator", "--port", str(port),
                                      "--db", str(workdir / "o.db")], cwd=repo, env=env,
                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return orchestrator, f"http://127.0.0.1:{port}", env
+
+
+def one_run(repo: Path, port: int, components: int, beats: int, profile: Path | None = None,
+            perf: Path | None = None) -> dict[str, float]:
+    import httpx
+    import psutil
+    orchestrator, url, env = orchestrator_process(repo, port, "esiaf-heartbeat-")
     client = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--clients", str(repo), url,
                                str(components), str(beats)], cwd=repo, env=env, stdin=subprocess.PIPE,
                               stdout=subprocess.PIPE, text=True)

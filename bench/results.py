@@ -13,11 +13,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -27,6 +25,7 @@ import psutil
 import zmq
 from websockets.sync.client import connect
 
+from bench.heartbeat import orchestrator_process
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf.tools.testing import poll, signed_result
 
@@ -35,13 +34,7 @@ FORMAT = {"sample_rate_hz": 16000, "sample_type": "int16", "endianness": "little
 
 
 def one_run(repo: Path, port: int, count: int, profile: Path | None = None) -> dict[str, float]:
-    workdir = Path(tempfile.mkdtemp(prefix="esiaf-results-"))
-    url = f"http://127.0.0.1:{port}"
-    env = {**os.environ, "PYTHONPATH": str(repo), "ESIAF_ORCHESTRATOR_CONTROL_PORT": str(port + 1),
-           "ESIAF_ORCHESTRATOR_RESULTS_PORT": str(port + 2), "ESIAF_ORCHESTRATOR_LOG_LEVEL": "WARNING"}
-    orchestrator = subprocess.Popen([sys.executable, "-m", "esiaf_services.orchestrator", "--port", str(port),
-                                     "--db", str(workdir / "o.db")], cwd=repo, env=env,
-                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    orchestrator, url, _ = orchestrator_process(repo, port, "esiaf-results-")
     context = zmq.Context()
     try:
         poll(lambda: httpx.get(f"{url}/health").status_code == 200, timeout_s=30)
