@@ -117,13 +117,14 @@ class Vad(Component):
         if isinstance(cutter, WindowCutter):  # one decision per Silero window, whatever the chunk
             pieces = cutter.cut(audio.payload, audio.start_ns, audio.end_ns,
                                 audio.as_float()[:, 0], audio.end_of_stream)
-        elif silero is not None:  # one decision per chunk: the mean of the windows it completes
-            pieces = cutter.cut(audio.payload, audio.start_ns, audio.end_ns, audio.frames,
-                                silero.chunk_probability(audio.as_float()[:, 0]) if audio.frames else 0.0,
-                                audio.end_of_stream)
-        else:
-            pieces = cutter.cut(audio.payload, audio.start_ns, audio.end_ns, audio.frames,
-                                level_db(audio.peak()) if audio.frames else float("-inf"), audio.end_of_stream)
+        else:  # one decision per chunk: Silero's mean over the windows it completes, or its level
+            if not audio.frames:
+                score = 0.0 if silero is not None else float("-inf")
+            elif silero is not None:
+                score = silero.chunk_probability(audio.as_float()[:, 0])
+            else:
+                score = level_db(audio.peak())
+            pieces = cutter.cut(audio.payload, audio.start_ns, audio.end_ns, audio.frames, score, audio.end_of_stream)
         forwards = []
         for piece, score in pieces:
             forwards += segmenter.process(piece, piece.start_ns, piece.end_ns, score, force_end=piece.end_of_stream)
