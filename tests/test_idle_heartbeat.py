@@ -91,7 +91,8 @@ def test_an_idle_process_beats_slowly_stays_alive_and_beats_fast_again_when_audi
     source = Source(Source.Settings(name="source", orchestrator_url=orchestrator.url))
     thread = threading.Thread(target=source.run, daemon=True)
     try:
-        poll(lambda: orchestrator.component("sink"), timeout_s=30)
+        # registered, and its first beat heard (until then the interval is not known: None)
+        poll(lambda: (orchestrator.component("sink") or {}).get("heartbeat_interval_s") is not None, timeout_s=30)
         assert orchestrator.component("sink")["heartbeat_interval_s"] == 0.2  # just registered: fast
         poll(lambda: orchestrator.component("sink")["heartbeat_interval_s"] == 2.0, timeout_s=10)
         # silent for 2 s at a time, longer than dead_after_s: alive all along, as it said it would be
