@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from esiaf_services.emotion.features import FeatureError, shared_extractor
+from esiaf_services.emotion.features import FeatureError, shared_extractor, without_digital_silence
 
 MODELS = Path(__file__).resolve().parent / "models"
 
@@ -103,7 +103,7 @@ class OnnxClassifier(Classifier):
         return np.asarray(output, dtype=np.float64).reshape(-1)
 
     def classify(self, samples: np.ndarray) -> dict[str, float]:
-        probabilities = self._run(self.features(samples))
+        probabilities = self._run(self.features(without_digital_silence(samples)))
         return dict(zip(self.labels, probabilities.tolist(), strict=True))
 
 

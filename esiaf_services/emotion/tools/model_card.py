@@ -19,9 +19,10 @@ edit by hand.
 - **Features**: openSMILE ComParE 2016 functionals (6,373 values per utterance), `opensmile`
   package, of the utterance's speech span as the vad service finds it, without the VAD's pre-roll
   and hang-over: `esiaf_services/emotion/features.py`, the same code the service runs on each segment.
-  Each utterance is in the training set twice, once with the span each VAD backend cuts (Silero,
-  the default: from a little before the onset to the last speech-like window; energy: onset to
-  last loud chunk). (Functionals average over every frame: the 650 ms of silence the VAD forwards
+  Each utterance is in the training set three times, once with the span each way the vad service
+  cuts (`features.VADS`: Silero deciding per 32 ms window, the default, and per 20 ms chunk: from a
+  little before the onset to the last speech-like window; energy: onset to last loud chunk), exact
+  zeros at the ends left out (`features.without_digital_silence`). (Functionals average over every frame: the 650 ms of silence the VAD forwards
   around the speech took the hold-out 4-class model from 0.85 to 0.50 accuracy on 40 utterances
   of speakers 03 and 08 before the span cut; a model trained on the energy spans alone was right
   on 0.65 of the held-out utterances cut by Silero, against 0.90 cut by energy.)
@@ -33,9 +34,9 @@ edit by hand.
   files, see "What was tried") and not re-tuned after the speech-span cut; that may flatter the
   figures by about a point (the spread between the C values). No nested selection was run (it
   costs nine times the CPU). Nothing is tuned per test speaker.
-- **Evaluation**: leave-one-speaker-out (LOSO): ten folds, each trained on nine actors (both
-  spans) and tested on the tenth, on the Silero spans (the headline figures) and on the energy
-  spans; the figures pool the ten folds' predictions. UAR = unweighted average recall (mean of
+- **Evaluation**: leave-one-speaker-out (LOSO): ten folds, each trained on nine actors (all three
+  spans) and tested on the tenth, on the default Silero spans (the headline figures) and on the
+  others; the figures pool the ten folds' predictions. UAR = unweighted average recall (mean of
   per-class recalls). Each utterance is judged alone: no statistics of the test speaker are used.
 - **Limits**: acted, read German speech by 10 adults in a quiet studio; expect lower figures on
   spontaneous speech, other languages, children, far microphones and noise. Gender is the binary

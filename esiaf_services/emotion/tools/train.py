@@ -3,10 +3,10 @@
     python -m esiaf_services.emotion.tools.train [--data ../shared/data/emodb] [--tasks emotion4,emotion7,gender]
 
 For each task it extracts openSMILE ComParE 2016 functionals of every utterance's speech span,
-as each of the vad service's backends would cut it (``features.speech_span``: Silero, the
-default, and energy; cached in ``.cache/emotion/``, git-ignored), trains on both spans of each
-utterance, evaluates leave-one-speaker-out (train on 9 speakers, test on each VAD's spans of the
-10th, for each speaker), trains the final model on all 10 speakers and writes, in
+as each way the vad service cuts would cut it (``features.VADS``, ``features.speech_span``: Silero
+per window, the default; Silero per chunk; energy; cached in ``.cache/emotion/``, git-ignored),
+trains on every span of each utterance, evaluates leave-one-speaker-out (train on 9 speakers, test
+on each way's spans of the 10th, for each speaker), trains the final model on all 10 speakers and writes, in
 ``esiaf_services/emotion/models/``: ``<task>.onnx`` (standardisation + logistic regression, converted
 with skl2onnx and checked against scikit-learn), ``<task>.json`` (label map and evaluation) and
 ``MODEL_CARD.md``. It also writes ``models/holdout/<task>.onnx``, trained without speakers 03 and
@@ -28,7 +28,13 @@ import soundfile
 
 from esiaf.tools.testing import SHARED_DATA
 from esiaf_services.emotion.backends import MODELS
-from esiaf_services.emotion.features import VADS, FeatureExtractor, speech_span
+from esiaf_services.emotion.features import (
+    VADS,
+    FeatureExtractor,
+    speech_segments,
+    speech_span,
+    without_digital_silence,
+)
 from esiaf_services.emotion.tools.model_card import write_card
 
 log = logging.getLogger("train")
@@ -69,7 +75,7 @@ def features(data: Path, rows: list[dict[str, str]], vad: str) -> np.ndarray:
     """(utterances, features) of the speech spans the vad service's backend ``vad`` cuts, from the
     cache when it holds exactly these files."""
     import opensmile
-    cache = CACHE / f"{FEATURE_SET}-speech-span-{vad}-opensmile{opensmile.__version__}.npz"
+    cache = CACHE / f"{FEATURE_SET}-spans-{vad}-opensmile{opensmile.__version__}.npz"
     paths = np.array([r["path"] for r in rows])
     if cache.is_file():
         stored = np.load(cache)
@@ -83,7 +89,7 @@ def features(data: Path, rows: list[dict[str, str]], vad: str) -> np.ndarray:
         if rate != extractor.sample_rate_hz:
             raise SystemExit(f"train: {row['path']} is {rate} Hz, expected {extractor.sample_rate_hz}")
         first, end = speech_span(samples, rate, vad=vad)  # what the VAD forwards as the segment's speech
-        values.append(extractor(samples[first:end]))
+        values.append(extractor(without_digital_silence(samples[first:end])))
         if (i + 1) % 100 == 0:
             log.info("features: %d/%d", i + 1, len(rows))
     speech_s = sum(float(r["duration_s"]) for r in rows)
@@ -92,6 +98,20 @@ def features(data: Path, rows: list[dict[str, str]], vad: str) -> np.ndarray:
     CACHE.mkdir(parents=True, exist_ok=True)
     np.savez(cache, paths=paths, features=np.stack(values))
     return np.stack(values)
+
+
+def longest_segments(data: Path, paths: list[str], vad: str) -> dict[str, np.ndarray]:
+    """Per file, the features of the longest segment the vad service cutting as ``vad`` would cut of
+    it: what the pipeline labels where its VAD splits an utterance at a pause (the end-to-end test's
+    fused result overlapping the utterance most), where ``features`` takes all of its speech."""
+    extractor = FeatureExtractor(FEATURE_SET)
+    out = {}
+    for path in paths:
+        samples, rate = soundfile.read(data / path, dtype="float32")
+        segments = speech_segments(samples, rate, vad=vad) or [(0, len(samples))]
+        first, end = max(segments, key=lambda segment: segment[1] - segment[0])
+        out[path] = extractor(without_digital_silence(samples[first:end]))
+    return out
 
 
 def make_model(task: Task):
@@ -164,7 +184,8 @@ def label_map(task: Task, model, **extra) -> dict:
             "classifier": f"StandardScaler + LogisticRegression(C={task.regularisation_c}, L2)", **extra}
 
 
-def train(task: Task, data: Path, rows: list[dict[str, str]], x_all: dict[str, np.ndarray], out: Path) -> dict:
+def train(task: Task, data: Path, rows: list[dict[str, str]], x_all: dict[str, np.ndarray],
+          longest: dict[str, dict[str, np.ndarray]], out: Path) -> dict:
     keep = np.array([r[task.column] in task.labels for r in rows])
     x = {vad: values[keep] for vad, values in x_all.items()}
     y = np.array([task.labels.get(r[task.column], "") for r in rows])[keep]
@@ -185,9 +206,12 @@ def train(task: Task, data: Path, rows: list[dict[str, str]], x_all: dict[str, n
     export(holdout, both(x, y, ~held)[0], out / "holdout" / f"{task.name}.onnx")
     default = next(iter(x))  # the predictions are on the default VAD's spans; predicted_<vad> on the others'
     predicted = {vad: holdout.predict(values[held]).astype(str) for vad, values in x.items()}
+    predicted.update({f"longest_{vad}": holdout.predict(np.stack([by_path[p] for p in paths[held]])).astype(str)
+                      for vad, by_path in longest.items()})
     (out / "holdout" / f"{task.name}.json").write_text(json.dumps(label_map(
         task, holdout, trained_without_speakers=list(HOLDOUT_SPEAKERS), vad=default,
         held_out=scores(y[held], predicted[default], evaluation["labels"]),
+        held_out_longest_segment=scores(y[held], predicted[f"longest_{default}"], evaluation["labels"]),
         predictions={p: {"truth": str(t), "predicted": str(predicted[default][i]),
                          **{f"predicted_{vad}": str(q[i]) for vad, q in predicted.items() if vad != default}}
                      for i, (p, t) in enumerate(zip(paths[held], y[held], strict=True))}),
@@ -207,8 +231,10 @@ def main() -> None:
         raise SystemExit(f"train: unknown task(s) {', '.join(sorted(unknown))}; known: {', '.join(TASKS)}")
     rows = read_manifest(args.data)
     x = {vad: features(args.data, rows, vad) for vad in VADS}  # the default VAD first
+    held = [r["path"] for r in rows if r["speaker"] in HOLDOUT_SPEAKERS]
+    longest = {vad: longest_segments(args.data, held, vad) for vad in VADS}
     for name in args.tasks.split(","):
-        train(TASKS[name], args.data, rows, x, args.out)
+        train(TASKS[name], args.data, rows, x, longest, args.out)
     write_card(args.out)
 
 
