@@ -4,7 +4,7 @@ bench/latency.py and bench/dataset.py (the thesis' "pre-existing monolith", Fig.
 One loop reads a sound file in the grabber's default chunks (chunk_ms) stamped from sample counts
 (paced in real time, or as fast as it goes) and segments it with the VAD's segmenter (``energy``: the original double
 threshold; ``silero``: the neural VAD and its probability segmenter, the service's defaults, deciding per
-chunk, or with ``windows`` per 32 ms window, as the service does),
+32 ms window, or with ``windows=False`` per chunk, as the service does),
 feeds the speech to pocketsphinx, and at each segment's end runs the emotion and gender models
 (one openSMILE feature vector for both, as the hosted services share it) and, if asked, the
 voiceid encoder. With ``array`` the SSL component (the service's own class and default settings)
@@ -134,7 +134,7 @@ class _FrontEnd:
 
 
 def monolith(path: Path, grammar: str, *, fast: bool = False, vad: str = "energy", array: str = "",
-             beamformer: bool = False, voiceid: bool = False, progress=None, windows: bool = False) -> MonolithRun:
+             beamformer: bool = False, voiceid: bool = False, progress=None, windows: bool = True) -> MonolithRun:
     """Plays ``path`` through the models in this process; ``progress(seconds_played)`` every minute of audio."""
     limit_native_threads()  # one BLAS thread, as every ESIAF process has (a pool spins on a loaded machine)
     audio, rate = soundfile.read(str(path), dtype="int16", always_2d=True)
@@ -212,7 +212,7 @@ def monolith(path: Path, grammar: str, *, fast: bool = False, vad: str = "energy
             cpu["beamformer"] += front.beamformer_cpu_s - beamformer_cpu  # within the ssl's forward
             t = stage("ssl", t + front.beamformer_cpu_s - beamformer_cpu)
         for mono, start_ns, end_ns, ended in heard:
-            if cutter is not None:  # per Silero window, as the vad service with `windows` decides
+            if cutter is not None:  # per Silero window, as the vad service decides
                 pieces = cutter.cut(mono.tobytes(), start_ns, end_ns, mono[:, 0].astype(np.float32) / 32768, ended)
             else:
                 score = (silero.chunk_probability(mono[:, 0].astype(np.float32) / 32768) if silero is not None

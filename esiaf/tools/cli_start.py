@@ -46,8 +46,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("esiaf")
 
-# --fast: every service's audio queues (ESIAF_AUDIO_QUEUE, messages per connection and direction): 5 s of
-# the default 20 ms chunks. A replay waits for its slowest consumer (docs/protocol.md, "Flow control"), so a small
+# --fast: every service's audio queues (ESIAF_AUDIO_QUEUE, messages per connection and direction): 12.5 s
+# of the default 50 ms chunks. A replay waits for its slowest consumer (docs/protocol.md, "Flow control"), so a small
 # queue loses nothing and keeps each process's memory flat; live use keeps the large default (a value
 # given in the environment wins)
 FAST_AUDIO_QUEUE = 250

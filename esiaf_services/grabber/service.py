@@ -22,11 +22,10 @@ class GrabberSettings(ComponentSettings):
     input: str = ""  # a sound file or .raw/.pcm file; empty = live capture from `device`
     device: str = ""  # ALSA device name for live capture
     topic: str = "grabber/audio"
-    # the transport chunk, files and live capture (the ALSA period) alike. 50 ms costs the framework 40 %
-    # less CPU (bench/framework.py) but the RoboCup harness 4 points of questions (68.3 -> 64.2 %) while the
-    # vad decides per chunk; with the vad deciding per window (ESIAF_VAD_WINDOWS=true) 50 ms keeps them, but
-    # the bundled emotion models are trained on per-chunk spans (README "Benchmarks"): 20 ms stays the default
-    chunk_ms: float = 20.0
+    # the transport chunk, files and live capture (the ALSA period) alike, chosen by measurement (README
+    # "Benchmarks"): 50 ms costs the framework 37 % less CPU than 20 ms (bench/framework.py), and the RoboCup
+    # harness the same questions, since the vad decides per 32 ms window whatever the chunk
+    chunk_ms: float = 50.0
     fast: bool = False  # play files as fast as possible instead of in real time
     # format of raw files and of live capture
     sample_rate_hz: int = 16000

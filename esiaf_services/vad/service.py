@@ -6,10 +6,10 @@ Two backends:
   silero-vad wheel, on onnxruntime) segmented with hysteresis, minimum speech and silence
   durations, a pre-roll, and a maximum length cut at the least speech-like point
   (:class:`~esiaf_services.vad.segmenter.ProbabilitySegmenter`). It hears speech, not loudness, so
-  babble and clatter 5-15 dB below the talker do not keep a segment open. By default it decides per
-  chunk (the mean of the windows the chunk completes); with ``windows`` per window
-  (:mod:`esiaf_services.vad.windows`): its segments are then the same at any chunk size, and what it
-  forwards is cut at window boundaries.
+  babble and clatter 5-15 dB below the talker do not keep a segment open. It decides per window, not
+  per transport chunk (:mod:`esiaf_services.vad.windows`): its segments are the same at any chunk
+  size, and what it forwards is cut at window boundaries. With ``windows: false`` it decides per
+  chunk (the mean of the windows the chunk completes), the default until 2026-11-26.
 - ``energy``: ESIAF's original double-threshold segmenter on the chunks' peak level.
 
 The VAD result of a segment carries its mean speech probability (1 with ``energy``).
@@ -34,10 +34,10 @@ class VadSettings(ComponentSettings):
     sample_type: str = "int16"
     channels: int = 1
     backend: str = "silero"  # silero | energy
-    # silero: decide per 32 ms window (the same segments at any chunk size, esiaf_services/vad/windows.py)
-    # instead of per chunk (a chunk's probability the mean of the windows it completes). Not yet the
-    # default: the bundled emotion models are trained on per-chunk spans (README "Benchmarks")
-    windows: bool = False
+    # silero: decide per 32 ms window (the same segments at any chunk size, esiaf_services/vad/windows.py);
+    # false: per chunk (a chunk's probability the mean of the windows it completes). The bundled emotion
+    # models are trained on the spans of both (esiaf_services/emotion/features.py VADS)
+    windows: bool = True
     max_ms: float = 8000.0
     pre_roll_ms: float = 250.0
     # silero

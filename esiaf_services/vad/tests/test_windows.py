@@ -29,7 +29,7 @@ class Recording(Vad):
 
 
 def play(pcm: bytes, chunk_frames: int, backend: str = "silero") -> Recording:
-    vad = Recording(VadSettings(backend=backend, windows=True))
+    vad = Recording(VadSettings(backend=backend))
     vad.setup()
     total = len(pcm) // 2
     for sequence, first in enumerate(range(0, total, chunk_frames), 1):
