@@ -10,15 +10,17 @@ import sys
 import threading
 from pathlib import Path
 
+import httpx
 import pytest
 import soundfile
 
 from esiaf import Audio, AudioFormat, Component
-from esiaf.tools.testing import REPO, Orchestrator, poll
+from esiaf.tools.testing import REPO, Orchestrator, normalise, poll
 from esiaf_services.grabber.service import Grabber, GrabberSettings
 
 pytestmark = pytest.mark.e2e
 SCENE = REPO / "examples" / "robocup_scene.flac"
+TRUTH = json.loads(SCENE.with_suffix(".json").read_text())["utterances"][:2]
 SPEECH = AudioFormat(16000, "int16")
 
 
@@ -51,7 +53,7 @@ class Faulty(Recorder):
 def speech_48k(tmp_path_factory) -> Path:
     """The demo scene's first two questions, microphone 0, as 48 kHz mono: the vad (16 kHz) hears it converted."""
     import soxr
-    mics, rate = soundfile.read(str(SCENE), dtype="float32", frames=16000 * 9)
+    mics, rate = soundfile.read(str(SCENE), dtype="float32", frames=int((TRUTH[-1]["end_s"] + 1.0) * 16000))
     path = tmp_path_factory.mktemp("speech") / "speech48k.wav"
     soundfile.write(str(path), soxr.resample(mics[:, 0], rate, 48000), 48000, subtype="PCM_16")
     return path
@@ -157,3 +159,20 @@ def test_a_guest_that_hears_nothing_of_its_host_stops_it_at_start_up(speech_48k)
     assert result.returncode == 2, result.stderr
     assert result.stderr.strip().splitlines()[-1] == \
         "grabber: guest vad hears splitter/ch0, and grabber receives or publishes only grabber/audio", result.stderr
+
+
+@pytest.mark.parametrize("apart", [False, True], ids=["default", "apart"])
+def test_esiaf_run_hosts_the_vad_in_the_grabber_unless_apart(launch, speech_48k, apart):
+    run = launch("--input", str(speech_48k), "--grammar", "robocup", "--without", "emotion,gender,voiceid", "--json",
+                 *(["--apart"] if apart else []))
+
+    def alive() -> dict[str, dict]:
+        listed = httpx.get(f"{run.url}/components", headers=run.headers, timeout=5).json()["items"]
+        return {c["name"]: c for c in listed if c["status"] == "alive"}
+    components = poll(lambda: (found := alive()).keys() >= {"grabber", "vad", "asr"} and found, timeout_s=60)
+    run.wait_for_line(lambda line: line.get("type") == "stream_end", timeout_s=60)
+    heard = [normalise(line["anchor"]["speech"]["hypotheses"][0]["text"]) for line in run.lines
+             if line.get("type") == "fused_result"]
+    assert heard == [normalise(t["text"]) for t in TRUTH], run.describe()
+    assert (components["vad"]["pid"] == components["grabber"]["pid"]) is not apart
+    assert components["vad"]["component_id"] != components["grabber"]["component_id"]
