@@ -29,6 +29,7 @@ import importlib
 import inspect
 import json
 import logging
+import queue
 import threading
 from typing import Any, ClassVar, cast
 
@@ -88,7 +89,7 @@ class Guest:
         self.analyser.setup()  # its model: a failure stops the host at start-up, as it would stop the guest alone
         self._context: zmq.Context | None = None
         self._state_thread: threading.Thread | None = None
-        self._formats: dict[str, Any] | None = None  # the latest formats the orchestrator gave, not yet applied
+        self._formats: queue.SimpleQueue[dict[str, Any]] = queue.SimpleQueue()  # given, not yet applied (in order)
 
     @property
     def name(self) -> str:
@@ -123,7 +124,7 @@ class Guest:
                     log.error("guest %s stopping the host: %s", self.name, message.get("error"))
                     host.stop(exit_code=1)
                 elif isinstance(message.get("formats"), dict):
-                    self._formats = message["formats"]  # applied on the data thread, at the next message
+                    self._formats.put(message["formats"])  # applied on the data thread, at the next message
         except zmq.ContextTerminated:
             pass
         finally:
@@ -139,9 +140,8 @@ class Guest:
         """An audio message the host received or published, taken by the guest as if from the wire; a
         topic it does not take is ignored, a handler's exception counted and logged (Component._on_message)."""
         analyser = self.analyser
-        if (formats := self._formats) is not None:
-            self._formats = None
-            self._apply_formats(formats)
+        while not self._formats.empty():
+            self._apply_formats(self._formats.get())
         if analyser.control is not None:
             analyser.control.busy()  # its heartbeat stays fast while it works (the transport wakes the host)
         analyser._on_message(frames)
