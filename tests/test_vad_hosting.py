@@ -17,6 +17,7 @@ import soundfile
 from esiaf import Audio, AudioFormat, Component
 from esiaf.tools.testing import REPO, Orchestrator, normalise, poll
 from esiaf_services.grabber.service import Grabber, GrabberSettings
+from tests.test_bad_input import assert_clear, esiaf_run
 
 pytestmark = pytest.mark.e2e
 SCENE = REPO / "examples" / "robocup_scene.flac"
@@ -162,10 +163,10 @@ def test_a_guest_that_hears_nothing_of_its_host_stops_it_at_start_up(speech_48k)
         "grabber: guest vad hears splitter/ch0, and grabber receives or publishes only grabber/audio", result.stderr
 
 
-@pytest.mark.parametrize("apart", [False, True], ids=["default", "apart"])
-def test_esiaf_run_hosts_the_vad_in_the_grabber_unless_apart(launch, speech_48k, apart):
+@pytest.mark.parametrize("hosted", [False, True], ids=["default", "vad_in_grabber"])
+def test_esiaf_run_runs_the_vad_in_the_grabber_when_asked(launch, speech_48k, hosted):
     run = launch("--input", str(speech_48k), "--grammar", "robocup", "--without", "emotion,gender,voiceid", "--json",
-                 *(["--apart"] if apart else []))
+                 *(["--vad-in-grabber"] if hosted else []))
 
     def alive() -> dict[str, dict]:
         listed = httpx.get(f"{run.url}/components", headers=run.headers, timeout=5).json()["items"]
@@ -175,5 +176,13 @@ def test_esiaf_run_hosts_the_vad_in_the_grabber_unless_apart(launch, speech_48k,
     heard = [normalise(line["anchor"]["speech"]["hypotheses"][0]["text"]) for line in run.lines
              if line.get("type") == "fused_result"]
     assert heard == [normalise(t["text"]) for t in TRUTH], run.describe()
-    assert (components["vad"]["pid"] == components["grabber"]["pid"]) is not apart
+    assert (components["vad"]["pid"] == components["grabber"]["pid"]) is hosted
     assert components["vad"]["component_id"] != components["grabber"]["component_id"]
+
+
+def test_vad_in_grabber_is_refused_where_one_grabber_does_not_feed_the_vad(tmp_path, speech_48k):
+    second = tmp_path / "second.wav"
+    second.write_bytes(speech_48k.read_bytes())
+    result = esiaf_run("--input", str(speech_48k), "--input", str(second), "--vad-in-grabber", "--workdir",
+                       str(tmp_path / "run"))
+    assert_clear(result, "--vad-in-grabber: not possible here: several inputs play at once")

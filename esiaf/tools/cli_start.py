@@ -62,7 +62,7 @@ class Pipeline:
     labellers: list[str]  # the analysers on the VAD's output besides the recogniser
     replicas: dict[str, int]  # analysers on the VAD's output run as several instances (--replicas)
     guests: set[str] = field(default_factory=set)  # labellers run in another labeller's process (not --apart)
-    vad_in_grabber: bool = False  # the vad is a guest in the grabber's process (not --apart)
+    vad_in_grabber: bool = False  # the vad is a guest in the grabber's process (--vad-in-grabber)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -73,6 +73,8 @@ def run(args: argparse.Namespace) -> int:
     without = parse_without(args.without)
     wanted_plugins = [resolve_plugin(spec) for spec in args.plugins]  # a bad --with fails before anything starts
     replicas = parse_replicas(args.replicas, without, [plugin.name for plugin in wanted_plugins])
+    if args.vad_in_grabber:
+        check_vad_in_grabber(args, channels, array, replicas)
     services = known_services() | {p.name for p in wanted_plugins}
     for name in unknown_variables(os.environ, services):
         print(f"esiaf: {name} names no service ({', '.join(sorted(services))}) and no common setting: "
@@ -184,7 +186,7 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
                    **({"ESIAF_GRABBER_CHUNK_MS": str(args.chunk_ms)} if args.chunk_ms is not None else {})}
     vad_env = {"ESIAF_VAD_BACKEND": args.vad} if args.vad else {}
     beamforming = array is not None and "ssl" not in without and not args.no_beamformer
-    vad_in_grabber = hosted_vad(args, channels, array, replicas)
+    vad_in_grabber = args.vad_in_grabber
     if vad_in_grabber:  # it starts with the grabber, and the grabber waits for the vad's consumers
         grabber_env.update({"ESIAF_GRABBER_GUESTS": json.dumps(["vad"]), "ESIAF_GRABBER_WAIT_TOPIC": "vad/speech",
                             **vad_env})
@@ -224,13 +226,17 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
     return Pipeline(services, grabber_env, beamforming, labellers, replicas, guests, vad_in_grabber)
 
 
-def hosted_vad(args: argparse.Namespace, channels: int, array: ArrayGeometry | None, replicas: dict[str, int]) -> bool:
-    """Whether the vad runs in the grabber's process (esiaf/hosting.py): each chunk reaches it without a
-    ZeroMQ hop or a second process woken. Only where it hears the grabber's audio itself (one mono input,
-    no splitter or beamformer in between), one grabber feeds it (one input) and no replicas wait for the
-    streams before the grabbers start (reserve_streams); not with --apart."""
-    inputs = len(args.input) if args.input else 1
-    return not args.apart and channels <= 1 and array is None and inputs == 1 and not replicas
+def check_vad_in_grabber(args: argparse.Namespace, channels: int, array: ArrayGeometry | None,
+                         replicas: dict[str, int]) -> None:
+    """--vad-in-grabber (esiaf/hosting.py) is possible where the vad hears the grabber's audio itself (one
+    mono input: no splitter or beamformer in between), one grabber feeds it, and no replicas wait for the
+    streams before the grabbers start (reserve_streams)."""
+    why = ("the input has several channels (the vad hears a splitter's or beamformer's output)"
+           if channels > 1 or array is not None else
+           "several inputs play at once (one vad hears them all)" if args.input and len(args.input) > 1 else
+           "--replicas wait for the streams before the grabber starts" if replicas else "")
+    if why:
+        raise LaunchError(f"--vad-in-grabber: not possible here: {why}")
 
 
 def hosted_labellers(labellers: list[str], replicas: dict[str, int], apart: bool) -> dict[str, list[str]]:
