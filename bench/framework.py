@@ -28,6 +28,10 @@ setting's saving, e.g. ``ESIAF_ORCHESTRATOR_HEARTBEAT_INTERVAL_S=2.5``.
                               [--vad silero|energy] [--against DIR] [--against-env NAME=VALUE]
                               [--profile DIR]
 
+``--vad-in-grabber`` runs this checkout's pipeline with the vad in the grabber's process (``esiaf run
+--vad-in-grabber``; not the ``--against`` runs): the grabber's column is then both, and the framework
+counts that process once (the vad's column is nan).
+
 ``--profile DIR`` samples the grabber, vad and orchestrator with py-spy (``pip install py-spy``,
 in the dev extra) while the audio plays, one run per chunk size, writes the collapsed stacks to
 DIR/<service>-<chunk>ms.txt and prints each process's top functions (inclusive and own samples;
@@ -183,6 +187,8 @@ def main() -> None:
                         help="an environment variable for the --against runs only (repeatable); without "
                         "--against they run this checkout: e.g. ESIAF_ORCHESTRATOR_HEARTBEAT_INTERVAL_S=2.5")
     parser.add_argument("--port", type=int, default=19300, help="first orchestrator port (one per run)")
+    parser.add_argument("--vad-in-grabber", action="store_true",
+                        help="this checkout's runs with the vad in the grabber's process (esiaf run --vad-in-grabber)")
     args = parser.parse_args()
     chunks = [float(c) for c in args.chunk_ms.split(",") if c.strip()]
     if args.input is None:
@@ -221,8 +227,9 @@ def main() -> None:
         for config in configs:
             code, chunk_ms = config
             print(f"repeat {repeat + 1}: {chunk_ms:g} ms chunks, {code} ...", file=sys.stderr, flush=True)
+            hosted = ["--vad-in-grabber"] if args.vad_in_grabber and code == "this" else []
             ms, said, per_service, _startup, fused = pipeline(args.input, "robocup", port,
-                                                               [*extra, "--chunk-ms", f"{chunk_ms:g}"],
+                                                               [*extra, "--chunk-ms", f"{chunk_ms:g}", *hosted],
                                                                repo=codes[code],
                                                                env=against_env if code == "against" else None)
             port += 1
@@ -236,6 +243,7 @@ def main() -> None:
     info = soundfile.info(str(args.input))
     against = f", against {codes['against']}" if "against" in codes else ""
     against += f" with {' '.join(args.against_env)}" if args.against_env else ""
+    against += ", this with the vad in the grabber's process" if args.vad_in_grabber else ""
     print(f"audio {info.duration:.1f} s, vad {args.vad}, {args.repeats} repeats"
           f"{against}; CPU-s per hour of audio (median of repeats); "
           f"latency over all repeats")

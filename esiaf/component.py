@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import signal
 import socket
 import threading
 import time
@@ -28,7 +27,7 @@ from typing import Any, ClassVar
 import numpy as np
 import zmq
 
-from esiaf import binding, keys
+from esiaf import binding, keys, signals
 from esiaf.api_client import announce_stream
 from esiaf.audio import Audio
 from esiaf.control import ControlClient
@@ -206,11 +205,14 @@ class Component:
     def wait_for_subscribers(self, topic: str, count: int, timeout_s: float) -> bool:
         """Services the sockets until ``topic`` has ``count`` subscribers, or the time is up."""
         deadline = time.monotonic() + timeout_s
-        while self.output_stats[topic].subscribers < count:
+        while self.subscribers(topic) < count:
             if self.stopping or time.monotonic() >= deadline:
                 return False
             self._service(max(1, int((deadline - time.monotonic()) * 1000)))  # a subscription wakes it
         return True
+
+    def subscribers(self, topic: str) -> int:  # of an output topic (a host's guests' too: esiaf/hosting.py)
+        return self.output_stats[topic].subscribers
 
     def sleep_until(self, deadline_monotonic: float) -> None:
         """Waits (servicing sockets) until a monotonic time, or until stopped: up to 1 ms past it, as
@@ -233,7 +235,7 @@ class Component:
 
     def run(self) -> int:
         """Set up, register, process until stopped; returns the exit code."""
-        self._install_signal_handlers()
+        signals.install(self.stop, lambda: self._transport.reload_keys_soon() if self._transport else None)
         try:  # before setup(): a bad key file fails at once, not after a model has loaded
             curve = keys.load(orchestrator=False)
         except keys.KeyFileError as exc:
@@ -264,13 +266,6 @@ class Component:
         finally:
             self._shutdown()
         return self._exit_code
-
-    def _install_signal_handlers(self) -> None:
-        if threading.current_thread() is not threading.main_thread():
-            return
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(sig, lambda signum, frame: self.stop())
-        signal.signal(signal.SIGHUP, lambda *_: self._transport.reload_keys_soon() if self._transport else None)
 
     def _registration_request(self) -> dict[str, Any]:
         def topics(declared: dict[str, AudioFormat]) -> list[dict[str, Any]]:

@@ -15,7 +15,7 @@ segment, so fusion never waits for a result that will not come. A kind that is n
 (label distribution, mean value) and shown like the built-in ones.
 
 Analysers that need the same features of an utterance can run in one process: the ``guests``
-setting names the utterance analysers this one hosts (``esiaf/hosting.py``), each still its own
+setting names the components this one hosts (``esiaf/hosting.py``), each still its own
 service to the orchestrator; features asked for through ``esiaf.features.shared`` are then
 computed once per utterance for all of them.
 """
@@ -28,13 +28,11 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
-from pydantic import Field
 
 from esiaf.audio import Audio
-from esiaf.component import Component
 from esiaf.features import feature_counts
 from esiaf.formats import AudioFormat
-from esiaf.hosting import Guest
+from esiaf.hosting import Host, HostSettings
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf.results import LABEL_PAYLOADS, valid_kind
 from esiaf.settings import ComponentSettings
@@ -43,13 +41,11 @@ log = logging.getLogger(__name__)
 _LABEL_FIELDS = set(pb.LabelResult.DESCRIPTOR.fields_by_name)  # label, probability, classes, embedding
 
 
-class UtteranceSettings(ComponentSettings):
+class UtteranceSettings(HostSettings):
     input_topic: str = "vad/speech"
     sample_rate_hz: int = 16000
     min_speech_ms: float = 500.0  # shorter segments get "nothing": too short to judge
     silence_db: float = 45.0  # segments whose peak stays below this get "nothing" (96 dB = full scale)
-    # utterance analysers run in this process, each its own service (e.g. ["gender"]; esiaf/hosting.py)
-    guests: list[str] = Field(default_factory=list)
 
 
 @dataclass
@@ -58,7 +54,7 @@ class Utterance:
     chunks: list[np.ndarray] = field(default_factory=list)
 
 
-class UtteranceComponent(Component):
+class UtteranceComponent(Host):
     """Base of every utterance analyser: implement :meth:`analyse`."""
 
     kind: ClassVar[str] = "other"  # the kind of result it produces, e.g. "emotion" or "rate"
@@ -79,8 +75,6 @@ class UtteranceComponent(Component):
         self.utterance_stream_id = ""  # the stream of the utterance analyse() is given
         self.analysed = 0
         self.nothing = 0
-        self.guests: list[Guest] = []  # started once registered: they register with the host's sockets
-        self._guests_started = False
 
     def analyse(self, samples: np.ndarray, rate: int) -> dict[str, Any]:
         """What this analyser says about one utterance (see the module's docstring)."""
@@ -134,31 +128,6 @@ class UtteranceComponent(Component):
         if level_db < self.settings.silence_db:
             return f"silence (peak {level_db:.0f} dB < {self.settings.silence_db:.0f} dB)"
         return ""
-
-    # -- hosting guests (esiaf/hosting.py) -------------------------------------------------
-    def run(self) -> int:
-        try:
-            if self.settings.guests:  # their models load before anything registers, as the host's does
-                self.guests = [Guest(spec) for spec in self.settings.guests]
-                self.info["guests"] = [guest.name for guest in self.guests]
-            return super().run()
-        finally:
-            for guest in self.guests:
-                guest.stop()
-
-    def _apply_state(self, state: dict[str, Any]) -> None:
-        super()._apply_state(state)
-        if not self._guests_started and not self.stopping:  # the first state: registered, sockets made
-            self._guests_started = True
-            for guest in self.guests:
-                guest.start(self)
-
-    def _dispatch(self, audio: Audio) -> None:
-        try:
-            super()._dispatch(audio)
-        finally:  # the guests hear every chunk, whatever the host's handlers did with it
-            for guest in self.guests:
-                guest.dispatch(audio)
 
     def stats(self) -> dict[str, Any]:
         counts = feature_counts()  # utterances whose shared features were computed, and answers reused

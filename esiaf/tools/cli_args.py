@@ -200,6 +200,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     run.add_argument("--apart", action="store_true", help="run emotion and gender each in a process of its own "
                      "(default: gender is a guest in emotion's process, and each utterance's features are computed "
                      "once for both)")
+    run.add_argument("--vad-in-grabber", action="store_true", help="run the vad in the grabber's process (one mono "
+                     "input): no ZeroMQ hop per chunk between them, less CPU; the vad then hears only this grabber "
+                     "and ends with it, so grabbers that join later (--serve) are not heard")
     run.add_argument("--with", dest="plugins", action="append", default=[], metavar="FOLDER_OR_NAME",
                      help="also run your own analyser: a folder with a __main__.py, an installed component "
                      "(entry point group esiaf.components) or a module; repeatable")

@@ -62,6 +62,7 @@ class Pipeline:
     labellers: list[str]  # the analysers on the VAD's output besides the recogniser
     replicas: dict[str, int]  # analysers on the VAD's output run as several instances (--replicas)
     guests: set[str] = field(default_factory=set)  # labellers run in another labeller's process (not --apart)
+    vad_in_grabber: bool = False  # the vad is a guest in the grabber's process (--vad-in-grabber)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -72,6 +73,8 @@ def run(args: argparse.Namespace) -> int:
     without = parse_without(args.without)
     wanted_plugins = [resolve_plugin(spec) for spec in args.plugins]  # a bad --with fails before anything starts
     replicas = parse_replicas(args.replicas, without, [plugin.name for plugin in wanted_plugins])
+    if args.vad_in_grabber:
+        check_vad_in_grabber(args, channels, array, replicas)
     services = known_services() | {p.name for p in wanted_plugins}
     for name in unknown_variables(os.environ, services):
         print(f"esiaf: {name} names no service ({', '.join(sorted(services))}) and no common setting: "
@@ -183,7 +186,12 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
                    **({"ESIAF_GRABBER_CHUNK_MS": str(args.chunk_ms)} if args.chunk_ms is not None else {})}
     vad_env = {"ESIAF_VAD_BACKEND": args.vad} if args.vad else {}
     beamforming = array is not None and "ssl" not in without and not args.no_beamformer
-    if channels <= 1 and array is None:
+    vad_in_grabber = args.vad_in_grabber
+    if vad_in_grabber:  # it starts with the grabber, and the grabber waits for the vad's consumers
+        grabber_env.update({"ESIAF_GRABBER_GUESTS": json.dumps(["vad"]), "ESIAF_GRABBER_WAIT_TOPIC": "vad/speech",
+                            **vad_env})
+        log.info("vad runs in the grabber's process")
+    elif channels <= 1 and array is None:
         services["vad"] = supervisor.start("vad", env=vad_env)
     elif beamforming:  # grabber -> ssl -> beamformer -> vad: the analysers hear the array steered at the talker
         services["vad"] = supervisor.start("vad", env={"ESIAF_VAD_INPUT_TOPIC": "beamformer/audio", **vad_env})
@@ -215,7 +223,20 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
         elif name not in services:
             services.update(start_replicas(supervisor, name, replicas.get(name, 1)))
     guests = {guest for names in hosts.values() for guest in names}
-    return Pipeline(services, grabber_env, beamforming, labellers, replicas, guests)
+    return Pipeline(services, grabber_env, beamforming, labellers, replicas, guests, vad_in_grabber)
+
+
+def check_vad_in_grabber(args: argparse.Namespace, channels: int, array: ArrayGeometry | None,
+                         replicas: dict[str, int]) -> None:
+    """--vad-in-grabber (esiaf/hosting.py) is possible where the vad hears the grabber's audio itself (one
+    mono input: no splitter or beamformer in between), one grabber feeds it, and no replicas wait for the
+    streams before the grabbers start (reserve_streams)."""
+    why = ("the input has several channels (the vad hears a splitter's or beamformer's output)"
+           if channels > 1 or array is not None else
+           "several inputs play at once (one vad hears them all)" if args.input and len(args.input) > 1 else
+           "--replicas wait for the streams before the grabber starts" if replicas else "")
+    if why:
+        raise LaunchError(f"--vad-in-grabber: not possible here: {why}")
 
 
 def hosted_labellers(labellers: list[str], replicas: dict[str, int], apart: bool) -> dict[str, list[str]]:
@@ -256,7 +277,8 @@ def wait_for_registration(client: OrchestratorClient, supervisor: Supervisor, se
 def wait_for_subscriptions(client: OrchestratorClient, supervisor: Supervisor, pipeline: Pipeline,
                            on_speech: int) -> None:
     """Waits until each topic between the grabber and the analysers has its consumers (``on_speech``:
-    the plug-ins on vad/speech), so no audio is played before anyone hears it."""
+    the plug-ins on vad/speech), so no audio is played before anyone hears it; a grabber hosting the
+    vad is told to wait for the vad's consumers itself (they subscribe once it has registered)."""
     services = pipeline.services
     if "splitter" in services:
         wait_until(lambda: topic_ready(client, "splitter/ch0", 1), supervisor,
@@ -269,6 +291,9 @@ def wait_for_subscriptions(client: OrchestratorClient, supervisor: Supervisor, p
     # replicas subscribe to a stream's audio once they are given the stream: here, only the others count
     waited = [name for name in ("asr", *pipeline.labellers) if name not in pipeline.replicas]
     subscribers = len([name for name in waited if name not in pipeline.guests])  # a host subscribes for its guests
+    if pipeline.vad_in_grabber:  # the vad registers with the grabber: the grabber waits for them before playing
+        pipeline.grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"] = str(subscribers + on_speech)
+        return
     wait_until(lambda: topic_ready(client, "vad/speech", subscribers + on_speech), supervisor,
                f"{', '.join(waited) or 'the plug-ins'} to subscribe to vad/speech", START_TIMEOUT_S, services["vad"])
 

@@ -4,6 +4,9 @@ Capture timestamps come from sample counts: the stream's origin is the wall
 clock when capture starts, and every chunk is stamped origin + samples / rate.
 Played in real time, a chunk is published when its last sample would have been
 captured; ``fast`` plays as fast as the pipeline takes it.
+
+The grabber can host guests (``guests``, esiaf/hosting.py): ``esiaf run`` runs the vad in its
+process, which then takes every chunk published here without a ZeroMQ hop.
 """
 from __future__ import annotations
 
@@ -12,13 +15,14 @@ import time
 from pathlib import Path
 from typing import ClassVar
 
-from esiaf import AudioFormat, Component, ComponentSettings, SampleClock, SetupError
+from esiaf import AudioFormat, SampleClock, SetupError
+from esiaf.hosting import Host, HostSettings
 from esiaf_services.grabber.sources import AlsaSource, FileSource
 
 log = logging.getLogger(__name__)
 
 
-class GrabberSettings(ComponentSettings):
+class GrabberSettings(HostSettings):
     input: str = ""  # a sound file or .raw/.pcm file; empty = live capture from `device`
     device: str = ""  # ALSA device name for live capture
     topic: str = "grabber/audio"
@@ -32,10 +36,11 @@ class GrabberSettings(ComponentSettings):
     sample_type: str = "int16"
     channels: int = 1
     wait_for_subscribers: int = 0  # before playing, wait until the topic has this many subscribers
+    wait_topic: str = ""  # ... that topic: "" is `topic`; a guest's output (vad/speech of a hosted vad) too
     wait_timeout_s: float = 30.0
 
 
-class Grabber(Component):
+class Grabber(Host):
     """Plays a file or captures an ALSA device into an audio topic."""
 
     service = "grabber"
@@ -70,10 +75,13 @@ class Grabber(Component):
 
     def produce(self) -> None:
         s = self.settings
-        if s.wait_for_subscribers and not self.wait_for_subscribers(s.topic, s.wait_for_subscribers,
+        waited = s.wait_topic or s.topic
+        if waited not in self.outputs and self._publishing(waited) is None:
+            raise SetupError(f"wait_topic {waited} is published neither by the grabber nor by a guest")
+        if s.wait_for_subscribers and not self.wait_for_subscribers(waited, s.wait_for_subscribers,
                                                                      s.wait_timeout_s) and not self.stopping:
             log.warning("topic=%s has fewer than %d subscribers after %g s; playing anyway",
-                        s.topic, s.wait_for_subscribers, s.wait_timeout_s)
+                        waited, s.wait_for_subscribers, s.wait_timeout_s)
         source = self.source
         assert source is not None  # __init__ opens a file, setup() a device
         fmt = source.format

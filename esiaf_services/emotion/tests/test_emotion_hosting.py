@@ -113,8 +113,8 @@ def test_a_guest_is_named_by_its_service_or_its_class():
     assert guest_class("gender") is Gender
     assert guest_class("esiaf_services.gender.service:Gender") is Gender
     for spec, message in (("nope", "cannot import esiaf_services.nope.service"),
-                          ("esiaf_services.gender.service:Nope", "has no utterance analyser Nope"),
-                          ("esiaf_services.emotion.features:FeatureExtractor", "a subclass of UtteranceComponent")):
+                          ("esiaf_services.gender.service:Nope", "has no component Nope"),
+                          ("esiaf_services.emotion.features:FeatureExtractor", "a subclass of Component")):
         with pytest.raises(SetupError, match=message):
             guest_class(spec)
 
