@@ -5,6 +5,7 @@ import json
 import logging
 import sys
 import time
+from contextlib import ExitStack
 
 from websockets.exceptions import ConnectionClosed, WebSocketException
 from websockets.sync.client import ClientConnection, connect
@@ -23,30 +24,38 @@ class FusedFeed:
         self.url = url
         self.last_seq: int | None = None
         self.ssl = auth.tls_context() if url.startswith("wss:") else None  # ws://: none
-        self.ws: ClientConnection | None = connect(url, open_timeout=10, additional_headers=auth.headers(),
-                                                   ssl=self.ssl)
+        self.ws: ClientConnection | None = None
+        self._open = ExitStack()  # the connection, entered as websockets asks (a bare connect() is deprecated)
+        self._connect(url, 10.0)
+
+    def _connect(self, url: str, timeout: float) -> ClientConnection:
+        self.ws = self._open.enter_context(connect(url, open_timeout=timeout, additional_headers=auth.headers(),
+                                                   ssl=self.ssl))
+        return self.ws
 
     def __enter__(self) -> FusedFeed:
         return self
 
     def __exit__(self, *exc) -> None:
-        if self.ws is not None:
-            self.ws.close()
+        self._open.close()
+        self.ws = None
 
     def recv(self, timeout: float) -> str | bytes:
-        if self.ws is None:
+        ws = self.ws
+        if ws is None:
             after = f"after_seq={self.last_seq}" if self.last_seq is not None else ""
             url = self.url + ("&" if "?" in self.url else "?") + after if after else self.url
             try:
-                self.ws = connect(url, open_timeout=timeout, additional_headers=auth.headers(), ssl=self.ssl)
+                ws = self._connect(url, timeout)
             except (OSError, TimeoutError, WebSocketException) as exc:  # not back yet, or going away again
                 log.debug("websocket not reconnected: %s: %s", type(exc).__name__, exc)
                 time.sleep(timeout)
                 raise TimeoutError from None
             log.info("websocket reconnected after_seq=%s", self.last_seq)
         try:
-            text = self.ws.recv(timeout=timeout)
+            text = ws.recv(timeout=timeout)
         except ConnectionClosed:
+            self._open.close()
             self.ws = None
             print("esiaf: lost the orchestrator's websocket; reconnecting", file=sys.stderr, flush=True)
             raise TimeoutError from None
