@@ -11,6 +11,9 @@ falls on every size alike. Per chunk size it reports:
   (``model``: onnxruntime's run per 32 ms window, which does not depend on the chunk size; in the
   service, paced, the model runs colder and costs somewhat more, so ``net`` is an upper bound of
   the framework's share). ``--vad energy`` runs the energy segmenter instead (no model at all);
+  ``vad_handler_back_to_back``: the vad service's handler alone in this process on the same audio and
+  chunks (its model, cutting and segmenting, nothing sent), against which the vad's process shows
+  what its transport and its 20-100 wake-ups a second cost;
 - each process's CPU-s per hour of audio (the asr's is its recogniser, not the framework's);
 - the end-of-speech latency to the fused line, p50 / p95 over every repeat: from the segment's
   end as the vad reported it (bench/latency.py: arrival - (capture time of the utterance's last
@@ -56,12 +59,15 @@ import threading
 import time
 from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import soundfile
 
 from bench import threads
 from bench.latency import HANGOVER_NS, REPO, percentile, pipeline, synthesised_input
+from esiaf import Audio, AudioFormat
+from esiaf_services.vad.service import Vad, VadSettings
 from esiaf_services.vad.silero import SileroModel
 
 FRAMEWORK = ("grabber", "vad", "orchestrator")
@@ -102,6 +108,35 @@ def model_cpu_s(path: Path, chunk_ms: float) -> float:
     started = time.process_time()
     for offset in range(0, len(samples), step):
         stream.chunk_probability(samples[offset:offset + step])
+    return time.process_time() - started
+
+
+class QuietVad(Vad):
+    """The vad service's class with what it would send dropped: its handler's own cost."""
+
+    def publish(self, *args, **kwargs) -> int:
+        return 0
+
+    def emit(self, *args, **kwargs) -> Any:
+        return None
+
+
+def handler_cpu_s(path: Path, chunk_ms: float, vad: str) -> float:
+    """CPU-s of the vad service's handler (``Vad.on_audio``: its model, cutting, segmenting, the
+    messages it would send built but not sent) over the file's first channel in ``chunk_ms`` chunks,
+    back to back in this process: what the vad costs without its transport and its wake-ups."""
+    audio, rate = soundfile.read(str(path), dtype="int16", always_2d=True)
+    pcm = audio[:, 0].tobytes()
+    fmt = AudioFormat(rate, "int16", channels=1)
+    service = QuietVad(VadSettings(backend=vad, sample_rate_hz=rate))
+    service.setup()
+    step = max(1, round(rate * chunk_ms / 1000))
+    ns = 1_000_000_000 // rate
+    started = time.process_time()
+    for sequence, first in enumerate(range(0, len(audio), step), 1):
+        last = min(first + step, len(audio))
+        service.on_audio(Audio("grabber/audio", "bench", "grabber", sequence, first * ns, last * ns, fmt,
+                               pcm[2 * first:2 * last]))
     return time.process_time() - started
 
 
@@ -266,6 +301,9 @@ def main() -> None:
         for name in (*FRAMEWORK, "asr"):
             runs = ", ".join(f"{run.get(name, float('nan')) / hours:.1f}" for run in cpu[config])
             print(f"chunk_{chunk_ms:g}_{code}_cpu_s_per_hour_{name}={runs}")
+    for chunk_ms in chunks:  # what the vad's own work costs, without transport or pacing
+        print(f"chunk_{chunk_ms:g}_vad_handler_back_to_back_cpu_s_per_hour="
+              f"{handler_cpu_s(args.input, chunk_ms, args.vad) / hours:.1f}")
     with open("/proc/loadavg") as handle:
         print("load average:", " ".join(handle.read().split()[:3]))
 
