@@ -26,6 +26,7 @@ import sys
 import tempfile
 import threading
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
 import zmq
@@ -41,23 +42,25 @@ from esiaf_services.orchestrator.latency import percentile  # noqa: E402
 S = 1_000_000_000
 UTTERANCE_NS = 2 * S
 CHUNKS = 16
-CONFIG = {"heartbeat_interval_s": 600.0, "dead_after_s": 3600.0, "timeouts": {"initial_s": 30.0},
+CONFIG = {"heartbeat_interval_s": 600.0, "idle_heartbeat_interval_s": 600.0, "dead_after_s": 3600.0,
+          "timeouts": {"initial_s": 30.0},
           "log_level": "WARNING",
           "fusions": [{"name": "utterance", "anchor": "speech", "fuse": ["ssl", "emotion"]}]}
 FMT = {"sample_rate_hz": 16000, "sample_type": "int16", "endianness": "little", "channels": 1}
 
 
 def register(orchestrator: Orchestrator, streams: int) -> tuple[str, dict[str, dict]]:
-    """The results endpoint, and each component's registration (its results are signed with it)."""
+    """The results endpoint, and each component's registration (its results are signed with it): one
+    recogniser, one ssl and one emotion service hearing every stream, as a deployment's services do
+    (fusion waits for every live service of a fused type on every stream)."""
     endpoint, registrations = "", {}
-    for i in range(streams):
-        for name, designation in (("asr", "speech"), ("ssl", "ssl"), ("emotion", "emotion")):
-            response = orchestrator.http.post("/components", json={
-                "name": f"{name}-{i}", "designation": designation, "stream_id": f"s{i}",
-                "inputs": [{"topic": f"in/{i}", "format": FMT}]})
-            response.raise_for_status()
-            registrations[f"{name}-{i}"] = response.json()
-            endpoint = response.json()["results_endpoint"]
+    for name, designation in (("asr", "speech"), ("ssl", "ssl"), ("emotion", "emotion")):
+        response = orchestrator.http.post("/components", json={
+            "name": name, "designation": designation,
+            "inputs": [{"topic": f"in/{i}", "format": FMT} for i in range(streams)]})
+        response.raise_for_status()
+        registrations[name] = response.json()
+        endpoint = response.json()["results_endpoint"]
     return endpoint, registrations
 
 
@@ -66,7 +69,8 @@ class Receiver(threading.Thread):
 
     def __init__(self, url: str) -> None:
         super().__init__(daemon=True)
-        self.ws = connect(url, max_size=None)
+        self._open = ExitStack()  # entered as websockets asks (a bare connect() is deprecated)
+        self.ws = self._open.enter_context(connect(url, max_size=None))
         self.arrived: dict[tuple[str, int], int] = {}
         self.done = threading.Event()
 
@@ -111,20 +115,20 @@ def overhead_run(streams: int, utterances: int) -> dict[str, float]:
                     chunk = UTTERANCE_NS // CHUNKS
                     for c in range(CHUNKS):
                         sequence += 1
-                        push.send_multipart(signed_result(registrations[f"ssl-{i}"], make_result(
-                            f"ssl-{i}", "ssl", stream, (begin + c * chunk, begin + (c + 1) * chunk),
+                        push.send_multipart(signed_result(registrations["ssl"], make_result(
+                            "ssl", "ssl", stream, (begin + c * chunk, begin + (c + 1) * chunk),
                             sequence, ssl={"directions": [ssl_direction(30.0 * c)]})))
-                    push.send_multipart(signed_result(registrations[f"asr-{i}"], make_result(
-                        f"asr-{i}", "speech", stream, (begin, end), sequence,
+                    push.send_multipart(signed_result(registrations["asr"], make_result(
+                        "asr", "speech", stream, (begin, end), sequence,
                         speech={"hypotheses": [{"text": "hello", "probability": 0.9}]})))
-                    last = signed_result(registrations[f"emotion-{i}"], make_result(
-                        f"emotion-{i}", "emotion", stream, (begin, end), sequence,
+                    last = signed_result(registrations["emotion"], make_result(
+                        "emotion", "emotion", stream, (begin, end), sequence,
                         emotion={"label": "happy", "probability": 0.8}))
                     sent[(stream, begin)] = time.time_ns()
                     push.send_multipart(last)
             poll(lambda: len(receiver.arrived) >= len(sent), timeout_s=60)
             stats = orchestrator.http.get("/fusions/stats").json()
-            receiver.ws.close()
+            receiver._open.close()
             push.close(linger=0)
             ctx.term()
         finally:
@@ -151,8 +155,8 @@ def timeout_run(fusions: int) -> dict[str, float]:
             for n in range(fusions):
                 end = time.time_ns()
                 for name, type_name, payload in (
-                        ("ssl-0", "ssl", {"ssl": {"directions": [ssl_direction(90.0)]}}),
-                        ("asr-0", "speech", {"speech": {"hypotheses": []}})):
+                        ("ssl", "ssl", {"ssl": {"directions": [ssl_direction(90.0)]}}),
+                        ("asr", "speech", {"speech": {"hypotheses": []}})):
                     push.send_multipart(signed_result(registrations[name], make_result(
                         name, type_name, "s0", (end - window_ns, end), n + 1, **payload)))
                 time.sleep(window_ns / 1e9)
@@ -178,8 +182,8 @@ def ingest_run(count: int, streams: int = 100) -> dict[str, float]:
             push.connect(endpoint)
             base = time.time_ns() - 3600 * S
             chunk = UTTERANCE_NS // CHUNKS
-            messages = [signed_result(registrations[f"ssl-{n % streams}"], make_result(
-                f"ssl-{n % streams}", "ssl", f"s{n % streams}",
+            messages = [signed_result(registrations["ssl"], make_result(
+                "ssl", "ssl", f"s{n % streams}",
                 (base + (n // streams) * chunk, base + (n // streams + 1) * chunk),
                 n + 1, ssl={"directions": [ssl_direction(float(n % 360))]})) for n in range(count)]
             started = time.monotonic()
