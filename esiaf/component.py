@@ -167,7 +167,9 @@ class Component:
         sequence = self._sequences.get(key, 0) + 1
         msg.publisher, msg.sequence = self.instance_id, sequence
         stats = self.output_stats[topic]
-        if not self._wire.send_audio(topic, msg):  # a replay's waits for the consumers (esiaf/transport.py)
+        sent, frames = self._wire.send_audio(topic, msg)  # a replay's waits for the consumers (esiaf/transport.py)
+        self._hand_on(frames)
+        if not sent:
             stats.dropped += 1
             log.warning("audio dropped at high-water mark topic=%s sequence=%d dropped=%d",
                         topic, sequence, stats.dropped)
@@ -177,6 +179,9 @@ class Component:
         if not self._handling:  # a producer; a handler's caller services the sockets when it returns
             self._service(0)
         return sequence
+
+    def _hand_on(self, frames: list[bytes]) -> None:
+        """An audio message received or published, as on the wire: a host's guests take it (esiaf/hosting.py)."""
 
     def forward(self, topic: str, audio: Audio, **meta: Any) -> int:
         """Publishes a received chunk (same capture times) on an output topic; its payload, in the

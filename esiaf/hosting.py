@@ -40,9 +40,7 @@ from esiaf import keys
 from esiaf.component import Component, SetupError
 from esiaf.control import ControlClient
 from esiaf.formats import AudioFormat
-from esiaf.frames import topic_frame
 from esiaf.links import OutputLink
-from esiaf.proto import esiaf_pb2 as pb
 from esiaf.settings import ComponentSettings, SettingsError, load_settings
 from esiaf.transport import STATE_ADDRESS
 
@@ -202,16 +200,13 @@ class Host(Component):
 
     def _on_message(self, frames: list[bytes]) -> None:
         super()._on_message(frames)
-        for guest in self.guests:  # whatever the host's handlers did with it
-            guest.hear(frames)
+        self._hand_on(frames)  # whatever the host's handlers did with it
 
-    def _send_audio(self, topic: str, msg: pb.AugmentedAudio) -> int:
-        sequence = super()._send_audio(topic, msg)
-        if self.guests:  # what a subscriber would take (the guest is not behind the wire's high-water mark)
-            frames = [topic_frame(topic, msg.stream_id), msg.SerializeToString()]
-            for guest in self.guests:
-                guest.hear(frames)
-        return sequence
+    def _hand_on(self, frames: list[bytes]) -> None:
+        # received, or published: the frames a subscriber would take (the guest is not behind the wire's
+        # high-water mark), serialised once for the wire and the guests
+        for guest in self.guests:
+            guest.hear(frames)
 
     def _on_subscription(self, topic: str, change: int) -> None:
         if (guest := self._publishing(topic)) is not None:  # on the host's socket: the guest's count

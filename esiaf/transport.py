@@ -279,13 +279,15 @@ class Transport:
         log.info("streams taken: %s", "all" if wanted is None else ", ".join(wanted) or "none")
         self._streams = wanted
 
-    def send_audio(self, topic: str, message: pb.AugmentedAudio) -> bool:
-        """Sends a message on ``topic``; False if refused at the high-water mark. A replay's message is
-        marked so and waits for room instead (False only if stop() came first)."""
+    def send_audio(self, topic: str, message: pb.AugmentedAudio) -> tuple[bool, list[bytes]]:
+        """Sends a message on ``topic``: whether it went (False if refused at the high-water mark; a
+        replay's message is marked so and waits for room instead, False only if stop() came first), and
+        its frames as sent."""
         assert self.pub is not None, "audio sent without a declared output"
         replay = self._replays is not None and self._replays.mark(message)
         self._replayed |= replay
-        return self._send(self.pub, [topic_frame(topic, message.stream_id), message.SerializeToString()], replay)
+        frames = [topic_frame(topic, message.stream_id), message.SerializeToString()]
+        return self._send(self.pub, frames, replay), frames
 
     def send_results(self, frames: Sequence[bytes], stream_id: str = "") -> bool:
         """False if the orchestrator is not taking results (queue full); a replay's results wait for room."""

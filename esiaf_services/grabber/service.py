@@ -5,8 +5,8 @@ clock when capture starts, and every chunk is stamped origin + samples / rate.
 Played in real time, a chunk is published when its last sample would have been
 captured; ``fast`` plays as fast as the pipeline takes it.
 
-The grabber can host guests (``guests``, esiaf/hosting.py): ``esiaf run`` runs the vad in its
-process, which then takes every chunk published here without a ZeroMQ hop.
+The grabber can host guests (``guests``, esiaf/hosting.py): ``esiaf run --vad-in-grabber`` runs
+the vad in its process, which then takes every chunk published here without a ZeroMQ hop.
 """
 from __future__ import annotations
 
