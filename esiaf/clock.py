@@ -15,7 +15,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
-WINDOW = 8  # samples the filter chooses from: 4 s of heartbeats at the default 0.5 s
+WINDOW = 8  # samples the filter chooses from: 16 s of heartbeats at the default 2 s
 MAX_ROUND_TRIP_NS = 10 * 10**9  # an answer slower than this says nothing useful about the clocks
 
 

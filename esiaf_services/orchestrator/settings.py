@@ -80,8 +80,11 @@ class OrchestratorSettings(StrictModel):
     control_port: int = Field(default=5560, ge=0, le=65535)  # 0 = any free port
     results_port: int = Field(default=5561, ge=0, le=65535)  # 0 = any free port
     db_path: str = "esiaf.db"
-    heartbeat_interval_s: float = Field(default=0.5, gt=0)
-    dead_after_s: float = Field(default=2.5, gt=0)
+    # a working component beats this often (every beat wakes it and the orchestrator: 0.5 s cost the
+    # framework about 20 CPU-s per hour of audio more, README); a process that dies is found through its
+    # closed connection (disconnect_grace_s), so the beats only find one that hangs or is cut off
+    heartbeat_interval_s: float = Field(default=2.0, gt=0)
+    dead_after_s: float = Field(default=8.0, gt=0)
     # a component that has had nothing to do (no audio, no results, no state change) for this long beats
     # this often instead, and is dead once silent for dead_after_s plus the difference; it goes back to
     # heartbeat_interval_s at once when it has work. Equal to heartbeat_interval_s: it never slows down
