@@ -55,6 +55,9 @@ class ComponentSettings(StrictModel):
     # audio messages queued per connection, each way (ZeroMQ SNDHWM and RCVHWM): live audio past it is
     # dropped and counted, a replay's waits (docs/protocol.md, "Flow control"); `esiaf run --fast` makes it small
     audio_queue: int = Field(default=AUDIO_HWM, ge=1)
+    # streams whose state a component keeps (esiaf/per_stream.py): past it the least recently heard
+    # one's is forgotten (a stream whose source died, or a peer naming a new stream per message)
+    max_streams: int = Field(default=256, ge=1)
     log_level: str = "INFO"
     health_file: str = ""  # touched whenever the orchestrator answers (see esiaf.tools.health)
     # tests only: this component's clock runs this far ahead of the host's (capture times, heartbeats),

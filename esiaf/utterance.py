@@ -28,11 +28,13 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
+from pydantic import Field
 
 from esiaf.audio import Audio
 from esiaf.features import feature_counts
 from esiaf.formats import AudioFormat
 from esiaf.hosting import Host, HostSettings
+from esiaf.per_stream import PerStream
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf.results import LABEL_PAYLOADS, valid_kind
 from esiaf.settings import ComponentSettings
@@ -46,12 +48,16 @@ class UtteranceSettings(HostSettings):
     sample_rate_hz: int = 16000
     min_speech_ms: float = 500.0  # shorter segments get "nothing": too short to judge
     silence_db: float = 45.0  # segments whose peak stays below this get "nothing" (96 dB = full scale)
+    # an open segment keeps at most its last this many seconds (a VAD cuts at 8 s; a peer that never ends
+    # a segment must not grow the process): the earlier audio is dropped, counted and logged
+    max_utterance_s: float = Field(default=30.0, gt=0)
 
 
 @dataclass
 class Utterance:
-    start_ns: int
+    start_ns: int = 0  # the capture time of its first sample kept
     chunks: list[np.ndarray] = field(default_factory=list)
+    samples: int = 0
 
 
 class UtteranceComponent(Host):
@@ -71,7 +77,8 @@ class UtteranceComponent(Host):
     def __init__(self, settings: UtteranceSettings):
         super().__init__(settings)
         self.add_input(settings.input_topic, AudioFormat(settings.sample_rate_hz, "int16", channels=1))
-        self.utterances: dict[str, Utterance] = {}  # open segment per stream
+        self.utterances: PerStream[Utterance] = PerStream(lambda _: Utterance(), settings.max_streams,
+                                                          "open utterance", info=self.info)  # per stream
         self.utterance_stream_id = ""  # the stream of the utterance analyse() is given
         self.analysed = 0
         self.nothing = 0
@@ -83,11 +90,25 @@ class UtteranceComponent(Host):
     def on_audio(self, audio: Audio) -> None:
         if not audio.payload:
             return
-        utterance = self.utterances.setdefault(audio.stream_id, Utterance(audio.start_ns))
-        utterance.chunks.append(audio.as_float()[:, 0].astype(np.float32))
+        utterance = self.utterances.get(audio.stream_id)
+        if not utterance.chunks:
+            utterance.start_ns = audio.start_ns
+        chunk = audio.as_float()[:, 0].astype(np.float32)
+        utterance.chunks.append(chunk)
+        utterance.samples += chunk.size
+        rate = self.settings.sample_rate_hz
+        while utterance.samples > self.settings.max_utterance_s * rate and len(utterance.chunks) > 1:
+            dropped = utterance.chunks.pop(0)
+            utterance.samples -= dropped.size
+            utterance.start_ns += dropped.size * 1_000_000_000 // rate
+            self.info["trimmed_s"] = round(self.info.get("trimmed_s", 0.0) + dropped.size / rate, 3)
+            if utterance.samples <= self.settings.max_utterance_s * rate:
+                log.warning("stream_id=%s: a segment longer than max_utterance_s=%g; its start dropped "
+                            "(trimmed_s=%g in all)", audio.stream_id, self.settings.max_utterance_s,
+                            self.info["trimmed_s"])
 
     def on_segment_end(self, audio: Audio) -> None:
-        utterance = self.utterances.pop(audio.stream_id, None) or Utterance(audio.start_ns)
+        utterance = self.utterances.pop(audio.stream_id) or Utterance(audio.start_ns)
         segment = audio.meta.segment
         span = (segment.start_ns, segment.end_ns) if segment.end_ns else (utterance.start_ns, audio.end_ns)
         samples = np.concatenate(utterance.chunks) if utterance.chunks else np.zeros(0, np.float32)

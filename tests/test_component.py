@@ -322,3 +322,19 @@ def test_a_service_process_runs_numpy_on_one_blas_thread_unless_the_user_chose()
     chosen = subprocess.run([sys.executable, "-c", BLAS_THREADS], env={**env, "OPENBLAS_NUM_THREADS": "2"},
                             capture_output=True, text=True, timeout=60)
     assert json.loads(chosen.stdout) == [2, 2], chosen.stderr
+
+
+def test_per_stream_state_keeps_the_most_recently_heard_streams():
+    from esiaf.per_stream import PerStream
+    info: dict = {}
+    made: list[str] = []
+    states = PerStream(lambda stream_id: made.append(stream_id) or [stream_id], max_streams=2, info=info)
+    assert states.get("a") == ["a"] and states.get("b") == ["b"]
+    states.get("a").append(1)  # heard again: now the most recent
+    states.get("c")  # b is the least recently heard: forgotten
+    assert list(states) == ["a", "c"] and states["a"] == ["a", 1] and "b" not in states
+    assert states.forgotten == 1 and info == {"forgotten_streams": 1}
+    assert states.get("b") == ["b"] and made == ["a", "b", "c", "b"]  # afresh; a went
+    assert states.pop("c") == ["c"] and states.pop("c") is None and len(states) == 1
+    with pytest.raises(ValueError):
+        PerStream(list, max_streams=0)

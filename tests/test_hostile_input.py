@@ -121,3 +121,73 @@ def test_numpy_numbers_in_info_travel_with_heartbeats_and_the_component_stays_re
                 orchestrator.component("sink")["stats"]["info"], timeout_s=10)
     assert info["peak"] == 0.5 and info["levels"] == [1, 2]
     assert sink.control._thread.is_alive() and sink_thread.is_alive()
+
+
+def test_four_hundred_stream_names_do_not_grow_the_vad_and_a_real_stream_is_still_segmented(orchestrator):
+    """Per-stream state is bounded (esiaf/per_stream.py): a peer naming a new stream in every message
+    makes the vad forget the least recently heard streams' segmenters, counted, and a stream heard
+    all along is segmented as if alone."""
+    from esiaf_services.vad.service import Vad
+    vad, vad_thread = start(Vad, orchestrator.url, input_topic="source/audio", backend="energy", max_streams=16)
+    poll(lambda: orchestrator.component("vad"), timeout_s=30)
+    source, source_thread = start(Source, orchestrator.url)
+    chunk_ns, loud = 50_000_000, (0.5 * 32767 * np.sin(np.arange(800) * 0.3)).astype(np.int16)
+
+    def send(c):
+        assert c.wait_for_subscribers("source/audio", 1, timeout_s=10)
+        for i in range(40):  # 1 s loud, 1 s silent; between two of its chunks, 10 streams never heard again
+            start_ns = 10**18 + i * chunk_ns
+            c.publish("source/audio", loud if i < 20 else np.zeros(800, np.int16), start_ns, start_ns + chunk_ns,
+                      stream_id="real")
+            for j in range(10):
+                c.publish("source/audio", np.zeros(800, np.int16), start_ns, start_ns + chunk_ns,
+                          stream_id=f"forged-{i}-{j}")
+
+    try:
+        run_on(source, send)
+        poll(lambda: vad.input_stats["source/audio"].received == 440, timeout_s=30)
+        assert vad_thread.is_alive()
+        assert len(vad.segmenters) == 16 and "real" in vad.segmenters
+        assert vad.segmenters.forgotten == 400 - 15 and vad.info["forgotten_streams"] == 385
+        assert vad.segments == 1  # the real stream's one second of sound, ended by its silence
+        poll(lambda: orchestrator.component("vad")["stats"]["info"].get("forgotten_streams") == 385, timeout_s=10)
+    finally:
+        for component, thread in ((source, source_thread), (vad, vad_thread)):
+            component.stop()
+            thread.join(timeout=10)
+
+
+def test_a_segment_that_never_ends_keeps_only_its_last_max_utterance_s(orchestrator):
+    """An utterance analyser buffers an open segment until its end: a peer that never ends one must not
+    grow it without bound. Past max_utterance_s its start is dropped and counted (trimmed_s)."""
+    from esiaf import UtteranceComponent
+
+    sizes: list[int] = []  # of the samples each analyse() was given
+
+    class Duration(UtteranceComponent):
+        service = kind = "duration"
+
+        def analyse(self, samples, rate):
+            sizes.append(samples.size)
+            return {"value": samples.size / rate}
+
+    analyser, analyser_thread = start(Duration, orchestrator.url, input_topic="source/audio", max_utterance_s=1.0)
+    poll(lambda: orchestrator.component("duration"), timeout_s=10)
+    source, source_thread = start(Source, orchestrator.url)
+    chunk_ns, sound = 50_000_000, (0.3 * 32767 * np.sin(np.arange(800) * 0.3)).astype(np.int16)
+
+    def send(c):
+        assert c.wait_for_subscribers("source/audio", 1, timeout_s=10)
+        for i in range(60):  # 3 s of one segment, then its end
+            c.publish("source/audio", sound, i * chunk_ns, (i + 1) * chunk_ns, stream_id="long",
+                      segmentation_ended=i == 59, segment=(0, 60 * chunk_ns) if i == 59 else None)
+
+    try:
+        run_on(source, send)
+        poll(lambda: sizes, timeout_s=10)
+        assert sizes == [16_000]  # its last second
+        assert analyser.info["trimmed_s"] == pytest.approx(2.0) and len(analyser.utterances) == 0
+    finally:
+        for component, thread in ((source, source_thread), (analyser, analyser_thread)):
+            component.stop()
+            thread.join(timeout=10)

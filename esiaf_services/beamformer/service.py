@@ -30,6 +30,7 @@ from pydantic import Field
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
 from esiaf.arrays import ARRAY_CHOICES, ArrayError, array_input
+from esiaf.per_stream import PerStream
 from esiaf_services.beamformer.beam import BeamCore, BeamformerError, BeamStream
 
 log = logging.getLogger(__name__)
@@ -93,7 +94,8 @@ class Beamformer(Component):
             raise SetupError(f"bad beamformer settings: {exc}") from None
         self.add_input(settings.input_topic, self.format)
         self.add_output(settings.output_topic, AudioFormat(settings.sample_rate_hz, "int16", channels=1))
-        self.streams: dict[str, StreamState] = {}
+        self.streams: PerStream[StreamState] = PerStream(lambda _: StreamState(self.core.stream()),
+                                                         settings.max_streams, "beamformer", info=self.info)
         self._ended_on_chunk: set[str] = set()  # streams whose end went out with their last chunk
         self.info.update(array=self.array.describe(), method=settings.method)
 
@@ -103,8 +105,6 @@ class Beamformer(Component):
 
     def on_audio(self, audio: Audio) -> None:
         state = self.streams.get(audio.stream_id)
-        if state is None:
-            state = self.streams[audio.stream_id] = StreamState(self.core.stream())
         talker = self._talker(state, audio)
         state.beam.steer(talker)
         if audio.frames:
@@ -159,7 +159,7 @@ class Beamformer(Component):
             if last:
                 self._ended_on_chunk.add(chunk.stream_id)
         if end_of_stream:
-            self.streams.pop(stream_id, None)
+            self.streams.pop(stream_id)
 
     def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
         if stream_id in self._ended_on_chunk:

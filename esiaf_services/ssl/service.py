@@ -26,6 +26,7 @@ from pydantic import Field
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError, ssl_direction
 from esiaf.arrays import ARRAY_CHOICES, array_input
+from esiaf.per_stream import PerStream
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf_services.ssl.doa import Localiser, LocaliserError, NoiseFloor
 from esiaf_services.ssl.tracker import Tracker
@@ -93,7 +94,8 @@ class Ssl(Component):
         self.add_input(settings.input_topic, self.format)
         self.add_output(settings.output_topic, self.format)
         self.localiser: Localiser | None = None
-        self.streams: dict[str, StreamState] = {}
+        self.streams: PerStream[StreamState] = PerStream(lambda _: self._new_stream(), settings.max_streams, "tracker",
+                                                         info=self.info)
         self.counts = {"located": 0, "nothing": 0}
 
     def setup(self) -> None:
@@ -116,8 +118,6 @@ class Ssl(Component):
 
     def on_audio(self, audio: Audio) -> None:
         state = self.streams.get(audio.stream_id)
-        if state is None:
-            state = self.streams[audio.stream_id] = self._new_stream()
         if audio.frames:
             state.chunks.append(audio)
             state.samples.append(audio.as_float()[:, self.mic_channels])
@@ -133,7 +133,7 @@ class Ssl(Component):
         return StreamState(Tracker(s.gate_deg, s.hold_ms, background_s=s.background_s), floor)
 
     def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
-        self.streams.pop(stream_id, None)
+        self.streams.pop(stream_id)
         super().on_end_of_stream(stream_id, audio)
 
     def _localise(self, state: StreamState, count: int) -> None:

@@ -20,6 +20,7 @@ import logging
 from typing import Any, ClassVar
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
+from esiaf.per_stream import PerStream
 from esiaf_services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
 from esiaf_services.vad.silero import RATES_HZ, SileroError, SileroModel, SileroStream
 from esiaf_services.vad.windows import ChunkCutter, WindowCutter, messages
@@ -86,7 +87,8 @@ class Vad(Component):
         self.add_output(settings.output_topic, fmt)
         self.model: SileroModel | None = None
         # per stream: segmenter, cutter, and the Silero state when it decides per chunk
-        self.segmenters: dict[str, tuple[Any, ChunkCutter | WindowCutter, SileroStream | None]] = {}
+        self.segmenters: PerStream[tuple[Any, ChunkCutter | WindowCutter, SileroStream | None]] = PerStream(
+            self._new_stream, settings.max_streams, "segmenter", info=self.info)
         self.segments = 0
         self._ended_on_chunk: set[str] = set()  # streams whose end was forwarded with their last segment
 
@@ -100,20 +102,18 @@ class Vad(Component):
                      self.settings.threshold_off)
         self.info["backend"] = self.settings.backend
 
-    def _stream(self, stream_id: str, audio: Audio) -> tuple[Any, ChunkCutter | WindowCutter, SileroStream | None]:
-        if stream_id not in self.segmenters:
-            if self.model is None:
-                self.segmenters[stream_id] = (Segmenter(self.params), ChunkCutter(), None)
-            elif self.settings.windows:
-                self.segmenters[stream_id] = (ProbabilitySegmenter(self.params), WindowCutter(
-                    self.model.stream(self.settings.sample_rate_hz), audio.format.bytes_per_frame), None)
-            else:
-                self.segmenters[stream_id] = (ProbabilitySegmenter(self.params), ChunkCutter(),
-                                              self.model.stream(self.settings.sample_rate_hz))
-        return self.segmenters[stream_id]
+    def _new_stream(self, stream_id: str) -> tuple[Any, ChunkCutter | WindowCutter, SileroStream | None]:
+        if self.model is None:
+            return Segmenter(self.params), ChunkCutter(), None
+        if self.settings.windows:
+            frame_bytes = AudioFormat(self.settings.sample_rate_hz, self.settings.sample_type,
+                                      channels=self.settings.channels).bytes_per_frame
+            return (ProbabilitySegmenter(self.params),
+                    WindowCutter(self.model.stream(self.settings.sample_rate_hz), frame_bytes), None)
+        return ProbabilitySegmenter(self.params), ChunkCutter(), self.model.stream(self.settings.sample_rate_hz)
 
     def on_audio(self, audio: Audio) -> None:
-        segmenter, cutter, silero = self._stream(audio.stream_id, audio)
+        segmenter, cutter, silero = self.segmenters.get(audio.stream_id)
         if isinstance(cutter, WindowCutter):  # one decision per Silero window, whatever the chunk
             pieces = cutter.cut(audio.payload, audio.start_ns, audio.end_ns,
                                 audio.as_float()[:, 0], audio.end_of_stream)
@@ -143,7 +143,7 @@ class Vad(Component):
                 log.info("segment stream_id=%s start_ns=%d end_ns=%d", audio.stream_id, *forward.segment)
 
     def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
-        self.segmenters.pop(stream_id, None)
+        self.segmenters.pop(stream_id)
         if stream_id in self._ended_on_chunk:
             self._ended_on_chunk.discard(stream_id)
         else:  # no segment was open: tell consumers with an empty chunk

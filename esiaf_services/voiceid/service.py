@@ -22,6 +22,7 @@ import numpy as np
 
 from esiaf import SetupError
 from esiaf.api_client import VOICES_MAX_WAIT_S, OrchestratorHTTP
+from esiaf.per_stream import PerStream
 from esiaf_services.emotion.service import UtteranceClassifier, UtteranceSettings
 from esiaf_services.voiceid.encoder import EncoderError, VoiceEncoder
 from esiaf_services.voiceid.scoring import AnonymousVoices, VoiceBook, probability
@@ -54,7 +55,9 @@ class VoiceId(UtteranceClassifier):
         super().__init__(settings)
         self.encoder: VoiceEncoder | None = None
         self.book = VoiceBook(top_k=settings.top_k)
-        self.anonymous: dict[str, AnonymousVoices] = {}
+        self.anonymous: PerStream[AnonymousVoices] = PerStream(
+            lambda _: AnonymousVoices(settings.anonymous_threshold, settings.anonymous_limit), settings.max_streams,
+            "anonymous voices", info=self.info)
         self._etag = ""
         self._poller: threading.Thread | None = None
         self._halt = threading.Event()
@@ -107,7 +110,7 @@ class VoiceId(UtteranceClassifier):
         match = self.book.identify(embedding, s.threshold)
         label, p = match.label, match.probability
         if not label:
-            voices = self.anonymous.setdefault(stream_id, AnonymousVoices(s.anonymous_threshold, s.anonymous_limit))
+            voices = self.anonymous.get(stream_id)
             label, similarity = voices.assign(embedding)
             p = probability(similarity, s.anonymous_threshold)
         log.info("segment stream_id=%s voice=%s p=%.2f score=%.2f", stream_id, label, p, match.score)
