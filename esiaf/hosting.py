@@ -5,8 +5,8 @@ input topics to the guest as if it had come over the wire: every message the hos
 utterance analyser hosting another hears the VAD's speech once), and every message it publishes
 (the grabber hosting the vad: no ZeroMQ hop and no second process woken per chunk). The guest takes
 the message's bytes through its own input side (esiaf/receiving.py): its own counters, loss counting
-and conversion from the wire format to the format it declared (a 4-channel 48 kHz grabber gives a
-16 kHz mono vad its channel 0 at 16 kHz), exactly what it would receive over the wire.
+and conversion from the wire format to the format it declared (a 48 kHz grabber gives a 16 kHz vad
+16 kHz; channel counts are never converted, as on the wire), exactly what it would receive over the wire.
 
 Nothing else changes for a guest: it is built from its own class with its own settings
 (``ESIAF_<SERVICE>_...``), loads its own model, registers under its own service name, instance id
