@@ -27,7 +27,7 @@ from typing import Any, ClassVar
 import numpy as np
 import zmq
 
-from esiaf import binding, keys, signals
+from esiaf import binding, keys, per_stream, signals
 from esiaf.api_client import announce_stream
 from esiaf.audio import Audio
 from esiaf.control import ControlClient
@@ -71,7 +71,7 @@ class Component:
         self._exit_code = 0
         self._sequences: dict[tuple[str, str], int] = {}  # per topic and stream: a replica sees its streams only
         self.refused_subscribers: dict[str, int] = {}  # handshakes refused at the outputs (CURVE), by reason
-        self._ended: dict[str, set[str]] = {}
+        self._ended = per_stream.PerStream(lambda _: set[str](), settings.max_streams, "inputs ended", info=self.info)
         self._result_sequence = 0
         self._handling = False  # inside a handler: audio input waits, so handlers never nest
         self._assigned: dict[str, AudioFormat] = {}
@@ -369,11 +369,11 @@ class Component:
             self._on_input_ended(audio)
 
     def _on_input_ended(self, audio: Audio) -> None:
-        ended = self._ended.setdefault(audio.stream_id, set())
+        ended = self._ended.get(audio.stream_id)
         ended.add(audio.topic)
         if ended != set(self.inputs):
             return
-        del self._ended[audio.stream_id]
+        self._ended.pop(audio.stream_id)
         self.on_end_of_stream(audio.stream_id, audio)
         notice = {"component_id": self.control.component_id if self.control else "",
                   "component": self.settings.name, "stream_id": audio.stream_id}

@@ -3,7 +3,8 @@
 A component keeps state for each stream it hears (a VAD's segmenter, a localiser's tracker, an
 utterance's samples) and drops it when the stream ends. A stream whose source dies, or a peer that
 names a new stream in every message, never sends that end: without a bound the state would grow
-for as long as the process runs. :class:`PerStream` keeps the state of the most recently heard
+for as long as the process runs (so would the SDK's own record of the streams ended on some of a
+component's inputs, which uses it too). :class:`PerStream` keeps the state of the most recently heard
 ``max_streams`` streams (the component's setting, 256 by default); past it, the least recently
 heard stream's state is forgotten, counted (in the component's ``info``, so its heartbeats and
 ``GET /components`` show ``forgotten_streams``) and logged (the first and every 100th). Should that

@@ -191,3 +191,36 @@ def test_a_segment_that_never_ends_keeps_only_its_last_max_utterance_s(orchestra
         for component, thread in ((source, source_thread), (analyser, analyser_thread)):
             component.stop()
             thread.join(timeout=10)
+
+
+def test_streams_ended_on_one_input_of_two_are_remembered_within_max_streams(orchestrator):
+    """A component with two inputs ends a stream once both have ended it; streams ended on one input
+    only (a peer naming a new stream per message) are remembered for the most recent max_streams."""
+    from esiaf import AudioFormat, Component
+
+    class TwoInputs(Component):
+        service = "twoinputs"
+
+        def __init__(self, settings):
+            super().__init__(settings)
+            self.add_input("source/audio", AudioFormat(16000, "int16"))
+            self.add_input("other/audio", AudioFormat(16000, "int16"))
+
+    sink, sink_thread = start(TwoInputs, orchestrator.url, max_streams=8)
+    poll(lambda: orchestrator.component("twoinputs"), timeout_s=10)
+    source, source_thread = start(Source, orchestrator.url)
+
+    def send(c):
+        assert c.wait_for_subscribers("source/audio", 1, timeout_s=10)
+        for i in range(50):
+            c.publish("source/audio", np.zeros(160, np.int16), 10**18, 10**18 + 10_000_000, stream_id=f"s{i}",
+                      end_of_stream=True)
+
+    try:
+        run_on(source, send)
+        poll(lambda: sink.input_stats["source/audio"].received == 50, timeout_s=10)
+        assert len(sink._ended) == 8 and sink.info["forgotten_streams"] == 42
+    finally:
+        for component, thread in ((source, source_thread), (sink, sink_thread)):
+            component.stop()
+            thread.join(timeout=10)
