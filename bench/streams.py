@@ -15,17 +15,13 @@ import argparse
 
 import psutil
 
+from bench.framework import QuietVad
 from esiaf.audio import Audio
 from esiaf.formats import AudioFormat
-from esiaf_services.vad.service import Vad, VadSettings
+from esiaf_services.vad.service import VadSettings
 
 FORMAT = AudioFormat(16000, "int16", channels=1)
 CHUNK_NS = 50_000_000
-
-
-class QuietVad(Vad):
-    def publish(self, *args: object, **kwargs: object) -> int:  # nothing is sent
-        return 0
 
 
 def chunk(stream_id: str) -> Audio:

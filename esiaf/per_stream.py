@@ -60,10 +60,6 @@ class PerStream(Generic[T]):
         state = self._states[stream_id] = self._make(stream_id)
         return state
 
-    def peek(self, stream_id: str) -> T | None:
-        """The stream's state if it has one, without making it or changing the order."""
-        return self._states.get(stream_id)
-
     def __getitem__(self, stream_id: str) -> T:
         """The stream's state (KeyError if it has none), without making it or changing the order."""
         return self._states[stream_id]
@@ -80,9 +76,6 @@ class PerStream(Generic[T]):
 
     def __iter__(self) -> Iterator[str]:
         return iter(list(self._states))
-
-    def items(self) -> list[tuple[str, T]]:
-        return list(self._states.items())
 
     def values(self) -> list[T]:
         return list(self._states.values())

@@ -58,6 +58,7 @@ class Utterance:
     start_ns: int = 0  # the capture time of its first sample kept
     chunks: list[np.ndarray] = field(default_factory=list)
     samples: int = 0
+    trimmed: bool = False  # its start was dropped (max_utterance_s): logged once per utterance
 
 
 class UtteranceComponent(Host):
@@ -102,10 +103,10 @@ class UtteranceComponent(Host):
             utterance.samples -= dropped.size
             utterance.start_ns += dropped.size * 1_000_000_000 // rate
             self.info["trimmed_s"] = round(self.info.get("trimmed_s", 0.0) + dropped.size / rate, 3)
-            if utterance.samples <= self.settings.max_utterance_s * rate:
-                log.warning("stream_id=%s: a segment longer than max_utterance_s=%g; its start dropped "
-                            "(trimmed_s=%g in all)", audio.stream_id, self.settings.max_utterance_s,
-                            self.info["trimmed_s"])
+            if not utterance.trimmed:
+                utterance.trimmed = True
+                log.warning("stream_id=%s: a segment longer than max_utterance_s=%g; its start is dropped",
+                            audio.stream_id, self.settings.max_utterance_s)
 
     def on_segment_end(self, audio: Audio) -> None:
         utterance = self.utterances.pop(audio.stream_id) or Utterance(audio.start_ns)

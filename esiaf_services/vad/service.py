@@ -105,9 +105,8 @@ class Vad(Component):
     def _new_stream(self, stream_id: str) -> tuple[Any, ChunkCutter | WindowCutter, SileroStream | None]:
         if self.model is None:
             return Segmenter(self.params), ChunkCutter(), None
-        if self.settings.windows:
-            frame_bytes = AudioFormat(self.settings.sample_rate_hz, self.settings.sample_type,
-                                      channels=self.settings.channels).bytes_per_frame
+        if self.settings.windows:  # cuts the payloads, which arrive in the declared input format
+            frame_bytes = self.inputs[self.settings.input_topic].bytes_per_frame
             return (ProbabilitySegmenter(self.params),
                     WindowCutter(self.model.stream(self.settings.sample_rate_hz), frame_bytes), None)
         return ProbabilitySegmenter(self.params), ChunkCutter(), self.model.stream(self.settings.sample_rate_hz)
