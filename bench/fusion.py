@@ -37,7 +37,7 @@ sys.path.insert(0, str(REPO))
 
 from esiaf.results import make_result, ssl_direction  # noqa: E402
 from esiaf.tools.testing import Orchestrator, poll, signed_result  # noqa: E402
-from esiaf_services.orchestrator.latency import percentile  # noqa: E402
+from esiaf_services.orchestrator.fusion.latency import percentile  # noqa: E402
 
 S = 1_000_000_000
 UTTERANCE_NS = 2 * S

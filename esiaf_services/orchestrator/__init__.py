@@ -2,7 +2,7 @@
 
 Run it with ``python -m esiaf_services.orchestrator``; build the app with :func:`create_app`.
 """
-from .app import create_app
+from .api.app import create_app
 from .settings import OrchestratorSettings
 
 __all__ = ["OrchestratorSettings", "create_app"]

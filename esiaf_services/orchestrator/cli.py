@@ -13,9 +13,9 @@ from esiaf.runner import known_services, limit_native_threads
 from esiaf.settings import SettingsError, unknown_variables
 
 from .core import StartupError
-from .recover import RecoveryError, recover
 from .server import serve
 from .settings import load
+from .store.recover import RecoveryError, recover
 
 log = logging.getLogger("esiaf_services.orchestrator")
 

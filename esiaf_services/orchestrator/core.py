@@ -17,16 +17,16 @@ import zmq.asyncio
 from esiaf import auth, keys
 from esiaf.transport import keep_alive
 
-from .control import ControlPlane
-from .fusion import FusionEngine
-from .hub import Hub
-from .ingest import Ingest
-from .metrics import Metrics
-from .negotiation import Format
-from .registry import Component, Registry
+from .fusion.engine import FusionEngine
+from .planes.control import ControlPlane
+from .planes.hub import Hub
+from .planes.ingest import Ingest
+from .planes.metrics import Metrics
+from .planes.zap import Guard
+from .registry.components import Component, Registry
+from .registry.negotiation import Format
 from .settings import OrchestratorSettings
-from .store import RECOVER_HINT, Checkpointer, Store, StoreError, is_corrupt_error
-from .zap import Guard
+from .store.database import RECOVER_HINT, Checkpointer, Store, StoreError, is_corrupt_error
 
 log = logging.getLogger(__name__)
 

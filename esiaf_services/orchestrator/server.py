@@ -14,7 +14,7 @@ from email.utils import formatdate
 import uvicorn
 from uvicorn.server import ServerState
 
-from .app import create_app
+from .api.app import create_app
 from .core import Orchestrator, StartupError
 from .settings import OrchestratorSettings
 

@@ -11,7 +11,7 @@ from pydantic import Field, field_validator, model_validator
 from esiaf.results import KIND_PATTERN, RESULT_TYPES
 from esiaf.settings import StrictModel, load_settings
 
-from .negotiation import Strategy
+from .registry.negotiation import Strategy
 
 SERVICE = "orchestrator"
 

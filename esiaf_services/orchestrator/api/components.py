@@ -5,7 +5,9 @@ import math
 from fastapi import APIRouter, Depends, HTTPException, Query, Response, status
 
 from ..core import Orchestrator
-from ..models import (
+from ..registry.components import Component, InstanceConflict, TopicConflict
+from .deps import get_core
+from .models import (
     ComponentInfo,
     ComponentList,
     Problem,
@@ -14,8 +16,6 @@ from ..models import (
     ServiceInfo,
     TopicDeclaration,
 )
-from ..registry import Component, InstanceConflict, TopicConflict
-from .deps import get_core
 
 router = APIRouter(tags=["components"])
 

@@ -3,8 +3,8 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Query, Response
 
 from ..core import Orchestrator
-from ..models import FusedPage
 from .deps import MAX_ID, TimeNs, check_range, get_core
+from .models import FusedPage
 
 router = APIRouter(tags=["fused"])
 

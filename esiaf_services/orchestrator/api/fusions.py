@@ -4,9 +4,9 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, HTTPException
 
 from ..core import Orchestrator
-from ..latency import percentile
-from ..models import FusionList, FusionStats
+from ..fusion.latency import percentile
 from .deps import get_core
+from .models import FusionList, FusionStats
 
 router = APIRouter(tags=["fusions"])
 

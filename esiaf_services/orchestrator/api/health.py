@@ -3,7 +3,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
-from ..models import Health
+from .models import Health
 
 router = APIRouter(tags=["health"])
 

@@ -6,9 +6,9 @@ from typing import overload
 from fastapi import APIRouter, Depends, Query
 
 from ..core import Orchestrator
-from ..latency import percentile
-from ..models import LatencyInfo, LatencyList
+from ..fusion.latency import percentile
 from .deps import get_core
+from .models import LatencyInfo, LatencyList
 
 router = APIRouter(tags=["results"])
 

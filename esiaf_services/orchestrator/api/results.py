@@ -3,9 +3,9 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Query, Response
 
 from ..core import Orchestrator
-from ..models import ResultPage
 from ..settings import ResultTypeName
 from .deps import MAX_ID, TimeNs, check_range, get_core
+from .models import ResultPage
 
 router = APIRouter(tags=["results"])
 

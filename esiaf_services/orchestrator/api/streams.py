@@ -13,10 +13,10 @@ from typing import Any
 from fastapi import APIRouter, Depends, HTTPException, Path
 from pydantic import BaseModel, ConfigDict, Field
 
-from ..codec import MAX_TIME_NS
 from ..core import Orchestrator
-from ..models import Problem
+from ..planes.codec import MAX_TIME_NS
 from .deps import get_core
+from .models import Problem
 
 router = APIRouter(tags=["streams"])
 

@@ -3,10 +3,10 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends
 
 from ..core import Orchestrator
-from ..models import TopicConsumer, TopicInfo, TopicList, TopicProducer
-from ..negotiation import bytes_per_second, conversions, key
-from ..registry import Component
+from ..registry.components import Component
+from ..registry.negotiation import bytes_per_second, conversions, key
 from .deps import get_core
+from .models import TopicConsumer, TopicInfo, TopicList, TopicProducer
 
 router = APIRouter(tags=["topics"])
 

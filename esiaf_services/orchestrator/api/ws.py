@@ -9,7 +9,7 @@ import logging
 from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
 
 from ..core import Orchestrator
-from ..hub import CLOSE_TOO_SLOW, Subscriber
+from ..planes.hub import CLOSE_TOO_SLOW, Subscriber
 from .deps import MAX_ID
 
 log = logging.getLogger(__name__)

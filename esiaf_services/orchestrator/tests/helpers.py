@@ -19,7 +19,7 @@ import zmq
 from esiaf.binding import signed
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf.results import make_result
-from esiaf_services.orchestrator.app import create_app
+from esiaf_services.orchestrator.api.app import create_app
 from esiaf_services.orchestrator.settings import OrchestratorSettings
 
 START_TIMEOUT_S = 10.0

@@ -135,7 +135,7 @@ def test_a_registration_again_gets_a_new_key_and_the_old_one_is_refused(http, zc
 
 
 def test_refusals_are_logged_the_first_and_every_100th(orch, http, zctx, caplog):
-    caplog.set_level(logging.WARNING, logger="esiaf_services.orchestrator.control")
+    caplog.set_level(logging.WARNING, logger="esiaf_services.orchestrator.planes.control")
     vad = FakeComponent(zctx, http, component_body("vad", designation="vad", inputs=["audio/raw"]))
     dealer = forger(zctx, orch.core.control_endpoint)
     for _ in range(250):

@@ -6,11 +6,11 @@ from types import SimpleNamespace
 
 import pytest
 
-from esiaf_services.orchestrator.aggregate import label_aggregate, overlaps, ssl_aggregate
-from esiaf_services.orchestrator.coverage import GAP_TOLERANCE_NS, Coverage, StoredResult
-from esiaf_services.orchestrator.fusion import FusionEngine
-from esiaf_services.orchestrator.latency import Latencies
-from esiaf_services.orchestrator.orphans import Orphans, fuse_orphans, unanswered_segments
+from esiaf_services.orchestrator.fusion.aggregate import label_aggregate, overlaps, ssl_aggregate
+from esiaf_services.orchestrator.fusion.coverage import GAP_TOLERANCE_NS, Coverage, StoredResult
+from esiaf_services.orchestrator.fusion.engine import FusionEngine
+from esiaf_services.orchestrator.fusion.latency import Latencies
+from esiaf_services.orchestrator.fusion.orphans import Orphans, fuse_orphans, unanswered_segments
 from esiaf_services.orchestrator.settings import FusionSettings, TimeoutSettings
 
 MS = 1_000_000

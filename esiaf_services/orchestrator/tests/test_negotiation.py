@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 
 from esiaf.settings import SettingsError
-from esiaf_services.orchestrator.negotiation import Declaration, choose, conversions
+from esiaf_services.orchestrator.registry.negotiation import Declaration, choose, conversions
 from esiaf_services.orchestrator.settings import load
 from esiaf_services.orchestrator.tests.helpers import FMT16, component_body
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 
 from esiaf.proto import esiaf_pb2 as pb
-from esiaf_services.orchestrator.app import create_app
-from esiaf_services.orchestrator.codec import result_to_json
+from esiaf_services.orchestrator.api.app import create_app
+from esiaf_services.orchestrator.planes.codec import result_to_json
 from esiaf_services.orchestrator.settings import OrchestratorSettings
 
 # proto message -> the OpenAPI schema documenting its JSON

@@ -9,13 +9,13 @@ import sqlite3
 import pytest
 
 from esiaf.proto import esiaf_pb2 as pb
-from esiaf_services.orchestrator.codec import BadResult, parse_result, result_to_json
-from esiaf_services.orchestrator.fusion import FusionEngine, StoredResult
-from esiaf_services.orchestrator.hub import Hub, Outgoing
-from esiaf_services.orchestrator.registry import InstanceConflict, Registry, TopicConflict
+from esiaf_services.orchestrator.fusion.engine import FusionEngine, StoredResult
+from esiaf_services.orchestrator.planes.codec import BadResult, parse_result, result_to_json
+from esiaf_services.orchestrator.planes.hub import Hub, Outgoing
+from esiaf_services.orchestrator.registry.components import InstanceConflict, Registry, TopicConflict
+from esiaf_services.orchestrator.registry.streams import StreamEnds
 from esiaf_services.orchestrator.settings import FusionSettings, OrchestratorSettings
-from esiaf_services.orchestrator.store import MIGRATIONS, Store, StoreError
-from esiaf_services.orchestrator.streams import StreamEnds
+from esiaf_services.orchestrator.store.database import MIGRATIONS, Store, StoreError
 
 BIG_NS = 1_763_720_001_850_000_123
 FMT = {"sample_rate_hz": 16000, "sample_type": "int16", "endianness": "little", "channels": 1}

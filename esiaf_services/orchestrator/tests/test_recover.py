@@ -18,7 +18,7 @@ import pytest
 import zmq
 
 from esiaf.tools.testing import REPO, Orchestrator, free_port, poll
-from esiaf_services.orchestrator.recover import MAX_ROWID, MIN_ROWID, recover
+from esiaf_services.orchestrator.store.recover import MAX_ROWID, MIN_ROWID, recover
 from esiaf_services.orchestrator.tests.helpers import FakeComponent, component_body
 from esiaf_services.orchestrator.tests.test_orchestrator_cli import (
     assert_one_clear_line,

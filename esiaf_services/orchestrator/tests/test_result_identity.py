@@ -162,7 +162,7 @@ def test_messages_without_a_key_are_refused_before_anything_is_stored(orch, comp
 
 def test_refusals_are_logged_the_first_and_every_100th(orch, component, http, caplog):
     asr = component("asr", designation="speech", inputs=["vad/speech"])
-    caplog.set_level(logging.WARNING, logger="esiaf_services.orchestrator.ingest")
+    caplog.set_level(logging.WARNING, logger="esiaf_services.orchestrator.planes.ingest")
     for i in range(250):
         asr.push.send_multipart([b"result", speech("asr", asr.id, "s", i, "no key")])
     asr.send_result(stream_id="marker")  # after them on the same socket

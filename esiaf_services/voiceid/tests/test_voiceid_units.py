@@ -104,7 +104,7 @@ def test_anonymous_voices_keep_their_ids_and_are_bounded():
 
 
 def test_the_fused_voice_is_the_results_label_not_the_best_enrolled_score():
-    from esiaf_services.orchestrator.aggregate import label_aggregate
+    from esiaf_services.orchestrator.fusion.aggregate import label_aggregate
     stranger = {"span": {"start_ns": 0, "end_ns": 2_000_000_000},
                 "voice_id": {"label": "voice-2", "probability": 0.9, "class_probabilities": {"Anna": 0.6}}}
     aggregate = label_aggregate([stranger], "voice_id", (0, 2_000_000_000))

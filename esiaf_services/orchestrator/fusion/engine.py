@@ -22,10 +22,10 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from ..settings import FusionSettings, TimeoutSettings
 from .aggregate import aggregates, overlaps
 from .coverage import Coverage, SpanIndex, StoredResult
 from .latency import Latencies
-from .settings import FusionSettings, TimeoutSettings
 
 __all__ = ["FusedResult", "Fusion", "FusionEngine", "StoredResult"]
 

@@ -28,8 +28,8 @@ from typing import Any, cast
 
 import zmq.asyncio
 
+from ..registry.components import Component, Registry
 from .codec import MAX_TIME_NS
-from .registry import Component, Registry
 
 log = logging.getLogger(__name__)
 

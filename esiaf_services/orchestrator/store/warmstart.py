@@ -6,13 +6,13 @@ import json
 import logging
 from typing import TYPE_CHECKING
 
-from .fusion import StoredResult
-from .settings import FusionSettings
+from ..fusion.engine import StoredResult
+from ..settings import FusionSettings
 
 if TYPE_CHECKING:
-    from .ingest import Ingest
+    from ..planes.ingest import Ingest
 
-log = logging.getLogger(f"{__package__}.ingest")  # its log lines, as before the split
+log = logging.getLogger(__name__)
 
 
 def restore(ingest: Ingest) -> None:

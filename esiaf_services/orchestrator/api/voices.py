@@ -30,9 +30,9 @@ from pydantic import BaseModel, ConfigDict, Field, StrictInt, TypeAdapter, Valid
 
 from esiaf.api_client import VOICES_MAX_WAIT_S
 
-from .api.deps import get_core
-from .codec import MAX_TIME_NS
-from .core import Orchestrator
+from ..core import Orchestrator
+from ..planes.codec import MAX_TIME_NS
+from .deps import get_core
 from .models import Problem
 
 router = APIRouter(tags=["voices"])

@@ -10,13 +10,13 @@ from starlette.exceptions import HTTPException
 
 from esiaf import auth
 
-from .api import components, dashboard, fused, fusions, health, latency, metrics, results, streams, topics, ws
-from .api.errors import with_allow_header
+from ..core import Orchestrator
+from ..settings import OrchestratorSettings
+from . import components, dashboard, fused, fusions, health, latency, metrics, results, streams, topics, ws
 from .auth import TokenAuth
-from .core import Orchestrator
+from .errors import with_allow_header
 from .limits import BodyLimit
 from .openapi import documented
-from .settings import OrchestratorSettings
 from .voices import router as voices_router
 
 DESCRIPTION = """\

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .settings import TimeoutSettings
+from ..settings import TimeoutSettings
 
 MEAN_WINDOW = 100  # the running mean is exact over the first 100 results, then exponential
 DEVIATION_WINDOW = 4  # the deviation follows faster (RFC 6298's beta = 1/4): load comes and goes

@@ -8,7 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field, StrictInt, field_validator, m
 
 from esiaf.results import KIND_PATTERN, RESULT_TYPES
 
-from .settings import FusionSettings
+from ..settings import FusionSettings
 
 SampleType = Literal["int8", "uint8", "int16", "uint16", "int24", "uint24", "int32", "uint32",
                      "float32", "float64"]

@@ -24,10 +24,10 @@ from __future__ import annotations
 
 import logging
 
+from ..settings import FusionSettings
 from .aggregate import overlaps
 from .coverage import StoredResult
-from .fusion import FusedResult, FusionEngine
-from .settings import FusionSettings
+from .engine import FusedResult, FusionEngine
 
 log = logging.getLogger(__name__)
 

@@ -22,7 +22,7 @@ import zmq
 
 from esiaf.binding import MAC_BYTES, MAX_KEY_ID_BYTES, derive_key, mac
 
-from .registry import Registry
+from ..registry.components import Registry
 
 
 def refusal(registry: Registry, frames: list[bytes], component_id: str, peer_key: str | None) -> str | None:

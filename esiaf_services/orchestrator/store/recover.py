@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import quote
 
-from .store import corruption, is_corrupt_error, remove_db_files
+from .database import corruption, is_corrupt_error, remove_db_files
 
 log = logging.getLogger(__name__)
 

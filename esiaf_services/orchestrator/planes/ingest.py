@@ -16,16 +16,16 @@ from typing import Any, cast
 import zmq
 import zmq.asyncio
 
+from ..fusion.engine import FusedResult, FusionEngine, StoredResult
+from ..fusion.orphans import Orphans
+from ..registry.components import Component, Registry
+from ..registry.streams import StreamEnds
+from ..store.database import Store, StoreUnavailable
+from ..store.warmstart import restore
 from .binding import peer_key, refusal
 from .codec import BadResult, parse_result, result_to_json, type_name
-from .fusion import FusedResult, FusionEngine, StoredResult
 from .hub import Hub, Outgoing
 from .metrics import Metrics
-from .orphans import Orphans
-from .registry import Component, Registry
-from .store import Store, StoreUnavailable
-from .streams import StreamEnds
-from .warmstart import restore
 
 log = logging.getLogger(__name__)
 
