@@ -15,9 +15,9 @@ from dataclasses import asdict, dataclass
 
 from esiaf.audio import Audio
 from esiaf.formats import AudioFormat, FormatError
+from esiaf.frames import topic_name
 from esiaf.links import InputLink
 from esiaf.proto import esiaf_pb2 as pb
-from esiaf.transport import topic_name
 
 log = logging.getLogger("esiaf.component")  # the component's log, as it was before this module was split off
 
