@@ -1,4 +1,8 @@
-"""The orchestrator's state and background tasks, wired together; runs inside the event loop."""
+"""The orchestrator's state and background tasks, wired together; runs inside the event loop.
+
+This is the one place that builds the parts (the registry and fusion engine, the store, the
+ZeroMQ planes) and hands each its collaborators and callbacks through its constructor.
+"""
 from __future__ import annotations
 
 import asyncio
@@ -18,10 +22,12 @@ from esiaf import auth, keys
 from esiaf.transport import keep_alive
 
 from .fusion.engine import FusionEngine
+from .planes.clocks import StreamClocks
 from .planes.control import ControlPlane
 from .planes.hub import Hub
 from .planes.ingest import Ingest
 from .planes.metrics import Metrics
+from .planes.results import ResultsLoop
 from .planes.zap import Guard
 from .registry.components import Component, Registry
 from .registry.negotiation import Format
@@ -62,13 +68,14 @@ class Orchestrator:
         self.fresh = fresh
         self.recovered: list[str] = []  # the report of a --recover that repaired the database at start-up
         self.registry = Registry(settings.format_strategy)
+        self.clocks = StreamClocks(self.registry)
         self.hub = Hub()
         # made by start(), until stop(): read them through the properties below
         self._store: Store | None = None
         self._control: ControlPlane | None = None
         self._ingest: Ingest | None = None
+        self._results: ResultsLoop | None = None
         self.metrics = Metrics()
-        self.metrics.watch(self)
         self.control_endpoint = ""
         self.results_endpoint = ""
         self._ctx: zmq.asyncio.Context | None = None
@@ -76,6 +83,7 @@ class Orchestrator:
         self._tasks: list[asyncio.Task] = []
         self._pushes: set[asyncio.Task] = set()  # state pushes under way (_push_soon)
         self._liveness_news = asyncio.Event()  # a component registered, or its death may be due sooner
+        self._written = asyncio.Event()  # the store wrote something: the checkpoint task copies the WAL
         self.closing = asyncio.Event()  # set when the server begins to shut down: long polls answer at once
 
     # the parts start() makes; the REST API, the metrics and the tasks use them only while running
@@ -105,7 +113,7 @@ class Orchestrator:
             await self.stop()
             raise
         self._tasks = [asyncio.create_task(self.control.run(), name="control"),
-                       asyncio.create_task(self.ingest.run(), name="ingest"),
+                       asyncio.create_task(_running(self._results, "results loop").run(), name="ingest"),
                        asyncio.create_task(self._watch_liveness(), name="liveness"),
                        asyncio.create_task(self._checkpoint(), name="checkpoint"),
                        *(asyncio.create_task(watch, name="zap") for watch in self.guard.watchers())]
@@ -120,13 +128,13 @@ class Orchestrator:
     def capture_offset_ns(self, stream_id: str) -> int:
         """Our clock minus the clock of the host that captures ``stream_id``: its announced source's
         offset, as that component measures it (0 while unknown)."""
-        return self._ingest.capture_offset_ns(stream_id) if self._ingest is not None else 0
+        return self.clocks.capture_offset_ns(stream_id)
 
     def _start(self) -> None:
         settings = self.settings
         engine = FusionEngine(settings.fusions, allocate_id=lambda: self.store.allocate_fused_id(),
                               live_components=self.registry.live.values,
-                              timeouts=settings.timeouts, capture_offset_ns=self.capture_offset_ns)
+                              timeouts=settings.timeouts, capture_offset_ns=self.clocks.capture_offset_ns)
         try:
             curve = keys.load(orchestrator=True)
         except keys.KeyFileError as exc:
@@ -140,19 +148,18 @@ class Orchestrator:
         results_socket, self.results_endpoint = self._bind(zmq.PULL, settings.results_port,
                                                            "results", "results_port")
         try:
-            self._store = Store(settings.db_path, fresh=self.fresh)
+            self._store = Store(settings.db_path, fresh=self.fresh, on_written=self._written.set)
         except StoreError as exc:
             raise StartupError(str(exc)) from None
         self.registry.secret = self.store.secret("control_keys", lambda: secrets.token_bytes(32))
         self._control = ControlPlane(control_socket, self.registry, bind_peer_key=self.guard.mechanism == "curve",
                                      intervals_s=(settings.heartbeat_interval_s, settings.idle_heartbeat_interval_s),
-                                     disconnect_grace_s=settings.disconnect_grace_s)
-        self._control.on_lost = self._disconnected
-        self._control.deadline_sooner = self._liveness_news.set
-        self._ingest = Ingest(results_socket, self.store, engine, self.hub, self.registry, metrics=self.metrics,
-                             stream_end_grace_s=self.settings.stream_end_grace_s,
-                             bind_peer_key=self.guard.mechanism == "curve")
-        self._ingest.on_assignments_changed = self._push_soon
+                                     disconnect_grace_s=settings.disconnect_grace_s,
+                                     on_lost=self._disconnected, deadline_sooner=self._liveness_news.set)
+        self._ingest = Ingest(self.store, engine, self.hub, self.registry, clocks=self.clocks,
+                              metrics=self.metrics, stream_end_grace_s=self.settings.stream_end_grace_s,
+                              on_assignments_changed=self._push_soon)
+        self._results = ResultsLoop(results_socket, self._ingest, bind_peer_key=self.guard.mechanism == "curve")
         try:
             self.ingest.restore()
         except (sqlite3.Error, ValueError, KeyError) as exc:
@@ -305,8 +312,7 @@ class Orchestrator:
         checkpointer = Checkpointer(self.store.path)
         checkpointed = -1
         job: asyncio.Future | None = None
-        written = asyncio.Event()
-        self.store.on_written = written.set  # from the loop's thread: every write is
+        written = self._written  # set by the store, from the loop's thread: every write is
         try:
             while True:
                 await written.wait()  # idle: asleep until something is written, not woken every second

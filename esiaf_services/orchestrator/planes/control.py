@@ -40,7 +40,11 @@ EVENTS, POLLIN = int(zmq.EVENTS), int(zmq.POLLIN)  # plain ints: pyzmq's enums c
 
 class ControlPlane:
     def __init__(self, socket: zmq.asyncio.Socket, registry: Registry, bind_peer_key: bool = False,
-                 intervals_s: tuple[float, float] = (0.5, 0.5), disconnect_grace_s: float = 1.0) -> None:
+                 intervals_s: tuple[float, float] = (0.5, 0.5), disconnect_grace_s: float = 1.0, *,
+                 on_lost: Callable[[Component], Awaitable[Any]] | None = None,
+                 deadline_sooner: Callable[[], object] = lambda: None) -> None:
+        """``on_lost``: called for a live component whose connection closed and that has not spoken
+        since (its process died); ``deadline_sooner``: a component's death may be due sooner."""
         self.socket = socket
         # the same socket, used synchronously: run() takes every message there is when its file
         # descriptor wakes the loop, and send() never waits (a ROUTER drops what it cannot send)
@@ -52,10 +56,9 @@ class ControlPlane:
         self.counters: Counter[str] = Counter()
         self.intervals_s = intervals_s  # the heartbeat interval, and the longest a component may say it beats at
         self.disconnect_grace_s = disconnect_grace_s
-        # called for a live component whose connection closed and that has not spoken since (its process died)
-        self.on_lost: Callable[[Component], Awaitable[Any]] | None = None
+        self.on_lost = on_lost
         self._losing: set[asyncio.Task] = set()
-        self.deadline_sooner: Callable[[], object] = lambda: None  # a component's death may be due sooner
+        self.deadline_sooner = deadline_sooner
 
     async def run(self) -> None:
         """Takes and handles messages until cancelled. The socket's ZMQ_FD is registered with the loop

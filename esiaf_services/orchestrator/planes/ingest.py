@@ -1,7 +1,8 @@
-"""The results plane: PULL → store → fuse → publish.
+"""The results plane's pipeline: store → fuse → publish, one batch in one transaction.
 
-Messages that are already waiting are handled as one batch in one transaction;
-everything is stored (and committed) before anything of the batch is published.
+A batch (what the socket loop, results.py, found waiting) is handled in one transaction;
+everything is stored (and committed) before anything of the batch is published. While the
+database cannot be written, the writes stay queued and are retried; fused results still go out.
 """
 from __future__ import annotations
 
@@ -9,12 +10,9 @@ import asyncio
 import json
 import logging
 import time
-from collections import Counter, OrderedDict, deque
+from collections import Counter, deque
 from collections.abc import Callable
-from typing import Any, cast
-
-import zmq
-import zmq.asyncio
+from typing import Any
 
 from ..fusion.engine import FusedResult, FusionEngine, StoredResult
 from ..fusion.orphans import Orphans
@@ -22,16 +20,15 @@ from ..registry.components import Component, Registry
 from ..registry.streams import StreamEnds
 from ..store.database import Store, StoreUnavailable
 from ..store.warmstart import restore
-from .binding import peer_key, refusal
+from .binding import refusal
+from .clocks import StreamClocks
 from .codec import BadResult, parse_result, result_to_json, type_name
 from .hub import Hub, Outgoing
 from .metrics import Metrics
 
 log = logging.getLogger(__name__)
 
-MAX_BATCH = 64  # messages handled per transaction
 MAX_NOTICE_BYTES = 4096  # an end_of_stream notice
-MAX_STREAMS = 10_000  # streams whose reference time is kept
 STORE_RETRY_S = 1.0  # while the database cannot be written: how often queued writes are retried
 OVERHEAD_SAMPLES = 10_000
 
@@ -41,12 +38,12 @@ def _dumps(value: Any) -> str:
 
 
 class Ingest:
-    def __init__(self, socket: zmq.asyncio.Socket, store: Store, engine: FusionEngine, hub: Hub,
-                 registry: Registry, clock_ns: Callable[[], int] = time.time_ns,
+    def __init__(self, store: Store, engine: FusionEngine, hub: Hub, registry: Registry, *,
+                 clocks: StreamClocks | None = None, clock_ns: Callable[[], int] = time.time_ns,
                  metrics: Metrics | None = None, stream_end_grace_s: float = 0.0,
-                 bind_peer_key: bool = False) -> None:
-        self.socket = socket
-        self.bind_peer_key = bind_peer_key  # CURVE: each message comes with its peer's public key
+                 on_assignments_changed: Callable[[], None] = lambda: None) -> None:
+        """``on_assignments_changed``: called when a stream became active or ended, so that the
+        replicas' states are pushed."""
         self.store = store
         self.engine = engine
         self.orphans = Orphans(engine)  # what dead recogniser instances left unanswered
@@ -67,36 +64,13 @@ class Ingest:
         self.metrics = metrics
         # latencies (histogram, labels, seconds) of this transaction: observed once it is committed
         self._observed: list[tuple[Any, tuple[str, ...], float]] = []
-        self._stream_reference: OrderedDict[str, int] = OrderedDict()
-        self.stream_sources: OrderedDict[str, str] = OrderedDict()  # stream -> the component capturing it
+        self.clocks = clocks or StreamClocks(registry)
         self._store_retry: asyncio.TimerHandle | None = None
-        # called when a stream became active or ended: the replicas' states are to be pushed
-        self.on_assignments_changed: Callable[[], None] | None = None
+        self._on_assignments_changed = on_assignments_changed
 
     def restore(self) -> None:
-        """Warm start from the database (warmstart.py)."""
-        restore(self)
-
-    async def run(self) -> None:
-        self._arm_timer()  # fusions restored from the database may be due
-        while True:
-            try:
-                batch: list[Any] = [await self.socket.recv_multipart(copy=not self.bind_peer_key)]
-            except zmq.Again:  # libzmq may signal a message that is not there (seen with heartbeats)
-                self.counters["spurious_wakeups"] += 1
-                if self.counters["spurious_wakeups"] in (1, 100, 10_000):
-                    log.info("event=spurious_wakeup plane=results count=%d", self.counters["spurious_wakeups"])
-                continue
-            while len(batch) < MAX_BATCH and cast(int, self.socket.get(zmq.EVENTS)) & zmq.POLLIN:
-                try:
-                    batch.append(cast("asyncio.Future[list[Any]]", self.socket.recv_multipart(
-                        zmq.NOBLOCK, copy=not self.bind_peer_key)).result())
-                except zmq.Again:
-                    break
-            if self.bind_peer_key:  # CURVE: frames (copy=False) carry their peer's public key
-                self.handle_batch([[f.bytes for f in frames] for frames in batch], [peer_key(f) for f in batch])
-            else:
-                self.handle_batch(batch)
+        """Warm start from the database (store/warmstart.py)."""
+        restore(self.store, self.engine, self.registry, self.on_stream_announced)
 
     def handle_batch(self, batch: list[list[bytes]], peer_keys: list[str | None] | None = None) -> None:
         """``peer_keys``: with CURVE, the public key each message came with."""
@@ -124,35 +98,12 @@ class Ingest:
 
     def on_stream_announced(self, stream_id: str, source: str, info: dict[str, Any]) -> None:
         """A source said what it plays: its capture times are on ``source``'s clock (corrected by its
-        offset, core.capture_offset_ns), and a replay faster than real time (``"realtime": false``)
+        offset, clocks.py), and a replay faster than real time (``"realtime": false``)
         does not teach the fusion its components' latencies."""
         if source:
-            self.stream_sources[stream_id] = source
-            self.stream_sources.move_to_end(stream_id)
-            while len(self.stream_sources) > MAX_STREAMS:
-                self.stream_sources.popitem(last=False)
+            self.clocks.announce(stream_id, source)
         if isinstance(info, dict) and info.get("realtime") is False:
             self.engine.mark_replayed(stream_id)
-
-    def capture_offset_ns(self, stream_id: str) -> int:
-        """Our clock minus the clock of the host that captures ``stream_id``: its announced source's
-        offset, as that component measures it (0 while unknown)."""
-        source = self.stream_sources.get(stream_id)
-        component = (self.registry.get(source) or self.registry.by_name(source)) if source else None
-        return (component.clock_offset_ns or 0) if component is not None else 0
-
-    def _stream_reference_ns(self, stream_id: str) -> int | None:
-        return self._stream_reference.get(stream_id)
-
-    def _remember_stream(self, stream_id: str, start_ns: int) -> None:
-        """The first span of each stream (the most recent MAX_STREAMS streams): later spans must
-        lie near it."""
-        if stream_id in self._stream_reference:
-            self._stream_reference.move_to_end(stream_id)
-            return
-        self._stream_reference[stream_id] = start_ns
-        while len(self._stream_reference) > MAX_STREAMS:
-            self._stream_reference.popitem(last=False)
 
     def _refuse(self, reason: str, detail: str) -> None:
         """Counts a refused message by reason; logs the first and then every 100th of a reason."""
@@ -164,13 +115,13 @@ class Ingest:
 
     def components_gone(self, gone: list[Component]) -> None:
         """Fusions and stream ends stop waiting for components that died or left; what a dead one
-        left unanswered on the streams it served is fused without it (orphans.py)."""
+        left unanswered on the streams it served is fused without it (fusion/orphans.py)."""
         def work() -> list[Outgoing]:
             now_ns = self._clock_ns()
             return [self._store_fused(f) for c in gone for f in [
                 *self.engine.on_component_gone(c.name),
                 *(f for s in c.served_at_departure if c.status == "dead" for f in self.orphans.on_death(
-                    s, c.name, c.designation, now_ns - self.capture_offset_ns(s), now_ns))]]
+                    s, c.name, c.designation, now_ns - self.clocks.capture_offset_ns(s), now_ns))]]
         self._transaction(work, after="components_gone")
         self._publish(self.stream_ends())
 
@@ -208,7 +159,7 @@ class Ingest:
             outgoing = []
         self._observe()
         self._publish(outgoing)
-        self._arm_timer()
+        self.arm_timer()
 
     def _observe(self) -> None:
         if self.metrics is not None:
@@ -246,7 +197,7 @@ class Ingest:
             self.store.put_latency(component=component, count=latency.count,
                                    mean_ns=latency.mean_ns, updated_ns=now_ns)
 
-    def _arm_timer(self) -> None:
+    def arm_timer(self) -> None:
         deadline_ns = self.engine.next_deadline_ns()
         if deadline_ns == self._timer_ns and self._timer is not None:
             return
@@ -292,9 +243,9 @@ class Ingest:
     def _on_result(self, frames: list[bytes], peer_key: str | None) -> list[Outgoing]:
         received_ns, data = self._clock_ns(), frames[1]
         try:
-            result = parse_result(data, self._stream_reference_ns)
+            result = parse_result(data, self.clocks.reference_ns)
             result_id = self.store.next_result_id
-            as_json = result_to_json(result, result_id, received_ns, self.capture_offset_ns(result.stream_id))
+            as_json = result_to_json(result, result_id, received_ns, self.clocks.capture_offset_ns(result.stream_id))
             text = _dumps(as_json)
         except (BadResult, ValueError) as exc:
             self.counters["bad_results"] += 1
@@ -312,10 +263,10 @@ class Ingest:
         if component is not None:  # any message counts as life
             component.touch()
             component.results_received += 1
-        if self.registry.add_stream(result.stream_id, component) and self.on_assignments_changed is not None:
-            self.on_assignments_changed()  # an unannounced stream: it is served from now on
+        if self.registry.add_stream(result.stream_id, component):
+            self._on_assignments_changed()  # an unannounced stream: it is served from now on
         self.streams.on_result(result.stream_id)
-        self._remember_stream(result.stream_id, result.span.start_ns)
+        self.clocks.remember(result.stream_id, result.span.start_ns)
         stored = StoredResult(id=result_id, component=result.component, type=kind,
                               stream_id=result.stream_id, start_ns=result.span.start_ns,
                               end_ns=result.span.end_ns, json=as_json)
@@ -394,7 +345,7 @@ class Ingest:
         for stream_id in ended:
             log.info("event=stream_end stream_id=%s", stream_id)
             self.registry.end_stream(stream_id)
-        if ended and self.on_assignments_changed is not None:
-            self.on_assignments_changed()
+        if ended:
+            self._on_assignments_changed()
         return [Outgoing(text=_dumps({"type": "stream_end", "stream_id": stream_id}),
                          stream_id=stream_id) for stream_id in ended]

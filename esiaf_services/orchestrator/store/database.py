@@ -61,14 +61,17 @@ class StoreUnavailable(Exception):
 
 
 class Store:
-    def __init__(self, path: str | Path, *, fresh: bool = False, max_queued: int = 100_000) -> None:
+    def __init__(self, path: str | Path, *, fresh: bool = False, max_queued: int = 100_000,
+                 on_written: Callable[[], object] = lambda: None) -> None:
+        """``on_written``: called after every write, from the thread that wrote (the checkpoint task
+        waits for one)."""
         path = Path(path)
         self._queued: list[tuple[str, tuple]] = []
         self._batch_start = 0
         self.max_queued = max_queued
         self.lost_writes = 0
         self.error: str | None = None  # why the last commit failed; None while writes succeed
-        self.on_written: Callable[[], object] = lambda: None  # after every write (the checkpoint task waits for one)
+        self.on_written = on_written
         try:
             if fresh:
                 remove_db_files(path)
