@@ -1,12 +1,12 @@
-"""Enrolled voices: the ``voices`` table and the ``/voices`` routes.
+"""Enrolled voices: the ``/voices`` routes (the table is store/voices.py).
 
 A voice is a name and one or more speaker embeddings (256 float32, unit length, from
 ``esiaf_services/voiceid/encoder.py``). They live in the orchestrator's SQLite file, in a table of
-their own (``CREATE TABLE IF NOT EXISTS``, on a connection of their own), and every voiceid
-instance asks ``GET /voices?embeddings=1&wait_s=30`` with the ETag it last saw: a long poll, answered
-at once when the voices differ from that ETag, else when they change (an enrolment or a deletion
-here), when the server shuts down, or with a 304 after ``wait_s`` — so an enrolment reaches every
-voiceid at once, and an idle voiceid and orchestrator do not wake every second to ask (issue 18).
+their own, and every voiceid instance asks ``GET /voices?embeddings=1&wait_s=30`` with the ETag
+it last saw: a long poll, answered at once when the voices differ from that ETag, else when they
+change (an enrolment or a deletion here), when the server shuts down, or with a 304 after
+``wait_s`` — so an enrolment reaches every voiceid at once, and an idle voiceid and orchestrator
+do not wake every second to ask.
 
 ``POST /voices/{name}`` adds embeddings from a WAV of any rate (multipart field ``audio``,
 embedded here with the numpy encoder: enrolment then works whether or not a voiceid runs), from
@@ -19,9 +19,6 @@ from __future__ import annotations
 import asyncio
 import io
 import json
-import sqlite3
-import threading
-import time
 from math import gcd
 
 import numpy as np
@@ -32,70 +29,13 @@ from esiaf.api_client import VOICES_MAX_WAIT_S
 
 from ..core import Orchestrator
 from ..planes.codec import MAX_TIME_NS
+from ..store.voices import VoiceTable
 from .deps import get_core
 from .models import Problem
 
 router = APIRouter(tags=["voices"])
-EMBEDDING_SIZE = 256
 ENCODER_RATE_HZ = 16000
 MIN_ENROL_SPEECH_S = 1.0
-SCHEMA = """
-CREATE TABLE IF NOT EXISTS voices (
-    id INTEGER PRIMARY KEY,
-    name TEXT NOT NULL,
-    embedding BLOB NOT NULL,
-    source TEXT NOT NULL,
-    added_ns INTEGER NOT NULL
-);
-CREATE INDEX IF NOT EXISTS voices_name ON voices (name);
-"""
-
-
-class VoiceTable:
-    def __init__(self, path: str) -> None:
-        self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False, timeout=5.0)
-        self._db.executescript(SCHEMA)
-        self._lock = threading.Lock()
-        self._changed = asyncio.Event()  # set, and replaced, at every change: long polls wait on it
-
-    def changed(self) -> asyncio.Event:
-        """An event set at the next change (add or delete through :meth:`notify`)."""
-        return self._changed
-
-    def notify(self) -> None:
-        """Wakes the long polls waiting for a change (call it on the event loop)."""
-        changed, self._changed = self._changed, asyncio.Event()
-        changed.set()
-
-    def add(self, name: str, embeddings: list[np.ndarray], source: str) -> None:
-        with self._lock:
-            self._db.executemany("INSERT INTO voices (name, embedding, source, added_ns) VALUES (?, ?, ?, ?)",
-                                 [(name, np.asarray(e, "<f4").tobytes(), source, time.time_ns()) for e in embeddings])
-
-    def delete(self, name: str) -> int:
-        with self._lock:
-            return self._db.execute("DELETE FROM voices WHERE name = ?", (name,)).rowcount
-
-    def etag(self) -> str:
-        with self._lock:
-            count, last = self._db.execute("SELECT COUNT(*), COALESCE(MAX(id), 0) FROM voices").fetchone()
-        return f'"{count}-{last}"'
-
-    def listing(self, embeddings: bool) -> list[dict]:
-        voices: dict[str, dict] = {}
-        with self._lock:  # the sync routes run in a thread pool: one statement at a time
-            rows = self._db.execute("SELECT name, embedding, source FROM voices ORDER BY id").fetchall()
-        for name, blob, source in rows:
-            voice = voices.setdefault(name, {"name": name, "count": 0, "sources": []})
-            voice["count"] += 1
-            if source not in voice["sources"]:
-                voice["sources"].append(source)
-            if embeddings:
-                voice.setdefault("embeddings", []).append(np.frombuffer(blob, "<f4").tolist())
-        return list(voices.values())
-
-    def close(self) -> None:
-        self._db.close()
 
 
 class SpanEnrolment(BaseModel):

@@ -1,0 +1,69 @@
+"""The enrolled voices table: names and speaker embeddings (256 float32 each) in the orchestrator's
+SQLite file, in a table of their own (``CREATE TABLE IF NOT EXISTS``, on a connection of their
+own), and the event long polls of ``GET /voices`` wait on for a change (api/voices.py)."""
+from __future__ import annotations
+
+import asyncio
+import sqlite3
+import threading
+import time
+
+import numpy as np
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS voices (
+    id INTEGER PRIMARY KEY,
+    name TEXT NOT NULL,
+    embedding BLOB NOT NULL,
+    source TEXT NOT NULL,
+    added_ns INTEGER NOT NULL
+);
+CREATE INDEX IF NOT EXISTS voices_name ON voices (name);
+"""
+
+
+class VoiceTable:
+    def __init__(self, path: str) -> None:
+        self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False, timeout=5.0)
+        self._db.executescript(SCHEMA)
+        self._lock = threading.Lock()
+        self._changed = asyncio.Event()  # set, and replaced, at every change: long polls wait on it
+
+    def changed(self) -> asyncio.Event:
+        """An event set at the next change (add or delete through :meth:`notify`)."""
+        return self._changed
+
+    def notify(self) -> None:
+        """Wakes the long polls waiting for a change (call it on the event loop)."""
+        changed, self._changed = self._changed, asyncio.Event()
+        changed.set()
+
+    def add(self, name: str, embeddings: list[np.ndarray], source: str) -> None:
+        with self._lock:
+            self._db.executemany("INSERT INTO voices (name, embedding, source, added_ns) VALUES (?, ?, ?, ?)",
+                                 [(name, np.asarray(e, "<f4").tobytes(), source, time.time_ns()) for e in embeddings])
+
+    def delete(self, name: str) -> int:
+        with self._lock:
+            return self._db.execute("DELETE FROM voices WHERE name = ?", (name,)).rowcount
+
+    def etag(self) -> str:
+        with self._lock:
+            count, last = self._db.execute("SELECT COUNT(*), COALESCE(MAX(id), 0) FROM voices").fetchone()
+        return f'"{count}-{last}"'
+
+    def listing(self, embeddings: bool) -> list[dict]:
+        voices: dict[str, dict] = {}
+        with self._lock:  # the sync routes run in a thread pool: one statement at a time
+            rows = self._db.execute("SELECT name, embedding, source FROM voices ORDER BY id").fetchall()
+        for name, blob, source in rows:
+            voice = voices.setdefault(name, {"name": name, "count": 0, "sources": []})
+            voice["count"] += 1
+            if source not in voice["sources"]:
+                voice["sources"].append(source)
+            if embeddings:
+                voice.setdefault("embeddings", []).append(np.frombuffer(blob, "<f4").tolist())
+        return list(voices.values())
+
+    def close(self) -> None:
+        self._db.close()
