@@ -143,38 +143,10 @@ class Transport:
         self.pub: zmq.Socket | None = None
         self.sub: zmq.Socket | None = None
         if has_outputs:
-            self.pub = keep_alive(context.socket(zmq.XPUB))
-            self.pub.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
-            self.pub.setsockopt(zmq.SNDHWM, audio_queue)
-            _bound_buffers(self.pub, audio_queue, zmq.SNDBUF)
-            self.pub.setsockopt(zmq.XPUB_VERBOSER, 1)
-            self.pub.setsockopt(zmq.XPUB_NODROP, 1)
-            if curve is not None:  # a CURVE server: only consumers with an allowed key may subscribe
-                self._authenticator = ThreadAuthenticator(context)
-                self._authenticator.start()
-                self._authenticator.configure_curve(domain="*", location=str(curve.clients_dir))
-                keys.server(self.pub, curve)
-                self._refusals = self.pub.get_monitor_socket(sum(keys.HANDSHAKE_FAILURES))
-                self._poller.register(self._refusals, zmq.POLLIN)
-            try:
-                if audio_port:
-                    self.pub.bind(f"tcp://{bind_host}:{audio_port}")
-                else:
-                    self.pub.bind_to_random_port(f"tcp://{bind_host}")
-            except zmq.ZMQError as exc:
-                self.close()
-                where = f"{bind_host}:{audio_port or 'any port'}"
-                raise TransportError(f"cannot bind audio output on {where}: {exc}") from None
-            self._poller.register(self.pub, zmq.POLLIN)
+            self._open_output(context, bind_host, audio_port, audio_queue)
         topics = list(inputs)
         if topics:
-            self.sub = keep_alive(context.socket(zmq.SUB))
-            self.sub.setsockopt(zmq.LINGER, 0)
-            self.sub.setsockopt(zmq.RCVHWM, audio_queue)
-            _bound_buffers(self.sub, audio_queue, zmq.RCVBUF)
-            for topic in topics:
-                self.sub.setsockopt(zmq.SUBSCRIBE, topic_frame(topic))
-            self._poller.register(self.sub, zmq.POLLIN)
+            self._open_input(context, topics, audio_queue)
         self._topics = topics
         self._streams: list[str] | None = None  # the streams taken: None, all of them
         # stop() from a signal handler or another thread writes here: a poll that waits long ends at once
@@ -187,6 +159,43 @@ class Transport:
         self.push.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
         self.push.setsockopt(zmq.SNDHWM, RESULTS_HWM)
         self._advertised_host = advertise_host or (socket.gethostname() if bind_host in ANY_HOST else bind_host)
+
+    def _open_output(self, context: zmq.Context, bind_host: str, audio_port: int, audio_queue: int) -> None:
+        """The XPUB the outputs' audio goes out on (a CURVE server with keys), bound; raises TransportError."""
+        curve = self._curve
+        self.pub = keep_alive(context.socket(zmq.XPUB))
+        self.pub.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
+        self.pub.setsockopt(zmq.SNDHWM, audio_queue)
+        _bound_buffers(self.pub, audio_queue, zmq.SNDBUF)
+        self.pub.setsockopt(zmq.XPUB_VERBOSER, 1)
+        self.pub.setsockopt(zmq.XPUB_NODROP, 1)
+        if curve is not None:  # a CURVE server: only consumers with an allowed key may subscribe
+            self._authenticator = ThreadAuthenticator(context)
+            self._authenticator.start()
+            self._authenticator.configure_curve(domain="*", location=str(curve.clients_dir))
+            keys.server(self.pub, curve)
+            self._refusals = self.pub.get_monitor_socket(sum(keys.HANDSHAKE_FAILURES))
+            self._poller.register(self._refusals, zmq.POLLIN)
+        try:
+            if audio_port:
+                self.pub.bind(f"tcp://{bind_host}:{audio_port}")
+            else:
+                self.pub.bind_to_random_port(f"tcp://{bind_host}")
+        except zmq.ZMQError as exc:
+            self.close()
+            where = f"{bind_host}:{audio_port or 'any port'}"
+            raise TransportError(f"cannot bind audio output on {where}: {exc}") from None
+        self._poller.register(self.pub, zmq.POLLIN)
+
+    def _open_input(self, context: zmq.Context, topics: list[str], audio_queue: int) -> None:
+        """The SUB the inputs' audio comes in on, subscribed to ``topics`` (connected later)."""
+        self.sub = keep_alive(context.socket(zmq.SUB))
+        self.sub.setsockopt(zmq.LINGER, 0)
+        self.sub.setsockopt(zmq.RCVHWM, audio_queue)
+        _bound_buffers(self.sub, audio_queue, zmq.RCVBUF)
+        for topic in topics:
+            self.sub.setsockopt(zmq.SUBSCRIBE, topic_frame(topic))
+        self._poller.register(self.sub, zmq.POLLIN)
 
     @property
     def audio_endpoint(self) -> str | None:
