@@ -36,7 +36,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
-    limit_native_threads()  # the enrolment's speaker embeddings (voices.py) share the cores too
+    limit_native_threads()  # the enrolment's speaker embeddings (api/voices.py) share the cores too
     args = parse_args(argv)
     try:
         settings = load(args.config, host=args.host, port=args.port, db_path=args.db)

@@ -9,7 +9,7 @@ pending component's own timeout has passed (its deadline: window end + its timeo
 latency.py). Components that die or leave are no longer waited for. A result that arrives
 after publication and belongs to the window publishes the next revision.
 
-Pure bookkeeping, no sockets, no clock of its own beyond ``clock_ns``: ingest.py stores what
+Pure bookkeeping, no sockets, no clock of its own beyond ``clock_ns``: planes/ingest.py stores what
 this returns, publishes it, and wakes :meth:`FusionEngine.on_timer` at
 :meth:`FusionEngine.next_deadline_ns`.
 """

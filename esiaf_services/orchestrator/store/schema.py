@@ -1,5 +1,5 @@
 """The orchestrator database's schema, versioned with ``PRAGMA user_version``: ``MIGRATIONS[i]``
-brings a database from version i to i + 1 (esiaf_services/orchestrator/store.py applies them). Only ever
+brings a database from version i to i + 1 (esiaf_services/orchestrator/store/database.py applies them). Only ever
 append: a database of any earlier version is brought up to date at start-up."""
 from __future__ import annotations
 

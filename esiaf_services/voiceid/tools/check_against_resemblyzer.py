@@ -15,7 +15,7 @@ the installed resemblyzer's ``pretrained.pt``.
 For ``--files`` EmoDB utterances spread over the corpus it prints, stage by stage:
 
 - ``resample``: a 44.1 kHz copy of the file (made with soxr) brought back to 16 kHz as the
-  orchestrator's WAV enrolment does (``scipy.signal.resample_poly``, ``esiaf_services/orchestrator/voices.py``)
+  orchestrator's WAV enrolment does (``scipy.signal.resample_poly``, ``esiaf_services/orchestrator/api/voices.py``)
   and as ``preprocess_wav`` does (``librosa.resample``): relative max difference of the samples, and
   cosine between the numpy embeddings of the two;
 - ``volume``: the -30 dBFS raise (``normalize_volume``) against ``resemblyzer.audio.normalize_volume``;
