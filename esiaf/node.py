@@ -62,6 +62,7 @@ class Context:
     def __init__(self, processor: Processor):
         self.processor = processor
         self.node: Node | None = None  # the node running it: set when one does
+        self.stop_asked: int | None = None  # stop() before a node ran it: the exit code asked for
         settings = processor.settings
         self.settings = settings
         self.incarnation = uuid.uuid4().hex  # this process: its own registrations replace each other
@@ -103,11 +104,14 @@ class Context:
     # -- what a processor does through it ----------------------------------------------
     @property
     def stopping(self) -> bool:
-        return self.node is not None and self.node.stopping
+        return self.node.stopping if self.node is not None else self.stop_asked is not None
 
     def stop(self, exit_code: int = 0) -> None:
+        """Stops the node that runs it; asked before one does, the node stops as it starts."""
         if self.node is not None:
             self.node.stop(exit_code)
+        else:
+            self.stop_asked = self.stop_asked or exit_code
 
     def publish(self, topic: str, audio: bytes | np.ndarray, start_ns: int, end_ns: int, *,
                 stream_id: str | None = None, segmentation_ended: bool = False,
@@ -370,14 +374,16 @@ class Node:
             raise ValueError("a node runs at least one processor")
         self.processors = list(processors)
         self.contexts = [context_of(p) for p in self.processors]
-        for context in self.contexts:
-            context.node = self
         self.primary = self.contexts[0]
         self.exit_code = 0
         self._stop = threading.Event()
         self._hosted_started = False
         self._zmq: zmq.Context | None = None
         self.transport: Transport | None = None
+        for context in self.contexts:
+            context.node = self
+            if context.stop_asked is not None:
+                self.stop(context.stop_asked)
 
     @property
     def stopping(self) -> bool:
