@@ -56,7 +56,7 @@ def guest_class(spec: str) -> type[Processor]:
     found = [cls for cls in found if isinstance(cls, type) and issubclass(cls, Processor)]
     if len(found) != 1:
         raise SetupError(f"guest {spec}: {module_name} has no component "
-                         f"{class_name or f'whose service is {spec!r}'} (a subclass of Processor)")
+                         f"{class_name or f'whose service is {spec!r}'} (a subclass of Component or Processor)")
     return cast("type[Processor]", found[0])
 
 

@@ -2,8 +2,9 @@
 
 Real parts only: the launcher and the orchestrator as processes on random
 loopback ports, a real SQLite file, and polling with deadlines instead of
-fixed sleeps. One analyser in-process on a WAV file: ``esiaf.testing``. ``shared_data`` and ``need_flite`` skip (pytest) with the reason
-when the shared test data or Debian's flite is absent.
+fixed sleeps. ``shared_data`` and ``need_flite`` skip (pytest) with the reason
+when the shared test data or Debian's flite is absent. One analyser in-process
+on a WAV file: ``esiaf.testing``.
 """
 from __future__ import annotations
 
