@@ -43,6 +43,11 @@ class Component(Processor):
         super().add_output(topic, fmt)
         self.context.declared()
 
+    def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
+        """Every input has ended ``stream_id``. By default, end it on every output too (``self.publish``)."""
+        for topic in self.outputs:
+            self.publish(topic, b"", audio.end_ns, audio.end_ns, stream_id=stream_id, end_of_stream=True)
+
     def run(self) -> int:
         """Set up, register, process until stopped (with its guests); returns the exit code."""
         from esiaf.hosting import hosting_node

@@ -66,9 +66,8 @@ class Processor:
 
     def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
         """Every input has ended ``stream_id``. By default, end it on every output too."""
-        context = self._context()
         for topic in self.outputs:
-            context.publish(topic, b"", audio.end_ns, audio.end_ns, stream_id=stream_id, end_of_stream=True)
+            self._context().publish(topic, b"", audio.end_ns, audio.end_ns, stream_id=stream_id, end_of_stream=True)
 
     def produce(self) -> None:
         """Sources override this with their capture loop; consumers leave it alone."""

@@ -157,7 +157,7 @@ class UtteranceAnalyser(Processor):
         if "nothing" in found:
             self.nothing += 1
             self.info["nothing"] = self.nothing
-            self._context().emit(self.kind, span, stream_id=audio.stream_id, nothing=str(found["nothing"]))
+            self.emit(self.kind, span, stream_id=audio.stream_id, nothing=str(found["nothing"]))
             log.info("segment stream_id=%s start_ns=%d nothing: %s", audio.stream_id, span[0], found["nothing"])
             return
         self.analysed += 1
@@ -166,10 +166,14 @@ class UtteranceAnalyser(Processor):
             payload = {key: value for key, value in found.items() if key in _LABEL_FIELDS}
         else:
             payload = found
-        self._context().emit(self.kind, span, stream_id=audio.stream_id, **{self.kind: payload})
+        self.emit(self.kind, span, stream_id=audio.stream_id, **{self.kind: payload})
         log.info("segment stream_id=%s start_ns=%d duration_s=%.2f %s=%s cpu_ms=%.0f", audio.stream_id, span[0],
                  samples.size / rate, self.kind, found.get("label", found.get("value", "")),
                  1000 * (time.process_time() - started))
+
+    def emit(self, kind: str, span: tuple[int, int], *, stream_id: str | None = None, **payload: Any) -> Any:
+        """Sends one utterance's result through the context (a handler test may put a list's append here)."""
+        return self._context().emit(kind, span, stream_id=stream_id, **payload)
 
     def _analyse(self, utterance: Utterance) -> dict[str, Any]:
         if self._two_argument_analyse:
