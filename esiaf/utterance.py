@@ -171,9 +171,10 @@ class UtteranceAnalyser(Processor):
                  samples.size / rate, self.kind, found.get("label", found.get("value", "")),
                  1000 * (time.process_time() - started))
 
-    def emit(self, kind: str, span: tuple[int, int], *, stream_id: str | None = None, **payload: Any) -> Any:
+    def emit(self, result_type: str, span: tuple[int, int], *, stream_id: str | None = None,
+             **payload: Any) -> pb.Result:
         """Sends one utterance's result through the context (a handler test may put a list's append here)."""
-        return self._context().emit(kind, span, stream_id=stream_id, **payload)
+        return self._context().emit(result_type, span, stream_id=stream_id, **payload)
 
     def _analyse(self, utterance: Utterance) -> dict[str, Any]:
         if self._two_argument_analyse:
