@@ -40,7 +40,7 @@ def clients(url: str, components: int, beats: int) -> None:
     from esiaf.control import ControlClient
     counts = {"published": 0}
 
-    def stats() -> dict:  # like a vad's (esiaf.component.Component.stats)
+    def stats() -> dict:  # like a vad's (esiaf.node.Context.stats)
         counts["published"] += 1
         return {"inputs": {"audio/raw": {"received": counts["published"] * 5, "lost": 0, "bad": 0, "queued": 0}},
                 "outputs": {"vad": {"published": counts["published"], "dropped": 0, "subscribers": 1}},

@@ -1,6 +1,7 @@
 """Entry point shared by every service: arguments, settings, logging, exit codes.
 
-A service's ``__main__`` is one line: ``raise SystemExit(main(MyComponent))``.
+A service's ``__main__`` is one line: ``raise SystemExit(main(MyProcessor))``; it runs in a node
+of its own (esiaf/node.py), with the guests its ``guests`` setting names (esiaf/hosting.py).
 Bad settings, a failed setup or a refused registration end the process with
 exit code 2 and one line on stderr naming what is wrong; no traceback.
 """
@@ -16,8 +17,9 @@ from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
-from esiaf.component import Component, SetupError
 from esiaf.control import RegistrationError
+from esiaf.hosting import hosting_node
+from esiaf.processor import Processor, SetupError
 from esiaf.settings import ComponentSettings, SettingsError, load_settings, parse_value, unknown_variables
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s [{service}] %(message)s"
@@ -73,7 +75,7 @@ def limit_native_threads() -> None:
     threadpool_limits(limits=1, user_api="blas")  # and those loaded already (numpy's)
 
 
-def main(component_cls: type[Component], argv: Sequence[str] | None = None) -> int:
+def main(component_cls: type[Processor], argv: Sequence[str] | None = None) -> int:
     limit_native_threads()
     service = component_cls.service
     doc_lines = (component_cls.__doc__ or "").strip().splitlines()
@@ -106,8 +108,7 @@ def main(component_cls: type[Component], argv: Sequence[str] | None = None) -> i
             "%s names no service (%s) and no common setting: ignored; a typo? (a plug-in folder's own "
             "settings are not known here)", name, ", ".join(sorted(services)))
     try:
-        component = component_cls(settings)
-        return component.run()
+        return hosting_node(component_cls(settings)).run()
     except (SetupError, RegistrationError) as exc:
         logging.getLogger(service).error("%s", exc)
         print(f"{service}: {exc}", file=sys.stderr)

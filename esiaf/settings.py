@@ -10,7 +10,7 @@ Environment variables are named ``ESIAF_<SERVICE>_<FIELD>`` (upper case), e.g.
 :class:`ComponentSettings`) may also be given for all services at once as
 ``ESIAF_<FIELD>``, e.g. ``ESIAF_ORCHESTRATOR_URL``; the service-specific name
 wins. Values from the environment are parsed as YAML scalars or flow
-collections, so ``ESIAF_ASR_NBEST=3`` and ``ESIAF_X_LIST=[a, b]`` work.
+collections, so ``ESIAF_ASR_N_BEST=3`` and ``ESIAF_X_LIST=[a, b]`` work.
 """
 from __future__ import annotations
 
@@ -18,15 +18,16 @@ import logging
 import os
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from esiaf import auth, keys
 from esiaf.transport import AUDIO_HWM
 
 ENV_PREFIX = "ESIAF_"
+log = logging.getLogger(__name__)
 
 S = TypeVar("S", bound=BaseModel)
 
@@ -37,6 +38,23 @@ class SettingsError(Exception):
 
 class StrictModel(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    # old spellings of settings -> their names now: accepted (YAML, environment, --set) for one
+    # release, with one deprecation line each
+    renamed: ClassVar[dict[str, str]] = {}
+
+    @model_validator(mode="before")
+    @classmethod
+    def _old_spellings(cls, data: Any) -> Any:
+        if not cls.renamed or not isinstance(data, dict) or not data.keys() & cls.renamed.keys():
+            return data
+        data = dict(data)
+        for old, new in cls.renamed.items():
+            if old in data:
+                value = data.pop(old)
+                log.warning("setting %s is deprecated and goes in the next release: it is now %s%s", old, new,
+                            f" (both given: {new}={data[new]!r} wins)" if new in data else "")
+                data.setdefault(new, value)
+        return data
 
 
 class ComponentSettings(StrictModel):
@@ -98,7 +116,7 @@ def _common_from_env(model: type[BaseModel], env: Mapping[str, str]) -> dict[str
 
 def _service_from_env(model: type[BaseModel], service: str, env: Mapping[str, str]) -> dict[str, Any]:
     """``ESIAF_<SERVICE>_<FIELD>``; SettingsError for a field ``model`` does not have."""
-    fields = set(model.model_fields)
+    fields = set(model.model_fields) | set(getattr(model, "renamed", {}))
     service_prefix = f"{ENV_PREFIX}{service.upper()}_"
     values: dict[str, Any] = {}
     for key, raw in env.items():

@@ -1,8 +1,9 @@
 """Utterance analysers: one result per VAD segment, over its speech span.
 
-Subclass :class:`UtteranceComponent`, set ``service`` and ``kind``, and implement one method,
-``analyse(samples, rate)``: the segment's speech (float32 mono in [-1, 1), no VAD pre-roll or
-hang-over) and its sample rate. Return what it found as a dict:
+Subclass :class:`UtteranceAnalyser`, set ``service`` and ``kind``, and implement one method,
+``analyse(utterance)``: an :class:`Utterance` holds the segment's speech (``samples``, float32 mono
+in [-1, 1), no VAD pre-roll or hang-over), its ``rate``, its capture span (``start_ns``, ``end_ns``)
+and its ``stream_id``. Return what it found as a dict:
 
 - a label: ``{"label": "angry", "probability": 0.8, "class_probabilities": {...}}``;
 - a number: ``{"value": 3.2}``; a text ``{"text": ...}``; anything JSON-able under ``"attributes"``;
@@ -12,29 +13,36 @@ The SDK collects each stream's segment separately, sends ``nothing`` for segment
 (``min_speech_ms``) or too quiet (``silence_db``) to judge, and emits the result spanning the
 segment, so fusion never waits for a result that will not come. A kind that is not built in
 (emotion, gender, voice_id are) travels as a generic result and is stored, fused, aggregated
-(label distribution, mean value) and shown like the built-in ones.
+(label distribution, mean value) and shown like the built-in ones. :class:`UtteranceClassifier`
+is the base of analysers whose model gives a probability per label.
+
+``analyse(samples, rate)``, the form of earlier releases, still works (it is told apart by its
+signature, and logged once as deprecated); its stream is ``self.utterance_stream_id``.
 
 Analysers that need the same features of an utterance can run in one process: the ``guests``
-setting names the components this one hosts (``esiaf/hosting.py``), each still its own
+setting names the processors this one hosts (``esiaf/hosting.py``), each still its own
 service to the orchestrator; features asked for through ``esiaf.features.shared`` are then
 computed once per utterance for all of them.
 """
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 from pydantic import Field
 
 from esiaf.audio import Audio
+from esiaf.component import Component
 from esiaf.features import feature_counts
 from esiaf.formats import AudioFormat
-from esiaf.hosting import Host, HostSettings
+from esiaf.hosting import HostSettings
 from esiaf.per_stream import PerStream
+from esiaf.processor import Processor, SetupError
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf.results import LABEL_PAYLOADS, valid_kind
 from esiaf.settings import ComponentSettings
@@ -53,20 +61,37 @@ class UtteranceSettings(HostSettings):
     max_utterance_s: float = Field(default=30.0, gt=0)
 
 
-@dataclass
+@dataclass(frozen=True)
 class Utterance:
+    """One VAD segment's speech, as ``analyse`` is given it."""
+
+    samples: np.ndarray  # float32 mono in [-1, 1), the speech span only (no pre-roll, no hang-over)
+    rate: int  # samples per second
+    start_ns: int  # capture time of the span's start, ns since the epoch
+    end_ns: int  # ... and of its end
+    stream_id: str
+
+    @property
+    def duration_s(self) -> float:
+        return self.samples.size / self.rate
+
+
+@dataclass
+class _Collecting:
+    """A stream's open segment, as its chunks arrive."""
     start_ns: int = 0  # the capture time of its first sample kept
     chunks: list[np.ndarray] = field(default_factory=list)
     samples: int = 0
     trimmed: bool = False  # its start was dropped (max_utterance_s): logged once per utterance
 
 
-class UtteranceComponent(Host):
+class UtteranceAnalyser(Processor):
     """Base of every utterance analyser: implement :meth:`analyse`."""
 
     kind: ClassVar[str] = "other"  # the kind of result it produces, e.g. "emotion" or "rate"
     Settings: ClassVar[type[ComponentSettings]] = UtteranceSettings
     settings: UtteranceSettings  # an instance of Settings: its fields, for type checkers
+    _two_argument_analyse: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -74,19 +99,25 @@ class UtteranceComponent(Host):
             if not valid_kind(cls.kind):
                 raise TypeError(f"{cls.__name__}.kind {cls.kind!r} is not a kind name (lower case, digits, _)")
             cls.designation = cls.kind
+        # analyse(samples, rate), the form of earlier releases: told apart by its signature
+        cls._two_argument_analyse = len(inspect.signature(cls.analyse).parameters) == 3
 
     def __init__(self, settings: UtteranceSettings):
         super().__init__(settings)
         self.add_input(settings.input_topic, AudioFormat(settings.sample_rate_hz, "int16", channels=1))
-        self.utterances: PerStream[Utterance] = PerStream(lambda _: Utterance(), settings.max_streams,
-                                                          "open utterance", info=self.info)  # per stream
-        self.utterance_stream_id = ""  # the stream of the utterance analyse() is given
+        self.utterances: PerStream[_Collecting] = PerStream(lambda _: _Collecting(), settings.max_streams,
+                                                            "open utterance", info=self.info)  # per stream
+        self.utterance_stream_id = ""  # the stream of the utterance analyse() is given (for analyse(samples, rate))
         self.analysed = 0
         self.nothing = 0
+        if self._two_argument_analyse:
+            log.warning("%s.analyse(samples, rate) is deprecated and will stop working in the next release: "
+                        "write analyse(self, utterance) and read utterance.samples, utterance.rate and "
+                        "utterance.stream_id", type(self).__name__)
 
-    def analyse(self, samples: np.ndarray, rate: int) -> dict[str, Any]:
+    def analyse(self, utterance: Utterance) -> dict[str, Any]:
         """What this analyser says about one utterance (see the module's docstring)."""
-        raise NotImplementedError(f"{type(self).__name__} must implement analyse(samples, rate)")
+        raise NotImplementedError(f"{type(self).__name__} must implement analyse(utterance)")
 
     def on_audio(self, audio: Audio) -> None:
         if not audio.payload:
@@ -109,7 +140,7 @@ class UtteranceComponent(Host):
                             audio.stream_id, self.settings.max_utterance_s)
 
     def on_segment_end(self, audio: Audio) -> None:
-        utterance = self.utterances.pop(audio.stream_id) or Utterance(audio.start_ns)
+        utterance = self.utterances.pop(audio.stream_id) or _Collecting(audio.start_ns)
         segment = audio.meta.segment
         span = (segment.start_ns, segment.end_ns) if segment.end_ns else (utterance.start_ns, audio.end_ns)
         samples = np.concatenate(utterance.chunks) if utterance.chunks else np.zeros(0, np.float32)
@@ -120,7 +151,7 @@ class UtteranceComponent(Host):
         started = time.process_time()
         self.utterance_stream_id = audio.stream_id
         reason = self.unusable(samples)
-        found = {"nothing": reason} if reason else self.analyse(samples, rate)
+        found = {"nothing": reason} if reason else self._analyse(Utterance(samples, rate, *span, audio.stream_id))
         if not isinstance(found, dict):
             raise TypeError(f"{type(self).__name__}.analyse must return a dict, not {type(found).__name__}")
         if "nothing" in found:
@@ -140,6 +171,16 @@ class UtteranceComponent(Host):
                  samples.size / rate, self.kind, found.get("label", found.get("value", "")),
                  1000 * (time.process_time() - started))
 
+    def emit(self, result_type: str, span: tuple[int, int], *, stream_id: str | None = None,
+             **payload: Any) -> pb.Result:
+        """Sends one utterance's result through the context (a handler test may put a list's append here)."""
+        return self._context().emit(result_type, span, stream_id=stream_id, **payload)
+
+    def _analyse(self, utterance: Utterance) -> dict[str, Any]:
+        if self._two_argument_analyse:
+            return self.analyse(utterance.samples, utterance.rate)  # type: ignore[call-arg, arg-type]
+        return self.analyse(utterance)
+
     def unusable(self, samples: np.ndarray) -> str:
         """Why this audio gets no result ("" if it can be judged)."""
         duration_ms = 1000 * samples.size / self.settings.sample_rate_hz
@@ -151,13 +192,69 @@ class UtteranceComponent(Host):
             return f"silence (peak {level_db:.0f} dB < {self.settings.silence_db:.0f} dB)"
         return ""
 
-    def stats(self) -> dict[str, Any]:
+    def refresh_info(self) -> None:
         counts = feature_counts()  # utterances whose shared features were computed, and answers reused
         if counts:
             self.info["features"] = counts
-        return super().stats()
 
     def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
         if stream_id in self.utterances:
             self.on_segment_end(audio)  # a segment the VAD never closed
         super().on_end_of_stream(stream_id, audio)
+
+
+class UtteranceComponent(UtteranceAnalyser, Component):
+    """An utterance analyser with a component's actions as its own methods (``run``, ``stop``,
+    ``input_stats``...): the base of earlier releases, kept for the analysers written against it."""
+
+
+
+class LabelModel(Protocol):
+    """What a classifier's model is: its labels, its sample rate, a probability per label."""
+
+    labels: tuple[str, ...]
+    sample_rate_hz: int
+
+    def classify(self, samples: np.ndarray) -> dict[str, float]:
+        """``samples``: one utterance, mono float32 in [-1, 1] at ``sample_rate_hz``."""
+        ...
+
+
+class ClassifierSettings(UtteranceSettings):
+    backend: str = "onnx"  # the service's name for how its model is loaded (e.g. onnx | python)
+    model: str = ""  # the service's model: a bundled name, a file, or package.module:Class
+    model_options: dict[str, Any] = Field(default_factory=dict)  # the backend's keyword arguments
+
+
+class UtteranceClassifier(UtteranceAnalyser):
+    """One label result per VAD segment, from a model: implement :meth:`load_model`."""
+
+    Settings: ClassVar[type[ComponentSettings]] = ClassifierSettings
+    settings: ClassifierSettings  # an instance of Settings: its fields, for type checkers
+    options: ClassVar[dict[str, str]] = {
+        "model": "bundled model name, .onnx file, or package.module:Class for the python backend",
+        "backend": "onnx (default) or python"}
+
+    def __init__(self, settings: ClassifierSettings):
+        super().__init__(settings)
+        self.classifier: LabelModel | None = None
+
+    def load_model(self) -> LabelModel:
+        """The model the settings name (``backend``, ``model``, ``model_options``); SetupError if unusable."""
+        raise NotImplementedError(f"{type(self).__name__} must implement load_model()")
+
+    def setup(self) -> None:
+        s = self.settings
+        self.classifier = self.load_model()
+        if self.classifier.sample_rate_hz != s.sample_rate_hz:
+            raise SetupError(f"{self.service} model {s.model} takes {self.classifier.sample_rate_hz} Hz audio, "
+                             f"the service is set to {s.sample_rate_hz} Hz")
+        self.info.update(model=s.model, backend=s.backend, labels=list(self.classifier.labels))
+        log.info("model=%s backend=%s labels=%s", s.model, s.backend, ",".join(self.classifier.labels))
+
+    def analyse(self, utterance: Utterance) -> dict[str, Any]:
+        if self.classifier is None:
+            raise RuntimeError(f"{type(self).__name__}: analyse() before setup() loaded the model")
+        probabilities = self.classifier.classify(utterance.samples)
+        label = max(probabilities, key=probabilities.__getitem__)
+        return {"label": label, "probability": probabilities[label], "class_probabilities": probabilities}

@@ -128,7 +128,7 @@ def test_loss_is_counted_and_visible_in_the_orchestrator(pair, orchestrator):
     def send_with_gap(c):
         assert c.wait_for_subscribers("source/audio", 1, timeout_s=10)
         c.publish("source/audio", np.zeros(160, dtype=np.int16), 0, 10_000_000)
-        c._sequences["source/audio", c.settings.stream_id] += 3  # three messages "lost on the way"
+        c.context.sequences["source/audio", c.settings.stream_id] += 3  # three messages "lost on the way"
         c.publish("source/audio", np.zeros(160, dtype=np.int16), 40_000_000, 50_000_000)
 
     run_on(source, send_with_gap)
@@ -143,9 +143,9 @@ def test_another_rate_is_converted_another_channel_count_is_bad(pair, orchestrat
     def send(c):
         assert c.wait_for_subscribers("source/audio", 1, timeout_s=10)
         # sends what the topic was not assigned, as an older or foreign producer might
-        c._output_links["source/audio"] = OutputLink("source/audio", AudioFormat(48000, "int16"))
+        c.context.output_links["source/audio"] = OutputLink("source/audio", AudioFormat(48000, "int16"))
         c.publish("source/audio", np.zeros(480, dtype=np.int16), 0, 10_000_000, end_of_stream=True)
-        c._output_links["source/audio"] = OutputLink("source/audio", AudioFormat(16000, "int16", channels=2))
+        c.context.output_links["source/audio"] = OutputLink("source/audio", AudioFormat(16000, "int16", channels=2))
         c.publish("source/audio", np.zeros((160, 2), dtype=np.int16), 10_000_000, 20_000_000)
 
     run_on(source, send)

@@ -53,7 +53,7 @@ def test_hostile_frames_are_refused_counted_and_the_component_goes_on(pair, orch
     def send(c):
         assert c.wait_for_subscribers("source/audio", 1, timeout_s=10)
         for frames in HOSTILE.values():
-            c._transport.pub.send_multipart([topic_frame("source/audio"), *frames])
+            c.context.node.transport.pub.send_multipart([topic_frame("source/audio"), *frames])
         c.publish("source/audio", np.zeros(320, dtype=np.int16), 10**18, 10**18 + 20_000_000)
 
     run_on(source, send)
@@ -72,11 +72,11 @@ def test_ten_thousand_publisher_names_do_not_grow_the_component(pair):
     def send(c):
         assert c.wait_for_subscribers("source/audio", 1, timeout_s=10)
         for i in range(10_000):
-            c._transport.pub.send_multipart([topic_frame("source/audio"), forged(publisher=f"p{i}")])
+            c.context.node.transport.pub.send_multipart([topic_frame("source/audio"), forged(publisher=f"p{i}")])
 
     run_on(source, send)
     poll(lambda: len(sink.events) == 10_000, timeout_s=60)
-    assert len(sink._receiver.links) <= 256 and len(sink._receiver.last_seen) <= 256
+    assert len(sink.context.receiver.links) <= 256 and len(sink.context.receiver.last_seen) <= 256
 
 
 @pytest.mark.parametrize("endpoint", ["foo://x", "tcp://", "tcp://host:99999", "ipc:///tmp/x", 7])
@@ -219,7 +219,7 @@ def test_streams_ended_on_one_input_of_two_are_remembered_within_max_streams(orc
     try:
         run_on(source, send)
         poll(lambda: sink.input_stats["source/audio"].received == 50, timeout_s=10)
-        assert len(sink._ended) == 8 and sink.info["forgotten_streams"] == 42
+        assert len(sink.context.ended) == 8 and sink.info["forgotten_streams"] == 42
     finally:
         for component, thread in ((source, source_thread), (sink, sink_thread)):
             component.stop()

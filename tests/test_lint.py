@@ -52,3 +52,48 @@ def test_both_fail_on_a_bad_file(tmp_path):
     assert linted.returncode == 1 and "F401" in linted.stdout, linted.stdout + linted.stderr
     typed = mypy(tmp_path / "cache", str(bad))
     assert typed.returncode == 1 and "[arg-type]" in typed.stdout, typed.stdout + typed.stderr
+
+
+# Service code that still imports another service, each with what would end it; the test fails on
+# any other such import, and on one of these that is gone (then strike it here).
+KNOWN_CROSS_SERVICE = {  # (the importing service, the module it imports)
+    # the openSMILE label-model backends are the emotion service's; gender loads its model with them
+    ("gender", "esiaf_services.emotion.backends"),
+    # training and the emotion tests cut utterances as the vad does (speech_span, VADS)
+    ("emotion", "esiaf_services.vad.segmenter"),
+    ("emotion", "esiaf_services.vad.windows"),
+    ("emotion", "esiaf_services.vad.silero"),
+    # the orchestrator embeds an enrolment's audio with the voiceid service's encoder
+    ("orchestrator", "esiaf_services.voiceid.encoder"),
+}
+
+
+def cross_service_imports() -> set[tuple[str, str]]:
+    """(service, module) for every import of another service's module by a service's own code
+    (its tests, which may run services together, aside)."""
+    import ast
+    root = REPO / "esiaf_services"
+    found = set()
+    for path in root.rglob("*.py"):
+        relative = path.relative_to(root)
+        if "tests" in relative.parts:
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                modules = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                modules = [node.module]
+            else:
+                continue
+            for module in modules:
+                parts = module.split(".")
+                if parts[0] == "esiaf_services" and len(parts) > 1 and parts[1] != relative.parts[0]:
+                    found.add((relative.parts[0], module))
+    return found
+
+
+def test_services_build_on_the_sdk_not_on_each_other():
+    found = cross_service_imports()
+    assert found - KNOWN_CROSS_SERVICE == set(), "a service imports another service's code: move what " \
+        "they share into the SDK (esiaf/)"
+    assert KNOWN_CROSS_SERVICE - found == set(), "gone: strike it from KNOWN_CROSS_SERVICE"

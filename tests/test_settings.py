@@ -137,3 +137,26 @@ def test_a_service_started_with_a_misspelt_variable_says_so(tmp_path):
                           text=True, timeout=60)
     assert done.returncode == 2  # no orchestrator: it gives up, but said first what it ignored
     assert "WARNING vad [vad] ESIAF_VDA_DB_MIN names no service" in done.stderr, done.stderr
+
+
+@pytest.mark.parametrize("source", ["yaml", "environment", "command line"])
+def test_an_old_spelling_works_for_one_release_with_one_deprecation_line(tmp_path, caplog, source):
+    from esiaf_services.asr.service import AsrSettings
+    config = tmp_path / "asr.yaml"
+    config.write_text("nbest: 3\n" if source == "yaml" else "{}\n")
+    settings = load_settings(AsrSettings, "asr", config=config,
+                             env={"ESIAF_ASR_NBEST": "3"} if source == "environment" else {},
+                             **({"nbest": 3} if source == "command line" else {}))
+    assert settings.n_best == 3 and settings.hypotheses() == 3
+    [line] = [r.getMessage() for r in caplog.records if "deprecated" in r.getMessage()]
+    assert line == "setting nbest is deprecated and goes in the next release: it is now n_best"
+
+
+def test_the_new_spelling_wins_and_each_backend_keeps_its_default(caplog):
+    from esiaf_services.asr.service import AsrSettings
+    assert load_settings(AsrSettings, "asr", env={"ESIAF_ASR_N_BEST": "2"}, nbest=7).n_best == 2
+    assert "(both given: n_best=2 wins)" in caplog.text
+    assert load_settings(AsrSettings, "asr", env={}).hypotheses() == 5
+    assert load_settings(AsrSettings, "asr", env={}, backend="whisper").hypotheses() == 10
+    with pytest.raises(SettingsError, match="n_best"):
+        load_settings(AsrSettings, "asr", env={"ESIAF_ASR_N_BEST": "0"})

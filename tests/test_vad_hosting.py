@@ -145,8 +145,9 @@ def test_a_guest_that_fails_on_every_chunk_is_counted_and_the_grabber_plays_on(o
                                       fast=True, chunk_ms=50, guests=[f"{__name__}:Faulty"]))
     thread = start(grabber)
     thread.join(timeout=60)
-    assert not thread.is_alive() and grabber._exit_code == 0
-    faulty = grabber.guests[0].analyser
+    node = grabber.context.node
+    assert not thread.is_alive() and node is not None and node.exit_code == 0
+    faulty = node.processors[1]
     played = grabber.output_stats["grabber/audio"].published
     assert played == -(-soundfile.info(str(speech_48k)).frames // 2400)  # every 50 ms chunk, to the end
     assert faulty.input_stats["grabber/audio"].received == played

@@ -1,9 +1,10 @@
-"""Test helpers for ESIAF and for components built on it.
+"""Test helpers for ESIAF's own tests and for components' integration tests.
 
 Real parts only: the launcher and the orchestrator as processes on random
 loopback ports, a real SQLite file, and polling with deadlines instead of
 fixed sleeps. ``shared_data`` and ``need_flite`` skip (pytest) with the reason
-when the shared test data or Debian's flite is absent.
+when the shared test data or Debian's flite is absent. One analyser in-process
+on a WAV file: ``esiaf.testing``.
 """
 from __future__ import annotations
 

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
+from pydantic import Field
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError, hypothesis
 from esiaf_services.asr.matching import GrammarError, Match, SentenceMatcher, chosen_first
@@ -21,6 +22,7 @@ log = logging.getLogger(__name__)
 JOINED_LATE_NS = 50_000_000  # the first audio of an utterance later than its speech start by this: joined late
 
 GRAMMARS = Path(__file__).resolve().parent / "grammars"
+N_BEST_DEFAULT = {"pocketsphinx": 5, "whisper": 10}  # hypotheses per segment, unless n_best says
 
 
 class AsrSettings(ComponentSettings):
@@ -30,8 +32,9 @@ class AsrSettings(ComponentSettings):
     grammar: str = ""  # a JSGF file, or the name of a bundled grammar ("robocup"); empty = language model
     extra_dictionary: str = str(DEFAULT_EXTRA_DICT)  # project words on top of the bundled dictionary
     language_weight: float = 7.5
-    nbest: int = 5  # pocketsphinx: hypotheses per segment
-    n_best: int = 10  # whisper: hypotheses per segment (> 1: a second beam search, whisper.py; 1: as before)
+    # hypotheses per segment; unset: 5 with pocketsphinx, 10 with whisper (> 1: a second beam search,
+    # whisper.py; 1: a single decode)
+    n_best: int | None = Field(default=None, ge=1)
     sentences: str = ""  # closed set: a file of allowed sentences (one per line) or a JSGF grammar
     match_threshold: float = 0.6  # a transcript scoring less than this against every sentence is out of set
     char_threshold: float = 0.7  # ... unless its letters are this similar to the nearest (asr/matching.py)
@@ -44,6 +47,11 @@ class AsrSettings(ComponentSettings):
     # hypothesis ("not understood"), so its fused result still says from where, how and by whom;
     # False: a "nothing" result, and no fused result for it
     unrecognised: bool = True
+    renamed: ClassVar[dict[str, str]] = {"nbest": "n_best"}
+
+    def hypotheses(self) -> int:
+        """``n_best``, or the backend's default."""
+        return self.n_best or N_BEST_DEFAULT.get(self.backend, 1)
 
 
 def resolve_grammar(grammar: str) -> Path | None:
@@ -88,7 +96,7 @@ class Asr(Component):
         try:
             if s.backend == "whisper":
                 self.whisper = WhisperRecognizer(s.model_dir, s.beam_size, s.no_speech_threshold,
-                                                 n_best=s.n_best)
+                                                 n_best=s.hypotheses())
                 self.info["model"] = str(self.whisper.path)
             else:
                 self.streams[s.stream_id] = StreamState(self._new_decoder())  # ready for the usual stream
@@ -110,7 +118,7 @@ class Asr(Component):
         return PocketsphinxRecognizer(
             sample_rate_hz=s.sample_rate_hz,
             grammar=resolve_grammar(s.grammar) if s.backend == "pocketsphinx" else None,
-            extra_dictionary=s.extra_dictionary or None, language_weight=s.language_weight, nbest=s.nbest)
+            extra_dictionary=s.extra_dictionary or None, language_weight=s.language_weight, nbest=s.hypotheses())
 
     def _stream(self, stream_id: str) -> StreamState:
         state = self.streams.pop(stream_id, None)

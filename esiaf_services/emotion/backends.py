@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from esiaf import SetupError
 from esiaf_services.emotion.features import FeatureError, shared_extractor, without_digital_silence
 
 MODELS = Path(__file__).resolve().parent / "models"
@@ -131,6 +132,14 @@ BACKENDS: dict[str, Callable[..., Classifier]] = {
     "onnx": lambda model, **options: OnnxClassifier(model, **options),
     "python": python_classifier,
 }
+
+
+def load_classifier(service: str, backend: str, model: str, options: dict[str, Any]) -> Classifier:
+    """A service's model, as its settings name it; a SetupError (one line) if it cannot be used."""
+    try:
+        return load_backend(backend, model, options)
+    except BackendError as exc:
+        raise SetupError(f"{service} model: {exc}") from None
 
 
 def load_backend(backend: str, model: str, options: dict[str, Any] | None = None) -> Classifier:

@@ -1,17 +1,20 @@
 """Gender service: male or female, with a probability, for each VAD segment.
 
-It is the emotion service's component (``esiaf_services/emotion/service.py``) with the gender
-result type and the bundled gender model; backends and settings are the same. ``esiaf run``
-starts it as a guest in the emotion service's process (``esiaf/hosting.py``), where the openSMILE
-features of each utterance are computed once for both; alone, ``python -m esiaf_services.gender``.
+An utterance classifier of the SDK (:class:`esiaf.UtteranceClassifier`) with the gender result
+kind and the bundled gender model, loaded by the label-model backends the emotion models share
+(``esiaf_services/emotion/backends.py``). ``esiaf run`` starts it as a guest in the emotion
+service's process (``esiaf/hosting.py``), where the openSMILE features of each utterance are
+computed once for both; alone, ``python -m esiaf_services.gender``.
 """
 from __future__ import annotations
 
-from esiaf_services.emotion.service import UtteranceClassifier, UtteranceSettings
+from esiaf import ClassifierSettings, UtteranceClassifier
+from esiaf_services.emotion.backends import Classifier, load_classifier
 
 
-class GenderSettings(UtteranceSettings):
-    model: str = "gender"
+class GenderSettings(ClassifierSettings):
+    backend: str = "onnx"  # onnx | python (see esiaf_services/emotion/backends.py)
+    model: str = "gender"  # bundled model name, an .onnx file, or package.module:Class (python)
 
 
 class Gender(UtteranceClassifier):
@@ -21,3 +24,7 @@ class Gender(UtteranceClassifier):
     kind = "gender"
     Settings = GenderSettings
     settings: GenderSettings  # an instance of Settings: its fields, for type checkers
+
+    def load_model(self) -> Classifier:
+        s = self.settings
+        return load_classifier(self.service, s.backend, s.model, s.model_options)

@@ -15,8 +15,8 @@ import time
 from pathlib import Path
 from typing import ClassVar
 
-from esiaf import AudioFormat, SampleClock, SetupError
-from esiaf.hosting import Host, HostSettings
+from esiaf import AudioFormat, Component, SampleClock, SetupError
+from esiaf.hosting import HostSettings
 from esiaf_services.grabber.sources import AlsaSource, FileSource
 
 log = logging.getLogger(__name__)
@@ -40,7 +40,7 @@ class GrabberSettings(HostSettings):
     wait_timeout_s: float = 30.0
 
 
-class Grabber(Host):
+class Grabber(Component):
     """Plays a file or captures an ALSA device into an audio topic."""
 
     service = "grabber"
@@ -76,7 +76,7 @@ class Grabber(Host):
     def produce(self) -> None:
         s = self.settings
         waited = s.wait_topic or s.topic
-        if waited not in self.outputs and self._publishing(waited) is None:
+        if not self.context.publishes(waited):
             raise SetupError(f"wait_topic {waited} is published neither by the grabber nor by a guest")
         if s.wait_for_subscribers and not self.wait_for_subscribers(waited, s.wait_for_subscribers,
                                                                      s.wait_timeout_s) and not self.stopping:

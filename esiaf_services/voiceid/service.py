@@ -1,7 +1,7 @@
 """Voiceid service: who is speaking, for each VAD segment.
 
-It is the emotion service's per-utterance component (``esiaf_services/emotion/service.py``) with a
-speaker encoder (``encoder.py``) instead of a classifier. Each segment's embedding is scored
+An utterance analyser of the SDK (:class:`esiaf.UtteranceAnalyser`) with a speaker encoder
+(``encoder.py``). Each segment's embedding is scored
 against the voices enrolled on the orchestrator (``scoring.py``); an unknown voice gets a
 per-stream anonymous id. The result is a ``voice_id`` label result: the top label (a name, or
 ``voice-N``), its probability, every enrolled voice's score, and the embedding itself so the
@@ -20,17 +20,16 @@ from typing import ClassVar
 import httpx
 import numpy as np
 
-from esiaf import SetupError
+from esiaf import ClassifierSettings, SetupError, Utterance, UtteranceAnalyser
 from esiaf.api_client import VOICES_MAX_WAIT_S, OrchestratorHTTP
 from esiaf.per_stream import PerStream
-from esiaf_services.emotion.service import UtteranceClassifier, UtteranceSettings
 from esiaf_services.voiceid.encoder import EncoderError, VoiceEncoder
 from esiaf_services.voiceid.scoring import AnonymousVoices, VoiceBook, probability
 
 log = logging.getLogger(__name__)
 
 
-class VoiceIdSettings(UtteranceSettings):
+class VoiceIdSettings(ClassifierSettings):
     model: str = "resemblyzer"  # the resemblyzer wheel's GE2E encoder (the only one)
     min_speech_ms: float = 1000.0  # shorter segments get "nothing": too short to tell voices apart
     threshold: float = 0.78  # cosine a voice needs (near the EER point of EmoDB's neutral speech, bench/voiceid.py)
@@ -41,7 +40,7 @@ class VoiceIdSettings(UtteranceSettings):
     voices_retry_s: float = 1.0  # after a failed request for the voices, ask again this much later
 
 
-class VoiceId(UtteranceClassifier):
+class VoiceId(UtteranceAnalyser):
     """Speaker identity of each speech segment: an enrolled name, ``voice-N``, or nothing."""
 
     service = "voiceid"
@@ -102,10 +101,10 @@ class VoiceId(UtteranceClassifier):
         self.info["voices"] = sorted(voices)
         log.info("voices=%s version=%s", ",".join(sorted(voices)) or "-", self._etag)
 
-    def analyse(self, samples: np.ndarray, rate: int) -> dict:
-        stream_id = self.utterance_stream_id
+    def analyse(self, utterance: Utterance) -> dict:
+        stream_id = utterance.stream_id
         assert self.encoder is not None  # setup() loads it
-        embedding = self.encoder.embed(samples)
+        embedding = self.encoder.embed(utterance.samples)
         s = self.settings
         match = self.book.identify(embedding, s.threshold)
         label, p = match.label, match.probability

@@ -1,0 +1,90 @@
+"""The processor: what a user writes to make an ESIAF component.
+
+A processor declares what it takes and gives (its input and output topics with the format it
+wants on each, its service name and the kind of result it produces), loads what it needs in
+:meth:`Processor.setup` (which may fail cleanly with :class:`SetupError`), and handles one message
+at a time in its ``on_...`` methods. It publishes audio and emits results through
+``self.context`` (an :class:`esiaf.node.Context`), which the runtime that runs it gives it.
+
+It owns no socket, thread or registration: a node (esiaf/node.py) runs one processor, or several
+in one process, over ZeroMQ; esiaf.testing runs one in-process on a WAV file. Most services
+subclass :class:`esiaf.Component`, a processor with the context's actions as its own methods.
+"""
+from __future__ import annotations
+
+import uuid
+from typing import TYPE_CHECKING, Any, ClassVar
+
+from esiaf.audio import Audio
+from esiaf.formats import AudioFormat
+from esiaf.settings import ComponentSettings
+
+if TYPE_CHECKING:
+    from esiaf.node import Context
+
+
+class SetupError(Exception):
+    """A component could not be configured (model missing, device unknown...)."""
+
+
+class Processor:
+    """Subclass it, set ``service`` and ``designation``, declare topics, override handlers."""
+
+    service: ClassVar[str] = "component"
+    designation: ClassVar[str] = "other"  # the kind of result produced, or "other"
+    Settings: ClassVar[type[ComponentSettings]] = ComponentSettings
+    options: ClassVar[dict[str, str]] = {}  # settings that get a command-line flag: name -> help
+
+    def __init__(self, settings: ComponentSettings):
+        self.settings = settings
+        self.inputs: dict[str, AudioFormat] = {}
+        self.outputs: dict[str, AudioFormat] = {}
+        # this instance of its service (the name): unique while it lives, ours unless set
+        self.instance_id = settings.instance or f"{settings.name}-{uuid.uuid4().hex[:8]}"
+        self.info: dict[str, Any] = {}  # reported with every heartbeat
+        self.context: Context | None = None  # given by the runtime that runs this processor
+
+    # -- declaration -----------------------------------------------------------------
+    def add_input(self, topic: str, fmt: AudioFormat) -> None:
+        self.inputs[topic] = fmt
+
+    def add_output(self, topic: str, fmt: AudioFormat) -> None:
+        self.outputs[topic] = fmt
+
+    # -- hooks to override -----------------------------------------------------------
+    def setup(self) -> None:
+        """Load models, open devices. Raise SetupError with a clear message on failure."""
+
+    def on_audio(self, audio: Audio) -> None:
+        """Every received chunk, first."""
+
+    def on_ssl(self, audio: Audio) -> None:
+        """A chunk that carries SSL directions, after on_audio."""
+
+    def on_segment_end(self, audio: Audio) -> None:
+        """The last chunk of an utterance, after on_audio and on_ssl."""
+
+    def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
+        """Every input has ended ``stream_id``. By default, end it on every output too."""
+        for topic in self.outputs:
+            self._context().publish(topic, b"", audio.end_ns, audio.end_ns, stream_id=stream_id, end_of_stream=True)
+
+    def produce(self) -> None:
+        """Sources override this with their capture loop; consumers leave it alone."""
+        raise NotImplementedError
+
+    def refresh_info(self) -> None:
+        """Before each heartbeat: bring ``info`` up to date, if it reports something computed."""
+
+    def teardown(self) -> None:
+        """Release what setup took."""
+
+    def _context(self) -> Context:
+        if self.context is None:
+            raise RuntimeError(f"{type(self).__name__}: no runtime runs it yet (esiaf.node or esiaf.testing)")
+        return self.context
+
+    @classmethod
+    def produces(cls) -> bool:
+        """Whether it is a source (it overrides :meth:`produce`)."""
+        return cls.produce is not Processor.produce
