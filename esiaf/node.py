@@ -359,9 +359,14 @@ class Context:
 
 def context_of(processor: Processor) -> Context:
     """The processor's context: the one it has (made before it ran), or a new one."""
-    if processor.context is None:
-        processor.context = Context(processor)
-    return processor.context
+    if isinstance(processor.context, Context):
+        return processor.context
+    if processor.context is not None:
+        raise TypeError(f"{type(processor).__name__} already has a context of another runtime "
+                        f"({type(processor.context).__name__}): a processor runs in one runtime at a time")
+    context = Context(processor)
+    processor.context = context
+    return context
 
 
 class Node:

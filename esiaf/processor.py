@@ -4,7 +4,8 @@ A processor declares what it takes and gives (its input and output topics with t
 wants on each, its service name and the kind of result it produces), loads what it needs in
 :meth:`Processor.setup` (which may fail cleanly with :class:`SetupError`), and handles one message
 at a time in its ``on_...`` methods. It publishes audio and emits results through
-``self.context`` (an :class:`esiaf.node.Context`), which the runtime that runs it gives it.
+``self.context`` (a :class:`ProcessorContext`, esiaf.node's Context in a pipeline), which the runtime
+that runs it gives it.
 
 It owns no socket, thread or registration: a node (esiaf/node.py) runs one processor, or several
 in one process, over ZeroMQ; esiaf.testing runs one in-process on a WAV file. Most services
@@ -13,14 +14,50 @@ subclass :class:`esiaf.Component`, a processor with the context's actions as its
 from __future__ import annotations
 
 import uuid
-from typing import TYPE_CHECKING, Any, ClassVar
+from collections.abc import Iterable
+from typing import Any, ClassVar, Protocol
+
+import numpy as np
 
 from esiaf.audio import Audio
 from esiaf.formats import AudioFormat
+from esiaf.proto import esiaf_pb2 as pb
 from esiaf.settings import ComponentSettings
 
-if TYPE_CHECKING:
-    from esiaf.node import Context
+
+class ProcessorContext(Protocol):
+    """What a processor may do through its runtime: publish, emit, and ask about its run.
+
+    The processor knows this interface, never the runtime behind it (esiaf/node.py's Context in a
+    pipeline, esiaf/testing.py's in a test), so the SDK's runtime can change without its users.
+    """
+
+    @property
+    def stopping(self) -> bool: ...
+
+    def stop(self, exit_code: int = 0) -> None: ...
+
+    def publish(self, topic: str, audio: bytes | np.ndarray, start_ns: int, end_ns: int, *,
+                stream_id: str | None = None, segmentation_ended: bool = False,
+                segment: tuple[int, int] | None = None, ssl_directions: Iterable[pb.SslDirection] = (),
+                end_of_stream: bool = False) -> int: ...
+
+    def forward(self, topic: str, audio: Audio, **meta: Any) -> int: ...
+
+    def emit(self, result_type: str, span: tuple[int, int], *, stream_id: str | None = None,
+             **payload: Any) -> pb.Result: ...
+
+    def clock_ns(self) -> int: ...
+
+    def announce_stream(self, start_ns: int, stream_id: str | None = None, **info: Any) -> None: ...
+
+    def wait_for_subscribers(self, topic: str, count: int, timeout_s: float) -> bool: ...
+
+    def subscribers(self, topic: str) -> int: ...
+
+    def sleep_until(self, deadline_monotonic: float) -> None: ...
+
+    def stats(self) -> dict[str, Any]: ...
 
 
 class SetupError(Exception):
@@ -42,7 +79,7 @@ class Processor:
         # this instance of its service (the name): unique while it lives, ours unless set
         self.instance_id = settings.instance or f"{settings.name}-{uuid.uuid4().hex[:8]}"
         self.info: dict[str, Any] = {}  # reported with every heartbeat
-        self.context: Context | None = None  # given by the runtime that runs this processor
+        self.context: ProcessorContext | None = None  # given by the runtime that runs this processor
 
     # -- declaration -----------------------------------------------------------------
     def add_input(self, topic: str, fmt: AudioFormat) -> None:
@@ -79,7 +116,7 @@ class Processor:
     def teardown(self) -> None:
         """Release what setup took."""
 
-    def _context(self) -> Context:
+    def _context(self) -> ProcessorContext:
         if self.context is None:
             raise RuntimeError(f"{type(self).__name__}: no runtime runs it yet (esiaf.node or esiaf.testing)")
         return self.context
