@@ -1,9 +1,11 @@
-"""The documentation says what is: its links lead somewhere, its Python compiles, its `esiaf`
-command lines are ones the command takes, and docs/configuration.md is what the settings give.
+"""The documentation says what is: its links lead somewhere, the files it names exist, its Python
+compiles, its `esiaf` command lines are ones the command takes, and docs/configuration.md is what
+the settings give.
 
 Checked files: README.md, CONTRIBUTING.md, CHANGELOG.md, docs/*.md and every service's README.
 A relative link must name an existing file, and its ``#anchor`` a heading of that file (GitHub's
-anchors: lower case, punctuation dropped, spaces as hyphens). The last tests show that each check
+anchors: lower case, punctuation dropped, spaces as hyphens); a file path in the text
+(`esiaf_services/vad/service.py`) must exist. The last tests show that each check
 does find a broken link, a bad block and an unknown option, so a pass above means something.
 """
 from __future__ import annotations
@@ -27,6 +29,9 @@ FENCE = re.compile(r"^(```+|~~~+)\s*(\S*)[^\n]*\n(.*?)^\1\s*$", re.M | re.S)
 LINK = re.compile(r"!?\[(?:[^\]\[]|\[[^\]]*\])*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
 INLINE_CODE = re.compile(r"(`+)(.+?)\1", re.S)
 SHELL_BLOCKS = {"", "sh", "bash", "shell", "console", "text"}
+# a file of the repository named in the text (`esiaf_services/vad/service.py`), not only linked
+NAMED_FILE = re.compile(r"(?<![\w/.-])((?:esiaf|esiaf_services|bench|tests|docs|scripts|docker|examples|proto)/"
+                        r"[\w./-]*\.(?:py|md|ya?ml|sh|proto|toml|json|gram))\b")
 COMMAND = re.compile(r"(?:^|(?<=[\s/(]))esiaf[ \t]+(\S[^\n]*)")
 # what may stand before `esiaf` where it is the command (not `docker stack rm esiaf`): nothing, a
 # shell operator, `python -m`, a path to it, variables set for it
@@ -76,6 +81,13 @@ def broken_links(path: Path) -> list[str]:
         elif anchor and resolved.suffix == ".md" and anchor not in anchors(resolved):
             broken.append(f"{target}: no heading with the anchor #{anchor} in {resolved.name}")
     return broken
+
+
+def missing_files(path: Path) -> list[str]:
+    """Files of the repository the text names (from its root, or from the page's folder) that do
+    not exist: a module moved or renamed since the text was written."""
+    return sorted({name for name in NAMED_FILE.findall(path.read_text())
+                   if not (REPO / name).exists() and not (path.parent / name).exists()})
 
 
 def python_blocks(path: Path) -> Iterator[tuple[int, str]]:
@@ -162,6 +174,11 @@ def test_relative_links_resolve(path):
 
 
 @pytest.mark.parametrize("path", DOCS, ids=name)
+def test_named_files_exist(path):
+    assert missing_files(path) == [], f"{name(path)} names files that do not exist"
+
+
+@pytest.mark.parametrize("path", DOCS, ids=name)
 def test_python_blocks_compile(path):
     for line, code in python_blocks(path):
         try:
@@ -186,10 +203,12 @@ def test_the_checks_find_what_is_wrong(tmp_path):
     (tmp_path / "there.md").write_text("# A heading, with `code`\n")
     page = tmp_path / "page.md"
     page.write_text("[ok](there.md#a-heading-with-code) [gone](missing.md) [bad anchor](there.md#nothing)\n"
-                    "[web](https://example.org/x) `[not a link](nowhere.md)`\n\n"
+                    "[web](https://example.org/x) `[not a link](nowhere.md)`\n"
+                    "`esiaf/tools/docgen.py` and `esiaf_services/orchestrator/fusion.py`\n\n"
                     "```python\ndef broken(:\n```\n\n```sh\nesiaf run --input a.wav --no-such-option\n"
                     "esiaf frobnicate\nesiaf eval robocup --runs 2 -- --fast\n```\n")
     assert [b.split(":")[0] for b in broken_links(page)] == ["missing.md", "there.md#nothing"]
+    assert missing_files(page) == ["esiaf_services/orchestrator/fusion.py"]
     assert len([code for _, code in python_blocks(page)]) == 1
     with pytest.raises(SyntaxError):
         compile(next(python_blocks(page))[1], "page", "exec")
