@@ -16,6 +16,7 @@ import re
 import shlex
 from collections.abc import Iterator
 from pathlib import Path
+from typing import ClassVar
 
 import pytest
 
@@ -197,6 +198,16 @@ def test_esiaf_commands_are_real(path):
 def test_configuration_page_is_current():
     assert docgen.OUTPUT.read_text() == docgen.render(), \
         "docs/configuration.md is not what the settings models give: run python -m esiaf.tools.docgen"
+
+
+def test_the_configuration_page_names_old_spellings():
+    class Renamed(docgen.ComponentSettings):
+        renamed: ClassVar[dict[str, str]] = {"nbest": "n_best"}
+        n_best: int = 5  # hypotheses per segment
+
+    text = "\n".join(docgen.section("x", "x", Renamed, ["n_best"]))
+    assert "| `n_best` | int | `5` | `ESIAF_X_N_BEST` | hypotheses per segment |" in text
+    assert "`nbest` (now `n_best`)" in text
 
 
 def test_the_checks_find_what_is_wrong(tmp_path):

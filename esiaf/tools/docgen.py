@@ -205,6 +205,10 @@ def section(title: str, service: str, model: type[BaseModel], names: list[str], 
     if note:
         out += [note, ""]
     out += table(model, names, f"ESIAF_{service.upper()}_")
+    renamed: dict[str, str] = getattr(model, "renamed", {})
+    if renamed:
+        out += ["", "Old spellings, still accepted with a deprecation line until the next release: "
+                + ", ".join(f"`{old}` (now `{new}`)" for old, new in sorted(renamed.items())) + "."]
     seen: set[type[BaseModel]] = set()
     for name in names:
         for nested in nested_models(model.model_fields[name].annotation):
