@@ -1,6 +1,6 @@
 """The documentation says what is: its links lead somewhere, the files it names exist, its Python
-compiles, its `esiaf` command lines are ones the command takes, and docs/configuration.md is what
-the settings give.
+compiles (and the README's is part of a tested example), its `esiaf` command lines are ones the
+command takes, and docs/configuration.md is what the settings give.
 
 Checked files: README.md, CONTRIBUTING.md, CHANGELOG.md, docs/*.md and every service's README.
 A relative link must name an existing file, and its ``#anchor`` a heading of that file (GitHub's
@@ -193,6 +193,15 @@ def test_esiaf_commands_are_real(path):
     problems = [f"esiaf {command}: {problem}" for command in command_lines(path)
                 if (problem := command_problem(command))]
     assert problems == [], f"{name(path)} shows command lines esiaf does not take"
+
+
+def test_the_readme_shows_tested_code():
+    """The README's Python is part of a file in examples/, which tests run
+    (tests/test_example_analysers.py, tests/test_readme_component.py)."""
+    examples = [p.read_text() for p in (REPO / "examples").rglob("*.py")]
+    for line, code in python_blocks(REPO / "README.md"):
+        assert any(code.strip("\n") in example for example in examples), \
+            f"README.md, the block at line {line}, is not an excerpt of a file in examples/"
 
 
 def test_configuration_page_is_current():
