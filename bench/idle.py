@@ -3,7 +3,7 @@
     python bench/idle.py [--seconds 30] [--services vad,asr,gender] [--port 27200] [--repo DIR]
 
 Prints CPU seconds per minute of each process while idle, as ``name=value`` lines
-(``idle_cpu_s_per_min_vad=0.02``). Issue 18's target: at most 0.03 s per minute per service.
+(``idle_cpu_s_per_min_vad=0.02``). The target: at most 0.03 s per minute per service.
 """
 from __future__ import annotations
 

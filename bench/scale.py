@@ -1,4 +1,4 @@
-"""Streams at once (issue 16): how many real-time streams the pipeline keeps within 1 s, replicas
+"""Streams at once: how many real-time streams the pipeline keeps within 1 s, replicas
 that lose only what was in flight on a killed one, and a skewed clock.
 
 Every run starts its own orchestrator, vad (silero), ``--asr`` pocketsphinx instances with the

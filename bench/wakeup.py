@@ -7,7 +7,7 @@ subscriber in another process, one every period (0: back to back), and reports p
 CPU of the publishing thread's send, of the publisher's process (with libzmq's I/O thread) and of
 the subscriber's process. Paced, most of it is waking threads (each process's libzmq I/O thread
 and the receiving thread), not Python: no code on the per-message path can go below it; fewer
-messages can (README, "The framework's CPU per hour of audio").
+messages can (docs/benchmarks.md, "The framework's CPU per hour of audio").
 
 Then the same for work, not messages: the thread CPU of one Silero VAD window (the vad's
 ``Session.run`` on 32 ms of audio) and of a small numpy step (a 128 x 512 product and a tanh), run

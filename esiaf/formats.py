@@ -29,7 +29,7 @@ _PB_TYPE = {name: getattr(pb, f"SAMPLE_TYPE_{name.upper()}") for name in _TYPES}
 _PB_TYPE_NAME = {v: k for k, v in _PB_TYPE.items()}
 _PB_ENDIAN = {"little": pb.ENDIANNESS_LITTLE, "big": pb.ENDIANNESS_BIG}
 # formats read from messages, by their fields: every received message names its format, and a format
-# made anew (and validated) per message is a measurable share of a consumer's CPU per chunk (issue 18);
+# made anew (and validated) per message is a measurable share of a consumer's CPU per chunk;
 # bounded, as peers choose what they send
 _FROM_PROTO: dict[tuple[int, int, int, int], AudioFormat] = {}
 MAX_FORMATS_KEPT = 64

@@ -4,7 +4,7 @@ The frames are sent and taken with less Python per message than pyzmq's
 ``send_multipart``/``recv_multipart``: those combine their flags as enum members on every call (an
 ``enum.Flag`` union runs a few Python calls) and check each frame's type; the SDK's frames are bytes.
 
-Paced at 20 ms the data thread runs these cold every chunk (issue 18; bench/framework.py --profile).
+Paced at 20 ms the data thread runs these cold every chunk (bench/framework.py --profile).
 The semantics are pyzmq's: a message is sent frame by frame with SNDMORE, and ZeroMQ delivers all of
 it or none (only its first frame can meet the high-water mark: zmq.Again, nothing sent).
 """

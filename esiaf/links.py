@@ -119,7 +119,7 @@ class InputLink:
             raise FormatError(f"message carries {audio.format}, this component takes {self.declared}; "
                               "channel counts are never converted")
         if self._converter is None and audio.format == self.wire == self.declared:
-            self._last = audio  # the common case, nothing to convert: the message itself (issue 18)
+            self._last = audio  # the common case, nothing to convert: the message itself
             return [audio]
         tail = None
         if audio.format != self.wire:

@@ -59,7 +59,7 @@ ANY_HOST = ("0.0.0.0", "*", "::")
 LEAVE_GRACE_S = 1.0  # a departed producer's messages still arriving are taken this long at least
 
 
-# The kernel's TCP keepalive on every TCP socket, not ZMTP heartbeats (issue 18: those woke each
+# The kernel's TCP keepalive on every TCP socket, not ZMTP heartbeats (those would wake each
 # process's libzmq I/O thread about three times a second per connection, most of an idle component's
 # CPU): a peer cut off by the network (a cable, `docker network disconnect`) is noticed within seconds
 # (an idle connection's probes go unanswered for KEEPALIVE_IDLE_S + KEEPALIVE_CNT * KEEPALIVE_INTVL_S;

@@ -1,4 +1,4 @@
-"""Authentication (issue 13): with a token configured, every forged action of the issue is refused
+"""Authentication: with a token configured, every forged action is refused
 without it (401, or a refused websocket) and works with it; /health stays open; a browser's
 websocket from another origin is refused."""
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """The clock offset estimate on heartbeat round trips (esiaf/clock.py), and a component whose clock
-runs 3 s ahead measured by the real orchestrator (issue 16)."""
+runs 3 s ahead measured by the real orchestrator."""
 from __future__ import annotations
 
 import json

@@ -48,7 +48,7 @@ class Replicated:
 
 
 def test_three_asr_replicas_share_six_streams_each_utterance_decoded_once_and_a_killed_ones_move(project, tmp_path):
-    """`--scale asr=3` (issue 16): six grabbers, each its own stream, against three asr instances. Each
+    """`--scale asr=3`: six grabbers, each its own stream, against three asr instances. Each
     stream is served by one instance, every sentence is decoded once; a killed instance's streams
     move to the survivors, which decode their next sentences."""
     r = Replicated(project, tmp_path, asr=3, copies=2)  # 42 s, 10 sentences: room to kill
@@ -93,7 +93,7 @@ def test_three_asr_replicas_share_six_streams_each_utterance_decoded_once_and_a_
 
 def test_an_asr_replica_cut_off_the_network_is_dead_its_streams_move_and_reconnected_it_takes_work_again(
         project, tmp_path):
-    """Network faults (issue 16): `docker network disconnect` on the asr instance serving a stream:
+    """Network faults: `docker network disconnect` on the asr instance serving a stream:
     it is declared dead, its stream moves to the other replica, fusions stop waiting for it, and what
     was stored stays; connected again, it registers again under its id and takes the next stream."""
     r = Replicated(project, tmp_path, asr=2, copies=3)  # 63 s: a and b still play when c starts

@@ -1,4 +1,4 @@
-"""CURVE across hosts (issue 13): keys made by ``esiaf keys``, the real orchestrator started with
+"""CURVE across hosts: keys made by ``esiaf keys``, the real orchestrator started with
 them, components with allowed keys registering, exchanging audio and storing results; peers with
 no keys or unknown ones refused and counted; bad key files refused at start-up with one line."""
 from __future__ import annotations
@@ -172,7 +172,7 @@ def test_a_registration_is_bound_to_the_curve_key_of_its_first_heartbeat(curved,
 
 
 def test_results_are_bound_to_the_curve_key_of_the_registration(curved, curve_dir):
-    """Issue 13: a result with the right MAC but from another allowed CURVE key than the one the
+    """A result with the right MAC but from another allowed CURVE key than the one the
     registration is bound to (its first heartbeat's) is refused; the owner's is stored."""
     registration = curved.http.post("/components", json={"name": "asr", "designation": "speech"}).json()
     server_key = zmq.auth.load_certificate(curve_dir / "orchestrator.key")[0]

@@ -1,4 +1,4 @@
-"""The dashboard (issue 17) in a real browser: Debian's headless chromium, driven by Selenium and
+"""The dashboard in a real browser: Debian's headless chromium, driven by Selenium and
 Debian's chromedriver, reads the page's DOM while the demo scene plays; /metrics agrees with the
 JSON API. Skipped with the reason where chromium, chromedriver or selenium is absent."""
 from __future__ import annotations
@@ -57,7 +57,7 @@ def requested_urls(driver) -> list[str]:
 
 def screenshot(driver, path: Path, scale: float = 0.625) -> None:
     """The page as the window shows it, scaled down (DevTools' Page.captureScreenshot): small enough for
-    the README (docs/dashboard.png is a copy of tests/artefacts/dashboard.png)."""
+    the docs (docs/dashboard.png is a copy of tests/artefacts/dashboard.png)."""
     size = driver.execute_script("return [window.innerWidth, window.innerHeight]")
     shot = driver.execute_cdp_cmd("Page.captureScreenshot", {"format": "png", "clip": {
         "x": 0, "y": 0, "width": size[0], "height": size[1], "scale": scale}})

@@ -1,4 +1,4 @@
-"""Faults under ``esiaf run`` (issue 13): a service killed with SIGKILL mid-stream is restarted and
+"""Faults under ``esiaf run``: a service killed with SIGKILL mid-stream is restarted and
 the pipeline goes on; the orchestrator comes back on the same ZeroMQ ports and the launcher's
 websocket resumes with after_seq, so only what was in flight is missing."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Flow control (issue 18): a replay runs as fast as its slowest consumer with bounded queues and
+"""Flow control: a replay runs as fast as its slowest consumer with bounded queues and
 loses nothing; live audio is still dropped and counted, never held back; SIGTERM ends a wait for a
 consumer at once. Real ZeroMQ sockets, the real orchestrator, the grabber as a process."""
 from __future__ import annotations

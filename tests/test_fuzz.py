@@ -1,4 +1,4 @@
-"""Seeded fuzzing (issue 13): random and mutated frames at the orchestrator's results and control
+"""Seeded fuzzing: random and mutated frames at the orchestrator's results and control
 sockets and at a component's audio input. Nothing crashes, and every valid result sent among
 them is stored."""
 from __future__ import annotations

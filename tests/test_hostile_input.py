@@ -1,4 +1,4 @@
-"""Issue 13: nothing a peer sends may kill a component or the orchestrator. Each test reproduces a
+"""Nothing a peer sends may kill a component or the orchestrator. Each test reproduces a
 defect found against ESIAF over real sockets (a 3-byte frame killed asr, emotion and gender; a
 registration with ``foo://x`` as its endpoint killed every consumer of its topic)."""
 from __future__ import annotations
@@ -113,7 +113,7 @@ def test_oversized_registrations_are_refused(orchestrator):
 
 
 def test_numpy_numbers_in_info_travel_with_heartbeats_and_the_component_stays_registered(pair, orchestrator):
-    # issue 14: a numpy float in self.info killed the heartbeat thread; the component ran on unregistered
+    # a numpy float in self.info once killed the heartbeat thread; the component ran on unregistered
     _source, sink, sink_thread = pair
     sink.info.update(peak=np.float32(0.5), levels=np.array([1, 2]))
     sink.control.poke()

@@ -1,4 +1,4 @@
-"""Idle components beat slowly (issue 18): the SDK's heartbeat thread against a fake orchestrator (a
+"""Idle components beat slowly: the SDK's heartbeat thread against a fake orchestrator (a
 ROUTER in the test), and a real consumer process against the real orchestrator: after an idle interval
 with nothing to do its beats say, and keep, the idle interval; the orchestrator gives it that much
 longer before it is dead; audio brings the fast interval back at once (docs/protocol.md, "Control")."""

@@ -1,4 +1,4 @@
-"""Processes asleep while idle (issue 18), counted as context switches in /proc. The orchestrator's
+"""Processes asleep while idle, counted as context switches in /proc. The orchestrator's
 event loop's thread, with nothing registered and nothing written, does not wake: not for uvicorn's
 tick (its Date header is made when read), a checkpoint task that finds nothing written or a liveness
 task with no one to watch; a write is still checkpointed within about a second (the WAL copied into the

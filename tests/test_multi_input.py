@@ -1,4 +1,4 @@
-"""Several inputs at once under ``esiaf run`` (issue 16): each ``--input`` (or each sound file of a
+"""Several inputs at once under ``esiaf run``: each ``--input`` (or each sound file of a
 folder) is played by a grabber instance of its own as a stream of its own; every stream gets its own
 sentences and its own stream_end, and the run ends once all have ended; ``--replicas asr=2`` shares
 them between two recognisers. ``--serve`` never ends the run on its own: SIGTERM does, cleanly. Bad

@@ -1,4 +1,4 @@
-"""An analyser in one folder (issue 14): the README's Duration analyser, written into a folder
+"""An analyser in one folder: a Duration analyser, written into a folder
 outside the repository and run with ``esiaf run --with``, reaches the fused results, the websocket
 and /results, and no file of the repository changes."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Replicas that share the work (issue 16): two instances of one service, each stream served by
+"""Replicas that share the work: two instances of one service, each stream served by
 exactly one of them over real ZeroMQ subscriptions, and a killed instance's streams moving to the
 survivor. The replicas are processes of their own (tests/replica_sink.py) so that one can be killed."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""A second robot joins a running pipeline (issue 16): its grabber registers under the same name
+"""A second robot joins a running pipeline: its grabber registers under the same name
 as the first (another instance, not a replacement; the two replaced each other every heartbeat
 before), both streams get their own sentences, and every fused result of both is complete with
 its emotion and gender. (That an analyser which has not covered a stream yet is waited for, never

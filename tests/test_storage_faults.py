@@ -1,4 +1,4 @@
-"""Storage faults are loud and lose nothing (issue 13): a full disk or a read-only database turns
+"""Storage faults are loud and lose nothing: a full disk or a read-only database turns
 /health into 503 with the reason, results wait in a bounded queue, and once the disk takes writes
 again every one of them is stored; a database that cannot be opened for writing is refused at
 start-up with one line. The database lives on a small tmpfs the test mounts."""

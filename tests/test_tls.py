@@ -1,4 +1,4 @@
-"""HTTPS and wss for the orchestrator (issue 13, optional): with ``tls_cert``/``tls_key`` it serves
+"""HTTPS and wss for the orchestrator (optional): with ``tls_cert``/``tls_key`` it serves
 TLS only; clients (OrchestratorHTTP, the SDK's registration, the launcher's websocket feed) check
 its certificate against ``ESIAF_TLS_CA``. A self-signed certificate is made for each test run."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Two robots at once (issues 12, 16): a second grabber streams into a running ``esiaf run --serve``;
+"""Two robots at once: a second grabber streams into a running ``esiaf run --serve``;
 the asr keeps one decoder per stream, so each stream gets its own sentences and its own end."""
 from __future__ import annotations
 

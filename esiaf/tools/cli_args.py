@@ -227,7 +227,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     run.add_argument("--stream-id", help="name of this capture session (default: input name + time); "
                      "with a single input only")
     run.add_argument("--chunk-ms", type=float, help="grabber chunk length in ms (default: the grabber's chunk_ms, "
-                     "50 ms; see README Benchmarks)")
+                     "50 ms; see docs/benchmarks.md)")
     run.add_argument("--json", action="store_true", help="print each fused result as JSON")
     run.add_argument("-v", "--verbose", action="store_true", help="log what the launcher does")
     sub.add_parser("eval", help="evaluation harnesses through the real pipeline: esiaf eval robocup --help")

@@ -26,8 +26,8 @@ class GrabberSettings(HostSettings):
     input: str = ""  # a sound file or .raw/.pcm file; empty = live capture from `device`
     device: str = ""  # ALSA device name for live capture
     topic: str = "grabber/audio"
-    # the transport chunk, files and live capture (the ALSA period) alike, chosen by measurement (README
-    # "Benchmarks"): 50 ms costs the framework 37 % less CPU than 20 ms (bench/framework.py), and the RoboCup
+    # the transport chunk, files and live capture (the ALSA period) alike, chosen by measurement (docs/
+    # benchmarks.md): 50 ms costs the framework 37 % less CPU than 20 ms (bench/framework.py), and the RoboCup
     # harness the same questions, since the vad decides per 32 ms window whatever the chunk
     chunk_ms: float = 50.0
     fast: bool = False  # play files as fast as possible instead of in real time

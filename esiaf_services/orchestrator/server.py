@@ -78,7 +78,7 @@ class _DatedState(ServerState):
 class _Server(uvicorn.Server):
     """uvicorn's server without its signal handling: serve() installs ours, which exit 0
     instead of re-raising the signal after shutdown. Its main loop does not wake while idle (uvicorn's
-    wakes ten times a second, to renew the Date header and look whether to exit: issue 18): the Date
+    wakes ten times a second, to renew the Date header and look whether to exit): the Date
     is made when read (:class:`_DatedState`), and :meth:`exit` ends the loop at once."""
 
     def __init__(self, config: uvicorn.Config) -> None:

@@ -81,7 +81,7 @@ class OrchestratorSettings(StrictModel):
     results_port: int = Field(default=5561, ge=0, le=65535)  # 0 = any free port
     db_path: str = "esiaf.db"
     # a working component beats this often (every beat wakes it and the orchestrator: 0.5 s cost the
-    # framework about 20 CPU-s per hour of audio more, README); a process that dies is found through its
+    # framework about 20 CPU-s per hour of audio more, docs/benchmarks.md); a process that dies is found through its
     # closed connection (disconnect_grace_s), so the beats only find one that hangs or is cut off
     heartbeat_interval_s: float = Field(default=2.0, gt=0)
     dead_after_s: float = Field(default=8.0, gt=0)

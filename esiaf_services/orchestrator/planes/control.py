@@ -62,9 +62,9 @@ class ControlPlane:
 
     async def run(self) -> None:
         """Takes and handles messages until cancelled. The socket's ZMQ_FD is registered with the loop
-        once, not per message as zmq.asyncio's futures do (two epoll_ctl calls and a future each: issue
-        18), and its callback handles every message there is at once, without waking a task (a future,
-        a task step and one more turn of the loop per wake-up: issue 18 again). ZMQ_FD is
+        once, not per message as zmq.asyncio's futures do (two epoll_ctl calls and a future each,
+        a measurable share of a heartbeat's cost), and its callback handles every message there is at
+        once, without waking a task (a future, a task step and one more turn of the loop per wake-up). ZMQ_FD is
         edge-triggered, and reading ZMQ_EVENTS, which any send does, resets it: so the socket is
         drained until it says it holds nothing, and looked at again after a send made outside a drain."""
         loop = asyncio.get_running_loop()

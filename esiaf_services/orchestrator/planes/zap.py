@@ -11,7 +11,7 @@ Every refused handshake is counted per socket and reason (``keys.HANDSHAKE_FAILU
 key or token not allowed; ``protocol``, another mechanism, e.g. no keys; ``other``, ended
 mid-handshake) and logged, the first and every 100th: a socket monitor sees them, whichever side
 gave up. ``GET /metrics`` shows them as ``esiaf_refused_peers``. The same monitor (libzmq allows
-one per socket) reports closed connections to whoever asks (the control plane: issue 18).
+one per socket) reports closed connections to whoever asks (the control plane).
 """
 from __future__ import annotations
 

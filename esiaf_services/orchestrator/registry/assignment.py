@@ -1,4 +1,4 @@
-"""Which instance of each service serves each stream, when a service has several (issue 16).
+"""Which instance of each service serves each stream, when a service has several.
 
 A service is a component name; its instances are the live components of that name. While a
 service has one live instance, that instance takes every stream (it subscribes to whole topics,

@@ -329,8 +329,8 @@ class Registry:
     def offer_current(self, component: Component) -> None:
         """Makes the state the registry now gives ``component`` the one it is to have (a new
         ``state_version`` if that differs): what every heartbeat does, so a change no push has
-        carried yet is answered in full. Computed again only after a change (issue 18: not at
-        every heartbeat)."""
+        carried yet is answered in full. Computed again only after a change, not at
+        every heartbeat: most beats find it current."""
         if component.offered_at != (version := self.version()):
             component.offer(self.state_of(component))
             component.offered_at = version

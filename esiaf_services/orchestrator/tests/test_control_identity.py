@@ -1,4 +1,4 @@
-"""A component's control identity is bound to its registration (issue 13): a peer that holds the
+"""A component's control identity is bound to its registration: a peer that holds the
 token and knows a component id (GET /components lists them) but not the registration's control
 key neither keeps that component alive nor gets its state, and is counted; the real component
 goes on beside it; a registration again gets a new key and the old one is refused."""
@@ -21,7 +21,7 @@ WRONG_KEY = "A" * 43  # as long as a real one
 
 def forger(zctx: zmq.Context, endpoint: str, identity: str | None = None) -> zmq.Socket:
     """A DEALER on the control socket, with a component's id as its routing id (the protocol
-    before issue 13) or none."""
+    before results were bound to their registration) or none."""
     dealer = zctx.socket(zmq.DEALER)
     dealer.setsockopt(zmq.LINGER, 0)
     if identity is not None:

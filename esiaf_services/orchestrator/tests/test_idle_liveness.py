@@ -1,4 +1,4 @@
-"""Liveness of components that say they beat slowly while idle (issue 18), over real DEALER sockets:
+"""Liveness of components that say they beat slowly while idle, over real DEALER sockets:
 one is given dead_after_s plus its idle interval's extra; once it beats fast again, dead_after_s
 only, counted from that beat, even though the liveness task was asleep until the slow deadline."""
 from __future__ import annotations

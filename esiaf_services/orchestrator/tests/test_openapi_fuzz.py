@@ -1,4 +1,4 @@
-"""schemathesis against the orchestrator's OpenAPI document (issue 13): a real orchestrator
+"""schemathesis against the orchestrator's OpenAPI document: a real orchestrator
 process with a token, every operation of its /openapi.json, every check (``--checks all``: server
 errors, status codes, content types, headers and bodies the document does not declare, bad input
 taken, good input refused, auth ignored, wrong ``Allow`` headers, ...) in every phase (the

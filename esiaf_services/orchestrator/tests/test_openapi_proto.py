@@ -1,5 +1,5 @@
-"""The API's documented result models (/docs, /openapi.json) against the proto they are made from
-(issue 14): every field the codec sends (esiaf_services/orchestrator/planes/codec.py sends every proto field of a
+"""The API's documented result models (/docs, /openapi.json) against the proto they are made from:
+every field the codec sends (esiaf_services/orchestrator/planes/codec.py sends every proto field of a
 payload) must be in the OpenAPI document, and nothing the proto lacks may be documented as sent."""
 from __future__ import annotations
 

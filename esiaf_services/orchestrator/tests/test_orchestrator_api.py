@@ -78,7 +78,7 @@ def test_channel_mismatch_is_409_naming_topic_and_formats(http):
 
 @pytest.mark.parametrize("change, complaint", [
     ({"name": ""}, "name"),
-    ({"designation": "Not a kind!"}, "designation"),  # any name like "rate" is a kind (issue 14)
+    ({"designation": "Not a kind!"}, "designation"),  # any name like "rate" is a kind
     ({"inputs": [{"topic": "a", "format": {**FMT16, "sample_type": "int12"}}]}, "sample_type"),
     ({"inputs": [{"topic": "a", "format": {**FMT16, "channels": 0}}]}, "channels"),
     ({"inputs": [{"topic": "a", "format": FMT16}, {"topic": "a", "format": FMT16}]},

@@ -229,7 +229,7 @@ def test_results_survive_a_restart_and_ids_go_on(make_orchestrator, zctx, tmp_pa
 
 
 def test_an_utterance_in_flight_on_a_recogniser_that_dies_is_fused_with_it_missing(make_orchestrator, zctx):
-    """Issue 16: an asr instance killed with an utterance it had taken but not answered: the VAD's
+    """An asr instance killed with an utterance it had taken but not answered: the VAD's
     segment is fused without it (anchored on the segment, the asr missing), never silently lost;
     what the asr answered before and another stream it did not serve are left alone."""
     from esiaf_services.orchestrator.tests.helpers import Heartbeater
@@ -262,7 +262,7 @@ def test_an_utterance_in_flight_on_a_recogniser_that_dies_is_fused_with_it_missi
 
 
 def test_an_utterance_a_live_recogniser_passed_by_is_fused_with_it_missing(make_orchestrator, zctx):
-    """Issue 16: past saturation a recogniser loses an utterance's audio and answers the next one.
+    """Past saturation a recogniser loses an utterance's audio and answers the next one.
     The passed-by segment is fused without it (reason ``skipped``) when the later answer comes, and
     one after its last answer when it ends the stream: reported, not silently lost."""
     orch = make_orchestrator()

@@ -1,4 +1,4 @@
-"""Issue 13: one poison result is refused alone; its batch neighbours are stored; counters say
+"""One poison result is refused alone; its batch neighbours are stored; counters say
 what was stored. Each case is a defect found against the orchestrator over its real sockets."""
 from __future__ import annotations
 

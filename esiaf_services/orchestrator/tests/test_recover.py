@@ -1,4 +1,4 @@
-"""A corrupt database (issue 13): refused at start-up with one line naming --recover; --recover
+"""A corrupt database: refused at start-up with one line naming --recover; --recover
 copies what SQLite can still read into a new file, keeps the damaged one and starts on the copy.
 
 The databases are real: written by the real orchestrator (a process), then damaged on disk (pages in

@@ -1,4 +1,4 @@
-"""Results and end_of_stream notices are bound to their component's registration (issue 13): a peer
+"""Results and end_of_stream notices are bound to their component's registration: a peer
 that holds the token (or an allowed key) and knows a component id but not its registration's
 control key cannot send results or a stream end in its name; they are refused, counted by reason
 and never count as its life, and the real component's results beside them are all stored. A
@@ -149,7 +149,7 @@ def test_a_registration_made_before_a_restart_is_still_recognised(make_orchestra
 
 def test_messages_without_a_key_are_refused_before_anything_is_stored(orch, component, http):
     asr = component("asr", designation="speech", inputs=["vad/speech"])
-    asr.push.send_multipart([b"result", speech("asr", asr.id, "s", 1, "no key")])  # an SDK before issue 13
+    asr.push.send_multipart([b"result", speech("asr", asr.id, "s", 1, "no key")])  # no key: not bound
     asr.push.send_multipart([b"result", speech("asr", asr.id, "s", 2, "bad"), b"", b"x"])
     asr.send_result(stream_id="s", start_ns=BASE_NS + 5 * 10**9, end_ns=BASE_NS + 6 * 10**9, text="signed")
     wait_until(lambda: stored_texts(http, "s"), what="the signed result")

@@ -1,5 +1,5 @@
 """uvicorn's main loop in the orchestrator: it does not wake while idle (uvicorn's own wakes ten times a
-second; issue 18), the Date header is still current whenever a response is made, and the loop ends at
+second), the Date header is still current whenever a response is made, and the loop ends at
 once when told to."""
 from __future__ import annotations
 

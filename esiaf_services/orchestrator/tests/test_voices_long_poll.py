@@ -1,4 +1,4 @@
-"""GET /voices is a long poll (issue 18): a voiceid asks with the ETag it has and is answered when the
+"""GET /voices is a long poll: a voiceid asks with the ETag it has and is answered when the
 voices change, not every second; an enrolment or a deletion answers it at once, nothing else does
 before wait_s, and a shutting-down orchestrator answers it at once instead of holding its exit."""
 from __future__ import annotations
