@@ -15,7 +15,8 @@ fast (the reference resampled by 1 + ppm/1e6 before it is played); neither is to
 Per backend and condition:
 
 - ``erle_db``: echo return loss enhancement on the echo alone (the far end talking, no person, no
-  babble), over the robot's speech from 1 s after it starts to the pause, all channels;
+  babble), over the robot's speech from 1 s after it starts to the pause, all channels (energy-weighted:
+  the first seconds weigh most); ``erle_median_db`` the median of its values per second there;
   ``erle_late_db`` the same over the 10 s before the pause (drift has moved the echo most there);
   ``erle_restart_db`` over the first 2 s after the player starts again;
 - double talk, on the full mix, per question: ``sdr_db`` of the output's first channel against the
@@ -27,7 +28,7 @@ Per backend and condition:
 - ``cpu_pct``: CPU time of the canceller (alignment included) per second of 4-channel audio, in %
   of one core.
 
-    nice -n 10 python -m bench.aec [--backends webrtc,livekit,speex] [--arrays pepper4,respeaker4]
+    nice -n 10 python -m bench.aec [--backends webrtc,speex,livekit] [--arrays pepper4,respeaker4]
         [--conditions 0:0,120:100,300:-100] [--seconds 60] [--json out.json]
 
 Ends with ``name=value`` lines: ``<array>_<backend>_d<delay>_p<ppm>_<figure>``.
@@ -77,6 +78,7 @@ class Figures:
     delay_ms: float
     ppm: float
     erle_db: float = math.nan
+    erle_median_db: float = math.nan
     erle_late_db: float = math.nan
     erle_restart_db: float = math.nan
     sdr_in_db: float = math.nan
@@ -203,10 +205,11 @@ def cancel(backend: str, mics: np.ndarray, reference: np.ndarray, align: bool) -
     chunk = FS // 20
     out = []
     started = time.process_time()
+    stream.add_reference(0, reference[:chunk])
     for first in range(0, len(pcm), chunk):
-        start_ns = first * 1_000_000_000 // FS
-        stream.add_reference(start_ns, reference[first:first + chunk])  # the player publishes ahead of the echo
-        out.append(stream.process(start_ns, pcm[first:first + chunk]))
+        ahead = first + chunk  # the player publishes a chunk before it is played, so before its echo
+        stream.add_reference(ahead * 1_000_000_000 // FS, reference[ahead:ahead + chunk])
+        out.append(stream.process(first * 1_000_000_000 // FS, pcm[first:first + chunk]))
     out.append(stream.flush())
     cpu = time.process_time() - started
     return np.concatenate(out)[:len(pcm)].astype(np.float64) / 32768, cpu, stream
@@ -263,6 +266,8 @@ def measure(scene: Scene, array: str, backend: str, delay_ms: float, ppm: float,
     out, _, stream = cancel(backend, echo_only, scene.reference, align)
     (first_start, first_end), (second_start, _) = scene.robot_spans[0], scene.robot_spans[-1]
     figures.erle_db = erle_db(echo_only, out, first_start + 1.0, first_end)
+    figures.erle_median_db = float(np.median([erle_db(echo_only, out, at, at + 1.0)
+                                              for at in np.arange(first_start + 1.0, first_end - 1.0)]))
     figures.erle_late_db = erle_db(echo_only, out, first_end - 10.0, first_end)
     figures.erle_restart_db = erle_db(echo_only, out, second_start, second_start + 2.0)
     tracker = stream.tracker  # type: ignore[attr-defined]
@@ -289,7 +294,7 @@ def measure(scene: Scene, array: str, backend: str, delay_ms: float, ppm: float,
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--backends", default="webrtc,livekit,speex")
+    parser.add_argument("--backends", default="webrtc,speex", help="of webrtc, speex, livekit")
     parser.add_argument("--arrays", default="pepper4,respeaker4")
     parser.add_argument("--conditions", default="0:0,120:100,300:-100",
                         help="DELAY_MS:PPM pairs, comma-separated")
@@ -309,7 +314,8 @@ def main(argv: list[str] | None = None) -> int:
                     row = measure(scene, array, backend, delay_ms, ppm, recogniser, align)
                     rows.append(row)
                     print(f"{row.array:10s} {row.backend:18s} delay {delay_ms:5.0f} ms drift {ppm:+5.0f} ppm: "
-                          f"ERLE {row.erle_db:5.1f} dB (late {row.erle_late_db:5.1f}, restart "
+                          f"ERLE {row.erle_db:5.1f} dB (median {row.erle_median_db:5.1f}, late "
+                          f"{row.erle_late_db:5.1f}, restart "
                           f"{row.erle_restart_db:5.1f}); SDR {row.sdr_in_db:5.1f} -> {row.sdr_db:5.1f} dB; "
                           f"recognised {row.recognised}/{row.asked} (raw {row.recognised_raw}, no robot "
                           f"{row.recognised_clean}); TDOA kept {row.tdoa_kept}/{row.asked}; CPU {row.cpu_pct:.2f} %; "
@@ -317,8 +323,8 @@ def main(argv: list[str] | None = None) -> int:
                           flush=True)
     for row in rows:
         key = f"{row.array}_{row.backend}_d{row.delay_ms:g}_p{row.ppm:g}"
-        for name in ("erle_db", "erle_late_db", "erle_restart_db", "sdr_db", "recognised", "recognised_clean",
-                     "cpu_pct"):
+        for name in ("erle_db", "erle_median_db", "erle_late_db", "erle_restart_db", "sdr_db", "recognised",
+                     "recognised_clean", "cpu_pct"):
             value = getattr(row, name)
             print(f"{key}_{name}={value:.3f}" if isinstance(value, float) else f"{key}_{name}={value}")
     if args.json:

@@ -5,8 +5,8 @@ the loudspeaker, as far as the player knows). Two things stay unknown and are es
 the signals themselves:
 
 - **the delay** between the stamps and the echo at the microphones (the sound card's output buffer,
-  the converter, the air): 0 to ``max_delay_ms``. Each ``estimate_every_s`` of microphone audio in which
-  the reference is loud, GCC-PHAT between the reference and the first microphone finds the lag
+  the converter, the air): 0 to ``max_delay_ms``. Each ``estimate_every_s`` (0.5 s) of microphone audio
+  in which the reference is loud, GCC-PHAT between the reference and the first microphone finds the lag
   of the direct path (sub-sample, by a parabola through the peak); a weak peak is not taken;
 - **the drift** between the player's clock and the grabber's (two sound cards: up to a few hundred
   ppm): the delay estimates of the last ``fit_s`` seconds are fitted with a line, whose slope is the
@@ -122,8 +122,8 @@ class DelayEstimate:
 class DelayTracker:
     """Delay (and from it drift) of the echo after the reference's stamps, from the signals."""
 
-    def __init__(self, sample_rate_hz: int, max_delay_ms: float = 400.0, window_s: float = 1.0,
-                 estimate_every_s: float = 1.0, fit_s: float = 60.0):
+    def __init__(self, sample_rate_hz: int, max_delay_ms: float = 400.0, window_s: float = 0.5,
+                 estimate_every_s: float = 0.5, fit_s: float = 60.0):
         self.rate = sample_rate_hz
         self.max_lag = int(max_delay_ms * sample_rate_hz / 1000)
         self.window = int(window_s * sample_rate_hz)

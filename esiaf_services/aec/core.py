@@ -35,6 +35,10 @@ class StreamCanceller:
         """The estimated delay of the echo after the reference's stamps at a capture time (0 until estimated)."""
         return int(float(self.tracker.delay_at(np.array(self._seconds(time_ns)))) * NS / self.rate)
 
+    def reference_needed_until(self, end_ns: int) -> int:
+        """The stamp up to which the reference must be in to cancel microphone frames up to ``end_ns``."""
+        return end_ns + int(self.lead * NS / self.rate) - max(0, self.delay_ns(end_ns))
+
     def _seconds(self, time_ns: int) -> float:
         return 0.0 if self.track.origin_ns is None else (time_ns - self.track.origin_ns) / NS
 

@@ -157,7 +157,8 @@ class EchoCanceller(Component):
 
     def _reference_ready(self, state: StreamState, audio: Audio, newest_end_ns: int) -> bool:
         """Whether ``audio`` can be cancelled now: its reference is in, over, or waited for long enough."""
-        if state.reference_end_ns >= audio.end_ns or state.reference_ended:
+        assert state.canceller is not None  # a chunk waits only once the stream has a reference
+        if state.reference_end_ns >= state.canceller.reference_needed_until(audio.end_ns) or state.reference_ended:
             return True
         return newest_end_ns - audio.end_ns >= self.settings.hold_ms * MS
 
