@@ -12,7 +12,8 @@ the signals themselves:
   ppm): the delay estimates of the last ``fit_s`` seconds are fitted with a line, whose slope is the
   drift, so the delay used at each instant moves smoothly between estimates.
 
-:class:`ReferenceTrack` keeps the recent reference samples by capture time and reads them at any
+:class:`ReferenceTrack` keeps the reference samples by capture time until the microphones are past
+them (a replay's player may publish far ahead; at most ``max_held_s``), and reads them at any
 fractional position (windowed-sinc interpolation), so the canceller sees a reference whose delay to
 the echo is constant and short, whatever the clocks did.
 """
@@ -36,12 +37,13 @@ MAX_DRIFT = 500e-6  # a fitted slope beyond this is not a clock: the line falls 
 class ReferenceTrack:
     """Mono reference samples on a sample grid anchored at the first chunk's capture time."""
 
-    def __init__(self, sample_rate_hz: int, keep_s: float):
+    def __init__(self, sample_rate_hz: int, max_held_s: float):
         self.rate = sample_rate_hz
         self.origin_ns: int | None = None
-        self._keep = int(keep_s * sample_rate_hz)
-        self._samples = np.zeros(0)
-        self._first = 0  # grid index of _samples[0]
+        self._max_held = int(max_held_s * sample_rate_hz)
+        self._buffer = np.zeros(sample_rate_hz * 4)  # held samples are _buffer[_low:_high]; it grows as needed
+        self._low = self._high = 0
+        self._first = 0  # grid index of _buffer[_low]
 
     def index_at(self, time_ns: int) -> float:
         """The grid position (in samples, fractional) of a capture time."""
@@ -49,26 +51,44 @@ class ReferenceTrack:
         return (time_ns - self.origin_ns) * self.rate / NS
 
     def add(self, start_ns: int, samples: np.ndarray) -> None:
-        """Reference samples played from ``start_ns`` on; a gap before them is silence."""
+        """Reference samples played from ``start_ns`` on; a gap before them is silence, and where they
+        overlap what is held (a player started again) the newest win."""
         if self.origin_ns is None:
             self.origin_ns = start_ns
-        at = round(self.index_at(start_ns))
-        end = self._first + len(self._samples)
-        if at > end:
-            self._samples = np.concatenate([self._samples, np.zeros(at - end), samples])
-        else:  # contiguous, or overlapping what is held (a restarted player): the newest wins
-            offset = max(at, self._first) - self._first
-            head = self._samples[:offset]
-            tail = self._samples[offset + len(samples):] if at >= self._first else np.zeros(0)
-            self._samples = np.concatenate([head, samples[max(0, self._first - at):], tail])
-        drop = len(self._samples) - self._keep
-        if drop > 0:
-            self._samples = self._samples[drop:]
-            self._first += drop
+        at = round(self.index_at(start_ns)) - self._first + self._low  # where in _buffer
+        if at < self._low:  # what is before the held samples is no longer needed
+            samples, at = samples[self._low - at:], self._low
+        end = at + len(samples)
+        if end > len(self._buffer):
+            self._make_room(end - self._low)
+            at, end = at - self._low, end - self._low
+            self._low, self._high = 0, self._high - self._low
+        if at > self._high:
+            self._buffer[self._high:at] = 0.0
+        self._buffer[at:end] = samples
+        self._high = max(self._high, end)
+        self._drop(self._high - self._low - self._max_held)
+
+    def _make_room(self, needed: int) -> None:
+        held = self._buffer[self._low:self._high]
+        size = len(self._buffer)
+        while size < 2 * needed:
+            size *= 2
+        self._buffer = np.zeros(size) if size != len(self._buffer) else self._buffer
+        self._buffer[:len(held)] = held.copy()
+
+    def forget_before(self, index: int) -> None:
+        """Samples before grid position ``index`` are no longer needed."""
+        self._drop(index - self._first)
+
+    def _drop(self, count: int) -> None:
+        if count > 0:
+            self._low = min(self._low + count, self._high)
+            self._first += count
 
     @property
     def end_index(self) -> int:
-        return self._first + len(self._samples)
+        return self._first + self._high - self._low
 
     def read(self, first: float, count: int) -> np.ndarray:
         """``count`` samples from the fractional grid position ``first`` on (silence where nothing is held).
@@ -90,7 +110,8 @@ class ReferenceTrack:
         out = np.zeros(count)
         lo, hi = max(first, self._first), min(first + count, self.end_index)
         if hi > lo:
-            out[lo - first:hi - first] = self._samples[lo - self._first:hi - self._first]
+            offset = self._low - self._first
+            out[lo - first:hi - first] = self._buffer[lo + offset:hi + offset]
         return out
 
 

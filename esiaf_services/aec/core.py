@@ -16,10 +16,10 @@ FULL_SCALE = 32768.0
 
 class StreamCanceller:
     def __init__(self, canceller: Canceller, sample_rate_hz: int, *, max_delay_ms: float = 400.0,
-                 lead_ms: float = 4.0, estimate_delay: bool = True, keep_s: float = 4.0):
+                 lead_ms: float = 4.0, estimate_delay: bool = True, max_held_s: float = 600.0):
         self.canceller = canceller
         self.rate = sample_rate_hz
-        self.track = ReferenceTrack(sample_rate_hz, keep_s=keep_s)
+        self.track = ReferenceTrack(sample_rate_hz, max_held_s=max_held_s)
         self.tracker = DelayTracker(sample_rate_hz, max_delay_ms=max_delay_ms)
         self.estimate_delay = estimate_delay
         self.lead = lead_ms * sample_rate_hz / 1000  # the reference reaches the canceller this much before its echo
@@ -66,6 +66,9 @@ class StreamCanceller:
         if self.estimate_delay:
             self._track_delay(start_ns, mics)
         reference = np.clip(np.rint(self._reference_for(start_ns, len(mics)) * FULL_SCALE), -32768, 32767)
+        if self.track.origin_ns is not None:  # what the delay tracker and the next chunks may still read
+            self.track.forget_before(round(self.track.index_at(start_ns)) - 2 * self.tracker.max_lag
+                                     - self.tracker.window)
         self._pending_mics = np.concatenate([self._pending_mics, mics])
         self._pending_reference = np.concatenate([self._pending_reference, reference.astype(np.int16)])
         return self._run(len(self._pending_mics) // self.canceller.block_frames)
