@@ -12,8 +12,11 @@ Work comes from ``input`` and ``say`` (played at start: ``esiaf run --playback``
 :meth:`Player.play` and :meth:`Player.say_text` (any thread). While an item plays, the heartbeat's
 info carries ``playing``: its name and span in capture time.
 
-``origin_ns`` stamps the first item as played from that capture time (a replay's timeline: the
-grabber's stream start), so a recorded robot voice lines up with a recorded microphone file.
+``follow_stream`` stamps the first item as played from the start of the player's stream as its
+grabber announced it to the orchestrator (waiting for it): a recorded robot voice lines up with a
+recorded microphone file (``esiaf run --input MICS.wav --playback ROBOT.wav``). A file sink is
+written ``ahead_ms`` before the stamps say it is played (unless ``fast``): the echo canceller
+has the reference before the echo.
 """
 from __future__ import annotations
 
@@ -25,9 +28,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
+import httpx
 import numpy as np
 
 from esiaf import AudioFormat, Component, ComponentSettings, SampleClock, SetupError
+from esiaf.api_client import OrchestratorHTTP
 from esiaf_services.player.sinks import AlsaSink, FileSink
 from esiaf_services.player.tts import SpeechError, say
 
@@ -45,7 +50,8 @@ class PlayerSettings(ComponentSettings):
     sample_rate_hz: int = 16000
     chunk_ms: float = 20.0  # what a stop waits for at most, and the ALSA period
     fast: bool = False  # a file output written as fast as possible
-    origin_ns: int = 0  # the capture time the first item is played at; 0 = when it is
+    ahead_ms: float = 200.0  # a file output is written this long before it is played
+    follow_stream: bool = False  # the first item plays from the stream's start (a replay's timeline)
     exit_when_done: bool = False  # stop once input and say are played
     wait_for_subscribers: int = 0  # before the first item, wait until the topic has this many subscribers
     wait_timeout_s: float = 30.0
@@ -144,7 +150,7 @@ class Player(Component):
                     break
                 self.sleep_until(time.monotonic() + IDLE_POLL_S)
                 continue
-            origin_ns = self.settings.origin_ns if first and self.settings.origin_ns else self.clock_ns()
+            origin_ns = self._stream_start() if first and self.settings.follow_stream else self.clock_ns()
             first = False
             self._play(item, origin_ns)
         if self.settings.exit_when_done and not self.stopping:
@@ -152,13 +158,30 @@ class Player(Component):
             self.publish(self.settings.topic, b"", now_ns, now_ns, end_of_stream=True)
             self.stop()
 
+    def _stream_start(self) -> int:
+        """The capture time the player's stream started at, as announced (waiting for it)."""
+        s = self.settings
+        deadline = time.monotonic() + s.wait_timeout_s
+        with OrchestratorHTTP(s.orchestrator_url) as http:
+            while not self.stopping:
+                try:
+                    response = http.get(f"/streams/{s.stream_id}")
+                    if response.status_code == 200:
+                        return int(response.json()["start_ns"])
+                except (httpx.HTTPError, ValueError, KeyError) as exc:
+                    log.info("waiting for the orchestrator: %s", exc)
+                if time.monotonic() >= deadline:
+                    break
+                self.sleep_until(time.monotonic() + IDLE_POLL_S * 5)
+        log.warning("stream_id=%s was not announced within %g s: playing from now", s.stream_id, s.wait_timeout_s)
+        return self.clock_ns()
+
     def _play(self, item: Item, origin_ns: int) -> None:
         sink = self.sink
         assert sink is not None  # setup() made it
         self._cut.clear()
         pcm = np.clip(np.rint(item.samples * 32767), -32768, 32767).astype(np.int16)
         clock = SampleClock(origin_ns, self.format.sample_rate_hz)
-        started = time.monotonic()
         self.info["playing"] = {"name": item.name, "start_ns": origin_ns,
                                 "end_ns": clock.time_at(len(pcm))}
         log.info("playing name=%r seconds=%.2f start_ns=%d", item.name, len(pcm) / self.format.sample_rate_hz,
@@ -172,8 +195,10 @@ class Player(Component):
                 break
             part = pcm[first:first + self.chunk_frames]
             start_ns, end_ns = clock.advance(len(part))
-            if not sink.paced and not self.settings.fast:  # a file: written when it would be played
-                self.sleep_until(started + (start_ns - origin_ns) / 1e9)
+            if not sink.paced and not self.settings.fast:  # a file: written just before it is played
+                ahead_ns = start_ns - round(self.settings.ahead_ms * 1e6) - self.clock_ns()
+                if ahead_ns > 0:
+                    self.sleep_until(time.monotonic() + ahead_ns / 1e9)
             sink.write(part)
             self.publish(self.settings.topic, part, start_ns, end_ns, segmentation_ended=clock.frames >= len(pcm))
         self.played += 1

@@ -65,8 +65,8 @@ def test_a_sentence_is_played_to_a_file_and_published_as_played(orchestrator, tm
     speech = [c for c in recorder.chunks if c.frames]
     assert all(a.end_ns == b.start_ns for a, b in itertools.pairwise(speech))  # one timeline
     assert speech[-1].segmentation_ended and sum(c.segmentation_ended for c in recorder.chunks) == 1
-    # stamped when played: real time from the first chunk on, so the last ends about when the player did
-    assert before_ns <= speech[0].start_ns and speech[-1].end_ns <= after_ns
+    # stamped when played: real time from the first chunk on, written at most ahead_ms before
+    assert before_ns <= speech[0].start_ns and speech[-1].end_ns <= after_ns + 200_000_000
     assert speech[-1].end_ns - speech[0].start_ns == len(played) * 10**9 // RATE
     recorder.stop()
 
@@ -118,4 +118,26 @@ def test_playing_to_an_alsa_device_writes_what_is_published(orchestrator, tmp_pa
     sent = published(recorder)
     assert len(sent) == RATE // 2
     assert np.array_equal(written[:len(sent)], sent)
+    recorder.stop()
+
+
+def test_a_replay_s_robot_voice_is_stamped_on_its_stream_s_timeline(orchestrator, tmp_path):
+    import soundfile
+    recorder = listen(orchestrator)
+    robot = tmp_path / "robot.wav"
+    soundfile.write(str(robot), (0.3 * np.sin(2 * np.pi * 300 * np.arange(RATE) / RATE) * 32767).astype(np.int16),
+                    RATE)
+    player = Player(Player.Settings(name="player", orchestrator_url=orchestrator.url, output=str(tmp_path / "o.raw"),
+                                    input=str(robot), follow_stream=True, fast=True, exit_when_done=True,
+                                    wait_for_subscribers=1, stream_id="replay-1"))
+    thread = threading.Thread(target=player.run)
+    thread.start()
+    start_ns = time.time_ns() - 3 * 10**9  # a grabber that started playing MICS.wav three seconds ago
+    orchestrator.http.put("/streams/replay-1", json={"start_ns": start_ns, "source": "grabber",
+                                                     "info": {}}).raise_for_status()
+    poll(lambda: recorder.chunks and recorder.chunks[-1].end_of_stream, timeout_s=30)
+    thread.join(timeout=10)
+    speech = [c for c in recorder.chunks if c.frames]
+    assert speech[0].start_ns == start_ns and speech[-1].end_ns == start_ns + 10**9
+    assert {c.stream_id for c in recorder.chunks} == {"replay-1"}
     recorder.stop()
