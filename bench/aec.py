@@ -28,7 +28,7 @@ Per backend and condition:
 - ``cpu_pct``: CPU time of the canceller (alignment included) per second of 4-channel audio, in %
   of one core.
 
-    nice -n 10 python -m bench.aec [--backends webrtc,speex,livekit] [--arrays pepper4,respeaker4]
+    nice -n 10 python -m bench.aec [--backends speex,webrtc] [--arrays pepper4,respeaker4]
         [--conditions 0:0,120:100,300:-100] [--seconds 60] [--json out.json]
 
 Ends with ``name=value`` lines: ``<array>_<backend>_d<delay>_p<ppm>_<figure>``.
@@ -294,7 +294,7 @@ def measure(scene: Scene, array: str, backend: str, delay_ms: float, ppm: float,
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--backends", default="webrtc,speex", help="of webrtc, speex, livekit")
+    parser.add_argument("--backends", default="speex,webrtc", help="of esiaf_services/aec/backends.py's BACKENDS")
     parser.add_argument("--arrays", default="pepper4,respeaker4")
     parser.add_argument("--conditions", default="0:0,120:100,300:-100",
                         help="DELAY_MS:PPM pairs, comma-separated")

@@ -1,13 +1,13 @@
 """Echo cancellers behind one small interface: a block of microphone frames and the loudspeaker's
 reference for the same instants in, the microphones without the echo out.
 
-Backends (``NAME -> class``, imported lazily):
+Backends (``NAME -> class``, imported lazily; esiaf_services/aec/README.md compares them):
 
+- ``speex`` (the default): speexdsp's MDF echo canceller (Debian's ``libspeexdsp1``, BSD-3-Clause,
+  through ctypes), with its preprocessor's residual echo suppression, one state per microphone;
 - ``webrtc``: WebRTC's AEC3 (``pywebrtc-audio``, Apache-2.0): a linear filter with its own delay
-  estimator and a non-linear residual echo suppressor; one instance per microphone, so each channel keeps
-  its own phase (what ssl and the beamformer need);
-- ``speex``: speexdsp's MDF echo canceller (Debian's ``libspeexdsp1``, BSD-3-Clause, through ctypes),
-  with its preprocessor's residual echo suppression, one state per microphone.
+  estimator and a strong non-linear residual echo suppressor, over all microphones at once (each
+  channel keeps its own phase, what ssl and the beamformer need).
 
 Both take and give int16 frames at 16 kHz in blocks of :attr:`Canceller.block_frames`; the reference
 is one channel (what the loudspeaker played) and is assumed already aligned to within the backend's
@@ -68,32 +68,6 @@ class WebRtcCanceller(Canceller):
 
     def reset(self) -> None:
         self._state.reset()
-
-
-class LiveKitCanceller(Canceller):
-    """AEC3 in the livekit wheel's AudioProcessingModule: multi-channel capture, mono reference (10 ms)."""
-
-    def __init__(self, channels: int, sample_rate_hz: int):
-        super().__init__(channels, sample_rate_hz)
-        try:
-            from livekit import rtc
-        except ImportError:
-            raise BackendError("the livekit echo canceller needs the livekit wheel: pip install livekit") from None
-        if sample_rate_hz not in WEBRTC_RATES_HZ:
-            raise BackendError(f"the livekit echo canceller takes 16, 32 or 48 kHz, not {sample_rate_hz} Hz")
-        self._rtc = rtc
-        self.block_frames = sample_rate_hz // 100
-        self._apm = rtc.AudioProcessingModule(echo_cancellation=True)
-
-    def process(self, mics: np.ndarray, reference: np.ndarray) -> np.ndarray:
-        frames = self.block_frames
-        self._apm.process_reverse_stream(self._rtc.AudioFrame(reference.tobytes(), self.sample_rate_hz, 1, frames))
-        near = self._rtc.AudioFrame(np.ascontiguousarray(mics).tobytes(), self.sample_rate_hz, self.channels, frames)
-        self._apm.process_stream(near)
-        return np.frombuffer(bytes(near.data), dtype=np.int16).reshape(mics.shape)
-
-    def reset(self) -> None:
-        self._apm = self._rtc.AudioProcessingModule(echo_cancellation=True)
 
 
 SPEEX_ECHO_SET_SAMPLING_RATE = 24
@@ -169,5 +143,4 @@ class SpeexCanceller(Canceller):
                 lib.speex_echo_state_destroy(echo)
 
 
-BACKENDS: dict[str, type[Canceller]] = {"webrtc": WebRtcCanceller, "livekit": LiveKitCanceller,
-                                        "speex": SpeexCanceller}
+BACKENDS: dict[str, type[Canceller]] = {"speex": SpeexCanceller, "webrtc": WebRtcCanceller}

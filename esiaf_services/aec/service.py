@@ -44,7 +44,7 @@ class AecSettings(ComponentSettings):
     input_topic: str = "grabber/audio"
     reference_topic: str = "player/audio"
     output_topic: str = "aec/audio"
-    backend: str = "webrtc"  # webrtc | speex | livekit (esiaf_services/aec/README.md: why, with figures)
+    backend: str = "speex"  # speex | webrtc (esiaf_services/aec/README.md: why speex, with figures)
     channels: int = 0  # of the input; 0 = as its producer declares (asked from the orchestrator)
     sample_rate_hz: int = 16000  # of the input and the reference (the SDK converts a reference's rate)
     max_delay_ms: float = 400.0  # the longest delay from the reference's stamps to the echo looked for
@@ -72,7 +72,7 @@ class EchoCanceller(Component):
     designation = "other"
     Settings = AecSettings
     settings: AecSettings  # an instance of Settings: its fields, for type checkers
-    options: ClassVar[dict[str, str]] = {"backend": "webrtc (default, WebRTC AEC3), speex or livekit",
+    options: ClassVar[dict[str, str]] = {"backend": "speex (default) or webrtc (AEC3)",
                                          "input_topic": "the microphones' topic"}
 
     def __init__(self, settings: AecSettings):
