@@ -291,7 +291,7 @@ class Context:
     def _on_input_ended(self, audio: Audio) -> None:
         ended = self.ended.get(audio.stream_id)
         ended.add(audio.topic)
-        if ended != set(self.processor.inputs):
+        if not self.processor.stream_inputs() <= ended:
             return
         self.ended.pop(audio.stream_id)
         self.processor.on_end_of_stream(audio.stream_id, audio)

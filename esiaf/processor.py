@@ -106,6 +106,11 @@ class Processor:
         for topic in self.outputs:
             self._context().publish(topic, b"", audio.end_ns, audio.end_ns, stream_id=stream_id, end_of_stream=True)
 
+    def stream_inputs(self) -> set[str]:
+        """The inputs whose end ends a stream here: every input, unless a processor says otherwise (an echo
+        canceller's reference may never end)."""
+        return set(self.inputs)
+
     def produce(self) -> None:
         """Sources override this with their capture loop; consumers leave it alone."""
         raise NotImplementedError

@@ -14,6 +14,8 @@ Per stream (each robot has its own player, publishing under the robot's stream i
   is cancelled (esiaf_services/aec/core.py: delay and clock drift estimated from the signals) and
   published once its cancelled frames are complete. After the reference's last sample the canceller
   keeps on for the estimated delay plus ``tail_ms`` (the room's echo), then passes again;
+- **a replay** (``expect_reference``: ``esiaf run --playback``): every chunk waits for its reference,
+  however fast the microphones come (``hold_ms`` is then long), until the reference ends;
 - **a reference that stops arriving mid-utterance** (no chunk for ``reference_timeout_ms`` of capture
   time and its last chunk did not end the utterance): pass-through, said once in the log until the
   reference comes back.
@@ -51,6 +53,7 @@ class AecSettings(ComponentSettings):
     hold_ms: float = 150.0  # the longest a chunk waits (in capture time) for the reference covering it
     tail_ms: float = 500.0  # cancel on this long after the reference's last sample (plus the delay)
     reference_timeout_ms: float = 500.0  # a reference silent this long without ending: pass-through
+    expect_reference: bool = False  # a replay's: every stream has one from its start (esiaf run --playback)
 
 
 @dataclass
@@ -59,6 +62,7 @@ class StreamState:
     reference_end_ns: int = 0  # stamp of the end of the last reference chunk
     reference_ended: bool = True  # its last chunk ended the utterance (or there is none yet)
     stalled: bool = False  # the reference stopped arriving mid-utterance: passing through
+    microphones_ended: bool = False  # their last chunk is waiting
     waiting: list[Audio] = field(default_factory=list)  # chunks held for the reference or for their frames
     fed: int = 0  # of the waiting chunks, how many the canceller has had
     ready: list[np.ndarray] = field(default_factory=list)  # cancelled frames not yet published
@@ -126,6 +130,7 @@ class EchoCanceller(Component):
         if state.canceller is None:
             assert self.format is not None  # set by setup()
             state.canceller = self._new_canceller(self.format.channels)
+        if not state.reference_end_ns and audio.frames:
             log.info("stream_id=%s: the loudspeaker's reference arrived; cancelling its echo", audio.stream_id)
         if audio.frames:
             state.canceller.add_reference(audio.start_ns, audio.as_float()[:, 0])
@@ -134,65 +139,81 @@ class EchoCanceller(Component):
                 state.stalled = False
                 log.info("stream_id=%s: the reference arrives again; cancelling", audio.stream_id)
         state.reference_ended = audio.segmentation_ended or audio.end_of_stream
-        self._drain(audio.stream_id, state, end_of_stream=False)
+        self._drain(audio.stream_id, state)
 
     # -- the microphones ----------------------------------------------------------------
     def _on_microphones(self, audio: Audio) -> None:
         state = self.streams.get(audio.stream_id)
+        if state.canceller is None and self.settings.expect_reference:  # its chunks wait for the reference
+            assert self.format is not None  # set by setup()
+            state.canceller, state.reference_ended = self._new_canceller(self.format.channels), False
         if not state.waiting and not self._echo_possible(state, audio):
             self.passed += 1
             self.forward(self.settings.output_topic, audio, end_of_stream=audio.end_of_stream)
-        else:
-            state.waiting.append(audio)
-            self._drain(audio.stream_id, state, end_of_stream=audio.end_of_stream)
-        if audio.end_of_stream:
-            self.streams.pop(audio.stream_id)
+            if audio.end_of_stream:
+                self.streams.pop(audio.stream_id)
+            return
+        state.waiting.append(audio)
+        state.microphones_ended = audio.end_of_stream
+        self._drain(audio.stream_id, state)
 
     def _echo_possible(self, state: StreamState, audio: Audio) -> bool:
         """Whether the loudspeaker's echo may be in ``audio``: the robot spoke recently enough."""
         if state.canceller is None or state.stalled:
             return False
+        if not state.reference_end_ns:  # expected, not here yet
+            return self.settings.expect_reference
         delay_ns = state.canceller.delay_ns(state.reference_end_ns)
         return audio.start_ns < state.reference_end_ns + max(delay_ns, 0) + self.settings.tail_ms * MS
 
     def _reference_ready(self, state: StreamState, audio: Audio, newest_end_ns: int) -> bool:
-        """Whether ``audio`` can be cancelled now: its reference is in, over, or waited for long enough."""
+        """Whether ``audio`` can be cancelled now: its reference is in, over, or waited for long enough (or, live,
+        the microphones have ended: nothing more will come to wait for)."""
         assert state.canceller is not None  # a chunk waits only once the stream has a reference
         if state.reference_end_ns >= state.canceller.reference_needed_until(audio.end_ns) or state.reference_ended:
             return True
+        if state.microphones_ended and not self.settings.expect_reference:
+            return True
         return newest_end_ns - audio.end_ns >= self.settings.hold_ms * MS
 
-    def _drain(self, stream_id: str, state: StreamState, end_of_stream: bool) -> None:
+    def _drain(self, stream_id: str, state: StreamState) -> None:
         """Feeds the waiting chunks whose reference is ready to the canceller, publishes those whose frames are
-        complete; a stalled reference, or the end of the echo, flushes and passes the rest."""
+        complete; a stalled reference, the end of the echo or of the stream flushes; a stall passes the rest."""
         if not state.waiting:
             return
+        self._feed(stream_id, state)
+        all_fed = state.fed == len(state.waiting)
+        finished = state.microphones_ended and all_fed
+        stalled = state.stalled and not all_fed
+        if state.canceller is not None and (finished or stalled or
+                                            (all_fed and not self._echo_possible(state, state.waiting[-1]))):
+            self._take(state, state.canceller.flush())
+        self._publish_ready(state, end_of_stream=finished)
+        if stalled:  # what the canceller never had passes unchanged
+            for index, audio in enumerate(state.waiting):
+                self.passed += 1
+                self.forward(self.settings.output_topic, audio,
+                             end_of_stream=state.microphones_ended and index == len(state.waiting) - 1)
+            state.waiting, state.fed = [], 0
+        if state.microphones_ended and not state.waiting:
+            self.streams.pop(stream_id)
+
+    def _feed(self, stream_id: str, state: StreamState) -> None:
         canceller = state.canceller
         newest_end_ns = state.waiting[-1].end_ns
         while state.fed < len(state.waiting):
             audio = state.waiting[state.fed]
             if canceller is None or state.stalled or not self._reference_ready(state, audio, newest_end_ns):
-                break
+                return
             if not state.reference_ended and audio.start_ns - state.reference_end_ns >= \
                     self.settings.reference_timeout_ms * MS:
                 state.stalled = True
                 log.warning("stream_id=%s: the loudspeaker's reference stopped arriving mid-utterance (last at "
                             "%d, %g ms ago in capture time); passing the microphones through until it is back",
                             stream_id, state.reference_end_ns, (audio.start_ns - state.reference_end_ns) / MS)
-                break
+                return
             self._take(state, canceller.process(audio.start_ns, audio.samples))
             state.fed += 1
-        stalled = state.stalled and state.fed < len(state.waiting)
-        over = state.fed == len(state.waiting) and not self._echo_possible(state, state.waiting[-1])
-        if canceller is not None and (end_of_stream or stalled or over):
-            self._take(state, canceller.flush())
-        self._publish_ready(state, end_of_stream)
-        if stalled or (end_of_stream and state.waiting):  # what the canceller never had passes unchanged
-            for index, audio in enumerate(state.waiting):
-                self.passed += 1
-                self.forward(self.settings.output_topic, audio,
-                             end_of_stream=end_of_stream and index == len(state.waiting) - 1)
-            state.waiting, state.fed = [], 0
 
     def _take(self, state: StreamState, frames: np.ndarray) -> None:
         if len(frames):
@@ -200,19 +221,22 @@ class EchoCanceller(Component):
             state.ready_frames += len(frames)
 
     def _publish_ready(self, state: StreamState, end_of_stream: bool) -> None:
-        ready = np.concatenate(state.ready) if len(state.ready) > 1 else (state.ready[0] if state.ready else None)
+        ready = np.concatenate(state.ready) if state.ready else np.zeros((0, 1), dtype=np.int16)
         used = 0
-        while state.fed and ready is not None and state.ready_frames - used >= state.waiting[0].frames:
+        while state.fed and len(ready) - used >= state.waiting[0].frames:
             audio = state.waiting.pop(0)
             state.fed -= 1
             frames = ready[used:used + audio.frames]
             used += audio.frames
             self.cancelled += 1
-            self.publish(self.settings.output_topic, frames, audio.start_ns, audio.end_ns, stream_id=audio.stream_id,
-                         end_of_stream=end_of_stream and not state.waiting)
-        if ready is not None:
-            rest = ready[used:]
-            state.ready, state.ready_frames = ([rest] if len(rest) else []), len(rest)
+            self.publish(self.settings.output_topic, frames if audio.frames else b"", audio.start_ns, audio.end_ns,
+                         stream_id=audio.stream_id, end_of_stream=end_of_stream and not state.waiting)
+        rest = ready[used:]
+        state.ready, state.ready_frames = ([rest] if len(rest) else []), len(rest)
+
+    def stream_inputs(self) -> set[str]:
+        """The microphones' end ends a stream; the player's may never come (a robot talks on and off)."""
+        return {self.settings.input_topic}
 
     def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
-        """The microphones' last chunk carried the end already (the reference's end is not the stream's)."""
+        """The microphones' last chunk carried the end already."""
