@@ -13,8 +13,9 @@ Work comes from ``input`` and ``say`` (played at start: ``esiaf run --playback``
 info carries ``playing``: its name and span in capture time.
 
 ``follow_stream`` stamps the first item as played from the start of the player's stream as its
-grabber announced it to the orchestrator (waiting for it): a recorded robot voice lines up with a
-recorded microphone file (``esiaf run --input MICS.wav --playback ROBOT.wav``). A file sink is
+grabber announced it to the orchestrator (waiting for it), so a recorded robot voice lines up with
+a recorded microphone file (``esiaf run --input MICS.wav --playback ROBOT.wav``); a replay's player
+publishes as its grabber does (waiting for the consumers, not dropping at the high-water mark). A file sink is
 written ``ahead_ms`` before the stamps say it is played (unless ``fast``): the echo canceller
 has the reference before the echo.
 """
@@ -167,7 +168,10 @@ class Player(Component):
                 try:
                     response = http.get(f"/streams/{s.stream_id}")
                     if response.status_code == 200:
-                        return int(response.json()["start_ns"])
+                        stream = response.json()
+                        # a replay's audio (--fast) waits for its consumers: so does the player's then
+                        self.join_stream(s.stream_id, stream["info"].get("realtime") is False)
+                        return int(stream["start_ns"])
                 except (httpx.HTTPError, ValueError, KeyError) as exc:
                     log.info("waiting for the orchestrator: %s", exc)
                 if time.monotonic() >= deadline:
