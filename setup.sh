@@ -7,8 +7,10 @@ cd "$(dirname "$0")"
 
 # flite: speech synthesis for tests and examples; libasound2-dev + gcc: pyalsaaudio
 # (live capture); alsa-utils: arecord -L to list devices; libsndfile1: sound files;
-# chromium + chromium-driver: the dashboard's tests run the page in a headless browser.
-APT_PACKAGES=(python3 python3-venv python3-dev gcc libasound2-dev alsa-utils libsndfile1 flite sox chromium chromium-driver)
+# chromium + chromium-driver: the dashboard's tests run the page in a headless browser;
+# libspeexdsp1: the aec service's speex backend (through ctypes).
+APT_PACKAGES=(python3 python3-venv python3-dev gcc libasound2-dev alsa-utils libsndfile1 flite sox chromium chromium-driver
+              libspeexdsp1)
 
 missing=()
 for pkg in "${APT_PACKAGES[@]}"; do

@@ -83,6 +83,9 @@ class Component(Processor):
     def announce_stream(self, start_ns: int, stream_id: str | None = None, **info: Any) -> None:
         self.context.announce_stream(start_ns, stream_id, **info)
 
+    def join_stream(self, stream_id: str, replay: bool) -> None:
+        self.context.join_stream(stream_id, replay)
+
     def wait_for_subscribers(self, topic: str, count: int, timeout_s: float) -> bool:
         return self.context.wait_for_subscribers(topic, count, timeout_s)
 

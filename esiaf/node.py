@@ -177,6 +177,11 @@ class Context:
         self.receiver.replays.note(stream_id, info.get("realtime") is False)
         announce_stream(self.settings.orchestrator_url, stream_id, start_ns, self.processor.instance_id, info)
 
+    def join_stream(self, stream_id: str, replay: bool) -> None:
+        """A source that publishes into a stream another source announced (a robot's player beside its
+        grabber): when that is a replay, its audio waits for the consumers as the stream's does."""
+        self.receiver.replays.note(stream_id, replay)
+
     def wait_for_subscribers(self, topic: str, count: int, timeout_s: float) -> bool:
         """Services the sockets until ``topic`` has ``count`` subscribers, or the time is up."""
         deadline = time.monotonic() + timeout_s
@@ -291,7 +296,7 @@ class Context:
     def _on_input_ended(self, audio: Audio) -> None:
         ended = self.ended.get(audio.stream_id)
         ended.add(audio.topic)
-        if ended != set(self.processor.inputs):
+        if not self.processor.stream_inputs() <= ended:
             return
         self.ended.pop(audio.stream_id)
         self.processor.on_end_of_stream(audio.stream_id, audio)

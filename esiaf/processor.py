@@ -51,6 +51,8 @@ class ProcessorContext(Protocol):
 
     def announce_stream(self, start_ns: int, stream_id: str | None = None, **info: Any) -> None: ...
 
+    def join_stream(self, stream_id: str, replay: bool) -> None: ...
+
     def wait_for_subscribers(self, topic: str, count: int, timeout_s: float) -> bool: ...
 
     def subscribers(self, topic: str) -> int: ...
@@ -105,6 +107,11 @@ class Processor:
         """Every input has ended ``stream_id``. By default, end it on every output too."""
         for topic in self.outputs:
             self._context().publish(topic, b"", audio.end_ns, audio.end_ns, stream_id=stream_id, end_of_stream=True)
+
+    def stream_inputs(self) -> set[str]:
+        """The inputs whose end ends a stream here: every input, unless a processor says otherwise (an echo
+        canceller's reference may never end)."""
+        return set(self.inputs)
 
     def produce(self) -> None:
         """Sources override this with their capture loop; consumers leave it alone."""

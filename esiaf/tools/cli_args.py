@@ -105,6 +105,21 @@ def stream_ids(sources: Sequence[str], given: str | None, now: datetime | None =
     return ids
 
 
+def check_echo(args: argparse.Namespace) -> None:
+    """--player and --playback: a player and the echo canceller in front of the analysers."""
+    if args.vad_in_grabber and (args.player is not None or args.playback is not None):
+        raise LaunchError("--vad-in-grabber: not possible with --player or --playback (the vad hears the echo "
+                          "canceller, not the grabber)")
+    if args.playback is None:
+        return
+    if args.player is not None:
+        raise LaunchError("give --player (a live loudspeaker) or --playback (a recorded robot voice), not both")
+    if not args.input or len(args.input) != 1:
+        raise LaunchError("--playback plays the robot's voice on the timeline of one --input file: give one")
+    if check_input(args.playback) != 1:
+        raise LaunchError(f"--playback {args.playback}: the robot's voice is one channel (what its loudspeaker played)")
+
+
 def check_array(args: argparse.Namespace, channels: int) -> tuple[ArrayGeometry | None, int]:
     """The array geometry and the audio's channel count (None, channels for mono without --array)."""
     from esiaf.arrays import ArrayError, load_array
@@ -212,6 +227,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                      "(default mvdr; das: delay and sum)")
     run.add_argument("--ssl-algorithm", help="DOA algorithm of the ssl service (default NormMUSIC)")
     run.add_argument("--fast", action="store_true", help="play the file as fast as possible")
+    run.add_argument("--player", nargs="?", const="default", metavar="DEVICE", help="the robot speaks through the "
+                     "player (an ALSA playback device, default: default) and the echo canceller takes its voice out "
+                     "of the microphones before anything hears them")
+    run.add_argument("--playback", type=Path, metavar="ROBOT.wav", help="with one --input: what the robot said, on "
+                     "the input's timeline: the player plays it in step with the input (to loudspeaker.wav in the "
+                     "workdir) and the echo canceller takes it out of the microphones")
     run.add_argument("--grammar", help="JSGF grammar file for the recogniser, or 'robocup' (with --asr whisper: "
                      "the allowed sentences its transcripts are matched to)")
     run.add_argument("--vad", choices=("silero", "energy"), help="the voice activity detector: silero (default, "

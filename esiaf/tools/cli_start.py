@@ -21,6 +21,7 @@ from esiaf.runner import known_services
 from esiaf.settings import unknown_variables
 from esiaf.tools.cli_args import (
     check_array,
+    check_echo,
     check_inputs,
     check_port_free,
     expand_inputs,
@@ -63,6 +64,8 @@ class Pipeline:
     replicas: dict[str, int]  # analysers on the VAD's output run as several instances (--replicas)
     guests: set[str] = field(default_factory=set)  # labellers run in another labeller's process (not --apart)
     vad_in_grabber: bool = False  # the vad is a guest in the grabber's process (--vad-in-grabber)
+    microphones: str = "grabber/audio"  # what the first services hear: aec/audio with --player or --playback
+    microphone_consumers: int = 1  # ... how many services subscribe to it
 
 
 def run(args: argparse.Namespace) -> int:
@@ -73,6 +76,7 @@ def run(args: argparse.Namespace) -> int:
     without = parse_without(args.without)
     wanted_plugins = [resolve_plugin(spec) for spec in args.plugins]  # a bad --with fails before anything starts
     replicas = parse_replicas(args.replicas, without, [plugin.name for plugin in wanted_plugins])
+    check_echo(args)
     if args.vad_in_grabber:
         check_vad_in_grabber(args, channels, array, replicas)
     services = known_services() | {p.name for p in wanted_plugins}
@@ -186,13 +190,15 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
                    **({"ESIAF_GRABBER_CHUNK_MS": str(args.chunk_ms)} if args.chunk_ms is not None else {})}
     vad_env = {"ESIAF_VAD_BACKEND": args.vad} if args.vad else {}
     beamforming = array is not None and "ssl" not in without and not args.no_beamformer
+    # with --player or --playback the first services hear the echo canceller, and the grabber waits for it alone
+    microphones = start_echo_cancelling(args, supervisor, services, max(channels, 1))
     vad_in_grabber = args.vad_in_grabber
     if vad_in_grabber:  # it starts with the grabber, and the grabber waits for the vad's consumers
         grabber_env.update({"ESIAF_GRABBER_GUESTS": json.dumps(["vad"]), "ESIAF_GRABBER_WAIT_TOPIC": "vad/speech",
                             **vad_env})
         log.info("vad runs in the grabber's process")
     elif channels <= 1 and array is None:
-        services["vad"] = supervisor.start("vad", env=vad_env)
+        services["vad"] = supervisor.start("vad", env={"ESIAF_VAD_INPUT_TOPIC": microphones, **vad_env})
     elif beamforming:  # grabber -> ssl -> beamformer -> vad: the analysers hear the array steered at the talker
         services["vad"] = supervisor.start("vad", env={"ESIAF_VAD_INPUT_TOPIC": "beamformer/audio", **vad_env})
         beam_env = array_env("BEAMFORMER", args, channels)
@@ -203,15 +209,19 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
     else:  # the recogniser hears the first channel (microphone); ssl hears them all
         services["vad"] = supervisor.start("vad", env={"ESIAF_VAD_INPUT_TOPIC": "splitter/ch0", **vad_env})
         services["splitter"] = supervisor.start("splitter", env={
-            "ESIAF_SPLITTER_INPUT_CHANNELS": str(channels), "ESIAF_SPLITTER_CHANNELS": "[0]"})
+            "ESIAF_SPLITTER_INPUT_CHANNELS": str(channels), "ESIAF_SPLITTER_CHANNELS": "[0]",
+            "ESIAF_SPLITTER_INPUT_TOPIC": microphones})
         grabber_env["ESIAF_GRABBER_CHANNELS"] = str(channels)
     if array is not None and "ssl" not in without:
-        ssl_env = array_env("SSL", args, channels)
+        ssl_env = array_env("SSL", args, channels) | {"ESIAF_SSL_INPUT_TOPIC": microphones}
         if args.ssl_algorithm:
             ssl_env["ESIAF_SSL_ALGORITHM"] = args.ssl_algorithm
         services["ssl"] = supervisor.start("ssl", env=ssl_env)
         if not beamforming:
             grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"] = "2"
+    consumers = int(grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"])
+    if microphones != "grabber/audio":
+        grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"] = "1"
     labellers = [name for name in ("emotion", "gender", "voiceid") if name not in without]
     hosts = hosted_labellers(labellers, replicas, args.apart)
     for name in labellers:  # on the VAD's output, like the recogniser
@@ -223,7 +233,30 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
         elif name not in services:
             services.update(start_replicas(supervisor, name, replicas.get(name, 1)))
     guests = {guest for names in hosts.values() for guest in names}
-    return Pipeline(services, grabber_env, beamforming, labellers, replicas, guests, vad_in_grabber)
+    return Pipeline(services, grabber_env, beamforming, labellers, replicas, guests, vad_in_grabber, microphones,
+                    consumers)
+
+
+def start_echo_cancelling(args: argparse.Namespace, supervisor: Supervisor, services: dict[str, Child],
+                          channels: int) -> str:
+    """With --player or --playback: the player and the echo canceller (grabber/audio + player/audio ->
+    aec/audio); the topic the first services are to hear."""
+    if args.player is None and args.playback is None:
+        return "grabber/audio"
+    aec_env = {"ESIAF_AEC_CHANNELS": str(channels)}
+    if args.playback is not None:
+        # a replay: the robot's voice is on the input's timeline, from the stream's start; a chunk waits for
+        # its reference however fast the grabber plays (--fast), until the reference ends
+        player_env = {"ESIAF_PLAYER_INPUT": str(args.playback), "ESIAF_PLAYER_FOLLOW_STREAM": "true",
+                      "ESIAF_PLAYER_OUTPUT": str(supervisor.workdir / "loudspeaker.wav"),
+                      "ESIAF_PLAYER_WAIT_TIMEOUT_S": str(10 * START_TIMEOUT_S),
+                      "ESIAF_PLAYER_FAST": "true" if args.fast else "false"}
+        aec_env |= {"ESIAF_AEC_EXPECT_REFERENCE": "true", "ESIAF_AEC_HOLD_MS": str(10 * START_TIMEOUT_S * 1000)}
+    else:
+        player_env = {"ESIAF_PLAYER_DEVICE": args.player}
+    services["aec"] = supervisor.start("aec", env=aec_env)
+    services["player"] = supervisor.start("player", env=player_env)
+    return "aec/audio"
 
 
 def check_vad_in_grabber(args: argparse.Namespace, channels: int, array: ArrayGeometry | None,
@@ -280,6 +313,9 @@ def wait_for_subscriptions(client: OrchestratorClient, supervisor: Supervisor, p
     the plug-ins on vad/speech), so no audio is played before anyone hears it; a grabber hosting the
     vad is told to wait for the vad's consumers itself (they subscribe once it has registered)."""
     services = pipeline.services
+    if pipeline.microphones != "grabber/audio":
+        wait_until(lambda: topic_ready(client, pipeline.microphones, pipeline.microphone_consumers), supervisor,
+                   f"the first services to subscribe to {pipeline.microphones}", START_TIMEOUT_S, services["aec"])
     if "splitter" in services:
         wait_until(lambda: topic_ready(client, "splitter/ch0", 1), supervisor,
                    "vad to subscribe to splitter/ch0", START_TIMEOUT_S, services["vad"])

@@ -125,6 +125,38 @@ def make_scene(index: int, seed: int, array: str, snr: tuple[float, float], data
     return scene, games, snr_db
 
 
+ROBOT_DELAY_S = 0.1  # from what the player publishes to its echo: a sound card's output buffer
+
+
+def robot_speaks(scene, questions: list[tuple[str, str]], run_dir: Path) -> Path:
+    """Adds the robot's loudspeaker to ``scene``: it answers each question with a flite sentence long enough
+    to run into the next question, 7 cm in front of and below the array's centre, its echo 10 dB above the
+    talkers and ROBOT_DELAY_S later than the reference; returns the reference (robot.wav), on the scene's
+    timeline, for ``esiaf run --playback``."""
+    import soundfile
+
+    from esiaf.scenes import NoiseSource, speak
+    answers = dict(questions)
+    fs = scene.sample_rate_hz
+    clips = [speak(source.say, source.voice, fs) for source in scene.speech]
+    total = round((max(s.onset_s + len(c) / fs for s, c in zip(scene.speech, clips, strict=True)) + scene.tail_s)
+                  * fs)
+    robot = np.zeros(total)
+    for source, clip in zip(scene.speech, clips, strict=True):
+        at = round((source.onset_s + 0.3) * fs) + len(clip)
+        said = speak(f"The answer to your question is: {answers.get(source.say, 'I do not know')}. "
+                     f"Do you have another question for me?", "kal16", fs)[:max(0, total - at)]
+        robot[at:at + len(said)] = said
+    reference = run_dir / "robot.wav"
+    soundfile.write(str(reference), (0.5 * robot / max(np.max(np.abs(robot)), 1e-9)).astype(np.float32), fs)
+    delay = round(ROBOT_DELAY_S * fs)
+    echo = run_dir / "robot-echo.wav"
+    soundfile.write(str(echo), np.concatenate([np.zeros(delay), robot])[:total].astype(np.float32), fs)
+    scene.noise.append(NoiseSource(clip=str(echo), azimuth_deg=0.0, distance_m=0.07, elevation_deg=-45.0,
+                                   snr_db=-10.0))
+    return reference
+
+
 def run_pipeline(audio: Path, array: str, options: list[str], work: Path, port: int, name: str) -> tuple[list, float]:
     """Plays ``audio`` through ``esiaf run --fast --json``; the fused results (latest revision of
     each, ordered by start) with times relative to the stream's start, and the pipeline's wall time."""
@@ -186,6 +218,9 @@ def parse_args(argv: Sequence[str]) -> tuple[argparse.Namespace, list[str]]:
     parser.add_argument("--port", type=int, default=8700, help="orchestrator port of the runs (default 8700)")
     parser.add_argument("--no-oracle", action="store_true", help="skip the oracle row")
     parser.add_argument("--json", type=Path, help="also write every run's scores to this file")
+    parser.add_argument("--robot-speaks", action="store_true", help="the robot answers each question through its "
+                        "loudspeaker (7 cm from the array, its echo 10 dB above the talkers, 100 ms late) while the "
+                        "next person already asks; the pipeline runs with --playback")
     return parser.parse_args(argv), options
 
 
@@ -236,6 +271,9 @@ def evaluate(args: argparse.Namespace, options: list[str]) -> list[RunScore]:
             run_dir = work / name
             run_dir.mkdir(exist_ok=True)
             scene, games, snr_db = make_scene(index, args.seed, array, args.snr_range, DATA, work, questions)
+            options = pipeline
+            if args.robot_speaks:
+                options = [*pipeline, "--playback", str(robot_speaks(scene, questions, run_dir))]
             signals, truth = render(scene)
             audio = run_dir / "scene.flac"
             soundfile.write(str(audio), np.round(signals * 32767).astype(np.int16), scene.sample_rate_hz)
@@ -243,7 +281,7 @@ def evaluate(args: argparse.Namespace, options: list[str]) -> list[RunScore]:
             asked = [Question(game, u["text"], u["azimuth_deg"], u["start_s"], u["end_s"])
                      for game, u in zip(games, truth["utterances"], strict=True)]
             try:
-                fused, wall_s = run_pipeline(audio, array, pipeline, run_dir, args.port, name)
+                fused, wall_s = run_pipeline(audio, array, options, run_dir, args.port, name)
             except EvalError as exc:  # scored as a run that answered nothing; the others go on
                 print(f"eval: {exc}", file=sys.stderr, flush=True)
                 fused, wall_s = [], 0.0

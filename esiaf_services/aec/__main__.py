@@ -1,0 +1,4 @@
+from esiaf import main
+from esiaf_services.aec.service import EchoCanceller
+
+raise SystemExit(main(EchoCanceller))

@@ -1,0 +1,222 @@
+"""The loudspeaker's reference, lined up with the microphones in capture time.
+
+The player stamps what it plays with the capture clock (``start_ns`` = when its first sample leaves
+the loudspeaker, as far as the player knows). Two things stay unknown and are estimated here from
+the signals themselves:
+
+- **the delay** between the stamps and the echo at the microphones (the sound card's output buffer,
+  the converter, the air): 0 to ``max_delay_ms``. Each ``estimate_every_s`` (0.5 s) of microphone audio
+  in which the reference is loud, GCC-PHAT between the reference and the first microphone finds the lag
+  of the direct path (sub-sample, by a parabola through the peak); a weak peak is not taken;
+- **the drift** between the player's clock and the grabber's (two sound cards: up to a few hundred
+  ppm): the delay estimates of the last ``fit_s`` seconds are fitted with a line, whose slope is the
+  drift, so the delay used at each instant moves smoothly between estimates.
+
+:class:`ReferenceTrack` keeps the reference samples by capture time until the microphones are past
+them (a replay's player may publish far ahead; at most ``max_held_s``), and reads them at any
+fractional position (windowed-sinc interpolation), so the canceller sees a reference whose delay to
+the echo is constant and short, whatever the clocks did.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+NS = 1_000_000_000
+SINC_HALF_TAPS = 8  # interpolation kernel: 16 taps, Blackman-windowed
+MIN_PEAK_RATIO = 4.0  # a GCC-PHAT peak this many times the median of the lags around it counts
+LOUD_RMS = 1e-3  # a tenth of the window in which the reference is louder than this counts as played
+JUMP_MS = 20.0  # an estimate this far off the fitted line waits for a second one that agrees with it...
+AGREE_MS = 2.0  # ... within this
+MAX_DRIFT = 500e-6  # a fitted slope beyond this is not a clock: the line falls back to the last delay
+
+
+class ReferenceTrack:
+    """Mono reference samples on a sample grid anchored at the first chunk's capture time."""
+
+    def __init__(self, sample_rate_hz: int, max_held_s: float):
+        self.rate = sample_rate_hz
+        self.origin_ns: int | None = None
+        self._max_held = int(max_held_s * sample_rate_hz)
+        self._buffer = np.zeros(sample_rate_hz * 4)  # held samples are _buffer[_low:_high]; it grows as needed
+        self._low = self._high = 0
+        self._first = 0  # grid index of _buffer[_low]
+
+    def index_at(self, time_ns: int) -> float:
+        """The grid position (in samples, fractional) of a capture time."""
+        assert self.origin_ns is not None
+        return (time_ns - self.origin_ns) * self.rate / NS
+
+    def add(self, start_ns: int, samples: np.ndarray) -> None:
+        """Reference samples played from ``start_ns`` on; a gap before them is silence, and where they
+        overlap what is held (a player started again) the newest win."""
+        if self.origin_ns is None:
+            self.origin_ns = start_ns
+        at = round(self.index_at(start_ns)) - self._first + self._low  # where in _buffer
+        if at < self._low:  # what is before the held samples is no longer needed
+            samples, at = samples[self._low - at:], self._low
+        end = at + len(samples)
+        if end > len(self._buffer):
+            self._make_room(end - self._low)
+            at, end = at - self._low, end - self._low
+            self._low, self._high = 0, self._high - self._low
+        if at > self._high:
+            self._buffer[self._high:at] = 0.0
+        self._buffer[at:end] = samples
+        self._high = max(self._high, end)
+        self._drop(self._high - self._low - self._max_held)
+
+    def _make_room(self, needed: int) -> None:
+        held = self._buffer[self._low:self._high]
+        size = len(self._buffer)
+        while size < 2 * needed:
+            size *= 2
+        self._buffer = np.zeros(size) if size != len(self._buffer) else self._buffer
+        self._buffer[:len(held)] = held.copy()
+
+    def forget_before(self, index: int) -> None:
+        """Samples before grid position ``index`` are no longer needed."""
+        self._drop(index - self._first)
+
+    def _drop(self, count: int) -> None:
+        if count > 0:
+            self._low = min(self._low + count, self._high)
+            self._first += count
+
+    @property
+    def end_index(self) -> int:
+        return self._first + self._high - self._low
+
+    def read(self, first: float, count: int) -> np.ndarray:
+        """``count`` samples from the fractional grid position ``first`` on (silence where nothing is held).
+        One fraction for the whole stretch: drift moves it by 0.005 samples in 50 ms at 100 ppm."""
+        whole = math.floor(first)
+        fraction = first - whole
+        taps = np.arange(-SINC_HALF_TAPS + 1, SINC_HALF_TAPS + 1)
+        if fraction < 1e-6:
+            return self.slice(whole, count)
+        x = taps - fraction
+        kernel = np.sinc(x) * (0.42 + 0.5 * np.cos(np.pi * x / SINC_HALF_TAPS)
+                               + 0.08 * np.cos(2 * np.pi * x / SINC_HALF_TAPS))
+        # out[i] = sum_t held[whole + i + t] * kernel[t]
+        held = self.slice(whole + int(taps[0]), count + len(taps) - 1)
+        return np.convolve(held, kernel[::-1], mode="valid")
+
+    def slice(self, first: int, count: int) -> np.ndarray:
+        """Whole samples ``first .. first + count`` of the grid (silence where nothing is held)."""
+        out = np.zeros(count)
+        lo, hi = max(first, self._first), min(first + count, self.end_index)
+        if hi > lo:
+            offset = self._low - self._first
+            out[lo - first:hi - first] = self._buffer[lo + offset:hi + offset]
+        return out
+
+
+def gcc_phat_lag(reference: np.ndarray, mic: np.ndarray, max_lag: int) -> tuple[float, float]:
+    """How much later than the stamps say ``mic`` holds ``reference``: ``reference`` starts ``max_lag`` samples
+    before ``mic`` on the stamp grid, so the lag is from 0 to ``max_lag`` (sub-sample); and the peak's
+    strength (its height over the median of the correlation at the searched lags)."""
+    n = 1 << math.ceil(math.log2(len(reference) + len(mic)))
+    spectrum = np.fft.rfft(reference, n) * np.conj(np.fft.rfft(mic, n))
+    spectrum /= np.abs(spectrum) + 1e-12
+    correlation = np.fft.irfft(spectrum, n)[:max_lag + 1]  # at j: mic[i] against reference[i + j]
+    peak = int(np.argmax(correlation))
+    strength = float(correlation[peak] / (np.median(np.abs(correlation)) + 1e-12))
+    fraction = 0.0
+    if 0 < peak < max_lag:
+        left, centre, right = correlation[peak - 1:peak + 2]
+        denominator = left - 2 * centre + right
+        fraction = 0.5 * (left - right) / denominator if denominator < 0 else 0.0
+    return max_lag - (peak + fraction), strength
+
+
+@dataclass
+class DelayEstimate:
+    at_s: float  # microphone capture time of the window's end, seconds on the stream's grid
+    delay_samples: float
+    strength: float
+
+
+class DelayTracker:
+    """Delay (and from it drift) of the echo after the reference's stamps, from the signals."""
+
+    def __init__(self, sample_rate_hz: int, max_delay_ms: float = 400.0, window_s: float = 0.5,
+                 estimate_every_s: float = 0.5, fit_s: float = 60.0):
+        self.rate = sample_rate_hz
+        self.max_lag = int(max_delay_ms * sample_rate_hz / 1000)
+        self.window = int(window_s * sample_rate_hz)
+        self.every = int(estimate_every_s * sample_rate_hz)
+        self.fit_s = fit_s
+        self.estimates: deque[DelayEstimate] = deque()
+        self.rejected = 0
+        self._since = 0
+        self._jump: DelayEstimate | None = None  # an estimate far off the line, waiting for a second one
+        self._slope = 0.0
+        self._intercept: float | None = None  # delay (samples) at time 0 of the fit
+
+    @property
+    def known(self) -> bool:
+        return self._intercept is not None
+
+    @property
+    def drift_ppm(self) -> float:
+        """How much faster the player's clock runs than the microphones' (its stamps fall behind the echo)."""
+        return -self._slope / self.rate * 1e6 if self.known else 0.0
+
+    def delay_at(self, at_s: np.ndarray) -> np.ndarray:
+        """Delay in samples at capture times (seconds on the grid): the fitted line, 0 before any estimate."""
+        if self._intercept is None:
+            return np.zeros_like(at_s)
+        return self._intercept + self._slope * at_s
+
+    def offer(self, end_s: float, mic: np.ndarray, reference: np.ndarray, frames: int) -> DelayEstimate | None:
+        """After ``frames`` more microphone frames: maybe estimate. ``mic`` is the last ``window`` frames of
+        the first microphone, ``reference`` the stamp-aligned reference for them and ``max_lag`` before."""
+        self._since += frames
+        if self._since < self.every or len(mic) < self.window:
+            return None
+        if not self._loud_enough(reference):
+            return None
+        self._since = 0
+        lag, strength = gcc_phat_lag(reference, mic, self.max_lag)
+        if strength < MIN_PEAK_RATIO:
+            self.rejected += 1
+            return None
+        estimate = DelayEstimate(end_s, lag, strength)
+        self._add(estimate)
+        return estimate
+
+    def _loud_enough(self, reference: np.ndarray) -> bool:
+        """The loudspeaker played in most of the window (a window that only catches the start or the end of
+        its speech gives a weak or a wrong peak)."""
+        tenths = reference[len(reference) - self.window:].reshape(10, -1)
+        return int(np.sum(np.sqrt(np.mean(tenths ** 2, axis=1)) > LOUD_RMS)) >= 6
+
+    def _add(self, estimate: DelayEstimate) -> None:
+        if self.estimates and abs(estimate.delay_samples - float(self.delay_at(np.array(estimate.at_s)))) > \
+                JUMP_MS * self.rate / 1000:
+            # far off the line: an outlier, or the path changed; the second such estimate in a row that
+            # agrees with the first starts the fit again
+            candidate, self._jump = self._jump, estimate
+            if candidate is None or abs(candidate.delay_samples - estimate.delay_samples) > \
+                    AGREE_MS * self.rate / 1000:
+                self.rejected += 1
+                return
+            self.estimates.clear()
+            self.estimates.append(candidate)
+        self._jump = None
+        self.estimates.append(estimate)
+        while self.estimates and estimate.at_s - self.estimates[0].at_s > self.fit_s:
+            self.estimates.popleft()
+        times = np.array([e.at_s for e in self.estimates])
+        delays = np.array([e.delay_samples for e in self.estimates])
+        if len(self.estimates) >= 3 and times[-1] - times[0] >= 3.0:
+            slope, intercept = np.polyfit(times, delays, 1)
+            if abs(slope) <= MAX_DRIFT * self.rate:
+                self._slope, self._intercept = float(slope), float(intercept)
+                return
+        self._slope = 0.0
+        self._intercept = float(np.median(delays))

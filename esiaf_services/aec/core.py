@@ -1,0 +1,96 @@
+"""One stream's echo cancellation: the reference lined up (align.py), then a backend (backends.py).
+
+:meth:`StreamCanceller.process` takes microphone chunks of any length, stamped with their capture
+times, and gives back cancelled frames in order; frames wait for a whole backend block
+(10 ms for webrtc), so the output may lag the input by less than a block until :meth:`flush`.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from esiaf_services.aec.align import NS, DelayTracker, ReferenceTrack
+from esiaf_services.aec.backends import Canceller
+
+FULL_SCALE = 32768.0
+
+
+class StreamCanceller:
+    def __init__(self, canceller: Canceller, sample_rate_hz: int, *, max_delay_ms: float = 400.0,
+                 lead_ms: float = 4.0, estimate_delay: bool = True, max_held_s: float = 600.0):
+        self.canceller = canceller
+        self.rate = sample_rate_hz
+        self.track = ReferenceTrack(sample_rate_hz, max_held_s=max_held_s)
+        self.tracker = DelayTracker(sample_rate_hz, max_delay_ms=max_delay_ms)
+        self.estimate_delay = estimate_delay
+        self.lead = lead_ms * sample_rate_hz / 1000  # the reference reaches the canceller this much before its echo
+        self._mic_history = np.zeros(0)  # the first microphone's last window, for the delay tracker
+        self._pending_mics = np.zeros((0, canceller.channels), dtype=np.int16)
+        self._pending_reference = np.zeros(0, dtype=np.int16)
+
+    def add_reference(self, start_ns: int, samples: np.ndarray) -> None:
+        """What the loudspeaker played from ``start_ns`` (float, full scale 1)."""
+        self.track.add(start_ns, samples)
+
+    def delay_ns(self, time_ns: int) -> int:
+        """The estimated delay of the echo after the reference's stamps at a capture time (0 until estimated)."""
+        return int(float(self.tracker.delay_at(np.array(self._seconds(time_ns)))) * NS / self.rate)
+
+    def reference_needed_until(self, end_ns: int) -> int:
+        """The stamp up to which the reference must be in to cancel microphone frames up to ``end_ns``."""
+        return end_ns + int(self.lead * NS / self.rate) - max(0, self.delay_ns(end_ns))
+
+    def _seconds(self, time_ns: int) -> float:
+        return 0.0 if self.track.origin_ns is None else (time_ns - self.track.origin_ns) / NS
+
+    def _reference_for(self, start_ns: int, frames: int) -> np.ndarray:
+        """The reference at the instants of ``frames`` microphone frames from ``start_ns``, the estimated delay
+        (which drift moves) taken off and ``lead`` added."""
+        if self.track.origin_ns is None or not frames:
+            return np.zeros(frames)
+        middle_s = self._seconds(start_ns) + frames / 2 / self.rate
+        delay = float(self.tracker.delay_at(np.array(middle_s)))
+        return self.track.read(self.track.index_at(start_ns) - delay + self.lead, frames)
+
+    def _track_delay(self, start_ns: int, mics: np.ndarray) -> None:
+        window = self.tracker.window
+        self._mic_history = np.concatenate([self._mic_history, mics[:, 0] / FULL_SCALE])[-window:]
+        if self.track.origin_ns is None:
+            return
+        end_ns = start_ns + len(mics) * NS // self.rate
+        end_index = round(self.track.index_at(end_ns))
+        reference = self.track.slice(end_index - window - self.tracker.max_lag, window + self.tracker.max_lag)
+        self.tracker.offer(self._seconds(end_ns), self._mic_history, reference, len(mics))
+
+    def process(self, start_ns: int, mics: np.ndarray) -> np.ndarray:
+        """``mics`` (frames, channels) int16 captured from ``start_ns`` -> the cancelled frames now ready."""
+        if self.estimate_delay:
+            self._track_delay(start_ns, mics)
+        reference = np.clip(np.rint(self._reference_for(start_ns, len(mics)) * FULL_SCALE), -32768, 32767)
+        if self.track.origin_ns is not None:  # what the delay tracker and the next chunks may still read
+            self.track.forget_before(round(self.track.index_at(start_ns)) - 2 * self.tracker.max_lag
+                                     - self.tracker.window)
+        self._pending_mics = np.concatenate([self._pending_mics, mics])
+        self._pending_reference = np.concatenate([self._pending_reference, reference.astype(np.int16)])
+        return self._run(len(self._pending_mics) // self.canceller.block_frames)
+
+    def flush(self) -> np.ndarray:
+        """The frames still waiting for a whole block, cancelled with silence padded after them."""
+        waiting, block = len(self._pending_mics), self.canceller.block_frames
+        if not waiting % block:
+            return self._run(waiting // block)
+        pad = block - waiting % block
+        self._pending_mics = np.concatenate([self._pending_mics, np.zeros((pad, self.canceller.channels), np.int16)])
+        self._pending_reference = np.concatenate([self._pending_reference, np.zeros(pad, np.int16)])
+        return self._run(len(self._pending_mics) // block)[:waiting]
+
+    @property
+    def waiting_frames(self) -> int:
+        return len(self._pending_mics)
+
+    def _run(self, blocks: int) -> np.ndarray:
+        size = self.canceller.block_frames
+        out = [self.canceller.process(self._pending_mics[i * size:(i + 1) * size],
+                                      self._pending_reference[i * size:(i + 1) * size]) for i in range(blocks)]
+        self._pending_mics = self._pending_mics[blocks * size:]
+        self._pending_reference = self._pending_reference[blocks * size:]
+        return np.concatenate(out) if out else np.zeros((0, self.canceller.channels), dtype=np.int16)

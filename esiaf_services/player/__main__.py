@@ -1,0 +1,4 @@
+from esiaf import main
+from esiaf_services.player.service import Player
+
+raise SystemExit(main(Player))

@@ -1,0 +1,213 @@
+"""Player service: plays what the robot says and publishes it as the echo canceller's reference.
+
+It plays sound files and sentences (flite) to an ALSA playback device (``device``) or to a file or
+FIFO (``output``: raw s16le, or WAV by its suffix), one item after the other, in ``chunk_ms`` chunks.
+Every chunk it sends to the loudspeaker is published on ``player/audio`` (mono int16), stamped in
+the capture clock with the time it is played: the first chunk of an item when it is written, the
+rest by sample count from there (a device plays at its own pace; a file is paced in real time
+unless ``fast``). The last chunk of an item ends the utterance (``segmentation_ended``), so the
+echo canceller knows the robot stopped on purpose; an item stopped early ends with an empty chunk.
+
+Work comes from ``input`` and ``say`` (played at start: ``esiaf run --playback``), or from
+:meth:`Player.play` and :meth:`Player.say_text` (any thread). While an item plays, the heartbeat's
+info carries ``playing``: its name and span in capture time.
+
+``follow_stream`` stamps the first item as played from the start of the player's stream as its
+grabber announced it to the orchestrator (waiting for it), so a recorded robot voice lines up with
+a recorded microphone file (``esiaf run --input MICS.wav --playback ROBOT.wav``); a replay's player
+publishes as its grabber does (waiting for the consumers, not dropping at the high-water mark). A file sink is
+written ``ahead_ms`` before the stamps say it is played (unless ``fast``): the echo canceller
+has the reference before the echo.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar
+
+import httpx
+import numpy as np
+
+from esiaf import AudioFormat, Component, ComponentSettings, SampleClock, SetupError
+from esiaf.api_client import OrchestratorHTTP
+from esiaf_services.player.sinks import AlsaSink, FileSink
+from esiaf_services.player.tts import SpeechError, say
+
+log = logging.getLogger(__name__)
+IDLE_POLL_S = 0.02  # how soon a new item starts when the player is idle
+
+
+class PlayerSettings(ComponentSettings):
+    device: str = ""  # ALSA playback device (aplay -L)
+    output: str = ""  # ... or a file or FIFO to write to (raw s16le; WAV if it ends in .wav)
+    input: str = ""  # a sound file to play at start
+    say: str = ""  # a sentence to say at start (after input)
+    voice: str = "slt"  # flite voice
+    topic: str = "player/audio"
+    sample_rate_hz: int = 16000
+    chunk_ms: float = 20.0  # what a stop waits for at most, and the ALSA period
+    fast: bool = False  # a file output written as fast as possible
+    ahead_ms: float = 200.0  # a file output is written this long before it is played
+    follow_stream: bool = False  # the first item plays from the stream's start (a replay's timeline)
+    exit_when_done: bool = False  # stop once input and say are played
+    wait_for_subscribers: int = 0  # before the first item, wait until the topic has this many subscribers
+    wait_timeout_s: float = 30.0
+
+
+@dataclass
+class Item:
+    name: str
+    samples: np.ndarray  # float, full scale 1, at the player's rate
+
+
+class Player(Component):
+    """Plays sound files and flite sentences; publishes what it plays on player/audio."""
+
+    service = "player"
+    designation = "other"
+    Settings = PlayerSettings
+    settings: PlayerSettings  # an instance of Settings: its fields, for type checkers
+    options: ClassVar[dict[str, str]] = {"device": "ALSA playback device (see aplay -L)",
+                                         "output": "file or FIFO to play to instead of a device",
+                                         "input": "sound file to play at start", "say": "sentence to say at start"}
+
+    def __init__(self, settings: PlayerSettings):
+        super().__init__(settings)
+        if bool(settings.device) == bool(settings.output):
+            raise SetupError("give exactly one of an ALSA playback device (--device) or an output file (--output)")
+        if settings.chunk_ms <= 0:
+            raise SetupError(f"chunk_ms must be positive, not {settings.chunk_ms}")
+        try:
+            self.format = AudioFormat(settings.sample_rate_hz, "int16", channels=1)
+        except ValueError as exc:
+            raise SetupError(f"bad player format: {exc}") from None
+        self.chunk_frames = max(1, round(settings.sample_rate_hz * settings.chunk_ms / 1000))
+        self.add_output(settings.topic, self.format)
+        self._queue: deque[Item] = deque()
+        self._lock = threading.Lock()
+        self._cut = threading.Event()  # stop_playing(): the current item ends at its next chunk
+        self.sink: AlsaSink | FileSink | None = None
+        self.played = 0  # items played to their end or stopped
+        if settings.input:  # read early: a bad file fails before registration
+            self.play_file(Path(settings.input))
+        if settings.say:
+            try:
+                self.say_text(settings.say, settings.voice)
+            except SpeechError as exc:
+                raise SetupError(str(exc)) from None
+
+    def setup(self) -> None:
+        s = self.settings
+        self.sink = AlsaSink(s.device, s.sample_rate_hz, self.chunk_frames) if s.device else \
+            FileSink(Path(s.output), s.sample_rate_hz)
+        log.info("player ready sink=%s format=%s", s.device or s.output, self.format)
+
+    # -- what to play (any thread) ------------------------------------------------------
+    def play(self, samples: np.ndarray, name: str) -> None:
+        """Queues mono float samples (full scale 1) at the player's rate."""
+        with self._lock:
+            self._queue.append(Item(name, np.clip(np.asarray(samples, dtype=np.float64), -1.0, 1.0)))
+
+    def play_file(self, path: Path) -> None:
+        import soundfile
+        import soxr
+        try:
+            samples, rate = soundfile.read(str(path), dtype="float64", always_2d=True)
+        except (RuntimeError, soundfile.LibsndfileError) as exc:
+            raise SetupError(f"cannot read {path}: {exc}") from None
+        if samples.shape[1] != 1:
+            raise SetupError(f"{path} has {samples.shape[1]} channels; the player plays mono")
+        mono = samples[:, 0]
+        self.play(soxr.resample(mono, rate, self.format.sample_rate_hz) if rate != self.format.sample_rate_hz
+                  else mono, path.name)
+
+    def say_text(self, text: str, voice: str = "slt") -> None:
+        """Queues ``text`` spoken by flite; SpeechError if it cannot be."""
+        self.play(say(text, voice, self.format.sample_rate_hz), f"say: {text}")
+
+    def stop_playing(self) -> None:
+        """Ends the current item now and forgets the queued ones."""
+        with self._lock:
+            self._queue.clear()
+        self._cut.set()
+
+    # -- playing ------------------------------------------------------------------------
+    def produce(self) -> None:
+        s = self.settings
+        if s.wait_for_subscribers and not self.wait_for_subscribers(s.topic, s.wait_for_subscribers,
+                                                                     s.wait_timeout_s) and not self.stopping:
+            log.warning("topic=%s has fewer than %d subscribers after %g s; playing anyway", s.topic,
+                        s.wait_for_subscribers, s.wait_timeout_s)
+        first = True
+        while not self.stopping:
+            with self._lock:
+                item = self._queue.popleft() if self._queue else None
+            if item is None:
+                if self.settings.exit_when_done:
+                    break
+                self.sleep_until(time.monotonic() + IDLE_POLL_S)
+                continue
+            origin_ns = self._stream_start() if first and self.settings.follow_stream else self.clock_ns()
+            first = False
+            self._play(item, origin_ns)
+        if self.settings.exit_when_done and not self.stopping:
+            now_ns = self.clock_ns()
+            self.publish(self.settings.topic, b"", now_ns, now_ns, end_of_stream=True)
+            self.stop()
+
+    def _stream_start(self) -> int:
+        """The capture time the player's stream started at, as announced (waiting for it)."""
+        s = self.settings
+        deadline = time.monotonic() + s.wait_timeout_s
+        with OrchestratorHTTP(s.orchestrator_url) as http:
+            while not self.stopping:
+                try:
+                    response = http.get(f"/streams/{s.stream_id}")
+                    if response.status_code == 200:
+                        stream = response.json()
+                        # a replay's audio (--fast) waits for its consumers: so does the player's then
+                        self.join_stream(s.stream_id, stream["info"].get("realtime") is False)
+                        return int(stream["start_ns"])
+                except (httpx.HTTPError, ValueError, KeyError) as exc:
+                    log.info("waiting for the orchestrator: %s", exc)
+                if time.monotonic() >= deadline:
+                    break
+                self.sleep_until(time.monotonic() + IDLE_POLL_S * 5)
+        log.warning("stream_id=%s was not announced within %g s: playing from now", s.stream_id, s.wait_timeout_s)
+        return self.clock_ns()
+
+    def _play(self, item: Item, origin_ns: int) -> None:
+        sink = self.sink
+        assert sink is not None  # setup() made it
+        self._cut.clear()
+        pcm = np.clip(np.rint(item.samples * 32767), -32768, 32767).astype(np.int16)
+        clock = SampleClock(origin_ns, self.format.sample_rate_hz)
+        self.info["playing"] = {"name": item.name, "start_ns": origin_ns,
+                                "end_ns": clock.time_at(len(pcm))}
+        log.info("playing name=%r seconds=%.2f start_ns=%d", item.name, len(pcm) / self.format.sample_rate_hz,
+                 origin_ns)
+        for first in range(0, len(pcm), self.chunk_frames):
+            if self._cut.is_set() or self.stopping:
+                sink.drop()
+                now_ns = clock.time_at(clock.frames)
+                self.publish(self.settings.topic, b"", now_ns, now_ns, segmentation_ended=True)
+                log.info("stopped name=%r after %.2f s", item.name, clock.frames / self.format.sample_rate_hz)
+                break
+            part = pcm[first:first + self.chunk_frames]
+            start_ns, end_ns = clock.advance(len(part))
+            if not sink.paced and not self.settings.fast:  # a file: written just before it is played
+                ahead_ns = start_ns - round(self.settings.ahead_ms * 1e6) - self.clock_ns()
+                if ahead_ns > 0:
+                    self.sleep_until(time.monotonic() + ahead_ns / 1e9)
+            sink.write(part)
+            self.publish(self.settings.topic, part, start_ns, end_ns, segmentation_ended=clock.frames >= len(pcm))
+        self.played += 1
+        self.info["playing"] = None
+
+    def teardown(self) -> None:
+        if self.sink is not None:
+            self.sink.close()
