@@ -12,6 +12,7 @@ import sys
 from esiaf.runner import known_services, limit_native_threads
 from esiaf.settings import SettingsError, unknown_variables
 
+from .connections import AcceptBackoffLoop
 from .core import StartupError
 from .server import serve
 from .settings import load
@@ -54,7 +55,8 @@ def main(argv: list[str] | None = None) -> int:
             report = recovered.lines() if recovered else []
             for line in report:
                 print(f"orchestrator: {line}", file=sys.stderr, flush=True)
-        return asyncio.run(serve(settings, fresh=args.fresh, recovered=report))
+        with asyncio.Runner(loop_factory=AcceptBackoffLoop) as runner:  # accept errors: connections.py
+            return runner.run(serve(settings, fresh=args.fresh, recovered=report))
     except RecoveryError as exc:
         print(f"orchestrator: {exc}", file=sys.stderr)
         return 2

@@ -15,6 +15,7 @@ import uvicorn
 from uvicorn.server import ServerState
 
 from .api.app import create_app
+from .connections import ConnectionLimits, connections_allowed, guarded_protocol, raise_file_limit
 from .core import Orchestrator, StartupError
 from .settings import OrchestratorSettings
 
@@ -106,10 +107,15 @@ class _Server(uvicorn.Server):
 async def serve(settings: OrchestratorSettings, *, fresh: bool = False, recovered: list[str] | None = None) -> int:
     """Binds every port, then serves until SIGINT or SIGTERM; returns the exit code. ``recovered``:
     the report of a ``--recover`` that repaired the database, served by ``GET /health``."""
+    file_limit = raise_file_limit()  # before anything is opened: the services' usual 1024 is not much
     sock = listen_socket(settings.host, settings.port)
     core = Orchestrator(settings, fresh=fresh)
     core.recovered = list(recovered or [])
-    config = uvicorn.Config(create_app(settings, orchestrator=core), log_config=None,
+    limits = ConnectionLimits(settings.request_timeout_s, settings.max_connections_per_peer,
+                              connections_allowed(file_limit))
+    log.info("event=http_limits file_limit=%d max_connections=%d max_per_peer=%d request_timeout_s=%g",
+             file_limit, limits.max_total, limits.max_per_peer, limits.request_timeout_s)
+    config = uvicorn.Config(create_app(settings, orchestrator=core), log_config=None, http=guarded_protocol(limits),
                             log_level=settings.log_level.lower(),
                             access_log=settings.log_level == "DEBUG", lifespan="on",
                             timeout_graceful_shutdown=3,
