@@ -9,6 +9,8 @@ import logging
 import os
 import sys
 
+from esiaf.argparsing import OneLineParser
+from esiaf.auth import TokenError, redact_logs
 from esiaf.runner import known_services, limit_native_threads
 from esiaf.settings import SettingsError, unknown_variables
 
@@ -22,7 +24,7 @@ log = logging.getLogger("esiaf_services.orchestrator")
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m esiaf_services.orchestrator",
+    parser = OneLineParser(prog="python -m esiaf_services.orchestrator",
                                      description="ESIAF orchestrator")
     parser.add_argument("--config", help="YAML settings file (or ESIAF_ORCHESTRATOR_CONFIG)")
     parser.add_argument("--host", help="where to listen (HTTP, control and results sockets)")
@@ -46,6 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     logging.basicConfig(level=settings.log_level, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s %(message)s")
+    redact_logs(settings.token)  # no token in its log (the dashboard's websocket URL carries one)
     for name in unknown_variables(os.environ, known_services()):
         log.warning("%s names no service and no common setting: ignored; a typo?", name)
     try:
@@ -60,6 +63,6 @@ def main(argv: list[str] | None = None) -> int:
     except RecoveryError as exc:
         print(f"orchestrator: {exc}", file=sys.stderr)
         return 2
-    except StartupError as exc:
+    except (StartupError, TokenError) as exc:
         print(f"orchestrator: {exc}", file=sys.stderr)
         return 2

@@ -113,8 +113,6 @@ async def serve(settings: OrchestratorSettings, *, fresh: bool = False, recovere
     core.recovered = list(recovered or [])
     limits = ConnectionLimits(settings.request_timeout_s, settings.max_connections_per_peer,
                               connections_allowed(file_limit))
-    log.info("event=http_limits file_limit=%d max_connections=%d max_per_peer=%d request_timeout_s=%g",
-             file_limit, limits.max_total, limits.max_per_peer, limits.request_timeout_s)
     config = uvicorn.Config(create_app(settings, orchestrator=core), log_config=None, http=guarded_protocol(limits),
                             log_level=settings.log_level.lower(),
                             access_log=settings.log_level == "DEBUG", lifespan="on",
@@ -142,8 +140,10 @@ async def serve(settings: OrchestratorSettings, *, fresh: bool = False, recovere
     for signum in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(signum, on_signal, signum)
     http_host, http_port = sock.getsockname()[:2]
-    log.info("event=listening http=%s://%s:%d control=%s results=%s", "https" if settings.tls_cert else "http",
-             http_host, http_port, core.control_endpoint, core.results_endpoint)
+    log.info("event=listening http=%s://%s:%d control=%s results=%s file_limit=%d max_connections=%d "
+             "max_per_peer=%d request_timeout_s=%g", "https" if settings.tls_cert else "http", http_host, http_port,
+             core.control_endpoint, core.results_endpoint, file_limit, limits.max_total, limits.max_per_peer,
+             limits.request_timeout_s)
     try:
         await server.serve(sockets=[sock])
     finally:
