@@ -64,6 +64,9 @@ def test_1100_half_sent_requests_neither_stop_health_nor_fill_the_log(orchestrat
         answers = [sock.recv(64) for sock in held if _readable(sock)]
         assert sum(answer.startswith(b"HTTP/1.1 408") for answer in answers) >= 1
         assert health(orchestrator.port) == 200
+        metrics = orchestrator.http.get("/metrics", headers={"Authorization": f"Bearer {TOKEN}"}).text
+        assert refused_http(metrics, "peer_limit") >= len(held) - PER_PEER
+        assert refused_http(metrics, "request_timeout") >= 1
     finally:
         for sock in held:
             sock.close()
@@ -71,6 +74,12 @@ def test_1100_half_sent_requests_neither_stop_health_nor_fill_the_log(orchestrat
     assert len(text) < 1_000_000 and b"Traceback" not in text
     assert b"event=http_connection_refused reason=peer_limit" in text
     assert b"event=http_connection_refused reason=request_timeout" in text
+
+
+def refused_http(metrics_text: str, reason: str) -> float:
+    from prometheus_client.parser import text_string_to_metric_families
+    return sum(sample.value for family in text_string_to_metric_families(metrics_text) for sample in family.samples
+               if sample.name == "esiaf_refused_http_connections_total" and sample.labels["reason"] == reason)
 
 
 def _readable(sock: socket.socket) -> bool:

@@ -15,8 +15,9 @@ protocol:
   and logs it once per ``LOG_EVERY_S`` with the count since (Python's asyncio before gh-151615 went
   on trying, scheduling a retry and logging a traceback for each attempt).
 
-Every connection closed so is counted per reason (``refused``) and logged, the first of a reason and
-then at most once per ``LOG_EVERY_S``.
+Every connection closed so is counted per reason (``refused``: the orchestrator's ``http_refused``,
+``esiaf_refused_http_connections`` in ``GET /metrics``) and logged, the first of a reason and then at
+most once per ``LOG_EVERY_S``.
 """
 from __future__ import annotations
 
@@ -78,13 +79,14 @@ class RateLog:
 class ConnectionLimits:
     """What every HTTP connection of one server shares: the bounds, the connections per peer, the counts."""
 
-    def __init__(self, request_timeout_s: float, max_per_peer: int, max_total: int) -> None:
+    def __init__(self, request_timeout_s: float, max_per_peer: int, max_total: int,
+                 refused: Counter[str] | None = None) -> None:
         self.request_timeout_s = request_timeout_s
         self.max_per_peer = max_per_peer
         self.max_total = max_total
         self.per_peer: Counter[str] = Counter()
         self.total = 0
-        self.refused: Counter[str] = Counter()  # connections closed, per reason
+        self.refused: Counter[str] = Counter() if refused is None else refused  # connections closed, per reason
         self.rate_log = RateLog()
 
     def admit(self, peer: str) -> bool:

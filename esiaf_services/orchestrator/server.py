@@ -112,7 +112,7 @@ async def serve(settings: OrchestratorSettings, *, fresh: bool = False, recovere
     core = Orchestrator(settings, fresh=fresh)
     core.recovered = list(recovered or [])
     limits = ConnectionLimits(settings.request_timeout_s, settings.max_connections_per_peer,
-                              connections_allowed(file_limit))
+                              connections_allowed(file_limit), refused=core.http_refused)
     config = uvicorn.Config(create_app(settings, orchestrator=core), log_config=None, http=guarded_protocol(limits),
                             log_level=settings.log_level.lower(),
                             access_log=settings.log_level == "DEBUG", lifespan="on",
