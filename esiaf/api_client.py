@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from typing import Any
+from urllib.parse import quote
 
 import httpx
 import tenacity
@@ -122,7 +123,7 @@ def announce_stream(url: str, stream_id: str, start_ns: int, source: str, info: 
     (tried again for a few seconds while the orchestrator is unreachable)."""
     try:
         with OrchestratorHTTP(url) as http:
-            response = http.request("PUT", f"/streams/{stream_id}", retry_for_s=ANNOUNCE_RETRY_S,
+            response = http.request("PUT", f"/streams/{quote(stream_id, safe='')}", retry_for_s=ANNOUNCE_RETRY_S,
                                     json={"start_ns": start_ns, "source": source, "info": info})
         response.raise_for_status()
     except httpx.HTTPError as exc:

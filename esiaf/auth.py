@@ -9,7 +9,9 @@ the system's CAs, or the CA file ``ESIAF_TLS_CA`` names (a private CA, a self-si
 """
 from __future__ import annotations
 
+import logging
 import os
+import re
 import secrets
 from pathlib import Path
 from typing import Any
@@ -29,17 +31,65 @@ class TokenError(Exception):
 
 
 def token() -> str:
-    """This process's token ('' if none is configured)."""
+    """This process's token ('' if none is configured). A token file that cannot be read or is empty,
+    and a token that an HTTP header cannot carry (a space or a control character in it), are a
+    TokenError, one line: never a run without the token that was meant."""
     value = os.environ.get(TOKEN_ENV, "").strip()
-    if value:
-        return value
-    path = os.environ.get(TOKEN_FILE_ENV, "").strip()
-    if not path:
-        return ""
+    where = TOKEN_ENV
+    if not value:
+        path = os.environ.get(TOKEN_FILE_ENV, "").strip()
+        if not path:
+            return ""
+        where = f"the token file {path} ({TOKEN_FILE_ENV})"
+        try:
+            value = Path(path).read_text().strip()
+        except (OSError, UnicodeDecodeError) as exc:
+            reason = exc.strerror if isinstance(exc, OSError) else "not text"
+            raise TokenError(f"cannot read {where}: {reason}") from None
+        if not value:
+            raise TokenError(f"{where} is empty")
+    if not all("!" <= char <= "~" for char in value):
+        raise TokenError(f"{where}: a token is printable ASCII without spaces (esiaf run makes one if none is given)")
+    return value
+
+
+class RedactTokens(logging.Filter):
+    """Takes tokens out of every record a handler writes: the value of ``token=`` in a URL (the
+    dashboard's websocket, in uvicorn's lines), what follows ``Bearer``, and the token's own value
+    wherever it stands, in the message and in a traceback."""
+
+    PATTERN = re.compile(r"(?i)(token=|bearer\s+)[^\s&\"'<>;,)]+")
+
+    def __init__(self, value: str = "") -> None:
+        super().__init__()
+        self.value = value
+
+    def redact(self, text: str) -> str:
+        text = self.PATTERN.sub(r"\1[redacted]", text)
+        return text.replace(self.value, "[redacted]") if len(self.value) >= 4 else text
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        redacted = self.redact(message)
+        if redacted != message:
+            record.msg, record.args = redacted, None
+        if record.exc_info and not record.exc_text:
+            record.exc_text = logging.Formatter().formatException(record.exc_info)
+        if record.exc_text:
+            record.exc_text = self.redact(record.exc_text)
+        return True
+
+
+def redact_logs(value: str = "") -> None:
+    """Adds :class:`RedactTokens` (with ``value``, by default this process's token) to every handler of
+    the root logger: call it once logging is configured."""
     try:
-        return Path(path).read_text().strip()
-    except OSError as exc:
-        raise TokenError(f"cannot read the token file {path} ({TOKEN_FILE_ENV}): {exc.strerror}") from None
+        value = value or token()
+    except TokenError:
+        value = ""
+    for handler in logging.getLogger().handlers:
+        if not any(isinstance(f, RedactTokens) for f in handler.filters):
+            handler.addFilter(RedactTokens(value))
 
 
 def tls_context() -> Any:

@@ -17,6 +17,8 @@ from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
+from esiaf.argparsing import OneLineParser
+from esiaf.auth import TokenError, redact_logs, token
 from esiaf.control import RegistrationError
 from esiaf.hosting import hosting_node
 from esiaf.processor import Processor, SetupError
@@ -27,6 +29,7 @@ LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s [{service}] %(message)s"
 
 def configure_logging(service: str, level: str) -> None:
     logging.basicConfig(level=level.upper(), format=LOG_FORMAT.format(service=service), force=True)
+    redact_logs()  # no token in a log
 
 
 def parse_set(values: Sequence[str]) -> dict[str, Any]:
@@ -79,7 +82,7 @@ def main(component_cls: type[Processor], argv: Sequence[str] | None = None) -> i
     limit_native_threads()
     service = component_cls.service
     doc_lines = (component_cls.__doc__ or "").strip().splitlines()
-    parser = argparse.ArgumentParser(prog=f"python -m esiaf_services.{service}",
+    parser = OneLineParser(prog=f"python -m esiaf_services.{service}",
                                      description=doc_lines[0] if doc_lines else f"the {service} component",
                                      epilog=settings_help(component_cls.Settings, service),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -98,7 +101,8 @@ def main(component_cls: type[Processor], argv: Sequence[str] | None = None) -> i
         cli = {name: getattr(args, name) for name in component_cls.options}
         settings = load_settings(component_cls.Settings, service, config=args.config,
                                  **{**overrides, **cli})
-    except SettingsError as exc:
+        token()  # a token file that cannot be read: said now, not at the first request
+    except (SettingsError, TokenError) as exc:
         print(f"{service}: {exc}", file=sys.stderr)
         return 2
     configure_logging(service, settings.log_level)
@@ -109,8 +113,7 @@ def main(component_cls: type[Processor], argv: Sequence[str] | None = None) -> i
             "settings are not known here)", name, ", ".join(sorted(services)))
     try:
         return hosting_node(component_cls(settings)).run()
-    except (SetupError, RegistrationError) as exc:
-        logging.getLogger(service).error("%s", exc)
+    except (SetupError, RegistrationError) as exc:  # one line on stderr, which is its log too
         print(f"{service}: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -37,7 +37,7 @@ class SettingsError(Exception):
 
 
 class StrictModel(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)  # no nan, no inf
     # old spellings of settings -> their names now: accepted (YAML, environment, --set) for one
     # release, with one deprecation line each
     renamed: ClassVar[dict[str, str]] = {}

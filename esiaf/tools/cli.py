@@ -19,38 +19,34 @@ that are running.
 """
 from __future__ import annotations
 
+import importlib
 import logging
 import signal
 import sys
 from collections.abc import Sequence
+from typing import Any
 
-# the run command's parts, importable from here as before
-from esiaf.tools.cli_args import (
-    ANALYSERS,
-    check_array,
-    check_input,
-    check_port_free,
-    parse_args,
-    parse_channels,
-    parse_without,
-)
-from esiaf.tools.cli_follow import (
-    DRAIN_TIMEOUT_S,
-    LABELS,
-    LONG_FILE_S,
-    PROGRESS_EVERY_S,
-    follow,
-    format_line,
-    report_health,
-    show_progress,
-)
-from esiaf.tools.cli_start import array_env, fuse_kinds, run, shown_path, topic_ready
-from esiaf.tools.launcher import START_TIMEOUT_S, LaunchError
+from esiaf.tools.cli_args import check_values, parse_args
+from esiaf.tools.errors import LaunchError
+from esiaf.tools.terminal import err
 
-__all__ = ["ANALYSERS", "DRAIN_TIMEOUT_S", "LABELS", "LONG_FILE_S", "PROGRESS_EVERY_S", "START_TIMEOUT_S",
-           "array_env", "check_array", "check_input", "check_port_free", "follow", "format_line", "fuse_kinds",
-           "main", "parse_args", "parse_channels", "parse_without", "report_health", "run", "show_progress",
-           "shown_path", "topic_ready"]
+# the run command's parts, importable from here as before; imported on first use (PEP 562), so that a
+# bad value is answered before the pipeline's modules are loaded
+_EXPORTS = {
+    **dict.fromkeys(["ANALYSERS", "check_array", "check_input", "check_port_free", "parse_channels",
+                     "parse_without"], "esiaf.tools.cli_args"),
+    **dict.fromkeys(["DRAIN_TIMEOUT_S", "LABELS", "LONG_FILE_S", "PROGRESS_EVERY_S", "follow", "format_line",
+                     "report_health", "show_progress"], "esiaf.tools.cli_follow"),
+    **dict.fromkeys(["array_env", "fuse_kinds", "run", "shown_path", "topic_ready"], "esiaf.tools.cli_start"),
+    "START_TIMEOUT_S": "esiaf.tools.launcher",
+}
+__all__ = sorted([*_EXPORTS, "LaunchError", "main", "parse_args"])
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 class Terminated(Exception):
@@ -71,19 +67,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         from esiaf.keys import main as make_keys
         return make_keys(argv[1:])
     args = parse_args(argv)
+    try:
+        check_values(args)
+    except LaunchError as exc:
+        err(f"esiaf: {exc}")
+        return 2
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(asctime)s %(levelname)s %(name)s %(message)s")
     signal.signal(signal.SIGTERM, _terminate)  # like Ctrl-C, the services are stopped on the way out
+    from esiaf.tools.cli_start import run
     try:
         return run(args)
     except Terminated:
-        print("esiaf: stopped (SIGTERM)", file=sys.stderr)
+        err("esiaf: stopped (SIGTERM)")
         return 0
     except LaunchError as exc:
-        print(f"esiaf: {exc}", file=sys.stderr)
+        err(f"esiaf: {exc}")
         return 2
     except KeyboardInterrupt:
-        print("esiaf: stopped", file=sys.stderr)
+        err("esiaf: stopped")
         return 130
 
 

@@ -1,17 +1,23 @@
 """``esiaf run``'s command line: its arguments, and the checks made before anything starts
-(the input files and folders, each stream's id, the microphone array, --without, the orchestrator's port)."""
+(every value's range, the workdir, the token, the input files and folders, each stream's id, the
+microphone array, --without, the orchestrator's port). A bad value is one line and exit 2
+(:class:`LaunchError`); this module imports nothing heavy, so that it says so at once."""
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import re
 import socket
-import sys
-from collections.abc import Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from esiaf.tools.launcher import LaunchError
+from esiaf.argparsing import OneLineParser
+from esiaf.printable import control_character
+from esiaf.tools.errors import LaunchError
+from esiaf.tools.terminal import err
 
 if TYPE_CHECKING:
     from esiaf.arrays import ArrayGeometry
@@ -19,6 +25,10 @@ if TYPE_CHECKING:
 ANALYSERS = ("ssl", "emotion", "gender", "voiceid")  # what --without can leave out (the recogniser anchors every line)
 ON_SPEECH = ("asr", "emotion", "gender", "voiceid")  # the analysers on the VAD's output: what --replicas can scale
 MAX_REPLICAS = 8
+MAX_NAME_CHARS = 200  # a stream id, as the orchestrator and the components bound names
+MIN_RATE_HZ, MAX_RATE_HZ = 8_000, 192_000  # the rates the components take (esiaf/receiving.py, not imported: heavy)
+MAX_CHUNK_MS = 10_000.0  # a component takes at most 10 s of audio per message
+MIN_CHUNK_MS = 1.0
 
 
 def check_input(path: Path) -> int:
@@ -41,6 +51,11 @@ def check_input(path: Path) -> int:
         raise LaunchError(f"cannot read input file {path}: {exc}") from None
     if info.frames == 0:
         raise LaunchError(f"input file {path} holds no audio")
+    if not MIN_RATE_HZ <= info.samplerate <= MAX_RATE_HZ:
+        raise LaunchError(f"input file {path}: its header says {info.samplerate} Hz; the analysers take "
+                          f"{MIN_RATE_HZ} to {MAX_RATE_HZ} Hz")
+    if info.channels < 1:
+        raise LaunchError(f"input file {path}: its header says {info.channels} channels")
     return info.channels
 
 
@@ -86,6 +101,8 @@ def check_inputs(paths: Sequence[Path]) -> int:
 def stream_ids(sources: Sequence[str], given: str | None, now: datetime | None = None) -> list[str]:
     """The stream id of each input (its file's stem, or 'mic', and the run's start time); ``given``
     (--stream-id) names the stream of a single input only."""
+    if given is not None:
+        check_name(given, "--stream-id")
     if given and len(sources) > 1:
         raise LaunchError(f"--stream-id names the stream of a single input, not of {len(sources)}: without it "
                           f"each stream is named after its file and the run's start time")
@@ -120,6 +137,91 @@ def check_echo(args: argparse.Namespace) -> None:
         raise LaunchError(f"--playback {args.playback}: the robot's voice is one channel (what its loudspeaker played)")
 
 
+def check_name(name: str, what: str) -> str:
+    """A name the run gives (a stream id): 1 to MAX_NAME_CHARS characters, none of them a control
+    character, as the orchestrator and the components take it."""
+    if not name:
+        raise LaunchError(f"{what} must not be empty")
+    if len(name) > MAX_NAME_CHARS:
+        raise LaunchError(f"{what} has {len(name)} characters; at most {MAX_NAME_CHARS}")
+    bad = control_character(name)
+    if bad is not None:
+        raise LaunchError(f"{what} holds the control character U+{ord(bad):04X}; give a printable name")
+    return name
+
+
+def check_workdir(path: Path) -> Path:
+    """The workdir, made if it is not there, as an absolute path; one that is not a folder, cannot be made
+    or cannot be written is a LaunchError."""
+    if "\0" in str(path):
+        raise LaunchError(f"--workdir {str(path)!r} holds a NUL character")
+    path = path.absolute()
+    if path.exists() and not path.is_dir():
+        raise LaunchError(f"--workdir {path} is not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise LaunchError(f"--workdir {path} cannot be made: {exc.strerror}") from None
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise LaunchError(f"--workdir {path} cannot be written")
+    return path
+
+
+def check_token() -> None:
+    """The token the services are to present, if one is given (ESIAF_TOKEN, ESIAF_TOKEN_FILE), can be used."""
+    from esiaf.auth import TokenError, token
+    try:
+        token()
+    except TokenError as exc:
+        raise LaunchError(str(exc)) from None
+
+
+def check_settings(env: Mapping[str, str], services: Iterable[str] = ()) -> None:
+    """The settings every component has as the environment gives them, for all (``ESIAF_MAX_STREAMS``;
+    with no ``services``, these alone) or for one service (``ESIAF_VAD_MAX_STREAMS``), and with services
+    the orchestrator's, checked before anything starts; a service's own settings are checked by the
+    service as it starts."""
+    from esiaf.settings import ComponentSettings, SettingsError, load_settings
+    common = {name.upper() for name in ComponentSettings.model_fields}
+    try:
+        for service in sorted(set(services) - {"orchestrator"}) or ["common"]:
+            prefix = f"ESIAF_{service.upper()}_"
+            given = {key: value for key, value in env.items() if key.startswith("ESIAF_")
+                     and (key[len("ESIAF_"):] in common or (key.startswith(prefix) and key[len(prefix):] in common))}
+            load_settings(ComponentSettings, service, env=given)
+        if services:
+            from esiaf_services.orchestrator.settings import load as orchestrator_settings
+            orchestrator_settings(env=env)
+    except SettingsError as exc:
+        raise LaunchError(str(exc)) from None
+
+
+def resolve_paths(args: argparse.Namespace) -> None:
+    """The grammar and array files as absolute paths: the services run elsewhere, relative ones would break."""
+    if args.grammar and args.grammar != "robocup":
+        if not Path(args.grammar).is_file():
+            raise LaunchError(f"grammar file {args.grammar} does not exist")
+        args.grammar = str(Path(args.grammar).resolve())
+    if args.array and Path(args.array).is_file():
+        args.array = str(Path(args.array).resolve())
+
+
+def check_values(args: argparse.Namespace) -> None:
+    """What the command line asks for that can be checked before the pipeline's modules are imported."""
+    if args.stream_id is not None:
+        check_name(args.stream_id, "--stream-id")
+    if not args.host.strip():
+        raise LaunchError("--host must not be empty (default 127.0.0.1)")
+    args.workdir = check_workdir(args.workdir)
+    check_token()
+    check_settings(os.environ)
+    parse_without(args.without)
+    resolve_paths(args)
+    if args.input:
+        args.input = expand_inputs(args.input)
+        check_inputs(args.input)
+
+
 def check_array(args: argparse.Namespace, channels: int) -> tuple[ArrayGeometry | None, int]:
     """The array geometry and the audio's channel count (None, channels for mono without --array)."""
     from esiaf.arrays import ArrayError, load_array
@@ -129,9 +231,9 @@ def check_array(args: argparse.Namespace, channels: int) -> tuple[ArrayGeometry 
             raise LaunchError("--mic-channels and --channels describe a microphone array: give --array too")
         if channels > 1:
             inputs = " ".join(map(str, args.input))
-            print(f"esiaf: {inputs} {'has' if len(args.input) == 1 else 'have'} {channels} channels and no "
-                  f"--array: the analysers hear channel 0 (name the microphone array with --array, e.g. "
-                  f"respeaker4, to localise the speakers too)", file=sys.stderr, flush=True)
+            err(f"esiaf: {inputs} {'has' if len(args.input) == 1 else 'have'} {channels} channels and no "
+                f"--array: the analysers hear channel 0 (name the microphone array with --array, e.g. "
+                f"respeaker4, to localise the speakers too)")
         return None, channels
     try:
         array = load_array(args.array)
@@ -186,14 +288,51 @@ def check_port_free(host: str, port: int) -> None:
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             probe.bind((host, port))
+        except socket.gaierror as exc:
+            raise LaunchError(f"cannot listen on {host}:{port}: {exc.strerror} (check --host)") from None
         except OSError as exc:
             raise LaunchError(f"cannot listen on {host}:{port}: {exc.strerror} (another orchestrator running? "
                               f"use --port)") from None
+        except (ValueError, UnicodeError) as exc:  # a NUL or an unencodable name
+            raise LaunchError(f"cannot listen on {host!r}: {exc} (check --host)") from None
+
+
+def port_number(text: str) -> int:
+    """--port: a TCP port a client can reach, 1 to 65535."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a port is a whole number from 1 to 65535, not {text!r}") from None
+    if not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is a whole number from 1 to 65535, not {text}")
+    return port
+
+
+def chunk_ms(text: str) -> float:
+    """--chunk-ms: a finite length from MIN_CHUNK_MS to MAX_CHUNK_MS."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not MIN_CHUNK_MS <= value <= MAX_CHUNK_MS:  # nan and the infinities too
+        raise argparse.ArgumentTypeError(f"a chunk length in ms from {MIN_CHUNK_MS:g} to {MAX_CHUNK_MS:g}, "
+                                         f"not {text!r}")
+    return value
+
+
+def channel_count(text: str) -> int:
+    try:
+        count = int(text)
+    except ValueError:
+        count = 0
+    if not 1 <= count <= 64:
+        raise argparse.ArgumentTypeError(f"a channel count from 1 to 64, not {text!r}")
+    return count
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="esiaf", description="ESIAF speech-analysis pipeline")
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = OneLineParser(prog="esiaf", description="ESIAF speech-analysis pipeline")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
     run = sub.add_parser("run", help="run every service as a local process")
     source = run.add_mutually_exclusive_group(required=True)
     source.add_argument("--input", type=Path, action="append", help="sound file to play (WAV/FLAC/... of any "
@@ -204,7 +343,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                      "circular:MICS:RADIUS_M or a YAML file; starts sound source localisation")
     run.add_argument("--mic-channels", help="with --array: the channels that are the microphones, in the array's "
                      "order, where the audio has others too (ReSpeaker 6-channel firmware: 1,2,3,4)")
-    run.add_argument("--channels", type=int, help="with --mic and --array: channels to capture "
+    run.add_argument("--channels", type=channel_count, help="with --mic and --array: channels to capture "
                      "(default: as the microphones need)")
     run.add_argument("--without", metavar="ANALYSERS", help="analysers to leave out, separated by commas: "
                      "emotion, gender, voiceid, ssl (e.g. --without emotion,gender on a slow robot)")
@@ -241,13 +380,13 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     run.add_argument("--serve", action="store_true", help="keep the services up after the files have played, "
                      "until Ctrl-C or SIGTERM")
     run.add_argument("--host", default="127.0.0.1", help="orchestrator address (default 127.0.0.1)")
-    run.add_argument("--port", type=int, default=8000, help="orchestrator HTTP port (default 8000)")
+    run.add_argument("--port", type=port_number, default=8000, help="orchestrator HTTP port (default 8000)")
     run.add_argument("--workdir", type=Path, default=Path(".esiaf"), help="logs and database (default .esiaf)")
     run.add_argument("--recover", action="store_true", help="if the workdir's database is corrupt, start on a copy "
                      "of what can still be read (the orchestrator's log says what was lost; the damaged file is kept)")
     run.add_argument("--stream-id", help="name of this capture session (default: input name + time); "
                      "with a single input only")
-    run.add_argument("--chunk-ms", type=float, help="grabber chunk length in ms (default: the grabber's chunk_ms, "
+    run.add_argument("--chunk-ms", type=chunk_ms, help="grabber chunk length in ms (default: the grabber's chunk_ms, "
                      "50 ms; see docs/benchmarks.md)")
     run.add_argument("--json", action="store_true", help="print each fused result as JSON")
     run.add_argument("-v", "--verbose", action="store_true", help="log what the launcher does")

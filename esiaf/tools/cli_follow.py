@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -15,6 +14,7 @@ import httpx
 from websockets.exceptions import ConnectionClosed
 
 from esiaf.tools.launcher import START_TIMEOUT_S, LaunchError, OrchestratorClient, Supervisor, wait_until
+from esiaf.tools.terminal import err, out
 
 log = logging.getLogger(__name__)
 
@@ -109,12 +109,13 @@ def follow(ws, supervisor: Supervisor, client: OrchestratorClient, streams: list
         stream.origin_ns = wait_until(stream_start_ns, supervisor, f"the grabber to start playing {stream.source}",
                                       START_TIMEOUT_S, stream.grabber)
         if args.json:
-            print(json.dumps({"type": "stream_start", "stream_id": stream.stream_id, "start_ns": stream.origin_ns}),
-                  flush=True)
+            out(json.dumps({"type": "stream_start", "stream_id": stream.stream_id, "start_ns": stream.origin_ns}))
     state = Following({stream.stream_id: stream for stream in streams},
                       next_progress=time.monotonic() + PROGRESS_EVERY_S)
     while True:
         report_when_due(state, client, args)
+        for child, line in supervisor.refusals():  # what a service refused: here within 0.2 s, not only in its log
+            err(f"esiaf: {child.name} {line} (its log: {child.log_path})")
         watch_children(state, supervisor, client, args)
         if (code := check_drained(state, args)) is not None:
             return code
@@ -160,8 +161,8 @@ def watch_children(state: Following, supervisor: Supervisor, client: Orchestrato
         elif not stream.warned:
             stream.warned = True
             stream.done_at = stream.done_at or time.monotonic()
-            print(f"esiaf: {supervisor.failure(child)}\nesiaf: stream {stream.stream_id} has no more audio; "
-                  f"still serving", file=sys.stderr, flush=True)
+            err(f"esiaf: {supervisor.failure(child)}\nesiaf: stream {stream.stream_id} has no more audio; "
+                f"still serving")
 
 
 def check_drained(state: Following, args: argparse.Namespace) -> int | None:
@@ -175,12 +176,12 @@ def check_drained(state: Following, args: argparse.Namespace) -> int | None:
             continue
         if not args.serve:
             stream.gave_up = True
-            print(f"esiaf: no end of stream {stream.stream_id} and no result {DRAIN_TIMEOUT_S:g} s after "
-                  f"{stream.source} was played; stopping{' it' if len(state.streams) > 1 else ''}", file=sys.stderr)
+            err(f"esiaf: no end of stream {stream.stream_id} and no result {DRAIN_TIMEOUT_S:g} s after "
+                f"{stream.source} was played; stopping{' it' if len(state.streams) > 1 else ''}")
         elif not stream.warned:  # --serve never stops the services on its own
             stream.warned = True
-            print(f"esiaf: no end of stream {stream.stream_id} {DRAIN_TIMEOUT_S:g} s after {stream.source} was "
-                  f"played; still serving", file=sys.stderr, flush=True)
+            err(f"esiaf: no end of stream {stream.stream_id} {DRAIN_TIMEOUT_S:g} s after {stream.source} was "
+                f"played; still serving")
     return run_over(state, args)
 
 
@@ -201,14 +202,13 @@ def show_message(state: Following, message: dict[str, Any], args: argparse.Names
     if message.get("type") == "stream_end":
         stream.ended = True
         if args.json:
-            print(json.dumps(message), flush=True)
-        print(f"esiaf: stream {stream.stream_id + ' ' if several else ''}ended, {stream.printed} fused result(s)",
-              file=sys.stderr, flush=True)
+            out(json.dumps(message))
+        err(f"esiaf: stream {stream.stream_id + ' ' if several else ''}ended, {stream.printed} fused result(s)")
         return run_over(state, args)
     if message.get("type") == "fused_result":
         stream.printed += 1
         line = json.dumps(message) if args.json else format_line(message, stream.origin_ns)
-        print(f"[{stream.stream_id}] {line}" if several and not args.json else line, flush=True)
+        out(f"[{stream.stream_id}] {line}" if several and not args.json else line)
     return None
 
 
@@ -220,8 +220,7 @@ def report_health(client: OrchestratorClient, reported: str) -> str:
     except httpx.HTTPError:
         return reported  # restarting: the supervisor says so
     if problem != reported:
-        print(f"esiaf: orchestrator unhealthy: {problem}" if problem else "esiaf: orchestrator healthy again",
-              file=sys.stderr, flush=True)
+        err(f"esiaf: orchestrator unhealthy: {problem}" if problem else "esiaf: orchestrator healthy again")
     return problem
 
 
@@ -234,5 +233,5 @@ def show_progress(client: OrchestratorClient, stream: Stream, several: bool) -> 
         return
     played_s, duration_s = info.get("played_s"), info.get("duration_s")
     if played_s is not None and duration_s and duration_s > LONG_FILE_S:
-        print(f"esiaf: {f'stream {stream.stream_id}: ' if several else ''}played {played_s:.0f} of "
-              f"{duration_s:.0f} s ({100 * played_s / duration_s:.0f} %)", file=sys.stderr, flush=True)
+        err(f"esiaf: {f'stream {stream.stream_id}: ' if several else ''}played {played_s:.0f} of "
+            f"{duration_s:.0f} s ({100 * played_s / duration_s:.0f} %)")

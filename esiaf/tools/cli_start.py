@@ -9,12 +9,12 @@ import functools
 import json
 import logging
 import os
-import sys
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
+from urllib.parse import urlencode
 
 from esiaf import auth
 from esiaf.runner import known_services
@@ -24,6 +24,7 @@ from esiaf.tools.cli_args import (
     check_echo,
     check_inputs,
     check_port_free,
+    check_settings,
     expand_inputs,
     parse_replicas,
     parse_without,
@@ -41,6 +42,7 @@ from esiaf.tools.launcher import (
     wait_until,
 )
 from esiaf.tools.plugins import resolve as resolve_plugin
+from esiaf.tools.terminal import err
 
 if TYPE_CHECKING:
     from esiaf.arrays import ArrayGeometry
@@ -81,9 +83,9 @@ def run(args: argparse.Namespace) -> int:
         check_vad_in_grabber(args, channels, array, replicas)
     services = known_services() | {p.name for p in wanted_plugins}
     for name in unknown_variables(os.environ, services):
-        print(f"esiaf: {name} names no service ({', '.join(sorted(services))}) and no common setting: "
-              "ignored; a typo?", file=sys.stderr, flush=True)
-    resolve_paths(args)
+        err(f"esiaf: {name} names no service ({', '.join(sorted(services))}) and no common setting: "
+            "ignored; a typo?")
+    check_settings(os.environ, services)
     check_port_free(args.host, args.port)
     args.stream_id = ids[0] if len(ids) == 1 else None
     url = f"http://{args.host}:{args.port}"
@@ -98,6 +100,7 @@ def run(args: argparse.Namespace) -> int:
     client = OrchestratorClient(url)
     try:
         start_orchestrator(args, supervisor, client, workdir)
+        refuse_reused(client, ids, workdir)
         # every service at once (their imports and models load in parallel), then each must register
         pipeline = start_services(args, supervisor, array, channels, without, replicas)
         plugin_of: dict[str, str] = {}  # each plug-in instance's plug-in
@@ -116,18 +119,18 @@ def run(args: argparse.Namespace) -> int:
             reserve_streams(client, supervisor, pipeline, ids, on_speech)
         if plugins:
             with_kinds = ", ".join(f"{n} ({c['designation']})" for n, c in registered.items())
-            print(f"esiaf: with {with_kinds}", file=sys.stderr)
+            err(f"esiaf: with {with_kinds}")
         log.info("services: %s", ", ".join(pipeline.services))
         for name, count in replicas.items():
-            print(f"esiaf: {name} as {count} instances sharing the streams ({name}-1 ... {name}-{count})",
-                  file=sys.stderr, flush=True)
+            err(f"esiaf: {name} as {count} instances sharing the streams ({name}-1 ... {name}-{count})")
         # one stream: only its results; several: every stream's, each line told by its stream_id
-        feed_url = f"ws://{args.host}:{args.port}/ws/fused" + (f"?stream={ids[0]}" if len(ids) == 1 else "")
+        feed_url = f"ws://{args.host}:{args.port}/ws/fused" + (f"?{urlencode({'stream': ids[0]})}" if len(ids) == 1
+                                                                else "")
         with FusedFeed(feed_url) as ws:
             streams = start_grabbers(args, supervisor, pipeline, ids)
-            print(f"esiaf: orchestrator at {url} (API docs: {url}/docs; token in {shown_path(workdir / 'token')}); "
-                  f"logs in {shown_path(workdir / 'logs')}", file=sys.stderr, flush=True)
-            print(f"esiaf: dashboard at {url}/?token={os.environ[auth.TOKEN_ENV]}", file=sys.stderr, flush=True)
+            err(f"esiaf: orchestrator at {url} (API docs: {url}/docs; token in {shown_path(workdir / 'token')}); "
+                f"logs in {shown_path(workdir / 'logs')}")
+            err(f"esiaf: dashboard at {url}/?token={os.environ[auth.TOKEN_ENV]}")
             return follow(ws, supervisor, client, streams, args)
     finally:
         client.close()
@@ -147,19 +150,17 @@ def start_grabbers(args: argparse.Namespace, supervisor: Supervisor, pipeline: P
                                    instance=f"grabber-{n}" if len(ids) > 1 else None)
         shown = str(args.input[n - 1]) if args.input else args.mic
         streams.append(Stream(stream_id, grabber, shown))
-        print(f"esiaf: playing {shown} as stream {stream_id}" + (f" ({grabber.name})" if len(ids) > 1 else ""),
-              file=sys.stderr, flush=True)
+        err(f"esiaf: playing {shown} as stream {stream_id}" + (f" ({grabber.name})" if len(ids) > 1 else ""))
     return streams
 
 
-def resolve_paths(args: argparse.Namespace) -> None:
-    """The grammar and array files as absolute paths: the services run elsewhere, relative ones would break."""
-    if args.grammar and args.grammar != "robocup":
-        if not Path(args.grammar).is_file():
-            raise LaunchError(f"grammar file {args.grammar} does not exist")
-        args.grammar = str(Path(args.grammar).resolve())
-    if args.array and Path(args.array).is_file():
-        args.array = str(Path(args.array).resolve())
+def refuse_reused(client: OrchestratorClient, ids: list[str], workdir: Path) -> None:
+    """A stream id this workdir's database already holds is refused before anything is played: the
+    results of two capture sessions would be fused as one stream (the second's times shifted)."""
+    for stream_id in ids:
+        if client.stream(stream_id) is not None:
+            raise LaunchError(f"stream {stream_id} was played before in {shown_path(workdir)}: give another "
+                              f"--stream-id, or another --workdir")
 
 
 def start_orchestrator(args: argparse.Namespace, supervisor: Supervisor, client: OrchestratorClient,
@@ -175,7 +176,7 @@ def start_orchestrator(args: argparse.Namespace, supervisor: Supervisor, client:
                                          "ESIAF_ORCHESTRATOR_RESULTS_PORT": str(ports["results"])})
     wait_until(client.healthy, supervisor, "the orchestrator to answer", START_TIMEOUT_S, orchestrator)
     for line in client.recovered() if args.recover else []:
-        print(f"esiaf: --recover: {line}", file=sys.stderr, flush=True)
+        err(f"esiaf: --recover: {line}")
 
 
 def start_services(args: argparse.Namespace, supervisor: Supervisor, array: ArrayGeometry | None, channels: int,

@@ -21,11 +21,14 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
+from urllib.parse import quote
 
 import httpx
 
 from esiaf.api_client import OrchestratorHTTP
+from esiaf.tools.errors import LaunchError
+from esiaf.tools.terminal import err
 
 log = logging.getLogger(__name__)
 
@@ -34,11 +37,9 @@ _PR_SET_PDEATHSIG = 1
 MAX_RESTARTS = 5  # a service that died this often in a row is not restarted again: the run ends
 STABLE_AFTER_S = 60.0  # a service that ran this long before dying was not crash-looping: its count starts again
 RESTART_BACKOFF_S = 0.5  # before the first restart; doubles with each, up to 10 s
+MAX_LOG_READ = 1 << 20  # a child's log read for refusals at most this much at a time
+REFUSAL = " refused "  # a service's log line that says it refused something (esiaf/receiving.py)
 START_TIMEOUT_S = 60.0  # esiaf run: how long a service may take to answer, register, subscribe or start playing
-
-
-class LaunchError(Exception):
-    """A service did not come up; the message says which and why."""
 
 
 def _die_with_parent() -> None:
@@ -57,6 +58,24 @@ class Child:
     died_at: float | None = None  # monotonic time its death was first seen
     started_at: float = field(default_factory=time.monotonic)  # of its current process
     reported: bool = False  # its death was reported to the orchestrator
+    log_read: int = 0  # how far its log has been read for refusals
+
+    def new_refusals(self) -> list[str]:
+        """The lines its log has gained since the last call that say it refused something (what it
+        logs itself: the first of a reason and every 100th), without their time stamp; at most
+        MAX_LOG_READ bytes a call."""
+        try:
+            with self.log_path.open("rb") as log_file:
+                log_file.seek(self.log_read)
+                data = log_file.read(MAX_LOG_READ)
+        except OSError:
+            return []
+        end = data.rfind(b"\n") + 1  # whole lines only; the rest is read once it is whole
+        if end == 0 and len(data) == MAX_LOG_READ:
+            end = len(data)
+        self.log_read += end
+        lines = data[:end].decode(errors="replace").splitlines()
+        return [line.split("] ", 1)[-1] for line in lines if REFUSAL in line]
 
     def restart_delay_s(self) -> float:
         return min(RESTART_BACKOFF_S * 2 ** self.restarts, 10.0)
@@ -90,6 +109,7 @@ class Supervisor:
         ``instance``: one of several instances of the service, under this id (its child and log name)."""
         logs = self.workdir / "logs"
         logs.mkdir(parents=True, exist_ok=True)
+        logs.chmod(0o700)  # its logs are its owner's (open_log)
         log_path = logs / f"{instance or name}.log"
         child_env = {**os.environ, **self.env, **(env or {})}
         if instance:  # the common setting: a plug-in's service may not be named as its folder
@@ -103,7 +123,7 @@ class Supervisor:
 
     @staticmethod
     def _spawn(command: list[str], env: dict[str, str], log_path: Path, mode: str) -> subprocess.Popen:
-        with log_path.open(mode) as out:
+        with open_log(log_path, mode) as out:
             return subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                     env=env, cwd=REPO_ROOT, start_new_session=True, preexec_fn=_die_with_parent)
 
@@ -111,7 +131,7 @@ class Supervisor:
         """Starts a dead child again with the same command and environment; its log goes on."""
         child.restarts += 1
         child.died_at, child.reported = None, False
-        with child.log_path.open("ab") as out:
+        with open_log(child.log_path, "ab") as out:
             out.write(f"\n--- esiaf: restart {child.restarts} ---\n".encode())
         child.process = self._spawn(child.command, child.env, child.log_path, "ab")
         child.started_at = time.monotonic()
@@ -130,16 +150,25 @@ class Supervisor:
             last_line = child.tail(1).strip()
             if child.restarts >= MAX_RESTARTS:
                 raise LaunchError(f"{self.failure(child)}\n(not restarted: it died {child.restarts + 1} times)")
-            print(f"esiaf: service {child.name} {child.how_it_ended()}"
-                  f"{f' ({last_line})' if last_line else ''}; restarting it in {child.restart_delay_s():.1f} s "
-                  f"({child.restarts + 1} of {MAX_RESTARTS})", file=sys.stderr, flush=True)
+            err(f"esiaf: service {child.name} {child.how_it_ended()}"
+                f"{f' ({last_line})' if last_line else ''}; restarting it in {child.restart_delay_s():.1f} s "
+                f"({child.restarts + 1} of {MAX_RESTARTS})")
         if now - child.died_at >= child.restart_delay_s():
             self.restart(child)
+
+    def refusals(self) -> list[tuple[Child, str]]:
+        """What each child has refused since the last call, as its log says (see Child.new_refusals)."""
+        return [(child, line) for child in self.children for line in child.new_refusals()]
 
     def exited(self) -> list[Child]:
         return [c for c in self.children if c.process.poll() is not None]
 
     def failure(self, child: Child) -> str:
+        """Why ``child`` ended: with code 2 (a bad setting or input, the service's one line, esiaf/runner.py)
+        that line; otherwise the end of its log."""
+        last = child.tail(1).strip()
+        if child.process.returncode == 2 and last and "Traceback" not in child.tail():
+            return f"service {child.name} exited with code 2: {last} (its log: {child.log_path})"
         return (f"service {child.name} {child.how_it_ended()}; "
                 f"its log ({child.log_path}) ends:\n{child.tail()}")
 
@@ -155,6 +184,15 @@ class Supervisor:
                 log.warning("service=%s did not stop in %g s: killing it", child.name, timeout_s)
                 child.process.kill()
                 child.process.wait()
+
+
+def open_log(path: Path, mode: str) -> IO[bytes]:
+    """A service's log, readable by its owner only (0600, whatever the umask, and also if it was there
+    before): what a service logs may say more than other users of the machine should read."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC | (os.O_APPEND if mode == "ab" else os.O_TRUNC)
+    descriptor = os.open(path, flags, 0o600)
+    os.fchmod(descriptor, 0o600)
+    return os.fdopen(descriptor, mode)
 
 
 def wait_until(condition: Callable[[], Any], supervisor: Supervisor, what: str, timeout_s: float,
@@ -280,7 +318,7 @@ class OrchestratorClient:
         return response.json()["items"]
 
     def stream(self, stream_id: str) -> dict[str, Any] | None:
-        response = self._http.get(f"{self.url}/streams/{stream_id}")
+        response = self._http.get(f"{self.url}/streams/{quote(stream_id, safe='')}")
         if response.status_code == 404:
             return None
         response.raise_for_status()
@@ -288,7 +326,8 @@ class OrchestratorClient:
 
     def announce(self, stream_id: str, info: dict[str, Any]) -> None:
         """Announces a stream ahead of its source (which announces it again, with its start)."""
-        response = self._http.put(f"{self.url}/streams/{stream_id}", json={"start_ns": time.time_ns(), "info": info})
+        response = self._http.put(f"{self.url}/streams/{quote(stream_id, safe='')}",
+                                  json={"start_ns": time.time_ns(), "info": info})
         if response.status_code != 200:
             raise LaunchError(f"the orchestrator refused to announce stream {stream_id}: {response.text}")
 

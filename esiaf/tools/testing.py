@@ -47,6 +47,36 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
+def half_sent_requests(host: str, port: int, count: int, source: str = "127.0.0.2",
+                       timeout_s: float = 2.0) -> list[socket.socket]:
+    """``count`` connections to ``host:port`` from the loopback address ``source``, each holding an HTTP
+    request whose headers never end (``GET /health HTTP/1.1`` and one header line): what a peer without
+    the token can do to take a server's file descriptors. Connections the server closed or never took
+    in ``timeout_s`` are not returned; the caller closes the others."""
+    held = []
+    for _ in range(count):
+        try:
+            sock = socket.create_connection((host, port), timeout=timeout_s, source_address=(source, 0))
+        except OSError:
+            continue
+        try:
+            sock.sendall(b"GET /health HTTP/1.1\r\nHost: esiaf\r\n")
+        except OSError:
+            sock.close()
+            continue
+        held.append(sock)
+    return held
+
+
+def file_limit(count: int):
+    """A ``preexec_fn`` giving a child process a limit of ``count`` open files (soft and hard, as
+    ``ulimit -n``), the limit many Linux services get."""
+    def limit() -> None:
+        import resource
+        resource.setrlimit(resource.RLIMIT_NOFILE, (count, count))
+    return limit
+
+
 def normalise(text: str) -> str:
     return " ".join(re.sub(r"[^a-z0-9' ]+", " ", text.lower()).split())
 
@@ -178,10 +208,11 @@ class Orchestrator:
     """The real orchestrator as a process on random loopback ports, with a real SQLite file."""
 
     def __init__(self, tmp_path: Path, config: dict | None = None, env: dict[str, str] | None = None,
-                 ca: Path | None = None):
+                 ca: Path | None = None, open_files: int | None = None):
         """``config``: orchestrator settings written to a YAML file (fusions, timeouts, ...);
         ``env``: more environment variables for its process (ESIAF_TOKEN, ESIAF_CURVE_DIR, ...);
-        ``ca``: with ``tls_cert`` in ``config``, the CA file its certificate is checked against."""
+        ``ca``: with ``tls_cert`` in ``config``, the CA file its certificate is checked against;
+        ``open_files``: its limit of open files (soft and hard), if not this process's."""
         import httpx
         import yaml
         self.port = free_port()
@@ -190,6 +221,7 @@ class Orchestrator:
         self.ws_url = f"ws{secure}://127.0.0.1:{self.port}"
         self.db_path = tmp_path / "o.db"
         self.env = env or {}
+        self.preexec = file_limit(open_files) if open_files else None
         self.config_args: list[str] = []
         if config is not None:
             config_path = tmp_path / "orchestrator.yaml"
@@ -211,7 +243,7 @@ class Orchestrator:
         self.process = subprocess.Popen(
             [sys.executable, "-m", "esiaf_services.orchestrator", "--port", str(self.port), "--db", str(self.db_path),
              *self.config_args, *args],
-            cwd=REPO, env=env, stdout=self.log, stderr=subprocess.STDOUT)
+            cwd=REPO, env=env, stdout=self.log, stderr=subprocess.STDOUT, preexec_fn=self.preexec)
         poll(lambda: self.http.get("/health").status_code == 200, timeout_s=30)
 
     def kill(self) -> None:

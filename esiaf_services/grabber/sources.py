@@ -13,6 +13,7 @@ import numpy as np
 
 from esiaf import AudioFormat, SetupError
 from esiaf.formats import FormatError, decode
+from esiaf.receiving import MAX_CHANNELS, MAX_RATE_HZ, MIN_RATE_HZ
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +50,10 @@ class FileSource:
                 info = soundfile.info(str(path))
             except (RuntimeError, soundfile.LibsndfileError) as exc:
                 raise SetupError(f"cannot read input file {path}: {exc}") from None
+            if not MIN_RATE_HZ <= info.samplerate <= MAX_RATE_HZ or not 1 <= info.channels <= MAX_CHANNELS:
+                raise SetupError(f"input file {path}: its header says {info.samplerate} Hz and {info.channels} "
+                                 f"channels; the components take {MIN_RATE_HZ} to {MAX_RATE_HZ} Hz and 1 to "
+                                 f"{MAX_CHANNELS} channels")
             self._read_dtype, sample_type = _SUBTYPES.get(info.subtype, ("float32", "float32"))
             self.format = AudioFormat(info.samplerate, sample_type, "little", info.channels)
             self.total_frames = info.frames

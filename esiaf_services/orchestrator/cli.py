@@ -9,9 +9,12 @@ import logging
 import os
 import sys
 
+from esiaf.argparsing import OneLineParser
+from esiaf.auth import TokenError, redact_logs
 from esiaf.runner import known_services, limit_native_threads
 from esiaf.settings import SettingsError, unknown_variables
 
+from .connections import AcceptBackoffLoop
 from .core import StartupError
 from .server import serve
 from .settings import load
@@ -21,7 +24,7 @@ log = logging.getLogger("esiaf_services.orchestrator")
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m esiaf_services.orchestrator",
+    parser = OneLineParser(prog="python -m esiaf_services.orchestrator",
                                      description="ESIAF orchestrator")
     parser.add_argument("--config", help="YAML settings file (or ESIAF_ORCHESTRATOR_CONFIG)")
     parser.add_argument("--host", help="where to listen (HTTP, control and results sockets)")
@@ -45,6 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     logging.basicConfig(level=settings.log_level, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s %(message)s")
+    redact_logs(settings.token)  # no token in its log (the dashboard's websocket URL carries one)
     for name in unknown_variables(os.environ, known_services()):
         log.warning("%s names no service and no common setting: ignored; a typo?", name)
     try:
@@ -54,10 +58,11 @@ def main(argv: list[str] | None = None) -> int:
             report = recovered.lines() if recovered else []
             for line in report:
                 print(f"orchestrator: {line}", file=sys.stderr, flush=True)
-        return asyncio.run(serve(settings, fresh=args.fresh, recovered=report))
+        with asyncio.Runner(loop_factory=AcceptBackoffLoop) as runner:  # accept errors: connections.py
+            return runner.run(serve(settings, fresh=args.fresh, recovered=report))
     except RecoveryError as exc:
         print(f"orchestrator: {exc}", file=sys.stderr)
         return 2
-    except StartupError as exc:
+    except (StartupError, TokenError) as exc:
         print(f"orchestrator: {exc}", file=sys.stderr)
         return 2

@@ -13,6 +13,7 @@ import secrets
 import signal
 import sqlite3
 import time
+from collections import Counter
 from typing import Any, TypeVar
 
 import zmq
@@ -67,6 +68,9 @@ class Orchestrator:
         self.settings = settings
         self.fresh = fresh
         self.recovered: list[str] = []  # the report of a --recover that repaired the database at start-up
+        # HTTP connections closed below the app (connections.py), by reason: peer_limit, total_limit,
+        # request_timeout; the server counts them here, GET /metrics shows them
+        self.http_refused: Counter[str] = Counter()
         self.registry = Registry(settings.format_strategy)
         self.clocks = StreamClocks(self.registry)
         self.hub = Hub()

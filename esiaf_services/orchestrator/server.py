@@ -15,6 +15,7 @@ import uvicorn
 from uvicorn.server import ServerState
 
 from .api.app import create_app
+from .connections import ConnectionLimits, connections_allowed, guarded_protocol, raise_file_limit
 from .core import Orchestrator, StartupError
 from .settings import OrchestratorSettings
 
@@ -106,10 +107,13 @@ class _Server(uvicorn.Server):
 async def serve(settings: OrchestratorSettings, *, fresh: bool = False, recovered: list[str] | None = None) -> int:
     """Binds every port, then serves until SIGINT or SIGTERM; returns the exit code. ``recovered``:
     the report of a ``--recover`` that repaired the database, served by ``GET /health``."""
+    file_limit = raise_file_limit()  # before anything is opened: the services' usual 1024 is not much
     sock = listen_socket(settings.host, settings.port)
     core = Orchestrator(settings, fresh=fresh)
     core.recovered = list(recovered or [])
-    config = uvicorn.Config(create_app(settings, orchestrator=core), log_config=None,
+    limits = ConnectionLimits(settings.request_timeout_s, settings.max_connections_per_peer,
+                              connections_allowed(file_limit), refused=core.http_refused)
+    config = uvicorn.Config(create_app(settings, orchestrator=core), log_config=None, http=guarded_protocol(limits),
                             log_level=settings.log_level.lower(),
                             access_log=settings.log_level == "DEBUG", lifespan="on",
                             timeout_graceful_shutdown=3,
@@ -136,8 +140,10 @@ async def serve(settings: OrchestratorSettings, *, fresh: bool = False, recovere
     for signum in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(signum, on_signal, signum)
     http_host, http_port = sock.getsockname()[:2]
-    log.info("event=listening http=%s://%s:%d control=%s results=%s", "https" if settings.tls_cert else "http",
-             http_host, http_port, core.control_endpoint, core.results_endpoint)
+    log.info("event=listening http=%s://%s:%d control=%s results=%s file_limit=%d max_connections=%d "
+             "max_per_peer=%d request_timeout_s=%g", "https" if settings.tls_cert else "http", http_host, http_port,
+             core.control_endpoint, core.results_endpoint, file_limit, limits.max_total, limits.max_per_peer,
+             limits.request_timeout_s)
     try:
         await server.serve(sockets=[sock])
     finally:

@@ -105,6 +105,10 @@ class OrchestratorSettings(StrictModel):
     timeouts: TimeoutSettings = Field(default_factory=TimeoutSettings)
     log_level: str = "INFO"
     max_body_bytes: int = Field(default=1024 * 1024, gt=0)  # HTTP request bodies larger than this get 413
+    # an HTTP request (headers and body) must have come whole this long after its first byte, or its
+    # connection is closed (connections.py): a peer cannot hold connections with requests it never ends
+    request_timeout_s: float = Field(default=10.0, gt=0)
+    max_connections_per_peer: int = Field(default=256, gt=0)  # HTTP connections of one IP address at once
     token: str = ""  # required on every request but /health once set; default ESIAF_TOKEN / ESIAF_TOKEN_FILE
     allowed_origins: list[str] = Field(default_factory=list)  # browser origins whose websockets are accepted
     # HTTPS and wss: the certificate (chain) and its private key, PEM files; clients check it against

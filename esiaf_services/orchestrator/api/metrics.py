@@ -80,6 +80,11 @@ class StateCollector(Collector):
                                     "token), by socket and reason", labels=["socket", "reason"])
         for (socket, reason), count in sorted(core.guard.refused.items()):
             peers.add_metric([socket, reason], count)
+        http = CounterMetricFamily("esiaf_refused_http_connections", "HTTP connections closed below the app: "
+                                   "peer_limit, total_limit (closed as accepted), request_timeout (a request not "
+                                   "whole in time)", labels=["reason"])
+        for reason, count in sorted(core.http_refused.items()):
+            http.add_metric([reason], count)
         control = _by_prefix(CounterMetricFamily(
             "esiaf_refused_control_messages", "control messages refused: no_key, wrong_key (not the control_key "
             "of the named component's registration), wrong_peer_key (CURVE: another key than its registration's)",
@@ -97,8 +102,8 @@ class StateCollector(Collector):
         limit.add_metric([], core.hub.max_queue)
         dropped = CounterMetricFamily("esiaf_websocket_dropped_clients", "websocket clients closed as too slow")
         dropped.add_metric([], core.hub.dropped_clients)
-        yield from (results, fused, revisions, refused, peers, control, bad, lost, open_fusions, queued, clients, depth,
-                    limit, dropped)
+        yield from (results, fused, revisions, refused, peers, http, control, bad, lost, open_fusions, queued, clients,
+                    depth, limit, dropped)
 
     def _components(self) -> Iterator:
         now_ns = time.time_ns()

@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import io
 import json
+import struct
 from math import gcd
 
 import numpy as np
@@ -148,7 +149,9 @@ def embed_wav(data: bytes) -> np.ndarray:
     from esiaf_services.voiceid.encoder import shared_encoder
     try:
         rate_hz, samples = wavfile.read(io.BytesIO(data))
-    except (ValueError, EOFError) as exc:
+    # what scipy's reader raises for a header cut short (struct.error), 0 channels or 0 bits per sample
+    # (ZeroDivisionError), fields that do not add up (ValueError), data cut short (EOFError)
+    except (ValueError, EOFError, struct.error, ZeroDivisionError, OverflowError) as exc:
         raise HTTPException(422, f"audio is not a readable WAV file: {exc}") from None
     if samples.dtype.kind in "iu":
         info = np.iinfo(samples.dtype)

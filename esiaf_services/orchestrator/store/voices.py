@@ -4,6 +4,7 @@ own), and the event long polls of ``GET /voices`` wait on for a change (api/voic
 from __future__ import annotations
 
 import asyncio
+import secrets
 import sqlite3
 import threading
 import time
@@ -19,6 +20,11 @@ CREATE TABLE IF NOT EXISTS voices (
     added_ns INTEGER NOT NULL
 );
 CREATE INDEX IF NOT EXISTS voices_name ON voices (name);
+CREATE TABLE IF NOT EXISTS voices_generation (
+    id INTEGER PRIMARY KEY CHECK (id = 0),
+    epoch TEXT NOT NULL,
+    generation INTEGER NOT NULL
+);
 """
 
 
@@ -26,6 +32,10 @@ class VoiceTable:
     def __init__(self, path: str) -> None:
         self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False, timeout=5.0)
         self._db.executescript(SCHEMA)
+        # the ETag: a random epoch per database (a new file never repeats an old one's) and a generation
+        # counted up at every change, kept with the voices (a voice deleted and another enrolled in its
+        # place, which may take its row id, never repeat an ETag)
+        self._db.execute("INSERT OR IGNORE INTO voices_generation VALUES (0, ?, 0)", (secrets.token_hex(4),))
         self._lock = threading.Lock()
         self._changed = asyncio.Event()  # set, and replaced, at every change: long polls wait on it
 
@@ -39,18 +49,24 @@ class VoiceTable:
         changed.set()
 
     def add(self, name: str, embeddings: list[np.ndarray], source: str) -> None:
-        with self._lock:
+        with self._lock, self._db:  # one transaction: the voices and their generation
+            self._db.execute("BEGIN")
             self._db.executemany("INSERT INTO voices (name, embedding, source, added_ns) VALUES (?, ?, ?, ?)",
                                  [(name, np.asarray(e, "<f4").tobytes(), source, time.time_ns()) for e in embeddings])
+            self._db.execute("UPDATE voices_generation SET generation = generation + 1")
 
     def delete(self, name: str) -> int:
-        with self._lock:
-            return self._db.execute("DELETE FROM voices WHERE name = ?", (name,)).rowcount
+        with self._lock, self._db:
+            self._db.execute("BEGIN")
+            deleted = self._db.execute("DELETE FROM voices WHERE name = ?", (name,)).rowcount
+            if deleted:
+                self._db.execute("UPDATE voices_generation SET generation = generation + 1")
+            return deleted
 
     def etag(self) -> str:
         with self._lock:
-            count, last = self._db.execute("SELECT COUNT(*), COALESCE(MAX(id), 0) FROM voices").fetchone()
-        return f'"{count}-{last}"'
+            epoch, generation = self._db.execute("SELECT epoch, generation FROM voices_generation").fetchone()
+        return f'"{epoch}-{generation}"'
 
     def listing(self, embeddings: bool) -> list[dict]:
         voices: dict[str, dict] = {}

@@ -1,0 +1,27 @@
+"""The one rule for text that ESIAF shows a person: control characters escaped.
+
+A name or a text that came from a peer (a voice's name, a stream id, a recognised text, a log line)
+may hold an ANSI escape or a carriage return, which would rewrite what a terminal shows: a forged
+line in place of a real one. Every such character (Unicode categories Cc, Cf, Zl, Zp: C0 and C1
+controls, DEL, format characters such as a right-to-left override, line and paragraph separators)
+is shown as its Python escape (``\\x1b``, ``\\r``, ``\\u202e``); the rest as it is.
+"""
+from __future__ import annotations
+
+import unicodedata
+
+CONTROL_CATEGORIES = frozenset({"Cc", "Cf", "Zl", "Zp"})
+
+
+def control_character(text: str) -> str | None:
+    """The first control character of ``text``, or None: what a name must not hold."""
+    return next((char for char in text if unicodedata.category(char) in CONTROL_CATEGORIES), None)
+
+
+def printable(text: object) -> str:
+    """``text`` (or its str()) with every control character escaped."""
+    text = str(text)
+    if control_character(text) is None:
+        return text
+    return "".join(char.encode("unicode_escape").decode("ascii") if unicodedata.category(char) in CONTROL_CATEGORIES
+                   else char for char in text)
