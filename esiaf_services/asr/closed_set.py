@@ -181,24 +181,22 @@ class ClosedSetDecoder:
         return self.model.model.align(encoded, self.start, tokens, [frames // 2] * len(tokens))
 
     def words(self, aligned, tokens: list[int], frames: int) -> list[Word]:
-        """The words of an aligned sentence, timed as faster-whisper times them (``find_alignment``)."""
-        words, word_tokens = self.tokenizer.split_to_word_tokens(tokens)
+        """The words of an aligned sentence, timed as faster-whisper times them (``find_alignment``:
+        a word starts where the alignment path first reaches its first token)."""
+        words, word_tokens = self.tokenizer.split_to_word_tokens([*tokens, self.tokenizer.eot])
         pairs = np.array(aligned.alignments, dtype=int).reshape(-1, 2)
         if len(word_tokens) <= 1 or not len(pairs):
             return []
         boundaries = np.pad(np.cumsum([len(t) for t in word_tokens[:-1]]), (1, 0))
         jumps = np.pad(np.diff(pairs[:, 0]), (1, 0), constant_values=1).astype(bool)
         times = pairs[:, 1][jumps] / self.model.tokens_per_second
+        if len(times) <= boundaries[-1]:  # the path missed a token: no timing to trust
+            return []
         probabilities = np.asarray(aligned.text_token_probs)
         end_s = frames / 100
-        out = []
-        for word, first, last in zip(words, boundaries[:-1], boundaries[1:], strict=False):
-            if not word.strip() or first >= len(times):
-                continue
-            start, end = float(times[first]), float(times[min(last, len(times) - 1)])
-            out.append(Word(word.strip(), min(start, end_s), min(end, end_s),
-                            float(np.mean(probabilities[first:last])) if last > first else 0.0))
-        return out
+        return [Word(word.strip(), min(float(times[first]), end_s), min(float(times[last]), end_s),
+                     float(np.mean(probabilities[first:last])))
+                for word, first, last in zip(words, boundaries[:-1], boundaries[1:], strict=False) if word.strip()]
 
 def logprob(probabilities) -> float:
     return float(np.sum(np.log(np.maximum(np.asarray(probabilities, dtype=np.float64), LOGPROB_FLOOR))))

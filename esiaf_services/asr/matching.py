@@ -37,7 +37,7 @@ ABBREVIATIONS = {"mr": "mister", "mrs": "missus", "dr": "doctor", "st": "saint",
                  "it's": "it is", "that's": "that is", "there's": "there is", "when's": "when is"}
 ORDINALS = {"one": "first", "two": "second", "three": "third", "five": "fifth", "eight": "eighth", "nine": "ninth",
             "twelve": "twelfth"}  # the rest: -y to -ieth, else + th
-MAX_SENTENCES = 100_000
+MAX_SENTENCES = 10_000  # each transcript is compared with every sentence: ~70 µs each here
 
 
 class GrammarError(ValueError):
@@ -114,6 +114,9 @@ class SentenceMatcher:
         if not sentences:
             raise GrammarError("no allowed sentences")
         self.sentences = list(dict.fromkeys(s.strip() for s in sentences if s.strip()))
+        if len(self.sentences) > MAX_SENTENCES:
+            raise GrammarError(f"{len(self.sentences)} sentences, more than the {MAX_SENTENCES} a closed set holds "
+                               "(each transcript is compared with every one)")
         self._normalised = [normalise(s) for s in self.sentences]
         self._letters = ["".join(words) for words in self._normalised]
         self.threshold, self.char_threshold = threshold, char_threshold

@@ -239,8 +239,17 @@ class Asr(Component):
         if result is None:  # too short to decode
             self.emit("speech", span, stream_id=stream_id, nothing="too short to decode")
             return
-        if not result.raw_text and not self.settings.unrecognised:
-            self.emit("speech", span, stream_id=stream_id, nothing=UNRECOGNISED)
+        if not result.in_set and result.no_speech_prob > self.settings.no_speech_threshold:
+            self.emit("speech", span, stream_id=stream_id,
+                      nothing=f"no speech (no-speech probability {result.no_speech_prob:.2f})")
+            return
+        if not result.in_set and not result.raw_text:  # nothing heard, and no sentence near enough
+            if self.settings.unrecognised:
+                empty = hypothesis("", 0.0)
+                empty.out_of_set = True
+                self.emit("speech", span, stream_id=stream_id, speech={"hypotheses": [empty]})
+            else:
+                self.emit("speech", span, stream_id=stream_id, nothing=UNRECOGNISED)
             return
         probabilities = result.posteriors()
         out = []
