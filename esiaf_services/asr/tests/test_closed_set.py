@@ -77,3 +77,39 @@ def test_a_set_of_more_sentences_than_the_cap_is_one_clear_error(tmp_path):
     with pytest.raises(GrammarError, match="100000 sentences, more than the 10000"):
         SentenceMatcher.from_file(path, 0.6)
     assert time.monotonic() - started < 30
+
+
+def test_the_service_reports_the_sentence_its_score_the_transcript_and_the_runner_up():
+    """The asr with whisper and a grammar: hypotheses are the shortlist, best first, each with its
+    log-probability; the first with the raw transcript, its words and its lead over the runner-up."""
+    pytest.importorskip("faster_whisper", reason="the asr-whisper extra is not installed (setup.sh installs it)")
+    from esiaf import Audio, AudioFormat
+    from esiaf_services.asr.service import Asr, AsrSettings
+    asr = Asr(AsrSettings(backend="whisper", grammar="robocup"))
+    asr.setup()
+    assert asr.info["scoring"] == "acoustic"
+    question = "How big is the RCMP?"
+    pcm = (np.clip(spoken(question, "slt"), -1, 1) * 32767).astype("<i2")
+    emitted: list = []
+    asr.emit = lambda kind, span, stream_id=None, **payload: emitted.append(payload)  # type: ignore[method-assign]
+    end_ns = len(pcm) * 1_000_000_000 // 16000
+    audio = Audio(topic="vad/speech", stream_id="s", publisher="vad", sequence=1, start_ns=0, end_ns=end_ns,
+                  format=AudioFormat(16000, "int16", channels=1), payload=pcm.tobytes())
+    audio.meta.segmentation_ended = True
+    audio.meta.segment.start_ns, audio.meta.segment.end_ns = 0, end_ns
+    asr.on_audio(audio)
+    asr.on_segment_end(audio)
+    first, second, *_ = emitted[0]["speech"]["hypotheses"]
+    assert normalise(first.text) == normalise(question) and not first.out_of_set and first.raw_text
+    assert first.logprob < 0 and first.raw_logprob < 0 and first.margin == pytest.approx(first.logprob - second.logprob)
+    assert second.text and second.logprob < first.logprob and first.probability > second.probability
+    assert first.words and first.words[-1].end_ns <= end_ns
+
+
+@pytest.mark.parametrize("setting, complaint", [({"scoring": "best"}, "unknown asr scoring 'best'"),
+                                                ({"shortlist": 0}, "shortlist must be at least 1")])
+def test_bad_scoring_settings_are_one_line(setting, complaint):
+    from esiaf import SetupError
+    from esiaf_services.asr.service import Asr, AsrSettings
+    with pytest.raises(SetupError, match=complaint):
+        Asr(AsrSettings(backend="whisper", grammar="robocup", **setting))
