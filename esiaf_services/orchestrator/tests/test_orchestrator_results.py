@@ -43,7 +43,8 @@ def test_speech_result_is_stored_and_published_fused(orch, component, http):
         "text": "go forward ten meters", "probability": 0.93,
         "words": [{"word": "go", "start_ns": START_NS, "end_ns": START_NS + 100_000_000,
                    "probability": 0.99}],
-        "raw_text": "", "match_score": 0.0, "out_of_set": False}]}  # no closed set: nothing matched
+        "raw_text": "", "match_score": 0.0, "out_of_set": False, "logprob": 0.0, "raw_logprob": 0.0,
+        "margin": 0.0}]}  # no closed set: nothing matched
     assert {k: v for k, v in fused.items() if k not in ("anchor", "published_ns")} == {
         "type": "fused_result", "id": 1, "revision": 1, "fusion": "speech",
         # the default fusion fuses ssl, emotion, gender and voice_id; none is running, so nothing waits
