@@ -89,10 +89,6 @@ class Registration:
                           results_endpoint=self.results_endpoint, component_id=self.component_id,
                           streams=self.streams)
 
-    def state(self) -> dict[str, Any]:
-        """:meth:`local_state` as a dict."""
-        return self.local_state().model_dump()
-
 
 def register(url: str, request: dict[str, Any], timeout_s: float,
              stopping: Callable[[], bool] = lambda: False) -> Registration:
