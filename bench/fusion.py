@@ -54,9 +54,9 @@ def register(orchestrator: Orchestrator, streams: int) -> tuple[str, dict[str, d
     recogniser, one ssl and one emotion service hearing every stream, as a deployment's services do
     (fusion waits for every live service of a fused type on every stream)."""
     endpoint, registrations = "", {}
-    for name, designation in (("asr", "speech"), ("ssl", "ssl"), ("emotion", "emotion")):
+    for name, kind in (("asr", "speech"), ("ssl", "ssl"), ("emotion", "emotion")):
         response = orchestrator.http.post("/components", json={
-            "name": name, "designation": designation,
+            "name": name, "kind": kind,
             "inputs": [{"topic": f"in/{i}", "format": FMT} for i in range(streams)]})
         response.raise_for_status()
         registrations[name] = response.json()

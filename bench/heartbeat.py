@@ -50,7 +50,7 @@ def clients(url: str, components: int, beats: int) -> None:
     context = zmq.Context()
     running = []
     for number in range(components):
-        request = {"name": f"vad{number}", "designation": "vad", "stream_id": "robot",
+        request = {"name": f"vad{number}", "kind": "vad", "stream_id": "robot",
                    "inputs": [{"topic": "audio/raw", "format": FORMAT}],
                    "outputs": [{"topic": f"vad{number}", "format": FORMAT}],
                    "audio_endpoint": f"tcp://127.0.0.1:{27900 + number}", "host": "bench", "info": {}}

@@ -91,7 +91,7 @@ class _FrontEnd:
         self.sequence = 0
         self.beamformer_cpu_s = 0.0
 
-    def _emit(self, result_type: str, span: tuple[int, int], *, stream_id: str | None = None, **payload: Any) -> None:
+    def _emit(self, kind: str, span: tuple[int, int], *, stream_id: str | None = None, **payload: Any) -> None:
         if "ssl" in payload:
             best = payload["ssl"].directions[0]
             self.frames.append((span[0], span[1], best.azimuth_deg, best.probability))

@@ -39,7 +39,7 @@ def one_run(repo: Path, port: int, count: int, profile: Path | None = None) -> d
     try:
         poll(lambda: httpx.get(f"{url}/health").status_code == 200, timeout_s=30)
         registration = httpx.post(f"{url}/components", json={
-            "name": "asr", "designation": "speech", "stream_id": "robot",
+            "name": "asr", "kind": "speech", "stream_id": "robot",
             "inputs": [{"topic": "audio/vad", "format": FORMAT}], "outputs": [], "host": "bench", "info": {}}).json()
         push = context.socket(zmq.PUSH)
         push.setsockopt(zmq.LINGER, 0)

@@ -27,7 +27,7 @@ __all__ = ["Component", "SetupError"]
 
 
 class Component(Processor):
-    """Subclass it, set ``service`` and ``designation``, declare topics, override handlers."""
+    """Subclass it, set ``service`` and ``kind``, declare topics, override handlers."""
 
     context: Context
 
@@ -73,9 +73,9 @@ class Component(Processor):
     def forward(self, topic: str, audio: Audio, **meta: Any) -> int:
         return self.context.forward(topic, audio, **meta)
 
-    def emit(self, result_type: str, span: tuple[int, int], *, stream_id: str | None = None,
+    def emit(self, kind: str, span: tuple[int, int], *, stream_id: str | None = None,
              **payload: Any) -> pb.Result:
-        return self.context.emit(result_type, span, stream_id=stream_id, **payload)
+        return self.context.emit(kind, span, stream_id=stream_id, **payload)
 
     def clock_ns(self) -> int:
         return self.context.clock_ns()

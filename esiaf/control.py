@@ -37,6 +37,18 @@ import zmq
 from esiaf import auth
 from esiaf.api_client import OrchestratorHTTP, transient, why
 from esiaf.clock import ClockEstimate
+from esiaf.control_messages import (
+    Ack,
+    BeatNow,
+    Fatal,
+    Heartbeat,
+    LocalState,
+    MessageError,
+    State,
+    Unknown,
+    encode,
+    parse_to_component,
+)
 from esiaf.keys import Curve
 from esiaf.transport import STATE_ADDRESS, keep_alive
 
@@ -71,10 +83,11 @@ class Registration:
     # is the full state); every heartbeat gives it back, and an unchanged state is answered with an ack
     state_version: int = 0
 
-    def state(self) -> dict[str, Any]:
-        return {"type": "state", "peers": self.peers, "formats": self.formats, "peer_keys": self.peer_keys,
-                "results_endpoint": self.results_endpoint, "component_id": self.component_id,
-                "streams": self.streams}
+    def local_state(self) -> LocalState:
+        """What the data thread is to connect to."""
+        return LocalState(peers=self.peers, formats=self.formats, peer_keys=self.peer_keys,
+                          results_endpoint=self.results_endpoint, component_id=self.component_id,
+                          streams=self.streams)
 
 
 def register(url: str, request: dict[str, Any], timeout_s: float,
@@ -128,14 +141,22 @@ def _jsonable(value: Any) -> Any:
 _ENCODER = json.JSONEncoder(default=_jsonable)  # one for every heartbeat: json.dumps(default=) makes one each call
 
 
-def _control_message(data: bytes) -> dict[str, Any]:
-    """A message from the orchestrator's control socket; {} (ignored) if it is not a JSON object."""
-    try:
-        message = json.loads(data)
-    except (ValueError, RecursionError):
-        log.warning("ignored a control message that is not JSON (%d bytes)", len(data))
-        return {}
-    return message if isinstance(message, dict) else {}
+@dataclass
+class _Pace:
+    """The heartbeat thread's clocks and flags (monotonic seconds; only that thread uses them)."""
+
+    last_heard: float  # when the orchestrator last sent anything
+    seen_activity: int  # ControlClient.busy()'s count at the last beat
+    quiet_since: float = field(init=False)  # since when there has been nothing to do
+    next_beat: float = 0.0
+    # the orchestrator answers every beat: silent for dead_after_s plus this (how much longer than the
+    # fast interval the beats since the last answer were) means it is gone
+    extra_silence_s: float = 0.0
+    poked: bool = True  # ControlClient.poke() (or a start): beat now
+    beat_now: bool = True  # the orchestrator asked, or a connection was made again: beat now
+
+    def __post_init__(self) -> None:
+        self.quiet_since = self.last_heard
 
 
 class ControlClient:
@@ -165,6 +186,8 @@ class ControlClient:
         self._slow = False
         self.interval_s = 0.0  # the interval the last heartbeat said it beats at
         self._monitor: zmq.Socket | None = None  # the DEALER's: connections made
+        self._polling = zmq.Poller()  # the DEALER, the wake pipe and the monitor
+        self.bad_messages = 0  # messages from the orchestrator that were not one (counted, logged, ignored)
         self._handshakes = 0  # ... on this DEALER
         self._quiet_s = 0.0  # quiet_for(): the data thread may hold the GIL this long; the beat says so
         self._quiet_said = threading.Event()
@@ -262,6 +285,7 @@ class ControlClient:
         self._monitor = dealer.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
         self._handshakes = 0
         dealer.connect(self._registered.control_endpoint)
+        self._polling = self._poller(dealer)
         return dealer
 
     def _close(self, dealer: zmq.Socket) -> None:
@@ -272,97 +296,116 @@ class ControlClient:
         dealer.close()
 
     def _run(self) -> None:
+        """The heartbeat thread: beat when due, wait for an answer, a poke or the next beat, apply what
+        came; register again when the orchestrator forgot us or fell silent."""
         state_out = self._context.socket(zmq.PAIR)
         state_out.setsockopt(zmq.LINGER, 0)
         state_out.connect(STATE_ADDRESS)
         dealer = self._dealer()
-        next_beat = 0.0
-        last_heard = quiet_since = time.monotonic()
-        seen_activity = self._activity
-        # the orchestrator answers every beat: silent for dead_after_s plus this (how much longer than the
-        # fast interval the beats since the last answer were) means it is gone
-        extra_silence_s = 0.0
-        poked = beat_now = True
-        poller: zmq.Poller | None = None
+        pace = _Pace(time.monotonic(), self._activity)
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
-                if now - last_heard > self._registered.dead_after_s + extra_silence_s:
-                    log.warning("orchestrator silent for %.1f s: registering again", now - last_heard)
-                    self._close(dealer)
-                    self._register_again(state_out)
-                    dealer = self._dealer()
-                    last_heard = next_beat = quiet_since = time.monotonic()
+                if now - pace.last_heard > self._registered.dead_after_s + pace.extra_silence_s:
+                    log.warning("orchestrator silent for %.1f s: registering again", now - pace.last_heard)
+                    dealer = self._renew(dealer, state_out, pace)
                     continue
-                if now >= next_beat or poked or beat_now:
-                    if poked or self._activity != seen_activity:
-                        seen_activity, quiet_since = self._activity, now
-                    self.interval_s = self._interval(now, quiet_since)
-                    extra_silence_s = max(extra_silence_s, self.interval_s - self._registered.heartbeat_interval_s)
-                    beat = {"type": "heartbeat", "component_id": self.component_id,
-                            "control_key": self._registered.control_key, "stats": self._stats(),
-                            "sent_ns": self._clock_ns(), "clock": self.clock.report(),
-                            "state_version": self._registered.state_version, "interval_s": self.interval_s}
-                    dealer.send(_ENCODER.encode(beat).encode())
-                    next_beat, beat_now = now + self.interval_s, False
-                    if not self._quiet_said.is_set():  # set() takes a lock and notifies, at every beat
-                        self._quiet_said.set()
-                # sleep until the next beat (or the orchestrator's silence deadline), a message or a poke
-                wait_s = max(0.0, min(next_beat, last_heard + self._registered.dead_after_s + extra_silence_s)
-                             - time.monotonic())
-                if poller is None or dealer not in poller:
-                    poller = self._poller(dealer)
-                ready = dict(poller.poll(timeout=max(1, round(wait_s * 1000))))
-                poked = self._wake_read in ready
-                if poked:
-                    os.read(self._wake_read, 4096)
-                if self._monitor is not None and self._monitor in ready:
-                    with contextlib.suppress(zmq.Again):
-                        while self._monitor.recv_multipart(zmq.NOBLOCK):
-                            self._handshakes += 1
-                            beat_now = beat_now or self._handshakes > 1  # again: the first took what was queued
-                if dealer not in ready:
-                    continue
-                try:
-                    message = _control_message(dealer.recv(zmq.NOBLOCK))
-                except zmq.Again:  # libzmq may say it is readable when it is not
-                    continue
-                received_ns = self._clock_ns()
-                last_heard = time.monotonic()
-                extra_silence_s = self.interval_s - self._registered.heartbeat_interval_s
-                echo, answered = message.get("echo_ns"), message.get("orchestrator_ns")
-                if type(echo) is int and type(answered) is int:
-                    self.clock.add(echo, answered, received_ns)
-                self._heard()
-                if message.get("type") == "state":  # the full state (an "ack": ours is still current)
-                    version = message.get("version")
-                    self._registered.state_version = version if type(version) is int else 0
-                    self._registered.peers = message.get("peers", {})
-                    self._registered.formats = message.get("formats", {})
-                    self._registered.peer_keys = message.get("peer_keys", {})
-                    self._registered.streams = message.get("streams")
-                    state_out.send(json.dumps(self._registered.state()).encode())
-                    quiet_since = last_heard  # a new state is something to do
-                    if self._slow:  # fast again, from a beat now
-                        next_beat = last_heard
-                elif message.get("type") == "beat_now":  # the orchestrator saw a connection of ours close
-                    beat_now = True
-                elif message.get("type") == "unknown":
-                    log.warning("orchestrator does not know component_id=%s: registering again", self.component_id)
-                    self._close(dealer)
-                    self._register_again(state_out)
-                    dealer = self._dealer()
-                    last_heard = next_beat = quiet_since = time.monotonic()
+                if now >= pace.next_beat or pace.poked or pace.beat_now:
+                    self._beat(dealer, pace, now)
+                if self._wait(dealer, pace):
+                    dealer = self._take(dealer, state_out, pace)
         except RegistrationError as exc:  # refused: the orchestrator will not have us any more
             log.error("%s", exc)
-            state_out.send(json.dumps({"type": "fatal", "error": str(exc)}).encode())
+            state_out.send(encode(Fatal(error=str(exc))))
         except Exception as exc:  # a bug here must not leave the component running unregistered
             log.exception("heartbeat thread failed")
-            state_out.send(json.dumps({"type": "fatal", "error": f"heartbeat thread failed: "
-                                                                 f"{type(exc).__name__}: {exc}"}).encode())
+            state_out.send(encode(Fatal(error=f"heartbeat thread failed: {type(exc).__name__}: {exc}")))
         finally:
             self._close(dealer)
             state_out.close()
+
+    def _beat(self, dealer: zmq.Socket, pace: _Pace, now: float) -> None:
+        """Sends a heartbeat, at the fast interval or (idle) the slow one."""
+        if pace.poked or self._activity != pace.seen_activity:
+            pace.seen_activity, pace.quiet_since = self._activity, now
+        self.interval_s = self._interval(now, pace.quiet_since)
+        pace.extra_silence_s = max(pace.extra_silence_s, self.interval_s - self._registered.heartbeat_interval_s)
+        beat = Heartbeat(component_id=self.component_id, control_key=self._registered.control_key,
+                         stats=self._stats(), sent_ns=self._clock_ns(), clock=self.clock.report(),
+                         state_version=self._registered.state_version, interval_s=self.interval_s)
+        # model_dump, not encode(): stats may hold numpy numbers (an analyser's info), which _ENCODER takes
+        dealer.send(_ENCODER.encode(beat.model_dump(exclude_none=True)).encode())
+        pace.next_beat, pace.beat_now = now + self.interval_s, False
+        if not self._quiet_said.is_set():  # set() takes a lock and notifies, at every beat
+            self._quiet_said.set()
+
+    def _wait(self, dealer: zmq.Socket, pace: _Pace) -> bool:
+        """Sleeps until the next beat (or the orchestrator's silence deadline), a message or a poke;
+        notes pokes and connections made again. True if the dealer has something to read."""
+        wait_s = max(0.0, min(pace.next_beat, pace.last_heard + self._registered.dead_after_s + pace.extra_silence_s)
+                     - time.monotonic())
+        ready = dict(self._polling.poll(timeout=max(1, round(wait_s * 1000))))
+        pace.poked = self._wake_read in ready
+        if pace.poked:
+            os.read(self._wake_read, 4096)
+        if self._monitor is not None and self._monitor in ready:
+            with contextlib.suppress(zmq.Again):
+                while self._monitor.recv_multipart(zmq.NOBLOCK):
+                    self._handshakes += 1
+                    pace.beat_now = pace.beat_now or self._handshakes > 1  # again: the first took what was queued
+        return dealer in ready
+
+    def _take(self, dealer: zmq.Socket, state_out: zmq.Socket, pace: _Pace) -> zmq.Socket:
+        """Takes one message from the orchestrator and acts on it; returns the dealer (a new one if it
+        registered again)."""
+        try:
+            data = dealer.recv(zmq.NOBLOCK)
+        except zmq.Again:  # libzmq may say it is readable when it is not
+            return dealer
+        received_ns = self._clock_ns()
+        pace.last_heard = time.monotonic()  # anything it sends is life, even what we cannot read
+        pace.extra_silence_s = self.interval_s - self._registered.heartbeat_interval_s
+        self._heard()
+        try:
+            message = parse_to_component(data)
+        except MessageError as exc:
+            self._bad(str(exc), len(data))
+            return dealer
+        if isinstance(message, (State, Ack)) and message.echo_ns is not None and message.orchestrator_ns is not None:
+            self.clock.add(message.echo_ns, message.orchestrator_ns, received_ns)
+        if isinstance(message, State):  # the full state (an Ack: ours is still current)
+            self._apply(message, state_out)
+            pace.quiet_since = pace.last_heard  # a new state is something to do
+            if self._slow:  # fast again, from a beat now
+                pace.next_beat = pace.last_heard
+        elif isinstance(message, BeatNow):  # the orchestrator saw a connection of ours close
+            pace.beat_now = True
+        elif isinstance(message, Unknown):
+            log.warning("orchestrator does not know component_id=%s: registering again", self.component_id)
+            return self._renew(dealer, state_out, pace)
+        return dealer
+
+    def _apply(self, state: State, state_out: zmq.Socket) -> None:
+        """Keeps a new state and hands it to the data thread."""
+        registration = self._registered
+        registration.state_version = state.version or 0
+        registration.peers, registration.formats = state.peers, {t: dict(f) for t, f in state.formats.items()}
+        registration.peer_keys, registration.streams = state.peer_keys or {}, state.streams
+        state_out.send(encode(registration.local_state()))
+
+    def _bad(self, reason: str, size: int) -> None:
+        """Counts a message from the orchestrator that is not one; logs the first and every 100th."""
+        self.bad_messages += 1
+        if self.bad_messages == 1 or self.bad_messages % 100 == 0:
+            log.warning("ignored a control message (%d bytes, count %d): %s", size, self.bad_messages, reason)
+
+    def _renew(self, dealer: zmq.Socket, state_out: zmq.Socket, pace: _Pace) -> zmq.Socket:
+        """Registers again, on a new connection; the pace starts afresh."""
+        self._close(dealer)
+        self._register_again(state_out)
+        dealer = self._dealer()
+        pace.last_heard = pace.next_beat = pace.quiet_since = time.monotonic()
+        return dealer
 
     def _poller(self, dealer: zmq.Socket) -> zmq.Poller:
         poller = zmq.Poller()
@@ -383,5 +426,5 @@ class ControlClient:
                 log.error("%s; still trying", exc)
                 continue
             log.info("registered again component_id=%s", self.component_id)
-            state_out.send(json.dumps(self._registered.state()).encode())
+            state_out.send(encode(self._registered.local_state()))
             return

@@ -43,6 +43,7 @@ from esiaf import binding, keys, per_stream, signals
 from esiaf.api_client import announce_stream
 from esiaf.audio import Audio
 from esiaf.control import ControlClient
+from esiaf.control_messages import Fatal, LocalState, parse_to_data_thread
 from esiaf.formats import AudioFormat, encode
 from esiaf.links import OutputLink, OutputStats
 from esiaf.processor import Processor, SetupError
@@ -158,11 +159,11 @@ class Context:
         input's declared format, must be in the output's declared format too."""
         return self.publish(topic, audio.payload, audio.start_ns, audio.end_ns, stream_id=audio.stream_id, **meta)
 
-    def emit(self, result_type: str, span: tuple[int, int], *, stream_id: str | None = None,
+    def emit(self, kind: str, span: tuple[int, int], *, stream_id: str | None = None,
              **payload: Any) -> pb.Result:
         """Sends a result to the orchestrator. ``payload`` is one of vad=, speech=, ssl=, ..., nothing=."""
         self.result_sequence += 1
-        result = make_result(self.settings.name, result_type, stream_id or self.settings.stream_id, span,
+        result = make_result(self.settings.name, kind, stream_id or self.settings.stream_id, span,
                              self.result_sequence, **payload)
         result.instance = self.processor.instance_id
         self._send_results(b"result", result.SerializeToString(), result.stream_id)
@@ -230,7 +231,7 @@ class Context:
             return [{"topic": t, "format": f.to_dict()} for t, f in declared.items()]
         processor = self.processor
         return {"name": self.settings.name, "instance": processor.instance_id, "incarnation": self.incarnation,
-                "designation": processor.designation, "stream_id": self.settings.stream_id,
+                "kind": processor.kind, "stream_id": self.settings.stream_id,
                 "inputs": topics(processor.inputs), "outputs": topics(processor.outputs),
                 "audio_endpoint": transport.audio_endpoint, "host": socket.gethostname(), "info": processor.info,
                 **({"audio_public_key": key} if (key := transport.audio_public_key) else {})}
@@ -331,18 +332,18 @@ class Context:
         self.control = ControlClient(self._zmq, settings.orchestrator_url, self.registration_request(transport),
                                      self.stats, settings.register_timeout_s, "",
                                      keys.load(orchestrator=False), self.clock_ns)
-        self.apply_formats(self.control.start().state().get("formats", {}))
+        self.apply_formats(self.control.start().local_state().formats)
         log.info("hosting guest=%s component_id=%s", name, self.control.component_id)
 
     def _watch(self, state: zmq.Socket, node: Node) -> None:
         try:
             while True:
-                message = json.loads(state.recv())
-                if message.get("type") == "fatal":  # the orchestrator will not have it: stop, as it would alone
-                    log.error("guest %s stopping the node: %s", self.processor.service, message.get("error"))
+                message = parse_to_data_thread(state.recv())  # our own heartbeat thread's: a bug if refused
+                if isinstance(message, Fatal):  # the orchestrator will not have it: stop, as it would alone
+                    log.error("guest %s stopping the node: %s", self.processor.service, message.error)
                     node.stop(exit_code=1)
-                elif isinstance(message.get("formats"), dict):
-                    self._formats.put(message["formats"])  # applied on the data thread, at the next message
+                else:
+                    self._formats.put(message.formats)  # applied on the data thread, at the next message
         except zmq.ContextTerminated:
             pass
         finally:
@@ -458,7 +459,7 @@ class Node:
                                             primary.clock_ns)
             self.transport.on_busy = primary.control.busy  # audio or results moving: the heartbeat stays fast
             registration = primary.control.start()
-            self._apply_state(registration.state())
+            self._apply_state(registration.local_state())
             if processor.produces():
                 processor.produce()
             else:  # a consumer: sleeps until input, a control message or stop() wakes it
@@ -530,17 +531,16 @@ class Node:
         """The processor whose output ``topic`` is (a hosted one's first), if any."""
         return next((c for c in [*self.contexts[1:], self.primary] if topic in c.output_stats), None)
 
-    def _apply_state(self, state: dict[str, Any]) -> None:
-        if state.get("type") == "fatal":
-            log.error("stopping: %s", state.get("error"))
+    def _apply_state(self, state: LocalState | Fatal) -> None:
+        if isinstance(state, Fatal):
+            log.error("stopping: %s", state.error)
             self.stop(exit_code=1)
             return
         wire = self._wire
-        wire.connect_peers({e for endpoints in state.get("peers", {}).values() for e in endpoints},
-                           state.get("peer_keys", {}))
-        wire.connect_results(state.get("results_endpoint", ""))
-        wire.take_streams(state.get("streams"))
-        self.primary.apply_formats(state.get("formats", {}))
+        wire.connect_peers({e for endpoints in state.peers.values() for e in endpoints}, state.peer_keys)
+        wire.connect_results(state.results_endpoint)
+        wire.take_streams(state.streams)
+        self.primary.apply_formats(state.formats)
         if not self._hosted_started and not self.stopping:  # the first state: registered, sockets made
             self._hosted_started = True
             for context in self.contexts[1:]:

@@ -13,6 +13,7 @@ subclass :class:`esiaf.Component`, a processor with the context's actions as its
 """
 from __future__ import annotations
 
+import logging
 import uuid
 from collections.abc import Iterable
 from typing import Any, ClassVar, Protocol
@@ -22,6 +23,7 @@ import numpy as np
 from esiaf.audio import Audio
 from esiaf.formats import AudioFormat
 from esiaf.proto import esiaf_pb2 as pb
+from esiaf.results import valid_kind
 from esiaf.settings import ComponentSettings
 
 
@@ -44,7 +46,7 @@ class ProcessorContext(Protocol):
 
     def forward(self, topic: str, audio: Audio, **meta: Any) -> int: ...
 
-    def emit(self, result_type: str, span: tuple[int, int], *, stream_id: str | None = None,
+    def emit(self, kind: str, span: tuple[int, int], *, stream_id: str | None = None,
              **payload: Any) -> pb.Result: ...
 
     def clock_ns(self) -> int: ...
@@ -61,18 +63,33 @@ class ProcessorContext(Protocol):
 
     def stats(self) -> dict[str, Any]: ...
 
+log = logging.getLogger(__name__)
+
 
 class SetupError(Exception):
     """A component could not be configured (model missing, device unknown...)."""
 
 
 class Processor:
-    """Subclass it, set ``service`` and ``designation``, declare topics, override handlers."""
+    """Subclass it, set ``service`` and ``kind``, declare topics, override handlers."""
 
     service: ClassVar[str] = "component"
-    designation: ClassVar[str] = "other"  # the kind of result produced, or "other"
+    kind: ClassVar[str] = "other"  # the kind of result it produces (e.g. "emotion", "rate"), or "other": none
+    # kind's old name: read, it is kind; a subclass that sets it (not kind) still works until the next
+    # release, with a deprecation line
+    designation: ClassVar[str] = "other"
     Settings: ClassVar[type[ComponentSettings]] = ComponentSettings
     options: ClassVar[dict[str, str]] = {}  # settings that get a command-line flag: name -> help
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "designation" in cls.__dict__ and "kind" not in cls.__dict__:
+            log.warning("%s sets designation = %r: its name is kind now (designation is read until the next "
+                        "release)", cls.__name__, cls.designation)
+            cls.kind = cls.designation
+        if cls.kind != "other" and not valid_kind(cls.kind):
+            raise TypeError(f"{cls.__name__}.kind {cls.kind!r} is not a kind name (lower case, digits, _)")
+        cls.designation = cls.kind
 
     def __init__(self, settings: ComponentSettings):
         self.settings = settings

@@ -53,25 +53,25 @@ def ssl_direction(azimuth_deg: float, elevation_deg: float = 0.0, probability: f
                            probability=probability)
 
 
-def make_result(component: str, result_type: str, stream_id: str, span: tuple[int, int], sequence: int,
+def make_result(component: str, kind: str, stream_id: str, span: tuple[int, int], sequence: int,
                 **payload: Any) -> pb.Result:
-    """One Result of kind ``result_type``. ``payload`` holds exactly one of: the built-in kind's
+    """One Result of kind ``kind``. ``payload`` holds exactly one of: the built-in kind's
     payload (vad=, speech=, ssl=, emotion=, gender=, voice_id=: a message or a dict of its
     fields); for any other kind, generic= (or the kind's own name) with a GenericResult or the
     keyword arguments of :func:`generic`; or nothing= (a reason string): "covered, no result"."""
-    built_in = result_type in PB_RESULT_TYPE
-    if not built_in and not valid_kind(result_type):
-        raise ValueError(f"bad result kind {result_type!r}: a name like 'rate' ({KIND_PATTERN})")
-    allowed = (result_type, "nothing") if built_in else (result_type, "generic", "nothing")
+    built_in = kind in PB_RESULT_TYPE
+    if not built_in and not valid_kind(kind):
+        raise ValueError(f"bad result kind {kind!r}: a name like 'rate' ({KIND_PATTERN})")
+    allowed = (kind, "nothing") if built_in else (kind, "generic", "nothing")
     if len(payload) != 1 or next(iter(payload)) not in allowed:
-        raise ValueError(f"a {result_type} result needs exactly one payload of {', '.join(allowed)}, "
+        raise ValueError(f"a {kind} result needs exactly one payload of {', '.join(allowed)}, "
                          f"got {list(payload)}")
     start_ns, end_ns = span
     if end_ns < start_ns:
         raise ValueError(f"result span ends before it starts: {start_ns} > {end_ns}")
-    result = pb.Result(component=component, type=PB_RESULT_TYPE.get(result_type, pb.RESULT_TYPE_GENERIC),
+    result = pb.Result(component=component, type=PB_RESULT_TYPE.get(kind, pb.RESULT_TYPE_GENERIC),
                        stream_id=stream_id, span=pb.Span(start_ns=start_ns, end_ns=end_ns),
-                       produced_ns=time.time_ns(), sequence=sequence, kind="" if built_in else result_type)
+                       produced_ns=time.time_ns(), sequence=sequence, kind="" if built_in else kind)
     (key, value), = payload.items()
     if not built_in and key != "nothing":
         result.generic.CopyFrom(value if isinstance(value, pb.GenericResult) else generic(**value))

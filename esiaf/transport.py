@@ -22,7 +22,6 @@ One thread uses a Transport: the component's data thread.
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import os
 import re
@@ -37,6 +36,7 @@ from zmq.auth.thread import ThreadAuthenticator
 from zmq.utils.monitor import recv_monitor_message
 
 from esiaf import auth, keys
+from esiaf.control_messages import parse_to_data_thread
 from esiaf.frames import recv_frames, send_frames, topic_frame, topic_name  # topic_*: here of old
 
 if TYPE_CHECKING:
@@ -211,7 +211,7 @@ class Transport:
         return self._curve.public.decode() if self._curve is not None and self.pub is not None else None
 
     def events(self, timeout_ms: float, take_audio: bool = True) -> Iterator[tuple[str, Any]]:
-        """What is ready, waiting up to ``timeout_ms`` for the first: ("state", dict),
+        """What is ready, waiting up to ``timeout_ms`` for the first: ("state", LocalState | Fatal),
         ("subscription", (topic, +1 | -1)), ("refused", reason) for a subscriber refused at the
         handshake (with CURVE keys) and, if ``take_audio``, ("audio", frames)."""
         if self._leaving and take_audio:
@@ -226,7 +226,7 @@ class Transport:
                     self._reload_keys()
             # libzmq may say a socket is readable when it is not: each is read without blocking
             if self.state in ready and (frame := _take(self.state)) is not None:
-                yield "state", json.loads(frame)
+                yield "state", parse_to_data_thread(frame)  # our own heartbeat thread's: a bug if refused
             if self.pub is not None and self.pub in ready and (frame := _take(self.pub)) is not None:
                 yield "subscription", (topic_name(frame[1:]), 1 if frame[:1] == b"\x01" else -1)
             if self._refusals is not None and self._refusals in ready and (

@@ -44,7 +44,7 @@ from esiaf.hosting import HostSettings
 from esiaf.per_stream import PerStream
 from esiaf.processor import Processor, SetupError
 from esiaf.proto import esiaf_pb2 as pb
-from esiaf.results import LABEL_PAYLOADS, valid_kind
+from esiaf.results import LABEL_PAYLOADS
 from esiaf.settings import ComponentSettings
 
 log = logging.getLogger(__name__)
@@ -88,17 +88,12 @@ class _Collecting:
 class UtteranceAnalyser(Processor):
     """Base of every utterance analyser: implement :meth:`analyse`."""
 
-    kind: ClassVar[str] = "other"  # the kind of result it produces, e.g. "emotion" or "rate"
     Settings: ClassVar[type[ComponentSettings]] = UtteranceSettings
     settings: UtteranceSettings  # an instance of Settings: its fields, for type checkers
     _two_argument_analyse: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        if cls.kind != "other":
-            if not valid_kind(cls.kind):
-                raise TypeError(f"{cls.__name__}.kind {cls.kind!r} is not a kind name (lower case, digits, _)")
-            cls.designation = cls.kind
         # analyse(samples, rate), the form of earlier releases: told apart by its signature
         cls._two_argument_analyse = len(inspect.signature(cls.analyse).parameters) == 3
 
@@ -171,10 +166,10 @@ class UtteranceAnalyser(Processor):
                  samples.size / rate, self.kind, found.get("label", found.get("value", "")),
                  1000 * (time.process_time() - started))
 
-    def emit(self, result_type: str, span: tuple[int, int], *, stream_id: str | None = None,
+    def emit(self, kind: str, span: tuple[int, int], *, stream_id: str | None = None,
              **payload: Any) -> pb.Result:
         """Sends one utterance's result through the context (a handler test may put a list's append here)."""
-        return self._context().emit(result_type, span, stream_id=stream_id, **payload)
+        return self._context().emit(kind, span, stream_id=stream_id, **payload)
 
     def _analyse(self, utterance: Utterance) -> dict[str, Any]:
         if self._two_argument_analyse:

@@ -17,7 +17,7 @@ from esiaf.tools.testing import REPO, free_port, poll, refused_peers
 
 TOKEN = "s3cret-token-for-the-test"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
-BODY = {"name": "asr", "designation": "speech"}
+BODY = {"name": "asr", "kind": "speech"}
 
 
 @pytest.fixture

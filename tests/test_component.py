@@ -36,7 +36,7 @@ class Source(Component):
 
 class Sink(Component):
     service = "sink"
-    designation = "vad"
+    kind = "vad"
 
     def __init__(self, settings):
         super().__init__(settings)
@@ -85,6 +85,17 @@ def run_on(source, step):
     done = threading.Event()
     source.script.append(lambda c: (step(c), done.set()))
     return done
+
+
+def test_designation_the_old_name_of_kind_still_works_with_a_deprecation_line(caplog):
+    assert Sink.designation == "vad"  # read: it is kind
+    with caplog.at_level("WARNING", logger="esiaf.processor"):
+        class Old(Component):
+            designation = "speech"
+    assert Old.kind == Old.designation == "speech" and "designation" in caplog.text
+    with pytest.raises(TypeError, match="not a kind name"):
+        class Bad(Component):
+            kind = "Not a kind!"
 
 
 def test_audio_arrives_with_capture_times_and_contiguous_sequence_numbers(pair, orchestrator):

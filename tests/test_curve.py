@@ -106,7 +106,7 @@ def refusals(orchestrator, socket: str, *reasons: str) -> float:
 
 
 def test_peers_without_keys_or_with_unknown_keys_are_refused_and_counted(curved, curve_dir):
-    registration = curved.http.post("/components", json={"name": "asr", "designation": "speech"}).json()
+    registration = curved.http.post("/components", json={"name": "asr", "kind": "speech"}).json()
     server_key = zmq.auth.load_certificate(curve_dir / "orchestrator.key")[0]
     rogue_public, rogue_secret = zmq.curve_keypair()
     member_public, member_secret = keys.key_pair(curve_dir / "sink.key_secret")
@@ -145,7 +145,7 @@ def test_peers_without_keys_or_with_unknown_keys_are_refused_and_counted(curved,
 
 
 def test_a_registration_is_bound_to_the_curve_key_of_its_first_heartbeat(curved, curve_dir):
-    registration = curved.http.post("/components", json={"name": "asr", "designation": "speech"}).json()
+    registration = curved.http.post("/components", json={"name": "asr", "kind": "speech"}).json()
     server_key = zmq.auth.load_certificate(curve_dir / "orchestrator.key")[0]
     beat = json.dumps({"type": "heartbeat", "component_id": registration["component_id"],
                        "control_key": registration["control_key"], "stats": {}}).encode()
@@ -174,7 +174,7 @@ def test_a_registration_is_bound_to_the_curve_key_of_its_first_heartbeat(curved,
 def test_results_are_bound_to_the_curve_key_of_the_registration(curved, curve_dir):
     """A result with the right MAC but from another allowed CURVE key than the one the
     registration is bound to (its first heartbeat's) is refused; the owner's is stored."""
-    registration = curved.http.post("/components", json={"name": "asr", "designation": "speech"}).json()
+    registration = curved.http.post("/components", json={"name": "asr", "kind": "speech"}).json()
     server_key = zmq.auth.load_certificate(curve_dir / "orchestrator.key")[0]
     context = zmq.Context()
     try:
@@ -211,7 +211,7 @@ def test_a_new_robots_key_is_let_in_on_sighup_without_a_restart(curved, curve_di
     assert make_keys(tmp_path / "later", "robot2").returncode == 0  # made on the new robot, not yet allowed
     pair = keys.key_pair(tmp_path / "later" / "robot2.key_secret")
     server_key = zmq.auth.load_certificate(curve_dir / "orchestrator.key")[0]
-    registration = curved.http.post("/components", json={"name": "asr", "designation": "speech"}).json()
+    registration = curved.http.post("/components", json={"name": "asr", "kind": "speech"}).json()
     context = zmq.Context()
     kept = []  # open until the end: a socket closed at once may end before its handshake
 

@@ -203,7 +203,7 @@ def test_after_an_orchestrator_restart_the_page_reconnects_and_replays_what_it_m
     from esiaf_services.orchestrator.tests.helpers import FakeComponent, component_body
     context = zmq.Context()
     try:
-        asr = FakeComponent(context, orchestrator.http, component_body("asr", designation="speech"))
+        asr = FakeComponent(context, orchestrator.http, component_body("asr", kind="speech"))
         browser.get(f"{orchestrator.url}/")
         poll(lambda: page_state(browser)["connection"] == "live", timeout_s=10)
         asr.send_result(stream_id="s1", text="go forward")
@@ -217,7 +217,7 @@ def test_after_an_orchestrator_restart_the_page_reconnects_and_replays_what_it_m
         # the page cannot come back yet (Network.setBlockedURLs let a websocket through now and then)
         browser.execute_cdp_cmd("Network.emulateNetworkConditions", dict(NETWORK, offline=True))
         orchestrator.start()
-        asr = FakeComponent(context, orchestrator.http, component_body("asr", designation="speech"))
+        asr = FakeComponent(context, orchestrator.http, component_body("asr", kind="speech"))
         asr.send_result(stream_id="s1", start_ns=3_000_000_000, end_ns=4_000_000_000, text="turn left")
         poll(lambda: len(orchestrator.http.get("/fused").json()["items"]) == 2, timeout_s=10)
         assert page_state(browser)["connection"] == "reconnecting"  # published while the page was away
@@ -241,7 +241,7 @@ def test_a_revision_replaces_its_older_version_and_the_stream_filter_filters(tmp
     orchestrator = Orchestrator(tmp_path, config={"timeouts": {"initial_s": 0.3}})
     context = zmq.Context()
     try:
-        asr, ssl = (FakeComponent(context, orchestrator.http, component_body(name, designation=kind))
+        asr, ssl = (FakeComponent(context, orchestrator.http, component_body(name, kind=kind))
                     for name, kind in (("asr", "speech"), ("ssl", "ssl")))
         beating = Heartbeater([asr, ssl])
         browser.get(f"{orchestrator.url}/")

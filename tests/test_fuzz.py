@@ -45,7 +45,7 @@ def valid_result(i: int, stream: str = "fuzz") -> pb.Result:
 
 def test_results_and_control_sockets_survive_10000_fuzzed_frames(orchestrator):
     rng = random.Random(SEED)
-    registration = orchestrator.http.post("/components", json={"name": "asr", "designation": "speech"}).json()
+    registration = orchestrator.http.post("/components", json={"name": "asr", "kind": "speech"}).json()
     context = zmq.Context()
     push, dealer = context.socket(zmq.PUSH), context.socket(zmq.DEALER)
     for sock in (push, dealer):

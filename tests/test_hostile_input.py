@@ -94,7 +94,7 @@ def test_a_bad_endpoint_is_never_connected_and_never_fatal(endpoint):
 
 @pytest.mark.parametrize("endpoint", ["foo://x", "tcp://127.0.0.1:0", "tcp://127.0.0.1:70000", "tcp://a b:1"])
 def test_a_registration_with_a_bad_endpoint_gets_422_naming_the_field(orchestrator, endpoint):
-    body = {"name": "forger", "designation": "other", "audio_endpoint": endpoint,
+    body = {"name": "forger", "kind": "other", "audio_endpoint": endpoint,
             "outputs": [{"topic": "vad/speech", "format": {"sample_rate_hz": 16000, "sample_type": "int16",
                                                            "channels": 1}}]}
     response = orchestrator.http.post("/components", json=body)
@@ -103,7 +103,7 @@ def test_a_registration_with_a_bad_endpoint_gets_422_naming_the_field(orchestrat
 
 
 def test_oversized_registrations_are_refused(orchestrator):
-    body = {"name": "big", "designation": "other", "info": {"blob": "x" * 100_000}}
+    body = {"name": "big", "kind": "other", "info": {"blob": "x" * 100_000}}
     response = orchestrator.http.post("/components", json=body)
     assert response.status_code == 422 and "info is" in response.text
     body["info"] = {"blob": "x" * 50_000_000}  # 50 MB: refused before it is parsed

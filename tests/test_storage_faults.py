@@ -34,7 +34,7 @@ def small_disk(tmp_path):
 
 class Pusher:
     def __init__(self, orchestrator):
-        body = {"name": "asr", "designation": "speech"}
+        body = {"name": "asr", "kind": "speech"}
         registration = self.registration = orchestrator.http.post("/components", json=body).json()
         self.context = zmq.Context()
         self.push = self.context.socket(zmq.PUSH)

@@ -59,7 +59,7 @@ def test_components_register_over_https_and_the_feed_follows_over_wss(secure):
     sink, thread = start(Sink, secure.url)  # the SDK's registration and heartbeats
     try:
         poll(lambda: secure.component("sink"), timeout_s=20)
-        registration = secure.http.post("/components", json={"name": "asr", "designation": "speech"}).json()
+        registration = secure.http.post("/components", json={"name": "asr", "kind": "speech"}).json()
         with FusedFeed(f"{secure.ws_url}/ws/fused") as feed:
             context = zmq.Context()
             try:

@@ -132,7 +132,7 @@ def test_the_hosted_vad_cuts_and_forwards_what_the_vad_in_its_own_process_does(t
     # hosted: one process, two services, each under its own name and id, with its own heartbeat and info
     vad, grabber = together["vad"], together["grabber"]
     assert vad["pid"] == grabber["pid"] and vad["component_id"] != grabber["component_id"]
-    assert vad["component_id"].startswith("vad") and vad["designation"] == "vad"
+    assert vad["component_id"].startswith("vad") and vad["kind"] == "vad"
     assert grabber["info"]["guests"] == ["vad"]
     assert vad["audio_endpoint"] == grabber["audio_endpoint"]  # vad/speech leaves by the grabber's socket
     assert vad["info"]["backend"] == "silero"  # its own info, as it registered

@@ -118,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
         if replicas:
             reserve_streams(client, supervisor, pipeline, ids, on_speech)
         if plugins:
-            with_kinds = ", ".join(f"{n} ({c['designation']})" for n, c in registered.items())
+            with_kinds = ", ".join(f"{n} ({c['kind']})" for n, c in registered.items())
             err(f"esiaf: with {with_kinds}")
         log.info("services: %s", ", ".join(pipeline.services))
         for name, count in replicas.items():
@@ -303,7 +303,7 @@ def wait_for_registration(client: OrchestratorClient, supervisor: Supervisor, se
     registered = {name: wait_until(functools.partial(client.by_pid, child.process.pid), supervisor,
                                    f"{name} (--with) to register", START_TIMEOUT_S, child)
                   for name, child in plugins.items()}
-    kinds = dict.fromkeys(component["designation"] for component in registered.values())  # in order, once
+    kinds = dict.fromkeys(component["kind"] for component in registered.values())  # in order, once
     fuse_kinds(client, [kind for kind in kinds if kind != "other"])
     return registered
 

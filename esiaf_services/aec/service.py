@@ -73,7 +73,7 @@ class EchoCanceller(Component):
     """Cancels the loudspeaker's echo (``player/audio``) from each microphone channel."""
 
     service = "aec"
-    designation = "other"
+    kind = "other"
     Settings = AecSettings
     settings: AecSettings  # an instance of Settings: its fields, for type checkers
     options: ClassVar[dict[str, str]] = {"backend": "speex (default) or webrtc (AEC3)",

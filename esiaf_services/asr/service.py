@@ -79,7 +79,7 @@ class Asr(Component):
     """Speech recogniser (pocketsphinx, streaming, n-best; or Whisper per segment), one decoder per stream."""
 
     service = "asr"
-    designation = "speech"
+    kind = "speech"
     Settings = AsrSettings
     settings: AsrSettings  # an instance of Settings: its fields, for type checkers
 

@@ -73,7 +73,7 @@ class Beamformer(Component):
     """Steers the microphone array at the tracked talker (MVDR or delay-and-sum)."""
 
     service = "beamformer"
-    designation = "other"
+    kind = "other"
     Settings = BeamformerSettings
     settings: BeamformerSettings  # an instance of Settings: its fields, for type checkers
     options: ClassVar[dict[str, str]] = {"array": ARRAY_CHOICES,

@@ -44,7 +44,7 @@ class Grabber(Component):
     """Plays a file or captures an ALSA device into an audio topic."""
 
     service = "grabber"
-    designation = "other"
+    kind = "other"
     Settings = GrabberSettings
     settings: GrabberSettings  # an instance of Settings: its fields, for type checkers
 

@@ -219,7 +219,7 @@ class Orchestrator:
             log.critical("event=task_failed task=%s", task.get_name(), exc_info=task.exception())
 
     # what the REST API does
-    async def register(self, *, name: str, designation: str, stream_id: str,
+    async def register(self, *, name: str, kind: str, stream_id: str,
                        inputs: dict[str, Format], outputs: dict[str, Format],
                        audio_endpoint: str | None, host: str, pid: int | None,
                        info: dict[str, Any], audio_public_key: str | None = None,
@@ -227,15 +227,15 @@ class Orchestrator:
         """Registers an instance (raises registry.TopicConflict, registry.InstanceConflict) and
         tells the others."""
         component, replaced = self.registry.register(
-            name=name, designation=designation, stream_id=stream_id, inputs=inputs,
+            name=name, kind=kind, stream_id=stream_id, inputs=inputs,
             outputs=outputs, audio_endpoint=audio_endpoint, host=host, pid=pid, info=info,
             audio_public_key=audio_public_key, instance=instance, incarnation=incarnation)
         self._liveness_news.set()
         if replaced is not None:
             log.info("event=component_registered_again component_id=%s name=%s", component.component_id, name)
-        log.info("event=component_registered component_id=%s name=%s designation=%s stream_id=%s "
+        log.info("event=component_registered component_id=%s name=%s kind=%s stream_id=%s "
                  "inputs=%s outputs=%s audio_endpoint=%s host=%s pid=%s",
-                 component.component_id, name, designation, stream_id,
+                 component.component_id, name, kind, stream_id,
                  ",".join(inputs) or "-", ",".join(outputs) or "-", audio_endpoint or "-",
                  host or "-", pid if pid is not None else "-")
         await self._after_change([])  # nothing stops waiting for anyone

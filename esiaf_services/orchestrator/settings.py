@@ -15,7 +15,7 @@ from .registry.negotiation import Strategy
 
 SERVICE = "orchestrator"
 
-# Result kinds a component can produce (its designation; "other" produces none): the built-in
+# Result kinds a component can produce (its kind; "other" produces none): the built-in
 # ones of the proto, and any other name (an analyser in its own folder), e.g. "rate".
 ResultTypeName = Annotated[str, Field(pattern=KIND_PATTERN, examples=list(RESULT_TYPES),
                                       description="a result kind: built in (" + ", ".join(RESULT_TYPES)

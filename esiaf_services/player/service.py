@@ -68,7 +68,7 @@ class Player(Component):
     """Plays sound files and flite sentences; publishes what it plays on player/audio."""
 
     service = "player"
-    designation = "other"
+    kind = "other"
     Settings = PlayerSettings
     settings: PlayerSettings  # an instance of Settings: its fields, for type checkers
     options: ClassVar[dict[str, str]] = {"device": "ALSA playback device (see aplay -L)",

@@ -35,7 +35,7 @@ class Splitter(Component):
     """Splits a multi-channel topic into mono topics splitter/ch{i}."""
 
     service = "splitter"
-    designation = "other"
+    kind = "other"
     Settings = SplitterSettings
     settings: SplitterSettings  # an instance of Settings: its fields, for type checkers
     options: ClassVar[dict[str, str]] = {

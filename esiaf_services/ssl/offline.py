@@ -46,7 +46,7 @@ def localise(signals: np.ndarray, sample_rate_hz: int, chunk_ms: float = 20.0,
     ssl.setup()
     frames: list[Frame] = []
 
-    def emit(result_type, span, stream_id=None, **payload):
+    def emit(kind, span, stream_id=None, **payload):
         start_s, end_s = span[0] / NS, span[1] / NS
         if "nothing" in payload:
             frames.append(Frame(start_s, end_s, None))

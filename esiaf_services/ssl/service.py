@@ -73,7 +73,7 @@ class Ssl(Component):
     """Sound source localisation on a microphone array (pyroomacoustics DOA), with tracking."""
 
     service = "ssl"
-    designation = "ssl"
+    kind = "ssl"
     Settings = SslSettings
     settings: SslSettings  # an instance of Settings: its fields, for type checkers
     options: ClassVar[dict[str, str]] = {

@@ -59,7 +59,7 @@ class Vad(Component):
     """Voice activity detector: Silero VAD, or ESIAF's original double-threshold segmenter."""
 
     service = "vad"
-    designation = "vad"
+    kind = "vad"
     Settings = VadSettings
     settings: VadSettings  # an instance of Settings: its fields, for type checkers
     options: ClassVar[dict[str, str]] = {

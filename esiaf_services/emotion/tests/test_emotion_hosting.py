@@ -86,7 +86,7 @@ def test_a_guest_gives_the_same_results_as_its_own_process_and_the_features_are_
     # hosted: one process, two services; the features of each utterance computed once, and reused once
     assert together["emotion"]["pid"] == together["gender"]["pid"]
     assert together["emotion"]["stats"]["info"]["guests"] == ["gender"]
-    assert together["gender"]["designation"] == "gender" and together["gender"]["component_id"].startswith("gender")
+    assert together["gender"]["kind"] == "gender" and together["gender"]["component_id"].startswith("gender")
     assert together["gender"]["stats"]["info"]["model"] == "gender"
     for name in ("emotion", "gender"):
         assert together[name]["stats"]["info"]["features"] == {FEATURES: {"computed": analysed, "reused": analysed}}

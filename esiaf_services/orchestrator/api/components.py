@@ -27,7 +27,7 @@ def _declarations(topics: dict) -> list[TopicDeclaration]:
 def component_info(component: Component) -> ComponentInfo:
     return ComponentInfo(
         component_id=component.component_id, name=component.name,
-        designation=component.designation, stream_id=component.stream_id,
+        kind=component.kind, designation=component.kind, stream_id=component.stream_id,
         status=component.status, inputs=_declarations(component.inputs),
         outputs=_declarations(component.outputs), audio_endpoint=component.audio_endpoint,
         audio_public_key=component.audio_public_key, host=component.host, pid=component.pid, info=component.info,
@@ -48,7 +48,7 @@ async def register(request: RegisterRequest,
                    core: Orchestrator = Depends(get_core)) -> RegisterResponse:
     try:
         component = await core.register(
-            name=request.name, designation=request.designation, stream_id=request.stream_id,
+            name=request.name, kind=request.kind, stream_id=request.stream_id,
             inputs={d.topic: d.format.model_dump() for d in request.inputs},
             outputs={d.topic: d.format.model_dump() for d in request.outputs},
             audio_endpoint=request.audio_endpoint, host=request.host, pid=request.pid,
@@ -67,8 +67,8 @@ async def register(request: RegisterRequest,
         results_endpoint=core.results_endpoint,
         heartbeat_interval_s=core.settings.heartbeat_interval_s,
         dead_after_s=core.settings.dead_after_s, idle_heartbeat_interval_s=core.settings.idle_heartbeat_interval_s,
-        peers=state["peers"], formats=state["formats"],
-        peer_keys=state.get("peer_keys", {}), streams=state.get("streams"))
+        peers=state.peers, formats=state.formats,
+        peer_keys=state.peer_keys or {}, streams=state.streams)
 
 
 @router.get("/components", response_model=ComponentList,

@@ -2,19 +2,23 @@
 from __future__ import annotations
 
 import json
+import logging
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictInt, field_validator, model_validator
 
 from esiaf.results import KIND_PATTERN, RESULT_TYPES
 
+from ..fusion.models import FusedResult, Result
 from ..settings import FusionSettings
+
+log = logging.getLogger(__name__)
 
 SampleType = Literal["int8", "uint8", "int16", "uint16", "int24", "uint24", "int32", "uint32",
                      "float32", "float64"]
-Designation = Annotated[str, Field(pattern=KIND_PATTERN, examples=[*RESULT_TYPES, "other"],
-                                   description="the result kind it produces (built in, or any name "
-                                               "like 'rate'); other: none")]
+Kind = Annotated[str, Field(pattern=KIND_PATTERN, examples=[*RESULT_TYPES, "other"],
+                            description="the result kind it produces (built in, or any name like 'rate'); "
+                                        "other: none")]
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]*$"
 MAX_INFO_BYTES = 64 * 1024  # a registration's info, as JSON
 CURVE_KEY_PATTERN = r"^[0-9A-Za-z.\-:+=^!/*?&<>()\[\]{}@%$#]{40}$"  # a CURVE public key in Z85
@@ -44,7 +48,7 @@ _EXAMPLE_FORMAT: dict[str, Any] = {"sample_rate_hz": 16000, "sample_type": "int1
 
 class RegisterRequest(Strict):
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
-        "name": "vad", "designation": "vad", "stream_id": "default",
+        "name": "vad", "kind": "vad", "stream_id": "default",
         "inputs": [{"topic": "audio/raw", "format": _EXAMPLE_FORMAT}],
         "outputs": [{"topic": "vad/speech", "format": _EXAMPLE_FORMAT}],
         "audio_endpoint": "tcp://127.0.0.1:40123", "host": "robot-1", "pid": 4242, "info": {}}]})
@@ -61,7 +65,8 @@ class RegisterRequest(Strict):
                                     description="a token of the registering process: a registration with "
                                                 "the instance id and incarnation of a live instance is "
                                                 "that instance registering again (it replaces itself)")
-    designation: Designation = Field(description="the result type it produces; other: none")
+    kind: Kind = Field(description="the result kind it produces; other: none. Its old name, `designation`, is "
+                                   "accepted instead until the next release (logged as deprecated)")
     stream_id: str = Field(default="default", min_length=1)
     inputs: list[TopicDeclaration] = Field(default_factory=list)
     outputs: list[TopicDeclaration] = Field(default_factory=list)
@@ -86,6 +91,20 @@ class RegisterRequest(Strict):
         if size > MAX_INFO_BYTES:
             raise ValueError(f"info is {size} bytes as JSON, more than {MAX_INFO_BYTES}")
         return value
+
+    @model_validator(mode="before")
+    @classmethod
+    def _old_names(cls, data: Any) -> Any:
+        """``designation``, the old name of ``kind``: accepted until the next release."""
+        if isinstance(data, dict) and "designation" in data:
+            data = dict(data)
+            designation = data.pop("designation")
+            if "kind" in data:
+                raise ValueError("give kind only (designation is its old name)")
+            data["kind"] = designation
+            log.warning("event=deprecated field=designation name=%.64r: a registration says designation; its "
+                        "name is kind (designation is accepted until the next release)", data.get("name"))
+        return data
 
     @model_validator(mode="after")
     def _consistent(self) -> RegisterRequest:
@@ -126,7 +145,9 @@ class RegisterResponse(BaseModel):
 class ComponentInfo(BaseModel):
     component_id: str
     name: str
-    designation: Designation
+    kind: Kind
+    designation: Kind = Field(json_schema_extra={"deprecated": True},
+                              description="the same as kind, its old name (until the next release)")
     stream_id: str
     status: Literal["alive", "dead", "replaced"]
     inputs: list[TopicDeclaration]
@@ -187,149 +208,6 @@ class TopicInfo(BaseModel):
 
 class TopicList(BaseModel):
     items: list[TopicInfo]
-
-
-# results, as stored and sent (docs/protocol.md); exactly one payload key is present
-class Span(BaseModel):
-    start_ns: int
-    end_ns: int
-
-
-class VadPayload(BaseModel):
-    probability: float
-
-
-class WordTiming(BaseModel):
-    word: str
-    start_ns: int
-    end_ns: int
-    probability: float
-
-
-class Hypothesis(BaseModel):
-    text: str = Field(description="with a closed set: the matched allowed sentence, empty when out of set")
-    probability: float
-    words: list[WordTiming]
-    raw_text: str = Field(default="", description="with a closed set: what the recogniser heard")
-    match_score: float = Field(default=0.0, description="with a closed set: 1 - word distance / length")
-    out_of_set: bool = Field(default=False, description="with a closed set: no allowed sentence is near enough")
-    logprob: float = Field(default=0.0, description="closed set scored by the acoustic model: this sentence's "
-                           "log-probability given the audio (nats)")
-    raw_logprob: float = Field(default=0.0, description="closed set scored by the acoustic model: raw_text's")
-    margin: float = Field(default=0.0, description="closed set scored by the acoustic model: the lead over the "
-                          "next hypothesis (the runner-up)")
-
-
-class SpeechPayload(BaseModel):
-    hypotheses: list[Hypothesis] = Field(description="n-best, best first")
-
-
-class SslDirection(BaseModel):
-    source_id: str = Field(description="the tracked source this direction belongs to")
-    azimuth_deg: float = Field(description="this frame's, counter-clockwise from the array's x axis")
-    elevation_deg: float = Field(description="meaningful only where elevation_known")
-    probability: float = Field(description="the localiser's confidence in this direction, 0..1")
-    elevation_known: bool = Field(default=False, description="the array can tell elevation (microphones off one "
-                                  "plane) and the algorithm searched it")
-    track_azimuth_deg: float = Field(default=0.0, description="the tracked source's smoothed azimuth")
-    background: bool = Field(default=False, description="the track has stayed in one place far longer than an "
-                             "utterance: a loudspeaker, a TV, a dishwasher, not a talker")
-
-
-class SslPayload(BaseModel):
-    directions: list[SslDirection] = Field(description="best first")
-    algorithm: str = Field(default="", description='the localiser, e.g. "NormMUSIC"')
-    level_db: float = Field(default=0.0, description="the frame's level, 96 dB = full-scale RMS")
-
-
-class LabelPayload(BaseModel):
-    label: str
-    probability: float
-    class_probabilities: dict[str, float]
-    embedding: list[float] = Field(default_factory=list, description="voice_id only: the segment's speaker "
-                                   "embedding (unit length), from which a voice can be enrolled")
-
-
-class NoResultPayload(BaseModel):
-    reason: str
-
-
-class Result(BaseModel):
-    model_config = ConfigDict(extra="allow")  # a kind that is not built in: its payload under its name
-
-    id: int
-    component: str = Field(description="the service that produced it (its component name)")
-    instance: str = Field(default="", description="the instance of it that produced it (its component_id; "
-                                                  "empty from an older SDK)")
-    type: str = Field(description="the result kind: built in, or any other (its payload then has "
-                                   "label, probability, class_probabilities, value, has_value, text, attributes)")
-    stream_id: str
-    span: Span = Field(description="capture time of the audio the result was computed on")
-    produced_ns: int
-    received_ns: int
-    latency_ms: float = Field(description="(received_ns - span.end_ns) / 1e6, the capture times put on the "
-                                          "orchestrator's clock (the capturing component's clock_offset_ms)")
-    sequence: int
-    vad: VadPayload | None = None
-    speech: SpeechPayload | None = None
-    ssl: SslPayload | None = None
-    emotion: LabelPayload | None = None
-    gender: LabelPayload | None = None
-    voice_id: LabelPayload | None = None
-    nothing: NoResultPayload | None = Field(default=None, description="covered, no result")
-
-
-class SslAggregate(BaseModel):
-    azimuth_deg: float = Field(description="the talker's track: circular mean of its directions, weighted by "
-                               "overlap x probability")
-    elevation_deg: float
-    concentration: float = Field(description="mean resultant length: 1 all agree, 0 cancel out")
-    overlap_s: float = Field(description="capture time of the window the results cover")
-    directions: int = Field(description="directions of the talker's track within the window")
-    source_id: str = Field(default="", description="the talker's track: the heaviest one not marked background")
-    background: bool = Field(default=False, description="every track heard was background")
-    tracks: int = Field(default=1, description="tracked sources heard within the window")
-
-
-class LabelAggregate(BaseModel):
-    label: str = Field(description="the top label")
-    probability: float = Field(description="its share of the distribution")
-    distribution: dict[str, float] = Field(description="overlap-weighted, sums to 1, top first")
-    overlap_s: float
-
-
-class GenericAggregate(BaseModel):
-    label: str | None = Field(default=None, description="the top label, where the results have labels")
-    probability: float | None = None
-    distribution: dict[str, float] | None = None
-    value: float | None = Field(default=None, description="overlap-weighted mean, where the results have values")
-    overlap_s: float
-
-
-class Missing(BaseModel):
-    component: str
-    type: str
-    reason: Literal["timed_out", "gone", "skipped"]
-
-
-class FusedResult(BaseModel):
-    type: Literal["fused_result"]
-    id: int = Field(description="stable across revisions")
-    revision: int = Field(description="1 for the first publication")
-    fusion: str
-    stream_id: str
-    anchor: Result = Field(description="its span is the window")
-    results: dict[str, list[Result]] = Field(
-        description="every fused type: its results overlapping the window, by start")
-    aggregates: dict[str, SslAggregate | LabelAggregate | GenericAggregate | None] = Field(
-        description="ssl, label kinds and every kind that is not built in: null when they have no results")
-    completion: Literal["complete", "timed_out", "components_gone"] = Field(
-        description="how revision 1 was decided; kept in later revisions")
-    missing_components: list[str] = Field(description="components that had not covered the window")
-    missing: list[Missing]
-    published_ns: int
-    seq: int = Field(description="publication number: every revision has its own, increasing; "
-                                 "resume the websocket with after_seq")
 
 
 NEXT_AFTER_ID = ("pass as after_id for the next page: the last item's id, or the after_id given "

@@ -20,14 +20,15 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 from ..settings import FusionSettings, TimeoutSettings
 from .aggregate import aggregates, overlaps
 from .coverage import Coverage, SpanIndex, StoredResult
 from .latency import Latencies
+from .models import Completion, FusedResult, Missing, MissingReason
 
-__all__ = ["FusedResult", "Fusion", "FusionEngine", "StoredResult"]
+__all__ = ["Fusion", "FusionEngine", "Publication", "StoredResult"]
 
 PRUNE_EVERY = 64  # results per stream between two prunings of its memory
 MAX_REPLAYED_STREAMS = 10_000  # replayed streams remembered (whose latencies are not learnt)
@@ -36,22 +37,39 @@ COMPLETE, TIMED_OUT, COMPONENTS_GONE = "complete", "timed_out", "components_gone
 
 class LiveComponent(Protocol):
     name: str
-    designation: str
+    kind: str  # the result kind it produces
     stream_id: str
 
 
 @dataclass(frozen=True)
-class FusedResult:
-    id: int
-    revision: int
-    fusion: str
-    stream_id: str
+class Publication:
+    """A fused result to store and publish, and when it was due."""
+
+    result: FusedResult
     start_ns: int  # the anchor's span
     end_ns: int
-    published_ns: int
-    json: dict[str, Any]
     trigger_received_ns: int | None = None  # the result that completed it, if one did
     due_ns: int | None = None  # the deadline it was published at, if its timer published it
+
+    @property
+    def id(self) -> int:
+        return self.result.id
+
+    @property
+    def revision(self) -> int:
+        return self.result.revision
+
+    @property
+    def fusion(self) -> str:
+        return self.result.fusion
+
+    @property
+    def stream_id(self) -> str:
+        return self.result.stream_id
+
+    @property
+    def published_ns(self) -> int:
+        return self.result.published_ns
 
 
 @dataclass
@@ -158,13 +176,13 @@ class FusionEngine:
             self.replayed.popitem(last=False)
 
     # events
-    def on_result(self, result: StoredResult, received_ns: int) -> list[FusedResult]:
+    def on_result(self, result: StoredResult, received_ns: int) -> list[Publication]:
         """Fused results that ``result`` completes or revises, to store and publish in order."""
         latency_ns = received_ns - (result.end_ns + self._capture_offset_ns(result.stream_id))
         if result.stream_id not in self.replayed and latency_ns >= 0:  # < 0: clocks disagree beyond the offset
             self.latencies.add(result.component, latency_ns)
         memory = self._remember(result)
-        fused: list[FusedResult] = []
+        fused: list[Publication] = []
         if not result.is_nothing:
             for fusion in list(memory.published.overlapping(result.start_ns, result.end_ns)):
                 if fusion.add(result):  # late: a new revision, at most one per revision interval
@@ -185,7 +203,7 @@ class FusionEngine:
                     fused.extend(self._open(settings, result, memory, received_ns))
         return fused
 
-    def on_component_gone(self, component: str) -> list[FusedResult]:
+    def on_component_gone(self, component: str) -> list[Publication]:
         """A component died or left: no fusion waits for it any longer."""
         fused = []
         for fusion in list(self.open.values()):
@@ -198,7 +216,7 @@ class FusionEngine:
                     self._schedule(fusion)
         return fused
 
-    def on_end_of_stream(self, stream_id: str, component: str) -> list[FusedResult]:
+    def on_end_of_stream(self, stream_id: str, component: str) -> list[Publication]:
         """``component`` has sent every result it will for the stream: no fusion of the stream
         waits for it (until it sends for the stream again)."""
         memory = self._memory(stream_id)
@@ -212,7 +230,7 @@ class FusionEngine:
                     self._schedule(fusion)
         return fused
 
-    def on_timer(self, now_ns: int | None = None) -> list[FusedResult]:
+    def on_timer(self, now_ns: int | None = None) -> list[Publication]:
         """Publishes every fusion whose deadline has passed."""
         now_ns = self._clock_ns() if now_ns is None else now_ns
         fused = []
@@ -243,7 +261,7 @@ class FusionEngine:
             heapq.heappop(self._heap)
         return revision_due
 
-    def _revise(self, fusion: Fusion, received_ns: int) -> list[FusedResult]:
+    def _revise(self, fusion: Fusion, received_ns: int) -> list[Publication]:
         """A late result joined a published fusion: its next revision now, or (if the last one
         is younger than the revision interval) once, at the end of the interval."""
         if fusion.revision_due_ns is not None:
@@ -335,11 +353,11 @@ class FusionEngine:
         return fusion
 
     def open_orphan(self, settings: FusionSettings, anchor: StoredResult, missing: dict[str, tuple[str, str]],
-                    received_ns: int) -> list[FusedResult]:  # a stand-in anchor (orphans.py)
+                    received_ns: int) -> list[Publication]:  # a stand-in anchor (orphans.py)
         return self._open(settings, anchor, self._memory(anchor.stream_id), received_ns, missing)
 
     def _open(self, settings: FusionSettings, anchor: StoredResult, memory: StreamMemory,
-              received_ns: int, missing: dict[str, tuple[str, str]] | None = None) -> list[FusedResult]:
+              received_ns: int, missing: dict[str, tuple[str, str]] | None = None) -> list[Publication]:
         fusion = self._new_fusion(settings, self._allocate_id(), anchor, memory)
         fusion.missing.update(missing or {})
         if settings.fuse:
@@ -347,12 +365,12 @@ class FusionEngine:
             for component in self._live():
                 # every live service of a fused type serves every stream (replicas share them):
                 # one that has not covered this stream yet is waited for, never assumed done
-                if component.designation in types and component.name not in fusion.waiting \
+                if component.kind in types and component.name not in fusion.waiting \
                         and component.name not in memory.ended \
                         and not self._covered(memory, component.name, fusion):
                     deadline = (anchor.end_ns + self._capture_offset_ns(anchor.stream_id)
                                 + self.latencies.timeout_ns(component.name))
-                    fusion.waiting[component.name] = (component.designation, deadline)
+                    fusion.waiting[component.name] = (component.kind, deadline)
         if not fusion.waiting:
             return [self._publish(fusion, received_ns)]
         memory.open.append(fusion)
@@ -368,7 +386,7 @@ class FusionEngine:
             heapq.heappush(self._heap, (deadline, fusion.id))
 
     def _publish(self, fusion: Fusion, trigger_received_ns: int | None,
-                 due_ns: int | None = None) -> FusedResult:
+                 due_ns: int | None = None) -> Publication:
         memory = self._memory(fusion.anchor.stream_id)
         if fusion.revision == 0:
             if self.open.pop(fusion.id, None) is not None:
@@ -386,15 +404,13 @@ class FusionEngine:
         window = fusion.window
         results = {t: [r.json for r in sorted(by_id.values(), key=lambda r: (r.start_ns, r.id))]
                    for t, by_id in fusion.results.items()}
-        missing = [{"component": c, "type": t, "reason": reason}
+        missing = [Missing.model_construct(component=c, type=t, reason=cast(MissingReason, reason))
                    for c, (t, reason) in sorted(fusion.missing.items())]
-        return FusedResult(
+        # model_construct: every value is the engine's own (results as the codec checked them on arrival)
+        result = FusedResult.model_construct(
             id=fusion.id, revision=fusion.revision, fusion=fusion.settings.name,
-            stream_id=fusion.anchor.stream_id, start_ns=window[0], end_ns=window[1],
-            published_ns=published_ns, trigger_received_ns=trigger_received_ns, due_ns=due_ns,
-            json={"type": "fused_result", "id": fusion.id, "revision": fusion.revision,
-                  "fusion": fusion.settings.name, "stream_id": fusion.anchor.stream_id,
-                  "anchor": fusion.anchor.json, "results": results,
-                  "aggregates": aggregates(results, window), "completion": fusion.completion,
-                  "missing_components": [m["component"] for m in missing], "missing": missing,
-                  "published_ns": published_ns})
+            stream_id=fusion.anchor.stream_id, anchor=fusion.anchor.json, results=results,
+            aggregates=aggregates(results, window), completion=cast(Completion, fusion.completion),
+            missing_components=[m.component for m in missing], missing=missing, published_ns=published_ns)
+        return Publication(result=result, start_ns=window[0], end_ns=window[1],
+                           trigger_received_ns=trigger_received_ns, due_ns=due_ns)

@@ -27,7 +27,7 @@ import logging
 from ..settings import FusionSettings
 from .aggregate import overlaps
 from .coverage import StoredResult
-from .engine import FusedResult, FusionEngine
+from .engine import FusionEngine, Publication
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +68,7 @@ def passed_by(engine: FusionEngine, stream_id: str, service: str, before_ns: int
 
 
 def fuse_without(engine: FusionEngine, segment: StoredResult, service: str, anchor_type: str,
-                 received_ns: int, why: str, reason: str = "gone") -> list[FusedResult]:
+                 received_ns: int, why: str, reason: str = "gone") -> list[Publication]:
     """Fuses ``segment`` for every fusion anchored on ``anchor_type``, ``service`` missing for
     ``reason``, unless a fusion of that name is open or published over it already."""
     memory = engine.streams.get(segment.stream_id)
@@ -76,7 +76,7 @@ def fuse_without(engine: FusionEngine, segment: StoredResult, service: str, anch
     taken = {f.settings.name for f in [*memory.published.overlapping(*span),
                                        *(f for f in memory.open if overlaps(f.start_ns, f.end_ns, *span))]} \
         if memory is not None else set()
-    fused: list[FusedResult] = []
+    fused: list[Publication] = []
     for settings in anchored(engine, anchor_type, segment.stream_id):
         if settings.name not in taken:
             log.warning("event=utterance_orphaned stream_id=%s service=%s start_ns=%d end_ns=%d fusion=%s why=%s",
@@ -86,7 +86,7 @@ def fuse_without(engine: FusionEngine, segment: StoredResult, service: str, anch
 
 
 def fuse_orphans(engine: FusionEngine, stream_id: str, service: str, anchor_type: str,
-                 received_ns: int) -> list[FusedResult]:
+                 received_ns: int) -> list[Publication]:
     """Fuses each segment of ``stream_id`` that the dead instance of ``service`` (producing
     ``anchor_type``) left unanswered (:func:`fuse_without`)."""
     if not anchored(engine, anchor_type, stream_id):
@@ -96,7 +96,7 @@ def fuse_orphans(engine: FusionEngine, stream_id: str, service: str, anchor_type
 
 
 def fuse_passed_by(engine: FusionEngine, stream_id: str, service: str, anchor_type: str, before_ns: int,
-                   received_ns: int) -> list[FusedResult]:
+                   received_ns: int) -> list[Publication]:
     """Fuses each segment ``service`` (producing ``anchor_type``) passed by on ``stream_id`` before
     ``before_ns`` (:func:`passed_by`), without it, reason ``skipped``."""
     if not anchored(engine, anchor_type, stream_id):
@@ -118,7 +118,7 @@ class Orphans:
         self.watched: dict[tuple[str, str], tuple[str, int]] = {}
 
     def on_death(self, stream_id: str, service: str, anchor_type: str, in_flight_before_ns: int,
-                 received_ns: int) -> list[FusedResult]:
+                 received_ns: int) -> list[Publication]:
         if not anchored(self.engine, anchor_type, stream_id):
             return []
         self.watched.pop((stream_id, service), None)
@@ -127,17 +127,17 @@ class Orphans:
             del self.watched[next(iter(self.watched))]
         return fuse_orphans(self.engine, stream_id, service, anchor_type, received_ns)
 
-    def before_result(self, result: StoredResult, received_ns: int) -> list[FusedResult]:
+    def before_result(self, result: StoredResult, received_ns: int) -> list[Publication]:
         """``result`` is about to be fused: the segments its service passed by before it."""
         return fuse_passed_by(self.engine, result.stream_id, result.component, result.type, result.start_ns,
                               received_ns)
 
     def on_end_of_stream(self, stream_id: str, service: str, anchor_type: str,
-                         received_ns: int) -> list[FusedResult]:
+                         received_ns: int) -> list[Publication]:
         """``service`` sent its last result for the stream: the segments it passed by after its last answer."""
         return fuse_passed_by(self.engine, stream_id, service, anchor_type, 2**63 - 1, received_ns)
 
-    def on_result(self, result: StoredResult, received_ns: int) -> list[FusedResult]:
+    def on_result(self, result: StoredResult, received_ns: int) -> list[Publication]:
         """``result`` just fused: if it is its new instance's ``nothing`` over an utterance that was
         in flight on a dead one, that utterance's segment is fused without it."""
         watch = self.watched.get((result.stream_id, result.component))

@@ -13,7 +13,7 @@ from google.protobuf.struct_pb2 import Struct
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf.results import PB_RESULT_TYPE, kind_of, valid_kind
 
-# ResultType enum value -> the name used in JSON, designations and settings (from the proto).
+# ResultType enum value -> the name used in JSON, kinds and settings (from the proto).
 TYPE_NAMES = {value: name for name, value in PB_RESULT_TYPE.items()}
 NO_RESULT = "nothing"
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import asyncio
 import hmac
-import json
 import logging
 import time
 from collections import Counter
@@ -28,13 +27,24 @@ from typing import Any, cast
 
 import zmq.asyncio
 
+from esiaf.control_messages import (
+    Ack,
+    BeatNow,
+    Heartbeat,
+    MessageError,
+    State,
+    Unknown,
+    Unrecognised,
+    encode,
+    parse_to_orchestrator,
+)
+
 from ..registry.components import Component, Registry
-from .codec import MAX_TIME_NS
 
 log = logging.getLogger(__name__)
 
-UNKNOWN = json.dumps({"type": "unknown"}).encode()
-BEAT_NOW = json.dumps({"type": "beat_now"}).encode()
+UNKNOWN = encode(Unknown())
+BEAT_NOW = encode(BeatNow())
 EVENTS, POLLIN = int(zmq.EVENTS), int(zmq.POLLIN)  # plain ints: pyzmq's enums cost a microsecond a use
 
 
@@ -135,11 +145,11 @@ class ControlPlane:
             log.warning("event=control_refused reason=%s component_id=%s count=%d", reason,
                         component.component_id, self.counters[key])
 
-    def _proven(self, component: Component, message: dict[str, Any], data: zmq.Frame) -> bool:
+    def _proven(self, component: Component, message: Heartbeat | Unrecognised, data: zmq.Frame) -> bool:
         """The message carries the component's current control key (and, with CURVE, comes with the
         public key its registration is bound to); else it is refused and counted."""
-        key = message.get("control_key")
-        if not isinstance(key, str):
+        key = message.control_key
+        if key is None:
             self._refuse("no_key", component)
             return False
         if not hmac.compare_digest(key.encode(), component.control_key.encode()):
@@ -160,13 +170,12 @@ class ControlPlane:
             return
         route, data = frames[0].bytes, frames[1]
         try:
-            message = json.loads(data.bytes)
-            kind = message["type"]
-        except (ValueError, KeyError, TypeError, RecursionError) as exc:
-            self._bad(f"route={route[:80]!r} reason={str(exc)[:200]!r}")
+            message = parse_to_orchestrator(data.bytes)
+        except MessageError as exc:
+            self._bad(f"route={route[:80]!r} reason={str(exc)!r}")
             return
-        named = message.get("component_id")
-        component_id = named if isinstance(named, str) else route.decode("utf-8", errors="replace")
+        named = message.component_id
+        component_id = named if named is not None else route.decode("utf-8", errors="replace")
         component = self.registry.get(component_id)
         if component is None:
             self.counters["unknown"] += 1
@@ -179,33 +188,31 @@ class ControlPlane:
         component.control_route = route  # state goes to the connection that proved the key last
         fd = data.get(zmq.SRCFD)  # ... and the file descriptor it came on: its closing names it
         component.control_fd = fd if type(fd) is int and fd >= 0 else None
-        if kind != "heartbeat":
-            self._bad(f"component_id={component.component_id} type={str(kind)[:50]!r}")
+        if not isinstance(message, Heartbeat):
+            self._bad(f"component_id={component.component_id} type={message.type[:50]!r}")
             return
         component.heartbeats += 1
-        stats = message.get("stats")
-        if isinstance(stats, dict):
-            component.stats = stats
-        component.note_clock(message.get("clock"))
-        if component.beats_every(message.get("interval_s"), *self.intervals_s):
+        if message.stats is not None:
+            component.stats = message.stats
+        component.note_clock(message.clock)
+        if component.beats_every(message.interval_s, *self.intervals_s):
             self.deadline_sooner()  # fast again: its death may be due before the liveness task wakes
         self.registry.offer_current(component)
+        # its send time, echoed with ours: its clock's offset
+        clock: dict[str, Any] = {} if message.sent_ns is None else {"echo_ns": message.sent_ns,
+                                                                    "orchestrator_ns": time.time_ns()}
         # the state it says it has is the current one: a short ack; else (an older or no version) the full state
-        has = message.get("state_version")
-        if type(has) is int and has == component.state_version:
-            answer: dict[str, Any] = {"type": "ack", "version": component.state_version}
+        if message.state_version is not None and message.state_version == component.state_version:
             self.counters["acks"] += 1
+            self.send(component, Ack(version=component.state_version, **clock))
         else:
-            answer = self.versioned(component)
-        sent_ns = message.get("sent_ns")
-        if type(sent_ns) is int and abs(sent_ns) < MAX_TIME_NS:  # its send time, echoed with ours: its clock's offset
-            answer["echo_ns"], answer["orchestrator_ns"] = sent_ns, time.time_ns()
-        self.send(component, answer)
+            self.send(component, self.versioned(component, **clock))
 
     @staticmethod
-    def versioned(component: Component) -> dict[str, Any]:
+    def versioned(component: Component, **clock: int) -> State:
         """Its full state, numbered: the number its heartbeats give back once it has applied it."""
-        return {**(component.pushed_state or {}), "version": component.state_version}
+        state = component.pushed_state or State(peers={}, formats={})
+        return state.model_copy(update={"version": component.state_version, **clock})
 
     async def push_changes(self) -> None:
         """Sends its new state to every live component whose peers or formats changed."""
@@ -214,12 +221,12 @@ class ControlPlane:
                       component.state_version)
             self.send(component, self.versioned(component))
 
-    def send(self, component: Component, message: dict[str, Any]) -> None:
+    def send(self, component: Component, message: State | Ack) -> None:
         # Only to the routing id that last presented the component's key; none yet: its first
         # heartbeat's answer carries the full state. ROUTER drops messages to a peer that is gone.
         if component.control_route is None:
             return
-        self._send(component.control_route, json.dumps(message).encode())
+        self._send(component.control_route, encode(message))
 
     def _send(self, route: bytes, data: bytes) -> None:
         try:

@@ -14,7 +14,7 @@ from collections import Counter, deque
 from collections.abc import Callable
 from typing import Any
 
-from ..fusion.engine import FusedResult, FusionEngine, StoredResult
+from ..fusion.engine import FusionEngine, Publication, StoredResult
 from ..fusion.orphans import Orphans
 from ..registry.components import Component, Registry
 from ..registry.streams import StreamEnds
@@ -121,7 +121,7 @@ class Ingest:
             return [self._store_fused(f) for c in gone for f in [
                 *self.engine.on_component_gone(c.name),
                 *(f for s in c.served_at_departure if c.status == "dead" for f in self.orphans.on_death(
-                    s, c.name, c.designation, now_ns - self.clocks.capture_offset_ns(s), now_ns))]]
+                    s, c.name, c.kind, now_ns - self.clocks.capture_offset_ns(s), now_ns))]]
         self._transaction(work, after="components_gone")
         self._publish(self.stream_ends())
 
@@ -279,21 +279,21 @@ class Ingest:
                                    as_json["latency_ms"] / 1e3))
         return outgoing
 
-    def _store_fused(self, fused: FusedResult) -> Outgoing:
-        seq = fused.json["seq"] = self.store.allocate_seq()
-        text = _dumps(fused.json)
+    def _store_fused(self, fused: Publication) -> Outgoing:
+        seq = fused.result.seq = self.store.allocate_seq()
+        text = fused.result.to_json()  # serialised once: stored, served and sent as this text
         self.store.add_fused(fused_id=fused.id, revision=fused.revision, fusion=fused.fusion,
                              stream_id=fused.stream_id, start_ns=fused.start_ns,
                              end_ns=fused.end_ns, published_ns=fused.published_ns, json_text=text,
                              seq=seq)
         self.counters["fused"] += 1
-        self.counters[f"completion_{fused.json['completion']}" if fused.revision == 1
+        self.counters[f"completion_{fused.result.completion}" if fused.revision == 1
                       else "revisions"] += 1
         message = Outgoing(text=text, stream_id=fused.stream_id, fusion=fused.fusion,
                            fused_id=fused.id, revision=fused.revision, seq=seq)
-        anchor_received_ns = fused.json["anchor"].get("received_ns")
+        anchor_received_ns = fused.result.anchor.get("received_ns")
         if self.metrics is not None and fused.revision == 1 and isinstance(anchor_received_ns, int):
-            labels = (fused.fusion, fused.stream_id, fused.json["completion"])
+            labels = (fused.fusion, fused.stream_id, fused.result.completion)
             self._observed.append((self.metrics.fused_latency, labels, (fused.published_ns - anchor_received_ns) / 1e9))
         if fused.revision == 1 and fused.trigger_received_ns is not None:
             self._triggers[message] = (self.overhead_ns, fused.trigger_received_ns)
@@ -322,7 +322,7 @@ class Ingest:
             component.touch()
             fused = [self._store_fused(f) for f in [
                 *self.engine.on_end_of_stream(stream_id, component.name),
-                *self.orphans.on_end_of_stream(stream_id, component.name, component.designation, self._clock_ns())]]
+                *self.orphans.on_end_of_stream(stream_id, component.name, component.kind, self._clock_ns())]]
             service: str | None = component.name
         else:  # said by an instance since declared dead, or one we never knew: its service, if known
             departed = self.registry.departed.get(component_id)

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from esiaf.binding import derive_key
+from esiaf.control_messages import ClockReport, State
 
 from .assignment import Assignments
 from .negotiation import Declaration, Format, Strategy, choose
@@ -35,14 +36,11 @@ class InstanceConflict(Exception):
         self.live = live
 
 
-MAX_CLOCK_OFFSET_NS = 366 * 86_400 * 10**9  # a clock further off than a year is not believed
-
-
 @dataclass
 class Component:
     component_id: str
     name: str
-    designation: str
+    kind: str  # the result kind it produces (other: none)
     stream_id: str
     inputs: dict[str, Format]
     outputs: dict[str, Format]
@@ -73,7 +71,7 @@ class Component:
     status: str = "alive"  # alive, dead (silent too long), replaced (its process registered again)
     departed_ns: int | None = None
     served_at_departure: list[str] = field(default_factory=list)  # the streams it served when it died or left
-    pushed_state: dict[str, Any] | None = None  # the state this component last got from us
+    pushed_state: State | None = None  # the state this component last got from us (without its version)
     state_version: int = 0  # pushed_state's number: a new one for every change (heartbeats say which they have)
     offered_at: tuple[int, int] | None = None  # the registry's version when pushed_state was last computed
     # our clock minus its host's, and how sure (half the best round trip), as its heartbeats report
@@ -81,16 +79,12 @@ class Component:
     clock_offset_ns: int | None = None
     clock_uncertainty_ns: int | None = None
 
-    def note_clock(self, clock: Any) -> None:
-        """The clock estimate of a heartbeat, if it is one (a peer's: checked, never trusted)."""
-        if not isinstance(clock, dict):
-            return
-        offset, uncertainty = clock.get("offset_ns"), clock.get("uncertainty_ns")
-        if type(offset) is int and type(uncertainty) is int and abs(offset) <= MAX_CLOCK_OFFSET_NS \
-                and 0 <= uncertainty <= MAX_CLOCK_OFFSET_NS:
-            self.clock_offset_ns, self.clock_uncertainty_ns = offset, uncertainty
+    def note_clock(self, clock: ClockReport | None) -> None:
+        """The clock estimate of a heartbeat, if it has one (bounded by ClockReport)."""
+        if clock is not None:
+            self.clock_offset_ns, self.clock_uncertainty_ns = clock.offset_ns, clock.uncertainty_ns
 
-    def offer(self, state: dict[str, Any]) -> bool:
+    def offer(self, state: State) -> bool:
         """Makes ``state`` the one it is to have; True (and a new ``state_version``) if it changed."""
         if state == self.pushed_state:
             return False
@@ -98,10 +92,10 @@ class Component:
         self.state_version += 1
         return True
 
-    def beats_every(self, said: Any, fast_s: float, slowest_s: float) -> bool:
+    def beats_every(self, said: float | None, fast_s: float, slowest_s: float) -> bool:
         """The interval a heartbeat says it beats at (a peer's: clamped to the settings' range); True if
         it is shorter than before (so may be its death, if it falls silent now)."""
-        if not isinstance(said, (int, float)) or isinstance(said, bool) or said != said:
+        if said is None:
             return False
         before = self.extra_silence_s
         self.beat_interval_s = min(max(float(said), fast_s), slowest_s)
@@ -135,7 +129,7 @@ class Registry:
         self.secret = secrets.token_bytes(32)
 
     # changes
-    def register(self, *, name: str, designation: str, stream_id: str,
+    def register(self, *, name: str, kind: str, stream_id: str,
                  inputs: dict[str, Format], outputs: dict[str, Format],
                  audio_endpoint: str | None, host: str, pid: int | None,
                  info: dict[str, Any], audio_public_key: str | None = None,
@@ -155,7 +149,7 @@ class Registry:
         component_id = instance or self._new_id(name)
         self.departed.pop(component_id, None)
         key_id = secrets.token_urlsafe(12)
-        component = Component(component_id=component_id, name=name, designation=designation,
+        component = Component(component_id=component_id, name=name, kind=kind,
                               stream_id=stream_id, inputs=inputs, outputs=outputs,
                               audio_endpoint=audio_endpoint, host=host, pid=pid, info=info,
                               audio_public_key=audio_public_key, incarnation=incarnation, key_id=key_id,
@@ -290,8 +284,7 @@ class Registry:
     def consumers(self, topic: str) -> list[Component]:
         return [c for c in self.live.values() if topic in c.inputs]
 
-    def state_of(self, component: Component,
-                 formats: dict[str, Format] | None = None) -> dict[str, Any]:
+    def state_of(self, component: Component, formats: dict[str, Format] | None = None) -> State:
         """The full state a component is told: its peers (with their CURVE keys, where they gave
         one) and the formats of its topics."""
         formats = self.formats() if formats is None else formats
@@ -299,18 +292,15 @@ class Registry:
                      for topic in component.inputs}
         peers = {topic: [p.audio_endpoint for p in found] for topic, found in producers.items()}
         topics = [*component.inputs, *(t for t in component.outputs if t not in component.inputs)]
-        state: dict[str, Any] = {"type": "state", "peers": peers, "formats": {t: formats[t] for t in topics}}
         peer_keys = {p.audio_endpoint: p.audio_public_key for found in producers.values() for p in found
                      if p.audio_public_key}
-        if peer_keys:
-            state["peer_keys"] = peer_keys
-        if component.inputs:
-            streams = self.assignments.streams_of(component, len(self.instances(component.name)))
-            if streams is not None:  # one of several instances: only the streams it serves
-                state["streams"] = streams
-        return state
+        # one of several instances: only the streams it serves (None: all)
+        streams = self.assignments.streams_of(component, len(self.instances(component.name))) \
+            if component.inputs else None
+        return State(peers=peers, formats={t: formats[t] for t in topics},
+                     peer_keys=peer_keys or None, streams=streams)
 
-    def changed_states(self) -> list[tuple[Component, dict[str, Any]]]:
+    def changed_states(self) -> list[tuple[Component, State]]:
         """Live components whose state differs from what they last got, with the new state."""
         formats = self.formats()
         changed = []

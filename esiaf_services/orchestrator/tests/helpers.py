@@ -76,10 +76,10 @@ class RunningOrchestrator:
 _ports = itertools.count(41000)  # fake audio endpoints: nothing connects to them
 
 
-def component_body(name: str, designation: str = "other", inputs: Sequence[str] = (),
+def component_body(name: str, kind: str = "other", inputs: Sequence[str] = (),
                    outputs: Sequence[str] = (), fmt: dict = FMT16, endpoint: str | None = None,
                    **extra: Any) -> dict:
-    return {"name": name, "designation": designation,
+    return {"name": name, "kind": kind,
             "inputs": [{"topic": t, "format": fmt} for t in inputs],
             "outputs": [{"topic": t, "format": fmt} for t in outputs],
             "audio_endpoint": endpoint or (f"tcp://127.0.0.1:{next(_ports)}" if outputs else None),

@@ -52,7 +52,7 @@ def test_forged_heartbeats_do_not_keep_a_killed_component_alive(make_orchestrato
     orch = make_orchestrator(heartbeat_interval_s=BEAT_S, dead_after_s=DEAD_AFTER_S)
     with httpx.Client(base_url=orch.url, timeout=5.0) as http:
         grabber = FakeComponent(zctx, http, component_body("grabber", outputs=["audio/raw"]))
-        vad = FakeComponent(zctx, http, component_body("vad", designation="vad", inputs=["audio/raw"]))
+        vad = FakeComponent(zctx, http, component_body("vad", kind="vad", inputs=["audio/raw"]))
         endpoint = listed(http)[grabber.id]["audio_endpoint"]
         vad.heartbeat()
         assert vad.recv()["peers"] == {"audio/raw": [endpoint]}
@@ -87,7 +87,7 @@ def test_forged_heartbeats_do_not_keep_a_killed_component_alive(make_orchestrato
 def test_the_real_component_keeps_working_beside_a_forger(make_orchestrator, zctx):
     orch = make_orchestrator(heartbeat_interval_s=BEAT_S, dead_after_s=DEAD_AFTER_S)
     with httpx.Client(base_url=orch.url, timeout=5.0) as http:
-        vad = FakeComponent(zctx, http, component_body("vad", designation="vad", inputs=["audio/raw"]))
+        vad = FakeComponent(zctx, http, component_body("vad", kind="vad", inputs=["audio/raw"]))
         vad.heartbeat()
         assert vad.recv()["peers"] == {"audio/raw": []}
         forgers = [(forger(zctx, orch.core.control_endpoint, vad.id), WRONG_KEY),
@@ -117,7 +117,7 @@ def test_the_real_component_keeps_working_beside_a_forger(make_orchestrator, zct
 
 
 def test_a_registration_again_gets_a_new_key_and_the_old_one_is_refused(http, zctx):
-    body = component_body("asr", designation="speech", inputs=["vad/speech"], instance="asr-a", incarnation="p1")
+    body = component_body("asr", kind="speech", inputs=["vad/speech"], instance="asr-a", incarnation="p1")
     first = FakeComponent(zctx, http, body)
     first.heartbeat()
     assert first.recv()["type"] == "state"
@@ -136,7 +136,7 @@ def test_a_registration_again_gets_a_new_key_and_the_old_one_is_refused(http, zc
 
 def test_refusals_are_logged_the_first_and_every_100th(orch, http, zctx, caplog):
     caplog.set_level(logging.WARNING, logger="esiaf_services.orchestrator.planes.control")
-    vad = FakeComponent(zctx, http, component_body("vad", designation="vad", inputs=["audio/raw"]))
+    vad = FakeComponent(zctx, http, component_body("vad", kind="vad", inputs=["audio/raw"]))
     dealer = forger(zctx, orch.core.control_endpoint)
     for _ in range(250):
         forge(dealer, vad.id, None)

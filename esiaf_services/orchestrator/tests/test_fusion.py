@@ -43,9 +43,9 @@ def start(tmp_path) -> Iterator:
 def fake(zctx) -> Iterator:
     made: list[FakeComponent] = []
 
-    def make(orchestrator: Orchestrator, name: str, designation: str) -> FakeComponent:
+    def make(orchestrator: Orchestrator, name: str, kind: str) -> FakeComponent:
         component = FakeComponent(zctx, orchestrator.http,
-                                  component_body(name, designation=designation, inputs=["in"]))
+                                  component_body(name, kind=kind, inputs=["in"]))
         made.append(component)
         return component
 
@@ -268,7 +268,7 @@ def test_restart_on_the_same_database_keeps_timeouts_warm_and_loses_nothing(star
     orchestrator = start()
 
     def components() -> tuple[FakeComponent, ...]:
-        return tuple(FakeComponent(zctx, orchestrator.http, component_body(n, designation=d, inputs=["in"]))
+        return tuple(FakeComponent(zctx, orchestrator.http, component_body(n, kind=d, inputs=["in"]))
                      for n, d in (("asr", "speech"), ("ssl", "ssl"), ("emotion", "emotion")))
 
     asr, ssl, emo = components()

@@ -135,7 +135,7 @@ class Clock:
 
 def engine_with(*components: tuple[str, str], **timeouts) -> tuple[FusionEngine, Clock]:
     ids = itertools.count(1)
-    live = [SimpleNamespace(name=n, designation=d, stream_id="s") for n, d in components]
+    live = [SimpleNamespace(name=n, kind=d, stream_id="s") for n, d in components]
     clock = Clock()
     engine = FusionEngine([FusionSettings(name="u", anchor="speech", fuse=["ssl", "emotion"])],
                           allocate_id=lambda: next(ids), live_components=lambda: live,
@@ -158,15 +158,15 @@ def test_deadline_is_the_slowest_pending_components_own_and_dead_ones_are_not_wa
     assert engine.on_timer(S + 149 * MS) == []
     clock.now = S + 150 * MS
     [fused] = engine.on_timer()
-    assert fused.json["completion"] == "timed_out" and fused.revision == 1
-    assert fused.json["missing"] == [{"component": "emo2", "type": "emotion", "reason": "gone"},
+    assert fused.result.completion == "timed_out" and fused.revision == 1
+    assert fused.result.model_dump()["missing"] == [{"component": "emo2", "type": "emotion", "reason": "gone"},
                                      {"component": "ssl", "type": "ssl", "reason": "timed_out"}]
     assert engine.next_deadline_ns() is None and not engine.open
     # late: revision 2, ssl no longer missing; a late `nothing` revises nothing
     [revised] = engine.on_result(result(3, "ssl", "ssl", 0, S, ssl={"directions": [direction(45)]}), 2 * S)
     assert revised.id == fused.id and revised.revision == 2
-    assert [m["component"] for m in revised.json["missing"]] == ["emo2"]
-    assert revised.json["aggregates"]["ssl"]["azimuth_deg"] == pytest.approx(45)
+    assert [m.component for m in revised.result.missing] == ["emo2"]
+    assert revised.result.aggregates["ssl"]["azimuth_deg"] == pytest.approx(45)
     assert engine.on_result(result(4, "emo2", "emotion", 0, S, nothing={"reason": "x"}), 2 * S) == []
 
 
@@ -180,8 +180,8 @@ def test_restored_pending_fusion_waits_for_the_same_deadline_or_publishes_when_c
     assert engine.next_deadline_ns() == 3 * S  # ssl covered before the restart
     clock.now = 3 * S
     [fused] = engine.on_timer()
-    assert fused.id == 7 and fused.json["missing_components"] == ["emo"]
-    assert [r["id"] for r in fused.json["results"]["ssl"]] == [2]
+    assert fused.id == 7 and fused.result.missing_components == ["emo"]
+    assert [r["id"] for r in fused.result.results["ssl"]] == [2]
 
 
 def test_a_component_that_ended_the_stream_is_not_waited_for_until_it_sends_again():
@@ -189,9 +189,9 @@ def test_a_component_that_ended_the_stream_is_not_waited_for_until_it_sends_agai
     engine.on_result(result(1, "emo", "emotion", 0, 3 * S, nothing={"reason": "silence"}), S)
     assert engine.on_result(result(2, "asr", "speech", 0, S), S) == []  # waits for ssl
     [fused] = engine.on_end_of_stream("s", "ssl")
-    assert fused.json["completion"] == "complete" and fused.json["missing"] == []
+    assert fused.result.completion == "complete" and fused.result.missing == []
     [fused] = engine.on_result(result(3, "asr", "speech", S, 2 * S), 2 * S)  # not waited for
-    assert fused.json["completion"] == "complete"
+    assert fused.result.completion == "complete"
     engine.on_result(result(4, "ssl", "ssl", 0, S // 2, nothing={"reason": "none"}), 2 * S)
     assert engine.on_result(result(5, "asr", "speech", 2 * S, 3 * S), 3 * S) == []  # again
 
@@ -208,7 +208,7 @@ def test_late_results_within_the_revision_interval_make_one_revision():
     assert not any(late) and engine.next_deadline_ns() == S + 500 * MS
     assert engine.on_timer(S + 499 * MS) == []
     [revised] = engine.on_timer(S + 500 * MS)
-    assert revised.revision == 2 and len(revised.json["results"]["ssl"]) == 1000
+    assert revised.revision == 2 and len(revised.result.results["ssl"]) == 1000
     assert engine.next_deadline_ns() is None
     # a late result after the interval revises at once
     clock.now = S + 2 * S
@@ -235,7 +235,7 @@ def test_a_capture_clock_3_s_behind_moves_deadlines_and_latencies_onto_ours():
     """Stream s is captured on a host whose clock is 3 s behind ours: its window ends 3 s later on
     our clock than its stamps say, so deadlines and latencies are measured from there."""
     ids = itertools.count(1)
-    live = [SimpleNamespace(name="ssl", designation="ssl", stream_id="s")]
+    live = [SimpleNamespace(name="ssl", kind="ssl", stream_id="s")]
     engine = FusionEngine([FusionSettings(name="u", anchor="speech", fuse=["ssl"])], allocate_id=lambda: next(ids),
                           live_components=lambda: live, clock_ns=Clock(),
                           capture_offset_ns=lambda stream_id: 3 * S if stream_id == "s" else 0)
@@ -253,12 +253,12 @@ def test_a_second_stream_waits_for_an_analyser_that_has_not_covered_it_yet():
     assert engine.on_result(result(1, "asr", "speech", 0, S, stream="robot2"), S) == []
     emotion = result(2, "emo", "emotion", 0, S, stream="robot2", emotion={"label": "angry", "probability": 0.9})
     [fused] = engine.on_result(emotion, S + 10 * MS)
-    assert fused.json["completion"] == "complete" and fused.json["results"]["emotion"][0]["id"] == 2
+    assert fused.result.completion == "complete" and fused.result.results["emotion"][0]["id"] == 2
     clock.now = 10 * S
     # and one that never answers is reported missing, not assumed done
     assert engine.on_result(result(3, "asr", "speech", 2 * S, 3 * S, stream="robot3"), 3 * S) == []
     [timed_out] = engine.on_timer(10 * S)
-    assert timed_out.json["completion"] == "timed_out" and timed_out.json["missing_components"] == ["emo"]
+    assert timed_out.result.completion == "timed_out" and timed_out.result.missing_components == ["emo"]
 
 
 def test_segments_a_dead_recogniser_left_unanswered_are_fused_without_it_once():
@@ -277,14 +277,14 @@ def test_segments_a_dead_recogniser_left_unanswered_are_fused_without_it_once():
     assert unanswered_segments(engine, "s", "emo") == [vad[2]]  # (emo answered the first two)
     clock.now = 9 * S
     [fused] = fuse_orphans(engine, "s", "asr", "speech", 9 * S)  # segment 11: emo has covered it
-    assert fused.json["anchor"]["type"] == "vad" and fused.json["anchor"]["id"] == 11
-    assert fused.json["completion"] == "components_gone"
-    assert fused.json["missing"] == [{"component": "asr", "type": "speech", "reason": "gone"}]
-    assert fused.json["aggregates"]["emotion"]["label"] == "sad"
+    assert fused.result.anchor["type"] == "vad" and fused.result.anchor["id"] == 11
+    assert fused.result.completion == "components_gone"
+    assert fused.result.model_dump()["missing"] == [{"component": "asr", "type": "speech", "reason": "gone"}]
+    assert fused.result.aggregates["emotion"]["label"] == "sad"
     assert [f.anchor.id for f in engine.open.values()] == [12]  # waits for emo as any fusion does
     assert fuse_orphans(engine, "s", "asr", "speech", 9 * S) == []  # once: 11 published, 12 open
     [later] = engine.on_result(result(4, "emo", "emotion", 6 * S, 8 * S, emotion={"label": "sad"}), 10 * S)
-    assert later.json["anchor"]["id"] == 12 and later.json["completion"] == "components_gone"
+    assert later.result.anchor["id"] == 12 and later.result.completion == "components_gone"
     assert fuse_orphans(engine, "s", "ssl", "ssl", 9 * S) == []  # no fusion is anchored on ssl
 
 
@@ -304,9 +304,9 @@ def test_segments_a_live_recogniser_passed_by_are_fused_without_it_when_it_answe
     answer = result(2, "asr", "speech", 6 * S, 8 * S, nothing={"reason": "no speech"})
     [skipped] = orphans.before_result(answer, 8 * S)
     engine.on_result(answer, 8 * S)
-    assert skipped.json["anchor"]["type"] == "vad" and skipped.json["anchor"]["id"] == 11
-    assert skipped.json["completion"] == "timed_out"
-    assert skipped.json["missing"] == [{"component": "asr", "type": "speech", "reason": "skipped"}]
+    assert skipped.result.anchor["type"] == "vad" and skipped.result.anchor["id"] == 11
+    assert skipped.result.completion == "timed_out"
+    assert skipped.result.model_dump()["missing"] == [{"component": "asr", "type": "speech", "reason": "skipped"}]
     assert orphans.before_result(result(3, "asr", "speech", 6 * S, 8 * S, nothing={"reason": "x"}), 8 * S) == []
     # results of a type no fusion anchors on, and a stream the recogniser never answered on, say nothing
     assert orphans.before_result(result(4, "ssl", "ssl", 9 * S, 10 * S, ssl={"azimuth_deg": 1.0}), 10 * S) == []
@@ -317,7 +317,7 @@ def test_segments_a_live_recogniser_passed_by_are_fused_without_it_when_it_answe
     for segment in vad[3:]:
         engine.on_result(segment, segment.end_ns)
     ended = orphans.on_end_of_stream("s", "asr", "speech", 15 * S)
-    assert [f.json["anchor"]["id"] for f in ended] == [13, 14]
+    assert [f.result.anchor["id"] for f in ended] == [13, 14]
     assert orphans.on_end_of_stream("s", "asr", "speech", 16 * S) == []
 
 
@@ -332,8 +332,8 @@ def test_an_utterance_going_on_when_its_recogniser_died_is_fused_once_its_new_in
     late = result(2, "asr", "speech", 4 * S, 7 * S, nothing={"reason": "joined the utterance 1000 ms after its start"})
     assert engine.on_result(late, 7 * S) == []  # a `nothing` opens no fusion of its own
     [fused] = orphans.on_result(late, 7 * S)
-    assert fused.json["anchor"]["id"] == 11 and fused.json["completion"] == "components_gone"
-    assert fused.json["missing"] == [{"component": "asr", "type": "speech", "reason": "gone"}]
+    assert fused.result.anchor["id"] == 11 and fused.result.completion == "components_gone"
+    assert fused.result.model_dump()["missing"] == [{"component": "asr", "type": "speech", "reason": "gone"}]
     # the next utterance, begun after the death, ends the watch: a later `nothing` is only that
     nxt = result(3, "asr", "speech", 9 * S, 10 * S, speech={"hypotheses": [{"text": "go"}]})
     assert orphans.on_result(nxt, 10 * S) == [] and not orphans.watched

@@ -13,7 +13,7 @@ from esiaf_services.orchestrator.tests.helpers import FakeComponent, component_b
 def test_slow_then_fast_then_silent_is_dead_after_dead_after_s_not_at_the_slow_deadline(make_orchestrator, zctx):
     orch = make_orchestrator(heartbeat_interval_s=0.2, dead_after_s=0.6, idle_heartbeat_interval_s=4.0)
     with httpx.Client(base_url=orch.url, timeout=5.0) as http:
-        vad = FakeComponent(zctx, http, component_body("vad", designation="vad"))
+        vad = FakeComponent(zctx, http, component_body("vad", kind="vad"))
         try:
             vad.heartbeat(interval_s=4.0)  # idle: alive until 0.6 + 3.8 s after this beat
             assert vad.recv() is not None

@@ -25,7 +25,7 @@ def value(metrics: dict, name: str, **labels: str) -> float:
 
 
 def test_heartbeat_counters_per_component_and_topic(component, http):
-    asr = component("asr", designation="speech", inputs=["vad/speech"])
+    asr = component("asr", kind="speech", inputs=["vad/speech"])
     asr.heartbeat(STATS)
     wait_until(lambda: http.get("/components").json()["items"][0]["stats"] == STATS, what="the heartbeat's stats")
     metrics = samples(http)
@@ -46,7 +46,7 @@ def test_heartbeat_counters_per_component_and_topic(component, http):
 
 
 def test_a_peer_cannot_break_the_scrape_with_odd_stats(component, http):
-    asr = component("asr", designation="speech")
+    asr = component("asr", kind="speech")
     odd = {"inputs": {"t": "not a mapping"}, "outputs": [], "results_sent": -3, "refused": {"x": "many"}}
     asr.heartbeat(odd)
     wait_until(lambda: http.get("/components").json()["items"][0]["stats"] == odd, what="the odd stats")
@@ -57,7 +57,7 @@ def test_a_peer_cannot_break_the_scrape_with_odd_stats(component, http):
 
 
 def test_results_fused_results_latencies_and_refused_messages(component, http):
-    asr = component("asr", designation="speech")
+    asr = component("asr", kind="speech")
     for index in range(3):
         asr.send_result(stream_id="s1", start_ns=(index + 1) * 1_000_000_000, end_ns=(index + 2) * 1_000_000_000)
     asr.push.send_multipart([b"result", b"\xffnot a protobuf"])

@@ -21,7 +21,7 @@ def test_register_list_delete(orch, http):
         "grabber", outputs=["audio/raw"], endpoint="tcp://127.0.0.1:40100"))
     assert grabber.status_code == 201, grabber.text
     vad = http.post("/components", json=component_body(
-        "vad", designation="vad", inputs=["audio/raw"], outputs=["vad/speech"],
+        "vad", kind="vad", inputs=["audio/raw"], outputs=["vad/speech"],
         endpoint="tcp://127.0.0.1:40123"))
     assert vad.status_code == 201, vad.text
     body = vad.json()
@@ -47,10 +47,10 @@ def test_register_list_delete(orch, http):
 
 def test_topics_list_declared_and_assigned_formats_bytes_per_second_and_conversions(http):
     asr = http.post("/components", json=component_body(
-        "asr", designation="speech", inputs=["vad/speech"], fmt=FMT16)).json()
+        "asr", kind="speech", inputs=["vad/speech"], fmt=FMT16)).json()
     assert asr["formats"] == {"vad/speech": FMT16} and asr["peers"] == {"vad/speech": []}
     http.post("/components", json=component_body(
-        "vad", designation="vad", outputs=["vad/speech"], fmt=FMT48_FLOAT,
+        "vad", kind="vad", outputs=["vad/speech"], fmt=FMT48_FLOAT,
         endpoint="tcp://127.0.0.1:40200"))
     topic = {t["topic"]: t for t in http.get("/topics").json()["items"]}["vad/speech"]
     # one conversion either way: min_conversions breaks the tie by bandwidth
@@ -67,7 +67,7 @@ def test_channel_mismatch_is_409_naming_topic_and_formats(http):
     assert http.post("/components", json=component_body(
         "grabber", outputs=["audio/raw"], fmt=FMT16_STEREO)).status_code == 201
     response = http.post("/components", json=component_body(
-        "vad", designation="vad", inputs=["audio/raw"], fmt=FMT16))
+        "vad", kind="vad", inputs=["audio/raw"], fmt=FMT16))
     assert response.status_code == 409
     detail = response.json()["detail"]
     assert "'audio/raw'" in detail
@@ -78,7 +78,7 @@ def test_channel_mismatch_is_409_naming_topic_and_formats(http):
 
 @pytest.mark.parametrize("change, complaint", [
     ({"name": ""}, "name"),
-    ({"designation": "Not a kind!"}, "designation"),  # any name like "rate" is a kind
+    ({"kind": "Not a kind!"}, "kind"),  # any name like "rate" is a kind
     ({"inputs": [{"topic": "a", "format": {**FMT16, "sample_type": "int12"}}]}, "sample_type"),
     ({"inputs": [{"topic": "a", "format": {**FMT16, "channels": 0}}]}, "channels"),
     ({"inputs": [{"topic": "a", "format": FMT16}, {"topic": "a", "format": FMT16}]},
@@ -87,10 +87,21 @@ def test_channel_mismatch_is_409_naming_topic_and_formats(http):
     ({"surprise": 1}, "surprise"),
 ])
 def test_bad_body_is_422(http, change, complaint):
-    body = {**component_body("vad", designation="vad", inputs=["audio/raw"]), **change}
+    body = {**component_body("vad", kind="vad", inputs=["audio/raw"]), **change}
     response = http.post("/components", json=body)
     assert response.status_code == 422
     assert complaint in response.text
+
+
+def test_designation_the_old_name_of_kind_is_accepted_and_answered(http, caplog):
+    body = component_body("vad", kind="vad", inputs=["audio/raw"])
+    old = {**{k: v for k, v in body.items() if k != "kind"}, "designation": "vad"}
+    assert http.post("/components", json={**body, "designation": "vad"}).status_code == 422  # not both
+    with caplog.at_level("WARNING"):
+        assert http.post("/components", json=old).status_code == 201
+    assert "field=designation" in caplog.text
+    [listed] = http.get("/components").json()["items"]
+    assert listed["kind"] == listed["designation"] == "vad"
 
 
 def test_bad_queries_are_422(http):
@@ -101,9 +112,9 @@ def test_bad_queries_are_422(http):
 
 
 def test_instances_of_a_name_share_it_a_live_id_is_409_and_a_process_registers_itself_again(component, http):
-    body = component_body("asr", designation="speech", inputs=["vad/speech"])
-    first = component("asr", designation="speech", inputs=["vad/speech"], instance="asr-a", incarnation="p1")
-    second = component("asr", designation="speech", inputs=["vad/speech"])
+    body = component_body("asr", kind="speech", inputs=["vad/speech"])
+    first = component("asr", kind="speech", inputs=["vad/speech"], instance="asr-a", incarnation="p1")
+    second = component("asr", kind="speech", inputs=["vad/speech"])
     assert first.id == "asr-a" and second.id.startswith("asr-") and second.id != first.id
     listed = http.get("/components").json()
     assert [c["component_id"] for c in listed["items"]] == ["asr-a", second.id]
@@ -124,10 +135,10 @@ def test_instances_of_a_name_share_it_a_live_id_is_409_and_a_process_registers_i
 
 
 def test_replicas_are_told_the_streams_they_serve(component, http):
-    vad = component("vad", designation="vad", inputs=["raw"], outputs=["vad/speech"])
-    a = component("asr", designation="speech", inputs=["vad/speech"], instance="asr-a")
+    vad = component("vad", kind="vad", inputs=["raw"], outputs=["vad/speech"])
+    a = component("asr", kind="speech", inputs=["vad/speech"], instance="asr-a")
     assert a.registration["streams"] is None and vad.registration["streams"] is None  # alone: every stream
-    b = component("asr", designation="speech", inputs=["vad/speech"], instance="asr-b")
+    b = component("asr", kind="speech", inputs=["vad/speech"], instance="asr-b")
     assert b.registration["streams"] == []
     for stream in ("robot1", "robot2"):
         assert http.put(f"/streams/{stream}", json={"start_ns": 1, "source": "grabber-1"}).status_code == 200
@@ -142,8 +153,8 @@ def test_replicas_are_told_the_streams_they_serve(component, http):
 
 
 def test_a_component_reported_dead_is_dead_at_once_and_its_streams_move(component, http):
-    a = component("asr", designation="speech", inputs=["vad/speech"], instance="asr-a")
-    b = component("asr", designation="speech", inputs=["vad/speech"], instance="asr-b")
+    a = component("asr", kind="speech", inputs=["vad/speech"], instance="asr-a")
+    b = component("asr", kind="speech", inputs=["vad/speech"], instance="asr-b")
     for stream in ("robot1", "robot2"):
         assert http.put(f"/streams/{stream}", json={"start_ns": 1, "source": "grabber-1"}).status_code == 200
     assert set(http.get("/components").json()["services"]["asr"]["serving"].values()) == {"asr-a", "asr-b"}
@@ -175,7 +186,7 @@ def test_fusions_are_replaced_over_rest_and_bad_ones_refused(component, http):
         response = http.put("/fusions", json={"items": items})
         assert response.status_code == 422 and complaint in response.text
     assert http.get("/fusions").json() == new
-    vad = component("vad", designation="vad", inputs=["audio/raw"], outputs=["vad/speech"])
+    vad = component("vad", kind="vad", inputs=["audio/raw"], outputs=["vad/speech"])
     vad.send_result(stream_id="r1", type_=pb.RESULT_TYPE_VAD)
     wait_until(lambda: http.get("/fused").json()["items"], what="a fused result of fusion v")
     assert http.get("/fused").json()["items"][0]["fusion"] == "v"

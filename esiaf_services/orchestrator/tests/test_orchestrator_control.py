@@ -14,7 +14,7 @@ def peers_are(topic: str, endpoints: list[str]):
 
 def test_heartbeat_is_answered_with_full_state_and_stats_are_kept(component, http):
     grabber = component("grabber", outputs=["audio/raw"], endpoint="tcp://127.0.0.1:40444")
-    vad = component("vad", designation="vad", inputs=["audio/raw"], outputs=["vad/speech"])
+    vad = component("vad", kind="vad", inputs=["audio/raw"], outputs=["vad/speech"])
     vad.heartbeat()
     assert vad.recv() == {"type": "state", "peers": {"audio/raw": ["tcp://127.0.0.1:40444"]},
                           "formats": {"audio/raw": FMT16, "vad/speech": FMT16}, "version": 1}
@@ -40,11 +40,11 @@ def test_unknown_component_is_told_so(orch, zctx):
 
 
 def test_producer_registering_after_consumer_is_pushed_to_it(component):
-    asr = component("asr", designation="speech", inputs=["vad/speech"])
+    asr = component("asr", kind="speech", inputs=["vad/speech"])
     assert asr.registration["peers"] == {"vad/speech": []}
     asr.heartbeat()  # the DEALER is connected once it has an answer
     assert asr.recv()["peers"] == {"vad/speech": []}
-    vad = component("vad", designation="vad", outputs=["vad/speech"],
+    vad = component("vad", kind="vad", outputs=["vad/speech"],
                     endpoint="tcp://127.0.0.1:40555")
     # no heartbeat from asr: the new peer must be pushed at once
     pushed = asr.wait_for(lambda m: m.get("type") == "state", timeout_s=2.0)
@@ -55,7 +55,7 @@ def test_producer_registering_after_consumer_is_pushed_to_it(component):
 
 def test_removed_producer_is_withdrawn_from_consumer(component, http):
     grabber = component("grabber", outputs=["audio/raw"], endpoint="tcp://127.0.0.1:40666")
-    vad = component("vad", designation="vad", inputs=["audio/raw"])
+    vad = component("vad", kind="vad", inputs=["audio/raw"])
     vad.heartbeat()
     assert vad.recv()["peers"] == {"audio/raw": ["tcp://127.0.0.1:40666"]}
     assert http.delete(f"/components/{grabber.id}").status_code == 204
@@ -64,7 +64,7 @@ def test_removed_producer_is_withdrawn_from_consumer(component, http):
 
 def test_heartbeats_keep_alive_and_silence_kills_within_3_s(component, http):
     grabber = component("grabber", outputs=["audio/raw"], endpoint="tcp://127.0.0.1:40777")
-    vad = component("vad", designation="vad", inputs=["audio/raw"])
+    vad = component("vad", kind="vad", inputs=["audio/raw"])
     # Both beat for longer than dead_after_s (2.5 s): nobody dies.
     deadline = time.monotonic() + 3.0
     while time.monotonic() < deadline:
@@ -86,7 +86,7 @@ def test_heartbeats_keep_alive_and_silence_kills_within_3_s(component, http):
 
 
 def test_a_current_state_is_acknowledged_a_changed_or_missed_one_is_sent_in_full(component):
-    vad = component("vad", designation="vad", inputs=["audio/raw"])
+    vad = component("vad", kind="vad", inputs=["audio/raw"])
     vad.heartbeat()  # no state_version (an older SDK): always the full state
     first = vad.recv()
     assert first == {"type": "state", "peers": {"audio/raw": []}, "formats": {"audio/raw": FMT16}, "version": 1}
@@ -109,7 +109,7 @@ def test_a_current_state_is_acknowledged_a_changed_or_missed_one_is_sent_in_full
 def test_heartbeats_arriving_together_and_amid_pushes_are_all_answered(component):
     """The control socket is drained at each wake-up and looked at again after each send (its file
     descriptor is edge-triggered): no heartbeat waits for the next one to be answered."""
-    vads = [component("vad", designation="vad", inputs=["audio/raw"]) for _ in range(12)]
+    vads = [component("vad", kind="vad", inputs=["audio/raw"]) for _ in range(12)]
     for vad in vads:
         vad.heartbeat()
         assert vad.recv()["type"] == "state"  # connected

@@ -26,7 +26,7 @@ def stored_count(http, **params) -> int:
 
 
 def test_speech_result_is_stored_and_published_fused(orch, component, http):
-    asr = component("asr", designation="speech", inputs=["vad/speech"])
+    asr = component("asr", kind="speech", inputs=["vad/speech"])
     with connect(f"{orch.ws_url}/ws/fused") as ws:
         sent = asr.send_result(start_ns=START_NS, end_ns=END_NS, text="go forward ten meters")
         fused = recv_json(ws)
@@ -61,8 +61,8 @@ def test_speech_result_is_stored_and_published_fused(orch, component, http):
 
 
 def test_queries_filter_by_stream_type_component_and_time(component, http):
-    asr = component("asr", designation="speech", inputs=["vad/speech"])
-    vad = component("vad", designation="vad", inputs=["audio/raw"], outputs=["vad/speech"])
+    asr = component("asr", kind="speech", inputs=["vad/speech"])
+    vad = component("vad", kind="vad", inputs=["audio/raw"], outputs=["vad/speech"])
     asr.send_result(stream_id="a", start_ns=0, end_ns=10)        # fused 1
     asr.send_result(stream_id="a", start_ns=20, end_ns=30)       # fused 2
     asr.send_result(stream_id="b", start_ns=5, end_ns=15)        # fused 3
@@ -94,7 +94,7 @@ def test_queries_filter_by_stream_type_component_and_time(component, http):
 
 
 def test_websocket_sends_backlog_after_id_then_live_without_duplicates(orch, component, http):
-    asr = component("asr", designation="speech", inputs=["vad/speech"])
+    asr = component("asr", kind="speech", inputs=["vad/speech"])
     for start in (0, 10, 20):
         asr.send_result(stream_id="s", start_ns=start, end_ns=start + 5)
     wait_until(lambda: len(http.get("/fused").json()["items"]) == 3, what="3 fused results")
@@ -106,7 +106,7 @@ def test_websocket_sends_backlog_after_id_then_live_without_duplicates(orch, com
 
 
 def test_bad_messages_are_counted_and_ingest_goes_on(orch, component, http):
-    asr = component("asr", designation="speech", inputs=["vad/speech"])
+    asr = component("asr", kind="speech", inputs=["vad/speech"])
     asr.push.send_multipart([b"result", b"\xff\xff not a protobuf"])
     asr.push.send_multipart([b"result", pb.Result(component="asr").SerializeToString()])
     asr.push.send_multipart([b"weird", b"{}"])
@@ -119,8 +119,8 @@ def test_bad_messages_are_counted_and_ingest_goes_on(orch, component, http):
 
 def test_stream_end_after_every_input_component_said_so(orch, component, http):
     component("grabber", outputs=["audio/raw"])  # no inputs: not waited for
-    vad = component("vad", designation="vad", inputs=["audio/raw"], outputs=["vad/speech"])
-    asr = component("asr", designation="speech", inputs=["vad/speech"])
+    vad = component("vad", kind="vad", inputs=["audio/raw"], outputs=["vad/speech"])
+    asr = component("asr", kind="speech", inputs=["vad/speech"])
     with connect(f"{orch.ws_url}/ws/fused?stream=s1") as ws:
         vad.end_of_stream("s1")
         vad.send_result(stream_id="marker", type_=pb.RESULT_TYPE_VAD)  # same socket, after eos
@@ -142,8 +142,8 @@ def test_stream_end_after_every_input_component_said_so(orch, component, http):
 
 
 def test_stream_end_stops_waiting_for_a_component_that_left(orch, component, http):
-    vad = component("vad", designation="vad", inputs=["audio/raw"], outputs=["vad/speech"])
-    emotion = component("emotion", designation="emotion", inputs=["vad/speech"])
+    vad = component("vad", kind="vad", inputs=["audio/raw"], outputs=["vad/speech"])
+    emotion = component("emotion", kind="emotion", inputs=["vad/speech"])
     with connect(f"{orch.ws_url}/ws/fused") as ws:
         vad.end_of_stream("s2")
         vad.send_result(stream_id="marker", type_=pb.RESULT_TYPE_VAD)
@@ -160,7 +160,7 @@ def test_a_replayed_stream_does_not_teach_latencies(orch, component, http):
     now = time.time_ns()
     assert http.put("/streams/replay", json={"start_ns": now, "source": "grabber",
                                             "info": {"realtime": False}}).status_code == 200
-    asr = component("asr", designation="speech", inputs=["vad/speech"])
+    asr = component("asr", kind="speech", inputs=["vad/speech"])
     asr.send_result(stream_id="replay", start_ns=now - 51 * 10**9, end_ns=now - 50 * 10**9)  # "50 s" late
     asr.send_result(stream_id="live", start_ns=now - 2 * 10**9, end_ns=now - 10**9)
     wait_until(lambda: stored_count(http) == 2, what="both results")
@@ -178,9 +178,9 @@ def test_a_component_that_stalls_holds_the_stream_end_for_its_grace(make_orchest
     from esiaf_services.orchestrator.tests.helpers import Heartbeater
     orch = make_orchestrator(dead_after_s=0.6, stream_end_grace_s=2.0)
     with httpx.Client(base_url=orch.url, timeout=5.0) as http, connect(f"{orch.ws_url}/ws/fused?stream=s3") as ws:
-        vad = FakeComponent(zctx, http, component_body("vad", designation="vad", inputs=["audio/raw"],
+        vad = FakeComponent(zctx, http, component_body("vad", kind="vad", inputs=["audio/raw"],
                                                        outputs=["vad/speech"]))
-        asr = FakeComponent(zctx, http, component_body("asr", designation="speech", inputs=["vad/speech"]))
+        asr = FakeComponent(zctx, http, component_body("asr", kind="speech", inputs=["vad/speech"]))
         beating = Heartbeater([vad])  # the asr stays silent: it is declared dead
         try:
             wait_until(lambda: asr.id not in {c["component_id"] for c in http.get("/components").json()["items"]},
@@ -192,14 +192,14 @@ def test_a_component_that_stalls_holds_the_stream_end_for_its_grace(make_orchest
                 # decoding thread, still carries the old one
                 asr.send_result(stream_id="s3", start_ns=0, end_ns=10)
                 assert recv_json(ws)["type"] == "fused_result"
-                stalled, asr = asr, FakeComponent(zctx, http, component_body("asr", designation="speech",
+                stalled, asr = asr, FakeComponent(zctx, http, component_body("asr", kind="speech",
                                                                              inputs=["vad/speech"]))
                 stalled.end_of_stream("s3")
                 assert recv_json(ws) == {"type": "stream_end", "stream_id": "s3"}  # not waiting for the new id
                 stalled.close()
                 assert time.monotonic() - dead_at < 2.0
             elif comes_back:  # registers again (a new instance), sends its backlog, ends the stream
-                asr = FakeComponent(zctx, http, component_body("asr", designation="speech", inputs=["vad/speech"]))
+                asr = FakeComponent(zctx, http, component_body("asr", kind="speech", inputs=["vad/speech"]))
                 asr.send_result(stream_id="s3", start_ns=0, end_ns=10)
                 asr.end_of_stream("s3")
                 assert recv_json(ws)["type"] == "fused_result"  # not lost after a premature stream end
@@ -219,7 +219,7 @@ def test_results_survive_a_restart_and_ids_go_on(make_orchestrator, zctx, tmp_pa
     for run, expected_ids in ((1, [1]), (2, [1, 2])):
         orch = make_orchestrator(db_path=db)
         with httpx.Client(base_url=orch.url, timeout=5.0) as http:
-            asr = FakeComponent(zctx, http, component_body("asr", designation="speech",
+            asr = FakeComponent(zctx, http, component_body("asr", kind="speech",
                                                            inputs=["vad/speech"]))
             asr.send_result(start_ns=run, end_ns=run + 1)
             wait_until(lambda run=run: stored_count(http) == run, what=f"run {run}'s result")
@@ -236,9 +236,9 @@ def test_an_utterance_in_flight_on_a_recogniser_that_dies_is_fused_with_it_missi
     from esiaf_services.orchestrator.tests.helpers import Heartbeater
     orch = make_orchestrator(dead_after_s=0.6)
     with httpx.Client(base_url=orch.url, timeout=5.0) as http, connect(f"{orch.ws_url}/ws/fused?stream=s4") as ws:
-        vad = FakeComponent(zctx, http, component_body("vad", designation="vad", inputs=["audio/raw"],
+        vad = FakeComponent(zctx, http, component_body("vad", kind="vad", inputs=["audio/raw"],
                                                        outputs=["vad/speech"]))
-        asr = FakeComponent(zctx, http, component_body("asr", designation="speech", inputs=["vad/speech"]))
+        asr = FakeComponent(zctx, http, component_body("asr", kind="speech", inputs=["vad/speech"]))
         beating = Heartbeater([vad, asr])
         try:
             vad.send_result(stream_id="s4", start_ns=START_NS, end_ns=END_NS, type_=pb.RESULT_TYPE_VAD)
@@ -270,9 +270,9 @@ def test_an_utterance_a_live_recogniser_passed_by_is_fused_with_it_missing(make_
     second = 2_000_000_000
     spans = [(START_NS + i * 3 * second, START_NS + i * 3 * second + second) for i in range(4)]
     with httpx.Client(base_url=orch.url, timeout=5.0) as http, connect(f"{orch.ws_url}/ws/fused?stream=s5") as ws:
-        vad = FakeComponent(zctx, http, component_body("vad", designation="vad", inputs=["audio/raw"],
+        vad = FakeComponent(zctx, http, component_body("vad", kind="vad", inputs=["audio/raw"],
                                                        outputs=["vad/speech"]))
-        asr = FakeComponent(zctx, http, component_body("asr", designation="speech", inputs=["vad/speech"]))
+        asr = FakeComponent(zctx, http, component_body("asr", kind="speech", inputs=["vad/speech"]))
         try:
             for start, end in spans:
                 vad.send_result(stream_id="s5", start_ns=start, end_ns=end, type_=pb.RESULT_TYPE_VAD)

@@ -8,6 +8,7 @@ import sqlite3
 
 import pytest
 
+from esiaf.control_messages import State
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf_services.orchestrator.fusion.engine import FusionEngine, StoredResult
 from esiaf_services.orchestrator.planes.codec import BadResult, parse_result, result_to_json
@@ -72,10 +73,10 @@ def test_anchor_only_fusions_publish_each_matching_anchor_at_once():
                           allocate_id=lambda: next(ids), clock_ns=lambda: 99)
     fused = engine.on_result(stored(stream="r1"), 30)
     assert [(f.fusion, f.id, f.revision) for f in fused] == [("speech", 1, 1), ("robot1", 2, 1)]
-    assert fused[0].json == {"type": "fused_result", "id": 1, "revision": 1, "fusion": "speech",
-                             "stream_id": "r1", "anchor": {"id": 1}, "results": {},
-                             "aggregates": {}, "completion": "complete",
-                             "missing_components": [], "missing": [], "published_ns": 99}
+    assert fused[0].result.model_dump() == {
+        "type": "fused_result", "id": 1, "revision": 1, "fusion": "speech", "stream_id": "r1", "anchor": {"id": 1},
+        "results": {}, "aggregates": {}, "completion": "complete", "missing_components": [], "missing": [],
+        "published_ns": 99, "seq": 0}  # numbered when stored
     assert [f.fusion for f in engine.on_result(stored(stream="r2", result_id=2), 30)] == ["speech"]
     assert [f.fusion for f in engine.on_result(stored(type_="vad", result_id=3), 30)] == ["vad"]
     assert engine.on_result(stored(type_="gender", result_id=4), 30) == []
@@ -99,7 +100,7 @@ def test_settings_refuse_bad_kind_names_and_duplicate_fusions():
 # registry
 def register(registry: Registry, name: str, inputs=(), outputs=(), fmt=FMT, instance=None, incarnation=None):
     component, _ = registry.register(
-        name=name, designation="other", stream_id="default",
+        name=name, kind="other", stream_id="default",
         inputs={t: fmt for t in inputs}, outputs={t: fmt for t in outputs},
         audio_endpoint=f"tcp://{name}:1" if outputs else None, host="", pid=None, info={},
         instance=instance, incarnation=incarnation)
@@ -114,11 +115,10 @@ def test_registry_pushes_only_changed_states():
     grabber = register(registry, "grabber", outputs=["raw"], fmt={**FMT, "sample_rate_hz": 48000})
     changed = registry.changed_states()
     assert [c.name for c, _ in changed] == ["vad"]  # asr's peers and formats did not change
-    assert changed[0][1]["peers"] == {"raw": ["tcp://grabber:1"]}
-    assert changed[0][1]["formats"]["raw"]["sample_rate_hz"] == 16000  # a tie: the cheaper
+    assert changed[0][1].peers == {"raw": ["tcp://grabber:1"]}
+    assert changed[0][1].formats["raw"]["sample_rate_hz"] == 16000  # a tie: the cheaper
     registry.remove(grabber.component_id)
-    assert registry.changed_states() == [(vad, {"type": "state", "peers": {"raw": []},
-                                                "formats": {"raw": FMT}})]
+    assert registry.changed_states() == [(vad, State(peers={"raw": []}, formats={"raw": FMT}))]
     assert asr.status == "alive"
 
 
@@ -156,23 +156,23 @@ def test_replicas_share_the_streams_sticky_and_balanced_and_a_dead_ones_move_at_
     a = register(registry, "asr", inputs=["speech"], instance="asr-a")
     for stream in ("s1", "s2"):
         registry.add_stream(stream)
-    assert "streams" not in registry.state_of(a) and "streams" not in registry.state_of(vad)  # alone: all
+    assert registry.state_of(a).streams is None and registry.state_of(vad).streams is None  # alone: all
     b = register(registry, "asr", inputs=["speech"], instance="asr-b")
-    assert registry.state_of(a)["streams"] == ["s1", "s2"] and registry.state_of(b)["streams"] == []  # sticky
+    assert registry.state_of(a).streams == ["s1", "s2"] and registry.state_of(b).streams == []  # sticky
     for stream in ("s3", "s4", "s5"):
         registry.add_stream(stream)
-    assert registry.state_of(b)["streams"] == ["s3", "s4"]  # the least loaded
-    assert registry.state_of(a)["streams"] == ["s1", "s2", "s5"]  # the older on a tie
-    assert "streams" not in registry.state_of(vad)
+    assert registry.state_of(b).streams == ["s3", "s4"]  # the least loaded
+    assert registry.state_of(a).streams == ["s1", "s2", "s5"]  # the older on a tie
+    assert registry.state_of(vad).streams is None
     registry.end_stream("s1")
     registry.add_stream("s6")
-    assert registry.state_of(a)["streams"] == ["s2", "s5", "s6"]
+    assert registry.state_of(a).streams == ["s2", "s5", "s6"]
     registry.expire(2.5, now_mono=max(a.last_seen_mono, b.last_seen_mono) + 3)
     assert registry.live == {}
     c = register(registry, "asr", inputs=["speech"], instance="asr-c")
     d = register(registry, "asr", inputs=["speech"], instance="asr-d")
     registry.remove("asr-c")  # left: its streams go to the survivor
-    assert "streams" not in registry.state_of(d) and registry.assignments.serving("asr") == {
+    assert registry.state_of(d).streams is None and registry.assignments.serving("asr") == {
         s: "asr-d" for s in ("s2", "s3", "s4", "s5", "s6")}
     assert c.status == "alive"  # a clean leave is not a death
 
@@ -182,7 +182,7 @@ def test_a_stream_first_heard_from_a_replica_stays_with_it():
     a = register(registry, "asr", inputs=["speech"], instance="asr-a")
     b = register(registry, "asr", inputs=["speech"], instance="asr-b")
     assert registry.add_stream("x", served_by=b)
-    assert registry.state_of(b)["streams"] == ["x"] and registry.state_of(a)["streams"] == []
+    assert registry.state_of(b).streams == ["x"] and registry.state_of(a).streams == []
     assert not registry.add_stream("x", served_by=a)  # known already: it stays
 
 
@@ -209,7 +209,7 @@ def test_a_heartbeats_state_is_computed_again_after_every_change_and_only_then()
                 registry.offer_current(component)
                 assert component.pushed_state == state_of(component)
             assert {c.component_id for c in computed} == expected_computed
-    assert a.pushed_state is not None and a.pushed_state["peers"] == {"speech": []}  # the vad died
+    assert a.pushed_state is not None and a.pushed_state.peers == {"speech": []}  # the vad died
     # registered; b came (streams: none), s1 given to it, s2 too, s1 ended, b left (all again), vad died
     assert a.state_version == 7
 

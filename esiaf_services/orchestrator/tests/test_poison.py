@@ -27,8 +27,8 @@ def poison_results(component: str) -> list[bytes]:
 
 
 def test_a_poison_result_is_refused_alone_and_its_batch_is_stored(orch, component, http):
-    asr = component("asr", designation="speech", inputs=["vad/speech"])
-    emotion = component("emotion", designation="emotion", inputs=["vad/speech"])
+    asr = component("asr", kind="speech", inputs=["vad/speech"])
+    emotion = component("emotion", kind="emotion", inputs=["vad/speech"])
     poisons = poison_results("emotion")
     valid = 200
     for i in range(valid):  # sent back to back: they arrive in batches of up to 64 together
@@ -46,8 +46,8 @@ def test_a_poison_result_is_refused_alone_and_its_batch_is_stored(orch, componen
 
 
 def test_an_endless_span_does_not_corrupt_the_streams_fusions(orch, component, http):
-    asr = component("asr", designation="speech", inputs=["vad/speech"])
-    ssl = component("ssl", designation="ssl", inputs=["grabber/audio"])
+    asr = component("asr", kind="speech", inputs=["vad/speech"])
+    ssl = component("ssl", kind="ssl", inputs=["grabber/audio"])
     ssl.emit("ssl", (BASE_NS, BASE_NS + 10**9), stream_id="s",
              ssl={"directions": [{"azimuth_deg": 90.0, "probability": 0.9}]})
     ssl.push.send_multipart([b"result", make_result("ssl", "ssl", "s", (BASE_NS, 2**63 - 1), 99,
@@ -65,7 +65,7 @@ def test_an_endless_span_does_not_corrupt_the_streams_fusions(orch, component, h
 
 @pytest.mark.parametrize("size", [300_000, 5_000_000])
 def test_an_oversized_result_is_refused_without_decoding_it(orch, component, http, size):
-    asr = component("asr", designation="speech", inputs=["vad/speech"])
+    asr = component("asr", kind="speech", inputs=["vad/speech"])
     big = pb.Result(component="asr", type=pb.RESULT_TYPE_SPEECH, stream_id="s")
     big.span.start_ns, big.span.end_ns = BASE_NS, BASE_NS + 1
     big.speech.hypotheses.add(text="x" * size, probability=0.5)

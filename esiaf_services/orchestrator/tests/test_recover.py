@@ -82,7 +82,7 @@ def zctx():
 def test_a_corrupt_database_is_refused_and_recover_starts_on_what_survived(damage, tmp_path, zctx):
     orchestrator = Orchestrator(tmp_path)
     try:
-        asr = FakeComponent(zctx, orchestrator.http, component_body("asr", designation="speech"))
+        asr = FakeComponent(zctx, orchestrator.http, component_body("asr", kind="speech"))
         send(asr, range(1, SENT + 1))
         poll(lambda: len(stored_results(orchestrator)) == SENT, timeout_s=30)
         asr.close()
@@ -112,7 +112,7 @@ def test_a_corrupt_database_is_refused_and_recover_starts_on_what_survived(damag
         assert served[0].startswith(f"database {orchestrator.db_path} was corrupt") and said.group(0).split(
             "orchestrator: ")[1] in served, served
 
-        asr = FakeComponent(zctx, orchestrator.http, component_body("asr", designation="speech"))
+        asr = FakeComponent(zctx, orchestrator.http, component_body("asr", kind="speech"))
         send(asr, range(SENT + 1, SENT + 11))  # the recovered database takes new results
         poll(lambda: len(stored_results(orchestrator)) == len(survived) + 10, timeout_s=30)
         asr.close()

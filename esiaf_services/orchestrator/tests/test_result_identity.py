@@ -50,8 +50,8 @@ def pusher(zctx: zmq.Context, endpoint: str) -> zmq.Socket:
 
 
 def test_forged_results_are_refused_counted_and_the_real_ones_beside_them_stored(orch, component, http, zctx):
-    asr = component("asr", designation="speech", inputs=["vad/speech"])
-    mallory = component("mallory", designation="speech", inputs=["vad/speech"])  # holds a key: its own
+    asr = component("asr", kind="speech", inputs=["vad/speech"])
+    mallory = component("mallory", kind="speech", inputs=["vad/speech"])  # holds a key: its own
     stranger = pusher(zctx, asr.registration["results_endpoint"])
     valid = 150
     for i in range(valid):  # back to back: the forged ones share batches with the real ones
@@ -79,7 +79,7 @@ def test_forged_results_are_refused_counted_and_the_real_ones_beside_them_stored
 def test_forged_results_do_not_keep_a_silent_component_alive(make_orchestrator, zctx):
     orch = make_orchestrator(heartbeat_interval_s=0.2, dead_after_s=1.0)
     with httpx.Client(base_url=orch.url, timeout=5.0) as http:
-        asr = FakeComponent(zctx, http, component_body("asr", designation="speech", inputs=["vad/speech"]))
+        asr = FakeComponent(zctx, http, component_body("asr", kind="speech", inputs=["vad/speech"]))
         asr.heartbeat()
         stranger = pusher(zctx, asr.registration["results_endpoint"])
         deadline = time.monotonic() + 3.0
@@ -95,8 +95,8 @@ def test_forged_results_do_not_keep_a_silent_component_alive(make_orchestrator, 
 
 
 def test_a_forged_end_of_stream_does_not_end_the_stream(orch, component, http, zctx):
-    vad = component("vad", designation="vad", inputs=["audio/raw"], outputs=["vad/speech"])
-    asr = component("asr", designation="speech", inputs=["vad/speech"])
+    vad = component("vad", kind="vad", inputs=["audio/raw"], outputs=["vad/speech"])
+    asr = component("asr", kind="speech", inputs=["vad/speech"])
     stranger = pusher(zctx, asr.registration["results_endpoint"])
     with connect(f"{orch.ws_url}/ws/fused?stream=s1") as ws:
         for victim in (vad, asr):
@@ -115,7 +115,7 @@ def test_a_forged_end_of_stream_does_not_end_the_stream(orch, component, http, z
 def test_what_was_signed_before_a_registration_again_is_kept(orch, http, zctx):
     """A long decode starved the asr's heartbeat: declared dead, it registered again (a new key) while
     its result and stream end, signed with the old one, were on their way. They are its own: kept."""
-    body = component_body("asr", designation="speech", inputs=["vad/speech"], instance="asr-a", incarnation="p1")
+    body = component_body("asr", kind="speech", inputs=["vad/speech"], instance="asr-a", incarnation="p1")
     asr = FakeComponent(zctx, http, body)
     old = asr.keys
     asr.registration = http.post("/components", json=body).json()  # the same process registers again
@@ -132,7 +132,7 @@ def test_a_registration_made_before_a_restart_is_still_recognised(make_orchestra
     db = str(tmp_path / "kept.db")
     first = make_orchestrator(db_path=db)
     with httpx.Client(base_url=first.url, timeout=5.0) as http:
-        asr = FakeComponent(zctx, http, component_body("asr", designation="speech", inputs=["vad/speech"]))
+        asr = FakeComponent(zctx, http, component_body("asr", kind="speech", inputs=["vad/speech"]))
     first.stop()
     second = make_orchestrator(db_path=db)  # knows no component: results queued meanwhile arrive
     with httpx.Client(base_url=second.url, timeout=5.0) as http:
@@ -148,7 +148,7 @@ def test_a_registration_made_before_a_restart_is_still_recognised(make_orchestra
 
 
 def test_messages_without_a_key_are_refused_before_anything_is_stored(orch, component, http):
-    asr = component("asr", designation="speech", inputs=["vad/speech"])
+    asr = component("asr", kind="speech", inputs=["vad/speech"])
     asr.push.send_multipart([b"result", speech("asr", asr.id, "s", 1, "no key")])  # no key: not bound
     asr.push.send_multipart([b"result", speech("asr", asr.id, "s", 2, "bad"), b"", b"x"])
     asr.send_result(stream_id="s", start_ns=BASE_NS + 5 * 10**9, end_ns=BASE_NS + 6 * 10**9, text="signed")
@@ -161,7 +161,7 @@ def test_messages_without_a_key_are_refused_before_anything_is_stored(orch, comp
 
 
 def test_refusals_are_logged_the_first_and_every_100th(orch, component, http, caplog):
-    asr = component("asr", designation="speech", inputs=["vad/speech"])
+    asr = component("asr", kind="speech", inputs=["vad/speech"])
     caplog.set_level(logging.WARNING, logger="esiaf_services.orchestrator.planes.ingest")
     for i in range(250):
         asr.push.send_multipart([b"result", speech("asr", asr.id, "s", i, "no key")])

@@ -24,7 +24,7 @@ class Recording(Vad):
         self.sent.append((bytes(audio), start_ns, end_ns, meta))
         return len(self.sent)
 
-    def emit(self, result_type, span, **payload):
+    def emit(self, kind, span, **payload):
         self.spans.append(span)
 
 
