@@ -14,6 +14,7 @@ import numpy as np
 from pydantic import Field
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError, hypothesis
+from esiaf.receiving import broken_off
 from esiaf_services.asr.matching import GrammarError, Match, SentenceMatcher, chosen_first
 from esiaf_services.asr.recognizer import DEFAULT_EXTRA_DICT, UNRECOGNISED, PocketsphinxRecognizer, RecognizerError
 from esiaf_services.asr.whisper import WhisperRecognizer
@@ -73,15 +74,8 @@ class StreamState:
     end_ns: int = 0
 
     def broken_off(self, audio: Audio) -> str:
-        """Why ``audio`` does not continue the open utterance ("" if it does, or none is open): another
-        publisher (the VAD was restarted: the utterance's end will never come), or messages lost."""
-        if self.start_ns is None:
-            return ""
-        if audio.publisher != self.publisher:
-            return f"its VAD went away mid-utterance ({self.publisher} gave way to {audio.publisher})"
-        if audio.sequence > self.sequence + 1:
-            return f"{audio.sequence - self.sequence - 1} messages of its audio were lost"
-        return ""
+        """Why ``audio`` does not continue the open utterance ("" if it does, or none is open)."""
+        return "" if self.start_ns is None else broken_off(self.publisher, self.sequence, audio)
 
 
 class Asr(Component):
