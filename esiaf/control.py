@@ -67,6 +67,9 @@ class Registration:
     formats: dict[str, dict[str, Any]] = field(default_factory=dict)
     peer_keys: dict[str, str] = field(default_factory=dict)  # producer endpoint -> its CURVE public key
     streams: list[str] | None = None  # one of several instances of its service: the streams it serves
+    # with outputs: the components the orchestrator names as their consumers, the only subscribers the audio
+    # output takes (esiaf/gate.py); None from an orchestrator that names none
+    consumers: list[str] | None = None
     # the number of the last state the orchestrator sent and we applied (0: none yet, the next answer
     # is the full state); every heartbeat gives it back, and an unchanged state is answered with an ack
     state_version: int = 0
@@ -74,7 +77,7 @@ class Registration:
     def state(self) -> dict[str, Any]:
         return {"type": "state", "peers": self.peers, "formats": self.formats, "peer_keys": self.peer_keys,
                 "results_endpoint": self.results_endpoint, "component_id": self.component_id,
-                "streams": self.streams}
+                "streams": self.streams, "consumers": self.consumers}
 
 
 def register(url: str, request: dict[str, Any], timeout_s: float,
@@ -341,6 +344,7 @@ class ControlClient:
                     self._registered.formats = message.get("formats", {})
                     self._registered.peer_keys = message.get("peer_keys", {})
                     self._registered.streams = message.get("streams")
+                    self._registered.consumers = message.get("consumers")
                     state_out.send(json.dumps(self._registered.state()).encode())
                     quiet_since = last_heard  # a new state is something to do
                     if self._slow:  # fast again, from a beat now

@@ -68,7 +68,7 @@ async def register(request: RegisterRequest,
         heartbeat_interval_s=core.settings.heartbeat_interval_s,
         dead_after_s=core.settings.dead_after_s, idle_heartbeat_interval_s=core.settings.idle_heartbeat_interval_s,
         peers=state["peers"], formats=state["formats"],
-        peer_keys=state.get("peer_keys", {}), streams=state.get("streams"))
+        peer_keys=state.get("peer_keys", {}), streams=state.get("streams"), consumers=state.get("consumers"))
 
 
 @router.get("/components", response_model=ComponentList,

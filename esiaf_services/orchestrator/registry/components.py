@@ -293,7 +293,7 @@ class Registry:
     def state_of(self, component: Component,
                  formats: dict[str, Format] | None = None) -> dict[str, Any]:
         """The full state a component is told: its peers (with their CURVE keys, where they gave
-        one) and the formats of its topics."""
+        one), the formats of its topics and, with outputs, its consumers."""
         formats = self.formats() if formats is None else formats
         producers = {topic: [p for p in self.producers(topic) if p is not component and p.audio_endpoint]
                      for topic in component.inputs}
@@ -308,6 +308,9 @@ class Registry:
             streams = self.assignments.streams_of(component, len(self.instances(component.name)))
             if streams is not None:  # one of several instances: only the streams it serves
                 state["streams"] = streams
+        if component.outputs:  # the only subscribers its audio output takes (esiaf/gate.py)
+            state["consumers"] = sorted({c.component_id for topic in component.outputs
+                                         for c in self.consumers(topic) if c is not component})
         return state
 
     def changed_states(self) -> list[tuple[Component, dict[str, Any]]]:
