@@ -271,9 +271,10 @@ class Ingest:
         stored = StoredResult(id=result_id, component=result.component, type=kind,
                               stream_id=result.stream_id, start_ns=result.span.start_ns,
                               end_ns=result.span.end_ns, json=as_json)
-        outgoing = [self._store_fused(fused) for fused in [*self.orphans.before_result(stored, received_ns),
-                                                           *self.engine.on_result(stored, received_ns),
-                                                           *self.orphans.on_result(stored, received_ns)]]
+        outgoing = [self._store_fused(fused) for fused in [
+            *self.orphans.before_result(stored, received_ns), *self.engine.on_result(stored, received_ns),
+            *self.orphans.on_result(stored, received_ns),
+            *self.orphans.on_segment(stored, received_ns, lambda service: bool(self.registry.instances(service)))]]
         self.counters["results"] += 1  # stored and fused: counted once nothing can undo it
         if self.metrics is not None:
             self._observed.append((self.metrics.result_latency, (result.component, result.stream_id),
