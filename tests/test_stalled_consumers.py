@@ -65,6 +65,7 @@ def test_a_consumer_frozen_longer_than_the_unacknowledged_data_timeout_keeps_its
     closes; with the data timeout (4 s) the producer dropped the connection and all queued for it."""
     context = zmq.Context()
     producer = Transport(context, inputs=[], has_outputs=True, bind_host="127.0.0.1")
+    producer.name_consumers("source-1", ["sink"])
     consumer = subprocess.Popen([sys.executable, "-c", CONSUMER, TOPIC, producer.audio_endpoint], cwd=REPO,
                                 stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(REPO)})
     taken: list[int] = []
