@@ -38,7 +38,8 @@ class ConsumerGate:
     def __init__(self, context: zmq.Context, token: str) -> None:
         self._token = token
         self._named: dict[str, frozenset[str] | None] = {}  # by the registration that named them
-        self._allowed: frozenset[str] | None = None  # None: any name (not named yet, or the orchestrator names none)
+        self._allowed: frozenset[str] | None = frozenset()  # None: any name (the orchestrator names none)
+        self._naming = threading.Lock()
         self.refused: Counter[str] = Counter()  # by reason, for the log
         self._closing = False
         self._handler = context.socket(zmq.ROUTER)  # a ROUTER, not a REP: a held request must not block others
@@ -54,12 +55,11 @@ class ConsumerGate:
         """The consumers the orchestrator names in ``source``'s state (the producer's registration, or a
         guest's that publishes through its socket); None if it names none (an orchestrator that does not
         know them): then any subscriber with the token is taken. Safe from any thread."""
-        named = dict(self._named)
-        named[source] = None if consumers is None else frozenset(
-            c for c in consumers if isinstance(c, str) and len(c) <= MAX_NAME)
-        self._named = named
-        lists = [v for v in named.values() if v is not None]
-        self._allowed = None if len(lists) < len(named) else frozenset().union(*lists)
+        with self._naming:  # the node's data thread and a guest's state thread
+            self._named[source] = None if consumers is None else frozenset(
+                c for c in consumers if isinstance(c, str) and len(c) <= MAX_NAME)
+            lists = [v for v in self._named.values() if v is not None]
+            self._allowed = None if len(lists) < len(self._named) else frozenset().union(*lists)
         self._wake()
 
     def close(self) -> None:

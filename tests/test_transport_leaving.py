@@ -18,6 +18,7 @@ CONNECTED = """
     from esiaf.transport import LEAVE_GRACE_S, Transport, topic_frame
     context = zmq.Context()
     gate = ConsumerGate(context, "")  # a producer's audio port is a PLAIN server (esiaf/gate.py)
+    gate.name("pub", None)  # that takes any subscriber: no orchestrator names its consumers here
     pub = context.socket(zmq.PUB)
     pub.plain_server = True
     port = pub.bind_to_random_port("tcp://127.0.0.1")
