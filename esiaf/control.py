@@ -79,6 +79,9 @@ class Registration:
     formats: dict[str, dict[str, Any]] = field(default_factory=dict)
     peer_keys: dict[str, str] = field(default_factory=dict)  # producer endpoint -> its CURVE public key
     streams: list[str] | None = None  # one of several instances of its service: the streams it serves
+    # with outputs: the components the orchestrator names as their consumers, the only subscribers the audio
+    # output takes (esiaf/gate.py); None from an orchestrator that names none
+    consumers: list[str] | None = None
     # the number of the last state the orchestrator sent and we applied (0: none yet, the next answer
     # is the full state); every heartbeat gives it back, and an unchanged state is answered with an ack
     state_version: int = 0
@@ -87,7 +90,7 @@ class Registration:
         """What the data thread is to connect to."""
         return LocalState(peers=self.peers, formats=self.formats, peer_keys=self.peer_keys,
                           results_endpoint=self.results_endpoint, component_id=self.component_id,
-                          streams=self.streams)
+                          streams=self.streams, consumers=self.consumers)
 
 
 def register(url: str, request: dict[str, Any], timeout_s: float,
@@ -391,6 +394,7 @@ class ControlClient:
         registration.state_version = state.version or 0
         registration.peers, registration.formats = state.peers, {t: dict(f) for t, f in state.formats.items()}
         registration.peer_keys, registration.streams = state.peer_keys or {}, state.streams
+        registration.consumers = state.consumers
         state_out.send(encode(registration.local_state()))
 
     def _bad(self, reason: str, size: int) -> None:

@@ -148,6 +148,9 @@ class State(Message):
                                                 "peers, its producer's public key; absent without")
     streams: Lenient[list[Name]] = Field(default=None, description="one of several instances of its service: "
                                          "the streams it serves; absent: all")
+    consumers: Lenient[list[Name]] = Field(default=None, description="with outputs: the component ids the "
+                                           "orchestrator names as its consumers, the only subscribers its audio "
+                                           "ports take; absent: none named yet")
     version: Lenient[StrictInt] = Field(default=None, description="this state's number (from 1, per "
                                         "registration); its heartbeats give it back once applied")
     echo_ns: Lenient[TimeNs] = Field(default=None, description="the answered heartbeat's sent_ns")
@@ -193,6 +196,7 @@ class LocalState(Message):
     formats: dict[str, WireFormat] = Field(description="each topic: its assigned format")
     peer_keys: dict[str, str] = Field(default_factory=dict, description="each peer endpoint: its CURVE key")
     streams: list[str] | None = Field(default=None, description="the streams it serves; None: all")
+    consumers: list[str] | None = Field(default=None, description="the component ids its audio ports take")
 
 
 class Fatal(Message):

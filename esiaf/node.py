@@ -88,6 +88,7 @@ class Context:
         self._formats: queue.SimpleQueue[dict[str, Any]] = queue.SimpleQueue()
         self._zmq: zmq.Context | None = None  # a hosted processor's: its control thread's state socket
         self._state_thread: threading.Thread | None = None
+        self._transport: Transport | None = None  # hosted: the node's sockets, whose output its consumers may take
 
     def declared(self) -> None:
         """Counters for every declared topic (a processor may declare topics until it runs)."""
@@ -321,6 +322,7 @@ class Context:
         ZeroMQ context: the sockets follow the primary's state (its peers); this one is watched
         for "fatal" and formats."""
         self._zmq = zmq.Context()
+        self._transport = transport
         state = self._zmq.socket(zmq.PAIR)
         state.setsockopt(zmq.LINGER, 0)
         state.bind(STATE_ADDRESS)
@@ -332,7 +334,9 @@ class Context:
         self.control = ControlClient(self._zmq, settings.orchestrator_url, self.registration_request(transport),
                                      self.stats, settings.register_timeout_s, "",
                                      keys.load(orchestrator=False), self.clock_ns)
-        self.apply_formats(self.control.start().local_state().formats)
+        registered = self.control.start().local_state()
+        self.apply_formats(registered.formats)
+        transport.name_consumers(self.control.component_id, registered.consumers)  # its outputs' too
         log.info("hosting guest=%s component_id=%s", name, self.control.component_id)
 
     def _watch(self, state: zmq.Socket, node: Node) -> None:
@@ -344,6 +348,8 @@ class Context:
                     node.stop(exit_code=1)
                 else:
                     self._formats.put(message.formats)  # applied on the data thread, at the next message
+                    if self._transport is not None:  # who may subscribe to its outputs on the node's socket
+                        self._transport.name_consumers(message.component_id, message.consumers)
         except zmq.ContextTerminated:
             pass
         finally:
@@ -449,7 +455,7 @@ class Node:
                                            audio_port=primary.settings.audio_port,
                                            advertise_host=primary.settings.advertise_host, curve=curve,
                                            audio_queue=primary.settings.audio_queue,
-                                           replays=primary.receiver.replays)
+                                           replays=primary.receiver.replays, identity=processor.instance_id)
             except TransportError as exc:
                 raise SetupError(str(exc)) from None
             settings = primary.settings
@@ -540,6 +546,7 @@ class Node:
         wire.connect_peers({e for endpoints in state.peers.values() for e in endpoints}, state.peer_keys)
         wire.connect_results(state.results_endpoint)
         wire.take_streams(state.streams)
+        wire.name_consumers(state.component_id, state.consumers)
         self.primary.apply_formats(state.formats)
         if not self._hosted_started and not self.stopping:  # the first state: registered, sockets made
             self._hosted_started = True

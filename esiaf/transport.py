@@ -9,13 +9,16 @@
 With CURVE keys (``ESIAF_CURVE_DIR``, esiaf/keys.py) the XPUB is a CURVE server that takes only the
 allowed client keys, the SUB connects to each producer with the public key the orchestrator gave
 with its endpoint (an allowed key, or no connection), and the PUSH to the orchestrator's key;
-without, the PUSH presents the token (PLAIN) and audio is open to anyone who reaches the port.
-The allowed keys are read again on SIGHUP (:meth:`Transport.reload_keys_soon`, keys.reload_clients).
+without, the PUSH presents the token (PLAIN), and the XPUB is a PLAIN server that takes only the
+consumers the orchestrator named, with the token (esiaf/gate.py): the SUB presents its component id
+and the token. The allowed keys are read again on SIGHUP (:meth:`Transport.reload_keys_soon`,
+keys.reload_clients).
 
 Flow control (docs/protocol.md): a replay's audio (a stream in ``replays``, esiaf/receiving.py) waits
 for its consumers where live audio is dropped and counted: a SUB whose queue is full stops reading
 its TCP connection, the XPUB's queue fills and refuses (XPUB_NODROP); the send waits on the socket's
-ZMQ_FD (the consumer's credit) and the wake pipe (stop()). ``audio_queue`` bounds every queue.
+ZMQ_FD (the consumer's credit) and the wake pipe (stop()). ``audio_queue`` bounds every queue. A
+consumer that stops reading (frozen, or stuck in a handler) keeps its connection STALL_MS.
 
 One thread uses a Transport: the component's data thread.
 """
@@ -38,6 +41,7 @@ from zmq.utils.monitor import recv_monitor_message
 from esiaf import auth, keys
 from esiaf.control_messages import parse_to_data_thread
 from esiaf.frames import recv_frames, send_frames, topic_frame, topic_name  # topic_*: here of old
+from esiaf.gate import ConsumerGate
 
 if TYPE_CHECKING:
     from esiaf.proto import esiaf_pb2 as pb
@@ -49,9 +53,13 @@ STATE_ADDRESS = "inproc://esiaf-control-state"
 AUDIO_HWM = 100_000  # messages queued per connection before loss (minutes of audio): the audio_queue default
 RESULTS_HWM = 10_000
 # With a bounded audio_queue (below AUDIO_HWM), each audio connection's kernel buffers too (the kernel would
-# otherwise hold some MB, a minute of 16 kHz audio, ahead of the consumer); and its data may go unacknowledged
-# (a consumer's zero window: it is busy, its queue full) STALL_MS, not UNACKED_MS, before it is dropped
+# otherwise hold some MB, a minute of 16 kHz audio, ahead of the consumer)
 BOUNDED_TCP_BUFFER_BYTES = 64 * 1024
+# A producer's audio may go unacknowledged this long, not UNACKED_MS, before the connection is dropped: a
+# consumer that does not read (frozen with SIGSTOP, a decode that holds it) closes its TCP window once its
+# kernel buffer is full, and at 4 s a consumer frozen for 20 s was cut off and lost what was queued for it.
+# Its queue meanwhile is bounded by audio_queue; a consumer cut off by the network notices at its end (it
+# only receives: the kernel's keepalive probes) within seconds, and connects again
 STALL_MS = 60_000
 FLUSH_LINGER_MS = 2_000  # data sockets get this long to deliver the last messages at shutdown
 REPLAY_LINGER_MS = 60_000  # ... a replay's producer that ended (not stopped): its slowest consumer's pace
@@ -112,16 +120,16 @@ def _nothing() -> None:
 
 
 def _bound_buffers(sock: zmq.Socket, audio_queue: int, option: int) -> None:
-    """A bounded audio queue bounds the kernel buffer too, and lets a busy consumer stall a while (STALL_MS)."""
+    """A bounded audio queue bounds the kernel buffer too."""
     if audio_queue < AUDIO_HWM:
         sock.setsockopt(option, BOUNDED_TCP_BUFFER_BYTES)
-        sock.setsockopt(zmq.TCP_MAXRT, STALL_MS)
 
 
 class Transport:
     def __init__(self, context: zmq.Context, *, inputs: Iterable[str], has_outputs: bool,
                  bind_host: str, audio_port: int = 0, advertise_host: str = "", curve: keys.Curve | None = None,
-                 audio_queue: int = AUDIO_HWM, replays: Replays | None = None):
+                 audio_queue: int = AUDIO_HWM, replays: Replays | None = None, identity: str = ""):
+        """``identity``: the component id a consumer presents to its producers (without CURVE keys)."""
         self._curve = curve
         self._replays = replays  # the streams whose audio and results wait for consumers (None: none)
         self._stopping = False  # stop(): no send waits any more
@@ -129,6 +137,7 @@ class Transport:
         self._clients = curve.clients if curve is not None else frozenset()  # SIGHUP reads them again
         self._reload = False  # SIGHUP came: read the allowed keys again at the next poll
         self._authenticator: ThreadAuthenticator | None = None
+        self._gate: ConsumerGate | None = None  # without CURVE keys: the consumers the orchestrator named
         self._refusals: zmq.Socket | None = None  # the XPUB's monitor: subscribers refused at the handshake
         self._poller = zmq.Poller()
         self._connected: set[str] = set()
@@ -146,7 +155,7 @@ class Transport:
             self._open_output(context, bind_host, audio_port, audio_queue)
         topics = list(inputs)
         if topics:
-            self._open_input(context, topics, audio_queue)
+            self._open_input(context, topics, audio_queue, identity)
         self._topics = topics
         self._streams: list[str] | None = None  # the streams taken: None, all of them
         # stop() from a signal handler or another thread writes here: a poll that waits long ends at once
@@ -161,12 +170,14 @@ class Transport:
         self._advertised_host = advertise_host or (socket.gethostname() if bind_host in ANY_HOST else bind_host)
 
     def _open_output(self, context: zmq.Context, bind_host: str, audio_port: int, audio_queue: int) -> None:
-        """The XPUB the outputs' audio goes out on (a CURVE server with keys), bound; raises TransportError."""
+        """The XPUB the outputs' audio goes out on (a CURVE server with keys, else a PLAIN one), bound; raises
+        TransportError."""
         curve = self._curve
         self.pub = keep_alive(context.socket(zmq.XPUB))
         self.pub.setsockopt(zmq.LINGER, FLUSH_LINGER_MS)
         self.pub.setsockopt(zmq.SNDHWM, audio_queue)
         _bound_buffers(self.pub, audio_queue, zmq.SNDBUF)
+        self.pub.setsockopt(zmq.TCP_MAXRT, STALL_MS)
         self.pub.setsockopt(zmq.XPUB_VERBOSER, 1)
         self.pub.setsockopt(zmq.XPUB_NODROP, 1)
         if curve is not None:  # a CURVE server: only consumers with an allowed key may subscribe
@@ -174,8 +185,11 @@ class Transport:
             self._authenticator.start()
             self._authenticator.configure_curve(domain="*", location=str(curve.clients_dir))
             keys.server(self.pub, curve)
-            self._refusals = self.pub.get_monitor_socket(sum(keys.HANDSHAKE_FAILURES))
-            self._poller.register(self._refusals, zmq.POLLIN)
+        else:  # a PLAIN server: only the consumers the orchestrator named, with the token
+            self._gate = ConsumerGate(context, auth.token())
+            self.pub.plain_server = True
+        self._refusals = self.pub.get_monitor_socket(sum(keys.HANDSHAKE_FAILURES))
+        self._poller.register(self._refusals, zmq.POLLIN)
         try:
             if audio_port:
                 self.pub.bind(f"tcp://{bind_host}:{audio_port}")
@@ -187,12 +201,16 @@ class Transport:
             raise TransportError(f"cannot bind audio output on {where}: {exc}") from None
         self._poller.register(self.pub, zmq.POLLIN)
 
-    def _open_input(self, context: zmq.Context, topics: list[str], audio_queue: int) -> None:
+    def _open_input(self, context: zmq.Context, topics: list[str], audio_queue: int, identity: str) -> None:
         """The SUB the inputs' audio comes in on, subscribed to ``topics`` (connected later)."""
         self.sub = keep_alive(context.socket(zmq.SUB))
         self.sub.setsockopt(zmq.LINGER, 0)
         self.sub.setsockopt(zmq.RCVHWM, audio_queue)
         _bound_buffers(self.sub, audio_queue, zmq.RCVBUF)
+        if self._curve is None:  # who we are to producers (esiaf/gate.py), with the token if there is one
+            self.sub.plain_username = (identity or "anonymous").encode()
+            if token := auth.token():
+                self.sub.plain_password = token.encode()
         for topic in topics:
             self.sub.setsockopt(zmq.SUBSCRIBE, topic_frame(topic))
         self._poller.register(self.sub, zmq.POLLIN)
@@ -239,6 +257,13 @@ class Transport:
             ready = dict(self._poller.poll(timeout=0))
             if not take_audio:
                 ready.pop(self.sub, None)
+
+    def name_consumers(self, source: str, consumers: list[str] | None) -> None:
+        """The consumers the orchestrator named in ``source``'s state (this component's, or a guest's that
+        publishes through its socket): the only subscribers the audio output takes without CURVE keys
+        (None: it named none, any subscriber with the token). Safe from any thread."""
+        if self._gate is not None:
+            self._gate.name(source, consumers if isinstance(consumers, list) else None)
 
     def reload_keys_soon(self) -> None:
         """SIGHUP: the allowed client keys are read again at the next poll, on the data thread
@@ -394,6 +419,9 @@ class Transport:
         if self._authenticator is not None:
             self._authenticator.stop()
             self._authenticator = None
+        if self._gate is not None:
+            self._gate.close()
+            self._gate = None
         for fd in (self._wake_read, self._wake_write):
             with contextlib.suppress(OSError):
                 os.close(fd)

@@ -44,7 +44,8 @@ from esiaf.hosting import HostSettings
 from esiaf.per_stream import PerStream
 from esiaf.processor import Processor, SetupError
 from esiaf.proto import esiaf_pb2 as pb
-from esiaf.results import LABEL_PAYLOADS
+from esiaf.receiving import broken_off
+from esiaf.results import LABEL_PAYLOADS, valid_kind
 from esiaf.settings import ComponentSettings
 
 log = logging.getLogger(__name__)
@@ -83,6 +84,9 @@ class _Collecting:
     chunks: list[np.ndarray] = field(default_factory=list)
     samples: int = 0
     trimmed: bool = False  # its start was dropped (max_utterance_s): logged once per utterance
+    publisher: str = ""  # where its audio comes from, and the last sequence number taken (receiving.broken_off)
+    sequence: int = 0
+    end_ns: int = 0  # the capture time of its last sample
 
 
 class UtteranceAnalyser(Processor):
@@ -115,11 +119,14 @@ class UtteranceAnalyser(Processor):
         raise NotImplementedError(f"{type(self).__name__} must implement analyse(utterance)")
 
     def on_audio(self, audio: Audio) -> None:
+        if audio.stream_id in self.utterances:
+            self._broken_off(audio)
         if not audio.payload:
             return
         utterance = self.utterances.get(audio.stream_id)
         if not utterance.chunks:
             utterance.start_ns = audio.start_ns
+        utterance.publisher, utterance.sequence, utterance.end_ns = audio.publisher, audio.sequence, audio.end_ns
         chunk = audio.as_float()[:, 0].astype(np.float32)
         utterance.chunks.append(chunk)
         utterance.samples += chunk.size
@@ -133,6 +140,21 @@ class UtteranceAnalyser(Processor):
                 utterance.trimmed = True
                 log.warning("stream_id=%s: a segment longer than max_utterance_s=%g; its start is dropped",
                             audio.stream_id, self.settings.max_utterance_s)
+
+    def _broken_off(self, audio: Audio) -> None:
+        """The stream's open segment will never end as it began (its VAD was restarted, or audio was
+        lost): said nothing about, rather than analysed with the next one's audio on the next one's span."""
+        utterance = self.utterances[audio.stream_id]
+        why = broken_off(utterance.publisher, utterance.sequence, audio) if utterance.chunks else ""
+        if why:
+            self.utterances.pop(audio.stream_id)
+            self._say_nothing(audio.stream_id, (utterance.start_ns, utterance.end_ns), f"utterance broken off: {why}")
+
+    def _say_nothing(self, stream_id: str, span: tuple[int, int], why: str) -> None:
+        self.nothing += 1
+        self.info["nothing"] = self.nothing
+        self.emit(self.kind, span, stream_id=stream_id, nothing=why)
+        log.info("segment stream_id=%s start_ns=%d nothing: %s", stream_id, span[0], why)
 
     def on_segment_end(self, audio: Audio) -> None:
         utterance = self.utterances.pop(audio.stream_id) or _Collecting(audio.start_ns)
@@ -150,10 +172,7 @@ class UtteranceAnalyser(Processor):
         if not isinstance(found, dict):
             raise TypeError(f"{type(self).__name__}.analyse must return a dict, not {type(found).__name__}")
         if "nothing" in found:
-            self.nothing += 1
-            self.info["nothing"] = self.nothing
-            self.emit(self.kind, span, stream_id=audio.stream_id, nothing=str(found["nothing"]))
-            log.info("segment stream_id=%s start_ns=%d nothing: %s", audio.stream_id, span[0], found["nothing"])
+            self._say_nothing(audio.stream_id, span, str(found["nothing"]))
             return
         self.analysed += 1
         self.info["analysed"] = self.analysed

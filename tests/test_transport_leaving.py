@@ -14,9 +14,13 @@ from esiaf.tools.testing import REPO
 
 CONNECTED = """
     import time, zmq
+    from esiaf.gate import ConsumerGate
     from esiaf.transport import LEAVE_GRACE_S, Transport, topic_frame
     context = zmq.Context()
+    gate = ConsumerGate(context, "")  # a producer's audio port is a PLAIN server (esiaf/gate.py)
+    gate.name("pub", None)  # that takes any subscriber: no orchestrator names its consumers here
     pub = context.socket(zmq.PUB)
+    pub.plain_server = True
     port = pub.bind_to_random_port("tcp://127.0.0.1")
     endpoint = f"tcp://127.0.0.1:{port}"
     transport = Transport(context, inputs=["grabber/audio"], has_outputs=False, bind_host="127.0.0.1")
@@ -44,7 +48,7 @@ SCENARIO = textwrap.dedent(CONNECTED + """
     pub.send_multipart([topic_frame("grabber/audio"), b"after"])  # disconnected now: never arrives
     late = sum(1 for kind, _ in transport.events(300) if kind == "audio")
     print(queued, late)
-    transport.close(); pub.close(0); context.term()
+    transport.close(); pub.close(0); gate.close(); context.term()
 """)
 
 
@@ -64,7 +68,7 @@ BACK = textwrap.dedent(CONNECTED + """
         list(transport.events(100))
     pub.send_multipart([topic_frame("grabber/audio"), b"after"])
     print(sum(1 for kind, _ in transport.events(1000) if kind == "audio"))
-    transport.close(); pub.close(0); context.term()
+    transport.close(); pub.close(0); gate.close(); context.term()
 """)
 
 

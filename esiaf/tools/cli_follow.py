@@ -32,22 +32,7 @@ def format_line(fused: dict[str, Any], origin_ns: int) -> str:
     anchor = fused["anchor"]
     span = anchor["span"]
     start_s, end_s = (span["start_ns"] - origin_ns) / 1e9, (span["end_ns"] - origin_ns) / 1e9
-    what = ""
-    if "speech" in anchor and anchor["speech"].get("hypotheses"):
-        best = anchor["speech"]["hypotheses"][0]
-        if not best.get("text") and not best.get("raw_text"):
-            what = "(speech not understood)"
-        elif best.get("out_of_set"):
-            what = f"out of set: '{best.get('raw_text', '')}' (match {best.get('match_score', 0):.2f})"
-        else:
-            what = f"'{best['text']}' (p={best['probability']:.2f})"
-    elif lost := next((m for m in fused.get("missing", []) if m.get("type") == "speech"), None):
-        # its recogniser died with it, or passed it by (orphans.py)
-        what = "(speech lost: its recogniser skipped it)" if lost.get("reason") == "skipped" \
-            else "(speech lost: its recogniser died)"
-    else:
-        payload = next((k for k in ("vad", "ssl", "emotion", "gender", "voice_id") if k in anchor), "")
-        what = f"{payload} {json.dumps(anchor.get(payload, {}))}"
+    what = said(fused)
     aggregates = fused.get("aggregates") or {}
     shown = set()
     if aggregates.get("ssl"):  # where the utterance came from: the fused SSL directions' circular mean
@@ -73,6 +58,26 @@ def format_line(fused: dict[str, Any], origin_ns: int) -> str:
         extra.append(f"{fused['completion']}, missing {', '.join(fused.get('missing_components', []))}")
     revision = f" rev {fused['revision']}" if fused.get("revision", 1) > 1 else ""
     return f"[{start_s:.2f}–{end_s:.2f} s] {what}{' ' + '; '.join(extra) if extra else ''}{revision}"
+
+
+def said(fused: dict[str, Any]) -> str:
+    """What was said: the best hypothesis, or why there is none."""
+    anchor = fused["anchor"]
+    if "speech" in anchor and anchor["speech"].get("hypotheses"):
+        best = anchor["speech"]["hypotheses"][0]
+        if not best.get("text") and not best.get("raw_text"):
+            return "(speech not understood)"
+        if best.get("out_of_set"):
+            return f"out of set: '{best.get('raw_text', '')}' (match {best.get('match_score', 0):.2f})"
+        return f"'{best['text']}' (p={best['probability']:.2f})"
+    if "nothing" in anchor:  # the recogniser's word on speech it could not answer: its VAD died (orphans.py)
+        return f"(speech lost: {anchor['nothing'].get('reason', '')})"
+    if lost := next((m for m in fused.get("missing", []) if m.get("type") == "speech"), None):
+        # its recogniser died with it, or passed it by (orphans.py)
+        return "(speech lost: its recogniser skipped it)" if lost.get("reason") == "skipped" \
+            else "(speech lost: its recogniser died)"
+    payload = next((k for k in ("vad", "ssl", "emotion", "gender", "voice_id") if k in anchor), "")
+    return f"{payload} {json.dumps(anchor.get(payload, {}))}"
 
 
 @dataclass

@@ -14,6 +14,7 @@ import numpy as np
 from pydantic import Field
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError, hypothesis
+from esiaf.receiving import broken_off
 from esiaf_services.asr.closed_set import MIN_PER_TOKEN, ClosedSetDecoder, ClosedSetResult
 from esiaf_services.asr.matching import GrammarError, Match, SentenceMatcher, chosen_first
 from esiaf_services.asr.recognizer import DEFAULT_EXTRA_DICT, UNRECOGNISED, PocketsphinxRecognizer, RecognizerError
@@ -69,10 +70,18 @@ def resolve_grammar(grammar: str) -> Path | None:
 
 @dataclass
 class StreamState:
-    """One stream's decoder (pocketsphinx) or segment buffer (whisper), and its open utterance."""
+    """One stream's decoder (pocketsphinx) or segment buffer (whisper), and its open utterance: where its
+    audio comes from (the publisher and its last sequence number) and how far it has come."""
     recognizer: PocketsphinxRecognizer | None = None
     start_ns: int | None = None
     chunks: list[bytes] = field(default_factory=list)
+    publisher: str = ""
+    sequence: int = 0
+    end_ns: int = 0
+
+    def broken_off(self, audio: Audio) -> str:
+        """Why ``audio`` does not continue the open utterance ("" if it does, or none is open)."""
+        return "" if self.start_ns is None else broken_off(self.publisher, self.sequence, audio)
 
 
 class Asr(Component):
@@ -164,9 +173,13 @@ class Asr(Component):
         return None
 
     def on_audio(self, audio: Audio) -> None:
+        state = self.streams.get(audio.stream_id)
+        if state is not None and (why := state.broken_off(audio)):
+            self._abandon(state, audio.stream_id, why)
         if not audio.payload:
             return
         state = self._stream(audio.stream_id)
+        state.publisher, state.sequence, state.end_ns = audio.publisher, audio.sequence, audio.end_ns
         if state.start_ns is None:
             state.start_ns = audio.start_ns
             if state.recognizer is not None:
@@ -175,6 +188,18 @@ class Asr(Component):
             state.recognizer.feed(audio.payload)
         else:
             state.chunks.append(audio.payload)
+
+    def _abandon(self, state: StreamState, stream_id: str, why: str) -> None:
+        """The open utterance will never end as it began: its audio so far is no sentence of its own, and
+        decoding it with what comes next would put its words on the next utterance's span. Says
+        ``nothing`` over what was heard of it, with the reason."""
+        span = (state.start_ns or 0, max(state.end_ns, state.start_ns or 0))
+        state.start_ns, state.chunks = None, []
+        if state.recognizer is not None:
+            with self._quiet_for(1.0 + (span[1] - span[0]) / 1e9):
+                state.recognizer.finish()  # its words are dropped
+        self.emit("speech", span, stream_id=stream_id, nothing=f"utterance broken off: {why}")
+        log.warning("utterance stream_id=%s start_ns=%d broken off: %s", stream_id, span[0], why)
 
     def on_segment_end(self, audio: Audio) -> None:
         state = self.streams.get(audio.stream_id)

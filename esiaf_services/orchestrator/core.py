@@ -162,6 +162,7 @@ class Orchestrator:
                                      on_lost=self._disconnected, deadline_sooner=self._liveness_news.set)
         self._ingest = Ingest(self.store, engine, self.hub, self.registry, clocks=self.clocks,
                               metrics=self.metrics, stream_end_grace_s=self.settings.stream_end_grace_s,
+                              stream_end_stall_grace_s=self.settings.stream_end_stall_grace_s,
                               on_assignments_changed=self._push_soon)
         self._results = ResultsLoop(results_socket, self._ingest, bind_peer_key=self.guard.mechanism == "curve")
         try:
@@ -305,9 +306,9 @@ class Orchestrator:
         now_mono = time.monotonic()
         due = [c.silent_too_long_at(self.settings.dead_after_s) - now_mono for c in self.registry.live.values()]
         if self._ingest is not None and self._ingest.streams.pending():
-            now_ns, grace_ns = time.time_ns(), self.settings.stream_end_grace_s * 1e9
-            due += [((c.departed_ns or 0) + grace_ns - now_ns) / 1e9 for c in self.registry.departed.values()
-                    if c.status == "dead" and c.inputs and now_ns - (c.departed_ns or 0) < grace_ns]
+            now_ns = time.time_ns()
+            due += [(until - now_ns) / 1e9 for c in self.registry.departed.values()
+                    if (until := self._ingest.held_until_ns(c)) is not None and now_ns < until]
         if not due:
             return None  # until a registration
         return min(max(min(due) + 0.005, 0.01), LIVENESS_MAX_SLEEP_S)

@@ -92,10 +92,14 @@ class OrchestratorSettings(StrictModel):
     # a component whose control connection closed (its process died: the kernel closes its sockets) and
     # that has not said anything on a new one this long after is dead, without waiting for dead_after_s
     disconnect_grace_s: float = Field(default=1.0, ge=0)
-    # a component with inputs that died without ending a stream (a stall of 2.5 s on a loaded machine
-    # is enough) holds that stream's end this long, for it or a restarted instance of it to come back
-    # and finish its backlog; after it, the stream ends without it. 0: the stream ends without it at once
+    # a component with inputs that was seen to die without ending a stream (its connection closed, or its
+    # launcher said so) holds that stream's end this long, for a restarted instance of it to come back and
+    # finish its backlog; after it, the stream ends without it. 0: the stream ends without it at once
     stream_end_grace_s: float = Field(default=10.0, ge=0)
+    # ... one declared dead for its silence alone (a stall: frozen, or a native call holding it; 2.5 s on a
+    # loaded machine were enough) holds it this long, for it to come back with its backlog: the time a
+    # consumer that stops reading keeps its audio (esiaf/transport.py STALL_MS)
+    stream_end_stall_grace_s: float = Field(default=60.0, ge=0)
     format_strategy: Strategy = "min_conversions"  # how each topic's wire format is chosen
     # each recognised utterance with its direction, emotion, gender and voice; a fusion waits only
     # for live components of a fused type, so without ssl/emotion/gender/voiceid nothing waits

@@ -13,10 +13,17 @@ Two backends:
 - ``energy``: ESIAF's original double-threshold segmenter on the chunks' peak level.
 
 The VAD result of a segment carries its mean speech probability (1 with ``energy``).
+
+A vad that joins a stream after its start (its first message of the stream is not the publisher's first:
+it was started, or restarted after a crash, while the stream went on) may join in the middle of an
+utterance: it forwards nothing of a stream until it has heard a silence as long as one that ends a
+segment, so no segment starts in the middle of speech (its end alone would be recognised as a wrong
+sentence).
 """
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
@@ -55,6 +62,17 @@ class VadSettings(ComponentSettings):
     keep_alive_ms: float = 400.0
 
 
+@dataclass
+class VadStream:
+    """One stream's segmenter, cutter, the Silero state when it decides per chunk, and whether it waits for
+    the first silence (it joined the stream mid-way: the speech going on has no start here)."""
+    segmenter: Any
+    cutter: ChunkCutter | WindowCutter
+    silero: SileroStream | None
+    mid_speech: bool | None = None  # None: not known before its first message
+    silence_ns: int = 0  # ... while it waits: how long it has been silent
+
+
 class Vad(Component):
     """Voice activity detector: Silero VAD, or ESIAF's original double-threshold segmenter."""
 
@@ -86,9 +104,8 @@ class Vad(Component):
         self.add_input(settings.input_topic, fmt)
         self.add_output(settings.output_topic, fmt)
         self.model: SileroModel | None = None
-        # per stream: segmenter, cutter, and the Silero state when it decides per chunk
-        self.segmenters: PerStream[tuple[Any, ChunkCutter | WindowCutter, SileroStream | None]] = PerStream(
-            self._new_stream, settings.max_streams, "segmenter", info=self.info)
+        self.segmenters: PerStream[VadStream] = PerStream(self._new_stream, settings.max_streams, "segmenter",
+                                                          info=self.info)
         self.segments = 0
         self._ended_on_chunk: set[str] = set()  # streams whose end was forwarded with their last segment
 
@@ -102,17 +119,21 @@ class Vad(Component):
                      self.settings.threshold_off)
         self.info["backend"] = self.settings.backend
 
-    def _new_stream(self, stream_id: str) -> tuple[Any, ChunkCutter | WindowCutter, SileroStream | None]:
+    def _new_stream(self, stream_id: str) -> VadStream:
         if self.model is None:
-            return Segmenter(self.params), ChunkCutter(), None
+            return VadStream(Segmenter(self.params), ChunkCutter(), None)
         if self.settings.windows:  # cuts the payloads, which arrive in the declared input format
             frame_bytes = self.inputs[self.settings.input_topic].bytes_per_frame
-            return (ProbabilitySegmenter(self.params),
-                    WindowCutter(self.model.stream(self.settings.sample_rate_hz), frame_bytes), None)
-        return ProbabilitySegmenter(self.params), ChunkCutter(), self.model.stream(self.settings.sample_rate_hz)
+            return VadStream(ProbabilitySegmenter(self.params),
+                             WindowCutter(self.model.stream(self.settings.sample_rate_hz), frame_bytes), None)
+        return VadStream(ProbabilitySegmenter(self.params), ChunkCutter(),
+                         self.model.stream(self.settings.sample_rate_hz))
 
     def on_audio(self, audio: Audio) -> None:
-        segmenter, cutter, silero = self.segmenters.get(audio.stream_id)
+        stream = self.segmenters.get(audio.stream_id)
+        segmenter, cutter, silero = stream.segmenter, stream.cutter, stream.silero
+        if stream.mid_speech is None:  # its first message here: is it the stream's start?
+            stream.mid_speech = audio.sequence > 1
         if isinstance(cutter, WindowCutter):  # one decision per Silero window, whatever the chunk
             pieces = cutter.cut(audio.payload, audio.start_ns, audio.end_ns,
                                 audio.as_float()[:, 0], audio.end_of_stream)
@@ -126,6 +147,13 @@ class Vad(Component):
             pieces = cutter.cut(audio.payload, audio.start_ns, audio.end_ns, audio.frames, score, audio.end_of_stream)
         forwards = []
         for piece, score in pieces:
+            if stream.mid_speech:  # speech whose start this vad never heard is not segmented
+                stream.silence_ns = stream.silence_ns + piece.end_ns - piece.start_ns if self._silent(score) else 0
+                if stream.silence_ns < self._silence_ms * 1_000_000:
+                    continue
+                stream.mid_speech = False
+                log.info("stream_id=%s joined at sequence %d: segmenting from its first silence, at start_ns=%d",
+                         audio.stream_id, audio.sequence, piece.start_ns)
             forwards += segmenter.process(piece, piece.start_ns, piece.end_ns, score, force_end=piece.end_of_stream)
         for message in messages(forwards, audio.format.sample_rate_hz):
             piece, forward = message.piece, message.forward
@@ -140,6 +168,15 @@ class Vad(Component):
                 self.info["segments"] = self.segments
                 self.emit("vad", forward.segment, stream_id=audio.stream_id, vad={"probability": forward.probability})
                 log.info("segment stream_id=%s start_ns=%d end_ns=%d", audio.stream_id, *forward.segment)
+
+    def _silent(self, score: float) -> bool:
+        """A window or chunk that is no speech (below the threshold that keeps a segment going)."""
+        return score < (self.settings.threshold_off if self.model is not None else self.settings.db_keep_alive)
+
+    @property
+    def _silence_ms(self) -> float:
+        """A silence as long as this ends a segment."""
+        return self.settings.min_silence_ms if self.model is not None else self.settings.keep_alive_ms
 
     def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
         self.segmenters.pop(stream_id)

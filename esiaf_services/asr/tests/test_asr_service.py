@@ -135,3 +135,40 @@ def test_past_max_streams_no_utterance_loses_its_decoder_and_idle_decoders_are_r
     assert len(made) == 2  # robot1 and robot2 (robot0's was made at start-up); the cap passed, none dropped
     assert feed(component, clips["robot0"], "robot3")[0][2]["speech"]["hypotheses"]  # a fourth, later
     assert len(made) == 2 and len(component.streams) == 3  # it took an idle stream's decoder
+
+
+def test_an_utterance_broken_off_by_a_restarted_vad_is_nothing_and_never_the_next_ones_text():
+    """The vad dies in the middle of a question and a new one (another publisher) forwards the next: the
+    open utterance is said nothing about, with the reason, and the next is decoded on its own. Decoding
+    them together put the first question's words on the second one's span."""
+    sentences = json.loads(EXAMPLE.with_suffix(".json").read_text())["sentences"]
+    first, second = sentences[0], sentences[1]
+    component = Asr(AsrSettings(grammar="robocup"))
+    component.setup()
+    samples, _ = soundfile.read(str(EXAMPLE), dtype="int16")
+    emitted = []
+    component.emit = lambda kind, span, stream_id=None, **payload: emitted.append((kind, span, payload))
+    fmt = AudioFormat(RATE, "int16", channels=1)
+
+    def forward(publisher: str, first_s: float, last_s: float, segment: tuple[float, float] | None) -> None:
+        first_n, last_n = int(first_s * RATE), int(last_s * RATE)
+        for sequence, start in enumerate(range(first_n, last_n, 320), start=1):
+            chunk = samples[start:min(start + 320, last_n)]
+            audio = Audio(topic="vad/speech", stream_id="s", publisher=publisher, sequence=sequence,
+                          start_ns=start * NS // RATE, end_ns=(start + len(chunk)) * NS // RATE, format=fmt,
+                          payload=chunk.tobytes())
+            if segment is not None and start + 320 >= last_n:
+                audio.meta.segmentation_ended = True
+                audio.meta.segment.start_ns, audio.meta.segment.end_ns = (round(t * NS) for t in segment)
+            component.on_audio(audio)
+            if audio.meta.segmentation_ended:
+                component.on_segment_end(audio)
+
+    killed_s = (first["start_s"] + first["end_s"]) / 2
+    forward("vad-old", first["start_s"] - 0.25, killed_s, None)  # its end never comes
+    forward("vad-new", second["start_s"] - 0.25, second["end_s"] + 0.3, (second["start_s"], second["end_s"]))
+    broken, answer = emitted
+    assert broken[1] == (int((first["start_s"] - 0.25) * RATE) * NS // RATE, int(killed_s * RATE) * NS // RATE)
+    assert "utterance broken off: its VAD went away" in broken[2]["nothing"]
+    assert answer[1] == (round(second["start_s"] * NS), round(second["end_s"] * NS))
+    assert normalise(answer[2]["speech"]["hypotheses"][0].text) == normalise(second["text"])

@@ -68,7 +68,7 @@ async def register(request: RegisterRequest,
         heartbeat_interval_s=core.settings.heartbeat_interval_s,
         dead_after_s=core.settings.dead_after_s, idle_heartbeat_interval_s=core.settings.idle_heartbeat_interval_s,
         peers=state.peers, formats=state.formats,
-        peer_keys=state.peer_keys or {}, streams=state.streams)
+        peer_keys=state.peer_keys or {}, streams=state.streams, consumers=state.consumers)
 
 
 @router.get("/components", response_model=ComponentList,

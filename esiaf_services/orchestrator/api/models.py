@@ -140,6 +140,9 @@ class RegisterResponse(BaseModel):
                                                   "where it gave one")
     streams: list[str] | None = Field(default=None, description="one of several live instances of its "
                                       "service: the streams it serves (subscribe to those only); null: all")
+    consumers: list[str] | None = Field(default=None, description="with outputs: the ids of the live components "
+                                        "that take one of its output topics, the only subscribers its audio "
+                                        "output may take; null without outputs")
 
 
 class ComponentInfo(BaseModel):

@@ -97,6 +97,12 @@ class SpanIndex:
             if overlaps(result.start_ns, result.end_ns, start_ns, end_ns):
                 yield result
 
+    def remove(self, result: Spanned) -> None:
+        """Takes ``result`` out (before its span changes), if it is there."""
+        i = bisect.bisect_left(self._keys, (result.start_ns, result.id))
+        if i < len(self._keys) and self._keys[i] == (result.start_ns, result.id):
+            del self._keys[i], self._results[i]
+
     def forget_before(self, horizon_ns: int) -> None:
         """Drops what starts before ``horizon_ns - longest`` (it ends before the horizon)."""
         cut = bisect.bisect_left(self._keys, (horizon_ns - self._longest_ns, -1))

@@ -87,6 +87,9 @@ class Fusion:
     scheduled_ns: int | None = None  # the deadline of its one valid timer-heap entry
     published_ns: int = 0  # when its latest revision was published
     revision_due_ns: int | None = None  # a coalesced revision waits for this time
+    # an orphan's (orphans.py): the service whose anchor it stands in for; that anchor, if it comes after
+    # all, takes its place (_adopt) instead of opening a second fusion over the same utterance
+    stand_in_for: str | None = None
 
     @property
     def window(self) -> tuple[int, int]:
@@ -200,8 +203,40 @@ class FusionEngine:
         if not result.is_nothing:
             for settings in self._by_anchor.get(result.type, ()):
                 if settings.stream is None or settings.stream == result.stream_id:
-                    fused.extend(self._open(settings, result, memory, received_ns))
+                    orphan = self._stood_in(settings, result, memory)
+                    fused.extend(self._open(settings, result, memory, received_ns) if orphan is None
+                                 else self._adopt(orphan, result, memory, received_ns))
         return fused
+
+    @staticmethod
+    def _stood_in(settings: FusionSettings, anchor: StoredResult, memory: StreamMemory) -> Fusion | None:
+        """The fusion of ``settings`` that was opened over ``anchor``'s span without it, standing in for
+        its service (orphans.py), if any: the one that overlaps it most."""
+        span = anchor.start_ns, anchor.end_ns
+        found = [f for f in [*memory.published.overlapping(*span), *memory.open]
+                 if f.settings.name == settings.name and f.stand_in_for == anchor.component
+                 and overlaps(f.start_ns, f.end_ns, *span)]
+        return max(found, key=lambda f: min(f.end_ns, span[1]) - max(f.start_ns, span[0]), default=None)
+
+    def _adopt(self, fusion: Fusion, anchor: StoredResult, memory: StreamMemory,
+               received_ns: int) -> list[Publication]:
+        """``anchor`` came after all for an utterance fused without it: it becomes that fusion's anchor
+        (the results of its window with it) and its service is no longer missing; a published fusion's
+        next revision says so. One fused result per utterance, never two."""
+        published = fusion.revision > 0
+        if published:
+            memory.published.remove(fusion)  # filed by its window, which may change
+        before = fusion.results
+        fusion.anchor, fusion.stand_in_for = anchor, None
+        fusion.missing.pop(anchor.component, None)
+        fusion.results = self._new_fusion(fusion.settings, fusion.id, anchor, memory).results
+        for type_name, by_id in before.items():  # what the memory may have forgotten since
+            fusion.results.setdefault(type_name, {}).update(
+                {i: r for i, r in by_id.items() if overlaps(r.start_ns, r.end_ns, *fusion.window)})
+        if not published:
+            return []  # published once complete, as any open fusion
+        memory.published.add(fusion)
+        return self._revise(fusion, received_ns)
 
     def on_component_gone(self, component: str) -> list[Publication]:
         """A component died or left: no fusion waits for it any longer."""
@@ -288,6 +323,9 @@ class FusionEngine:
                         waiting={}, revision=fused["revision"], completion=fused["completion"],
                         missing={m["component"]: (m["type"], m["reason"])
                                  for m in fused.get("missing", [])})
+        configured = next((f.anchor for f in self.fusions if f.name == settings.name), anchor.type)
+        if configured != anchor.type:  # an orphan: it stands in for its missing anchor's service
+            fusion.stand_in_for = next((c for c, (t, _) in fusion.missing.items() if t == configured), None)
         self._memory(anchor.stream_id).published.add(fusion)
 
     def restore_open(self, fused_id: int, settings: FusionSettings, anchor: StoredResult,
@@ -353,13 +391,15 @@ class FusionEngine:
         return fusion
 
     def open_orphan(self, settings: FusionSettings, anchor: StoredResult, missing: dict[str, tuple[str, str]],
-                    received_ns: int) -> list[Publication]:  # a stand-in anchor (orphans.py)
-        return self._open(settings, anchor, self._memory(anchor.stream_id), received_ns, missing)
+                    received_ns: int, stand_in_for: str | None = None) -> list[Publication]:
+        """A fusion on a stand-in ``anchor`` (orphans.py), for the anchor ``stand_in_for``'s service did not give."""
+        return self._open(settings, anchor, self._memory(anchor.stream_id), received_ns, missing, stand_in_for)
 
-    def _open(self, settings: FusionSettings, anchor: StoredResult, memory: StreamMemory,
-              received_ns: int, missing: dict[str, tuple[str, str]] | None = None) -> list[Publication]:
+    def _open(self, settings: FusionSettings, anchor: StoredResult, memory: StreamMemory, received_ns: int,
+              missing: dict[str, tuple[str, str]] | None = None, stand_in_for: str | None = None) -> list[Publication]:
         fusion = self._new_fusion(settings, self._allocate_id(), anchor, memory)
         fusion.missing.update(missing or {})
+        fusion.stand_in_for = stand_in_for
         if settings.fuse:
             types = set(settings.fuse)
             for component in self._live():

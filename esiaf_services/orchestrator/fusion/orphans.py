@@ -19,10 +19,25 @@ utterances of a stream in order, so when it answers one, each VAD segment betwee
 answer and this one that it said nothing about was passed by; and when it ends the stream, so was
 each one after its last answer. Those are fused the same way, with reason ``skipped`` (completion
 ``timed_out``: a live component did not answer), instead of vanishing.
+
+A recogniser declared dead for its silence may only have stalled (frozen, or held by a long decode):
+it keeps its audio for a while (esiaf/transport.py STALL_MS), registers again and answers its
+backlog. Meanwhile each new VAD segment on a stream it served is fused without it at once, while no
+instance of its service lives (:meth:`Orphans.on_segment`). Its answers, when they come, take the
+stand-in anchors' places: each is the next revision of the fused result over its utterance
+(fusion/engine.py ``_adopt``), so an utterance is fused once, never twice.
+
+A vad that dies mid-utterance never sends that utterance's segment, and the recogniser, given the next
+utterance by the vad's new instance, says ``nothing`` about what it heard of the broken one
+("utterance broken off", esiaf/receiving.py). On the streams a dead vad served, such a ``nothing``
+over speech that began before the death is fused, anchored on itself, with the vad missing (reason
+``gone``), until an utterance begun after the death: the utterance in flight is reported, not lost
+without a word.
 """
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 from ..settings import FusionSettings
 from .aggregate import overlaps
@@ -68,9 +83,10 @@ def passed_by(engine: FusionEngine, stream_id: str, service: str, before_ns: int
 
 
 def fuse_without(engine: FusionEngine, segment: StoredResult, service: str, anchor_type: str,
-                 received_ns: int, why: str, reason: str = "gone") -> list[Publication]:
+                 received_ns: int, why: str, reason: str = "gone", missing_type: str = "") -> list[Publication]:
     """Fuses ``segment`` for every fusion anchored on ``anchor_type``, ``service`` missing for
-    ``reason``, unless a fusion of that name is open or published over it already."""
+    ``reason`` (as a producer of ``missing_type``; by default of the anchor it stands in for), unless a
+    fusion of that name is open or published over it already."""
     memory = engine.streams.get(segment.stream_id)
     span = (segment.start_ns, segment.end_ns)
     taken = {f.settings.name for f in [*memory.published.overlapping(*span),
@@ -81,7 +97,8 @@ def fuse_without(engine: FusionEngine, segment: StoredResult, service: str, anch
         if settings.name not in taken:
             log.warning("event=utterance_orphaned stream_id=%s service=%s start_ns=%d end_ns=%d fusion=%s why=%s",
                         segment.stream_id, service, *span, settings.name, why)
-            fused.extend(engine.open_orphan(settings, segment, {service: (anchor_type, reason)}, received_ns))
+            fused.extend(engine.open_orphan(settings, segment, {service: (missing_type or anchor_type, reason)},
+                                            received_ns, stand_in_for=None if missing_type else service))
     return fused
 
 
@@ -110,15 +127,24 @@ class Orphans:
     were going on then, once their new instance has said ``nothing`` about them. What live ones
     passed by: fused when they answer a later utterance or end the stream (:func:`fuse_passed_by`)."""
 
-    MAX_WATCHED = 10_000  # (stream, service) pairs watched at once, the oldest dropped
+    MAX_WATCHED = 10_000  # (stream, service) pairs watched at once, the oldest dropped; streams of dead vads too
 
     def __init__(self, engine: FusionEngine) -> None:
         self.engine = engine
         # (stream, service) -> (anchor type, the capture time before which speech was in flight on the dead one)
         self.watched: dict[tuple[str, str], tuple[str, int]] = {}
+        # stream -> (the service of a vad that died serving it, the capture time of its death)
+        self.segmenters_gone: dict[str, tuple[str, int]] = {}
 
     def on_death(self, stream_id: str, service: str, anchor_type: str, in_flight_before_ns: int,
                  received_ns: int) -> list[Publication]:
+        """An instance of ``service`` (producing ``anchor_type``) died serving ``stream_id``."""
+        if anchor_type == SEGMENT_TYPE:  # a vad: the utterance in flight is reported when broken off
+            self.segmenters_gone.pop(stream_id, None)
+            self.segmenters_gone[stream_id] = (service, in_flight_before_ns)
+            while len(self.segmenters_gone) > self.MAX_WATCHED:
+                del self.segmenters_gone[next(iter(self.segmenters_gone))]
+            return []
         if not anchored(self.engine, anchor_type, stream_id):
             return []
         self.watched.pop((stream_id, service), None)
@@ -126,6 +152,16 @@ class Orphans:
         while len(self.watched) > self.MAX_WATCHED:
             del self.watched[next(iter(self.watched))]
         return fuse_orphans(self.engine, stream_id, service, anchor_type, received_ns)
+
+    def on_segment(self, segment: StoredResult, received_ns: int, alive: Callable[[str], bool]) -> list[Publication]:
+        """A VAD segment arrived: on a stream whose recogniser died, while no instance of its service is
+        ``alive``, nobody will answer it now; fused without it at once (its answer, if it comes back and
+        gives one, revises that)."""
+        if segment.type != SEGMENT_TYPE or segment.is_nothing:
+            return []
+        return [f for (stream_id, service), (anchor_type, _) in list(self.watched.items())
+                if stream_id == segment.stream_id and not alive(service)
+                for f in fuse_without(self.engine, segment, service, anchor_type, received_ns, "no_live_instance")]
 
     def before_result(self, result: StoredResult, received_ns: int) -> list[Publication]:
         """``result`` is about to be fused: the segments its service passed by before it."""
@@ -139,7 +175,24 @@ class Orphans:
 
     def on_result(self, result: StoredResult, received_ns: int) -> list[Publication]:
         """``result`` just fused: if it is its new instance's ``nothing`` over an utterance that was
-        in flight on a dead one, that utterance's segment is fused without it."""
+        in flight on a dead one, that utterance's segment is fused without it; if it is a ``nothing``
+        over an utterance a dead vad broke off, that utterance is fused as lost."""
+        return self._broken_off(result, received_ns) + self._joined_late(result, received_ns)
+
+    def _broken_off(self, result: StoredResult, received_ns: int) -> list[Publication]:
+        gone = self.segmenters_gone.get(result.stream_id)
+        if gone is None or not anchored(self.engine, result.type, result.stream_id):
+            return []
+        service, died_ns = gone
+        if result.start_ns >= died_ns:  # an utterance begun after the vad's death: the watch is over
+            del self.segmenters_gone[result.stream_id]
+            return []
+        if not result.is_nothing:
+            return []
+        return fuse_without(self.engine, result, service, result.type, received_ns, "vad_died",
+                            missing_type=SEGMENT_TYPE)
+
+    def _joined_late(self, result: StoredResult, received_ns: int) -> list[Publication]:
         watch = self.watched.get((result.stream_id, result.component))
         if watch is None or result.type != watch[0]:
             return []

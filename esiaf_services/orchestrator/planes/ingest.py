@@ -40,7 +40,7 @@ def _dumps(value: Any) -> str:
 class Ingest:
     def __init__(self, store: Store, engine: FusionEngine, hub: Hub, registry: Registry, *,
                  clocks: StreamClocks | None = None, clock_ns: Callable[[], int] = time.time_ns,
-                 metrics: Metrics | None = None, stream_end_grace_s: float = 0.0,
+                 metrics: Metrics | None = None, stream_end_grace_s: float = 0.0, stream_end_stall_grace_s: float = 0.0,
                  on_assignments_changed: Callable[[], None] = lambda: None) -> None:
         """``on_assignments_changed``: called when a stream became active or ended, so that the
         replicas' states are pushed."""
@@ -51,6 +51,7 @@ class Ingest:
         self.registry = registry
         self.streams = StreamEnds()
         self.stream_end_grace_ns = int(stream_end_grace_s * 1e9)
+        self.stream_end_stall_grace_ns = int(stream_end_stall_grace_s * 1e9)
         self.counters: Counter[str] = Counter()
         self._clock_ns = clock_ns
         self._timer: asyncio.TimerHandle | None = None
@@ -270,9 +271,10 @@ class Ingest:
         stored = StoredResult(id=result_id, component=result.component, type=kind,
                               stream_id=result.stream_id, start_ns=result.span.start_ns,
                               end_ns=result.span.end_ns, json=as_json)
-        outgoing = [self._store_fused(fused) for fused in [*self.orphans.before_result(stored, received_ns),
-                                                           *self.engine.on_result(stored, received_ns),
-                                                           *self.orphans.on_result(stored, received_ns)]]
+        outgoing = [self._store_fused(fused) for fused in [
+            *self.orphans.before_result(stored, received_ns), *self.engine.on_result(stored, received_ns),
+            *self.orphans.on_result(stored, received_ns),
+            *self.orphans.on_segment(stored, received_ns, lambda service: bool(self.registry.instances(service)))]]
         self.counters["results"] += 1  # stored and fused: counted once nothing can undo it
         if self.metrics is not None:
             self._observed.append((self.metrics.result_latency, (result.component, result.stream_id),
@@ -332,15 +334,21 @@ class Ingest:
             self.streams.on_end_of_stream(stream_id, service)
         return fused + self.stream_ends()  # the stream's last fused results before its end
 
+    def held_until_ns(self, component: Component) -> float | None:
+        """Until when ``component``, dead, may hold the end of a stream it has not ended:
+        ``stream_end_stall_grace_s`` after its death if it went silent (stalled: it may come back with its
+        backlog), ``stream_end_grace_s`` if it was seen to die (for a restarted instance); None if alive."""
+        return component.holds_stream_end_until_ns(self.stream_end_grace_ns, self.stream_end_stall_grace_ns)
+
     def stream_ends(self) -> list[Outgoing]:
         """``stream_end`` events of the streams that have now ended (call after any change): every
         service with a live instance with inputs said so, and so did each one whose last instance
-        died (went silent) less than ``stream_end_grace_s`` ago, which may yet come back. Whichever of
-        a service's instances said it counts: the one serving the stream, or its earlier self."""
+        died less than its grace ago (:meth:`held_until_ns`), which may yet come back. Whichever of a
+        service's instances said it counts: the one serving the stream, or its earlier self."""
         awaited = {c.name for c in self.registry.with_inputs()}
         now_ns = self._clock_ns()
         awaited |= {c.name for c in self.registry.departed.values()
-                    if c.status == "dead" and c.inputs and now_ns - (c.departed_ns or 0) < self.stream_end_grace_ns}
+                    if (until := self.held_until_ns(c)) is not None and now_ns < until}
         ended = self.streams.finished(awaited)
         for stream_id in ended:
             log.info("event=stream_end stream_id=%s", stream_id)

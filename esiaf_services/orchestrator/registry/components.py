@@ -70,6 +70,9 @@ class Component:
     stats: dict[str, Any] | None = None
     status: str = "alive"  # alive, dead (silent too long), replaced (its process registered again)
     departed_ns: int | None = None
+    # dead for its silence alone, its connection open (a stall: frozen, or a native call holding it), not
+    # seen to die: it may come back with its backlog, so a stream's end waits longer for it
+    went_silent: bool = False
     served_at_departure: list[str] = field(default_factory=list)  # the streams it served when it died or left
     pushed_state: State | None = None  # the state this component last got from us (without its version)
     state_version: int = 0  # pushed_state's number: a new one for every change (heartbeats say which they have)
@@ -109,6 +112,13 @@ class Component:
     def touch(self) -> None:
         self.last_seen_mono = time.monotonic()
         self.last_seen_ns = time.time_ns()
+
+    def holds_stream_end_until_ns(self, grace_ns: float, stall_grace_ns: float) -> float | None:
+        """Until when, dead without ending a stream, it may yet come back to end it (a component with
+        inputs only): its death plus the grace for a stall if it went silent, else for a restart."""
+        if self.status != "dead" or not self.inputs:
+            return None
+        return (self.departed_ns or 0) + (stall_grace_ns if self.went_silent else grace_ns)
 
 
 def describe(fmt: Format) -> str:
@@ -180,6 +190,7 @@ class Registry:
         now_mono = time.monotonic() if now_mono is None else now_mono
         dead = [c for c in self.live.values() if now_mono > c.silent_too_long_at(dead_after_s)]
         for component in dead:
+            component.went_silent = True
             self._depart(component, "dead")
         if dead:
             self.recompute()
@@ -286,7 +297,7 @@ class Registry:
 
     def state_of(self, component: Component, formats: dict[str, Format] | None = None) -> State:
         """The full state a component is told: its peers (with their CURVE keys, where they gave
-        one) and the formats of its topics."""
+        one), the formats of its topics and, with outputs, its consumers."""
         formats = self.formats() if formats is None else formats
         producers = {topic: [p for p in self.producers(topic) if p is not component and p.audio_endpoint]
                      for topic in component.inputs}
@@ -297,8 +308,11 @@ class Registry:
         # one of several instances: only the streams it serves (None: all)
         streams = self.assignments.streams_of(component, len(self.instances(component.name))) \
             if component.inputs else None
+        # with outputs: the only subscribers its audio output takes (esiaf/gate.py)
+        consumers = sorted({c.component_id for topic in component.outputs for c in self.consumers(topic)
+                            if c is not component}) if component.outputs else None
         return State(peers=peers, formats={t: formats[t] for t in topics},
-                     peer_keys=peer_keys or None, streams=streams)
+                     peer_keys=peer_keys or None, streams=streams, consumers=consumers)
 
     def changed_states(self) -> list[tuple[Component, State]]:
         """Live components whose state differs from what they last got, with the new state."""

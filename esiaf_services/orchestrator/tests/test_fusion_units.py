@@ -338,3 +338,49 @@ def test_an_utterance_going_on_when_its_recogniser_died_is_fused_once_its_new_in
     nxt = result(3, "asr", "speech", 9 * S, 10 * S, speech={"hypotheses": [{"text": "go"}]})
     assert orphans.on_result(nxt, 10 * S) == [] and not orphans.watched
     assert orphans.on_result(result(4, "asr", "speech", 4 * S, 7 * S, nothing={"reason": "x"}), 11 * S) == []
+
+
+def test_a_recogniser_that_comes_back_revises_what_was_fused_without_it_and_never_doubles_it():
+    """Its instance was declared dead (frozen 20 s): what it left unanswered is fused without it, and so is
+    each segment that comes while no instance of it lives; its answers, when it comes back, are those
+    fused results' next revisions (anchored on the answer), not new fused results."""
+    engine, _ = engine_with(("emo", "emotion"))
+    orphans = Orphans(engine)
+    vad = [result(10 + i, "vad", "vad", i * 3 * S, i * 3 * S + 2 * S, vad={"probability": 1.0}) for i in range(3)]
+    for i, segment in enumerate(vad[:2]):
+        engine.on_result(segment, segment.end_ns)
+        engine.on_result(result(20 + i, "emo", "emotion", segment.start_ns, segment.end_ns,
+                                emotion={"label": "sad"}), segment.end_ns)
+    at_death = orphans.on_death("s", "asr", "speech", 6 * S, 6 * S)
+    assert [f.json["anchor"]["id"] for f in at_death] == [10, 11]
+    engine.on_result(result(22, "emo", "emotion", 6 * S, 8 * S, emotion={"label": "sad"}), 8 * S)
+    engine.on_result(vad[2], 8 * S)
+    assert orphans.on_segment(vad[2], 8 * S, alive=lambda service: True) == []  # another instance answers it
+    [meanwhile] = orphans.on_segment(vad[2], 8 * S, alive=lambda service: False)  # none: nobody will
+    assert meanwhile.json["missing"] == [{"component": "asr", "type": "speech", "reason": "gone"}]
+    assert orphans.on_segment(vad[2], 8 * S, alive=lambda service: False) == []  # once
+    fused_ids = {f.id for f in [*at_death, meanwhile]}
+    for i, segment in enumerate(vad):  # it comes back and answers all three, late
+        answer = result(30 + i, "asr", "speech", segment.start_ns, segment.end_ns,
+                        speech={"hypotheses": [{"text": f"question {i}"}]})
+        assert orphans.before_result(answer, (30 + i) * S) == []
+        [revised] = [f for f in engine.on_result(answer, (30 + i) * S) if f.revision > 1]
+        assert revised.id in fused_ids and revised.json["anchor"]["id"] == 30 + i
+        assert revised.json["missing"] == [] and revised.json["results"]["emotion"]
+    assert not engine.open and len({f.id for f in engine.streams["s"].published.overlapping(0, 10 * S)}) == 3
+
+
+def test_an_utterance_broken_off_by_its_vads_death_is_fused_as_lost_once():
+    """The vad dies mid-utterance: the recogniser's `nothing` over what it heard of it ("utterance broken
+    off") is fused, anchored on itself, with the vad missing; a later utterance ends the watch."""
+    engine, _ = engine_with()
+    orphans = Orphans(engine)
+    assert orphans.on_death("s", "vad", "vad", 3 * S, 3 * S) == []
+    broken = result(1, "asr", "speech", 1 * S, 2 * S, nothing={"reason": "utterance broken off: its VAD went away"})
+    engine.on_result(broken, 6 * S)
+    [lost] = orphans.on_result(broken, 6 * S)
+    assert lost.json["anchor"]["id"] == 1 and lost.json["anchor"]["nothing"]["reason"].startswith("utterance broken")
+    assert lost.json["missing"] == [{"component": "vad", "type": "vad", "reason": "gone"}]
+    nxt = result(2, "asr", "speech", 5 * S, 6 * S, speech={"hypotheses": [{"text": "go"}]})
+    assert orphans.on_result(nxt, 7 * S) == [] and not orphans.segmenters_gone
+    assert orphans.on_result(result(3, "asr", "speech", 1 * S, 2 * S, nothing={"reason": "x"}), 8 * S) == []

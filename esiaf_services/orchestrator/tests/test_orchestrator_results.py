@@ -171,12 +171,12 @@ def test_a_replayed_stream_does_not_teach_latencies(orch, component, http):
 @pytest.mark.parametrize("comes_back", [True, "ends-under-its-old-id", False],
                          ids=["comes-back", "ends-under-its-old-id", "never-comes-back"])
 def test_a_component_that_stalls_holds_the_stream_end_for_its_grace(make_orchestrator, zctx, comes_back):
-    """An analyser silent past dead_after_s (busy in C code on a loaded machine, or being restarted)
-    has not ended the stream: its end waits stream_end_grace_s for it to come back and finish."""
+    """An analyser silent past dead_after_s (busy in C code on a loaded machine, frozen) has not ended
+    the stream: its end waits stream_end_stall_grace_s for it to come back and finish."""
     import time
 
     from esiaf_services.orchestrator.tests.helpers import Heartbeater
-    orch = make_orchestrator(dead_after_s=0.6, stream_end_grace_s=2.0)
+    orch = make_orchestrator(dead_after_s=0.6, stream_end_stall_grace_s=2.0)
     with httpx.Client(base_url=orch.url, timeout=5.0) as http, connect(f"{orch.ws_url}/ws/fused?stream=s3") as ws:
         vad = FakeComponent(zctx, http, component_body("vad", kind="vad", inputs=["audio/raw"],
                                                        outputs=["vad/speech"]))
