@@ -45,7 +45,7 @@ from esiaf.per_stream import PerStream
 from esiaf.processor import Processor, SetupError
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf.receiving import broken_off
-from esiaf.results import LABEL_PAYLOADS, valid_kind
+from esiaf.results import LABEL_PAYLOADS
 from esiaf.settings import ComponentSettings
 
 log = logging.getLogger(__name__)

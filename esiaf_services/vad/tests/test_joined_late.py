@@ -26,7 +26,7 @@ class Recording(Vad):
     def publish(self, *args: Any, **kwargs: Any) -> int:
         return 1
 
-    def emit(self, result_type: str, span: tuple[int, int], **payload: Any) -> Any:
+    def emit(self, kind: str, span: tuple[int, int], *, stream_id: str | None = None, **payload: Any) -> Any:
         self.found.append(span)
 
 
