@@ -83,7 +83,7 @@ def test_a_components_audio_input_survives_fuzzed_messages(pair):  # noqa: F811
     def send(c):
         assert c.wait_for_subscribers("source/audio", 1, timeout_s=10)
         for _ in range(3_000):
-            c._transport.pub.send_multipart([topic_frame("source/audio"), mutate(rng, template)])
+            c.context.node.transport.pub.send_multipart([topic_frame("source/audio"), mutate(rng, template)])
         c.publish("source/audio", np.zeros(320, dtype=np.int16), BASE_NS, BASE_NS + 20_000_000)
 
     run_on(source, send)
