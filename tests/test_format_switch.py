@@ -77,13 +77,13 @@ def test_a_newcomer_switches_the_topic_and_the_consumer_hears_no_seam(orchestrat
     mic = start(Microphone(settings(Microphone, "mic")))
     poll(lambda: len(asr.chunks) >= 30, timeout_s=15)  # 0.6 s of audio, sent at 16 kHz
     assert assigned(orchestrator) == FMT16.to_dict()  # a tie: the cheaper
-    assert mic._output_links["mic/audio"].wire == FMT16  # the microphone converts
+    assert mic.context.output_links["mic/audio"].wire == FMT16  # the microphone converts
     recorder = start(Listener(settings(Listener, "recorder"), FMT48))  # wants 48 kHz: now 1 conversion, not 2
     poll(lambda: assigned(orchestrator) == FMT48.to_dict(), timeout_s=10)
     poll(lambda: len(recorder.chunks) >= 30, timeout_s=15)
     mic.end.set()
     poll(lambda: asr.chunks and asr.chunks[-1].end_of_stream, timeout_s=10)
-    assert mic._output_links["mic/audio"].wire == FMT48  # the microphone sends what it has
+    assert mic.context.output_links["mic/audio"].wire == FMT48  # the microphone sends what it has
     chunks = asr.chunks
     # no gap in sequence numbers (the resampler's tail travelled as a message of its own) ...
     assert [c.sequence for c in chunks] == list(range(1, len(chunks) + 1))
