@@ -27,13 +27,17 @@ SERVICES=(
     "emotion      emotion"
     "gender       emotion"
     "voiceid      -             resemblyzer==0.1.4"
+    "aec          aec"
+    "player       alsa"
 )
 TAG=${ESIAF_TAG:-latest}
 BASE=${ESIAF_BASE_TAG:-esiaf/base:bookworm-offline}
 MIRROR=${DEBIAN_MIRROR:-http://deb.debian.org/debian}
 PYTHON=${PYTHON:-python3}
-# What the base needs: Python with venv, and the C libraries wheels do not bundle.
-BASE_PACKAGES=python3,python3-venv,libasound2,ca-certificates,passwd
+# What the base needs: Python with venv, and the C libraries and programs wheels do not bundle
+# (ALSA for the grabber and the player, speexdsp for the aec, flite for the player's voice): the
+# compose file's RUNTIME_PACKAGES of every service, which the Dockerfile then finds installed.
+BASE_PACKAGES=python3,python3-venv,libasound2,libspeexdsp1,flite,ca-certificates,passwd
 export DOCKER_BUILDKIT=0  # the classic builder: no BuildKit/buildx needed, nothing pulled
 
 say() { echo "build_images: $*" >&2; }
@@ -45,8 +49,11 @@ docker info >/dev/null 2>&1 || die "the Docker engine does not answer (docker in
 
 build_base() {
     if [ -z "${ESIAF_REBUILD_BASE:-}" ] && docker image inspect "$BASE" >/dev/null 2>&1; then
-        say "base image $BASE exists: reused"
-        return
+        if docker run --rm --entrypoint dpkg "$BASE" -s ${BASE_PACKAGES//,/ } >/dev/null 2>&1; then
+            say "base image $BASE exists: reused"
+            return
+        fi
+        say "base image $BASE lacks some of $BASE_PACKAGES: rebuilt"
     fi
     if ! command -v debootstrap >/dev/null; then
         [ "$(id -u)" -eq 0 ] || die "debootstrap is missing: apt-get install debootstrap (as root)"

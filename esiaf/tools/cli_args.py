@@ -151,19 +151,21 @@ def check_name(name: str, what: str) -> str:
 
 
 def check_workdir(path: Path) -> Path:
-    """The workdir, made if it is not there, as an absolute path; one that is not a folder, cannot be made
-    or cannot be written is a LaunchError."""
+    """The workdir as an absolute path, checked without making it (nothing is written before every
+    argument has been checked; the launcher makes it): one that is not a folder, or that cannot be
+    made or written, is a LaunchError."""
     if "\0" in str(path):
         raise LaunchError(f"--workdir {str(path)!r} holds a NUL character")
     path = path.absolute()
     if path.exists() and not path.is_dir():
         raise LaunchError(f"--workdir {path} is not a folder")
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise LaunchError(f"--workdir {path} cannot be made: {exc.strerror}") from None
-    if not os.access(path, os.W_OK | os.X_OK):
-        raise LaunchError(f"--workdir {path} cannot be written")
+    existing = path
+    while not existing.exists():  # the nearest folder that is there: it must let the rest be made
+        existing = existing.parent
+    if not existing.is_dir():
+        raise LaunchError(f"--workdir {path} cannot be made: {existing} is not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise LaunchError(f"--workdir {path} cannot be {'written' if existing == path else 'made'}")
     return path
 
 

@@ -90,6 +90,10 @@ def run(args: argparse.Namespace) -> int:
     args.stream_id = ids[0] if len(ids) == 1 else None
     url = f"http://{args.host}:{args.port}"
     workdir = args.workdir.resolve()
+    try:  # only now, every argument checked: a refused command line writes nothing
+        workdir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise LaunchError(f"--workdir {workdir} cannot be made: {exc.strerror}") from None
     # one token per run (or the one given): every service presents it, every query needs it
     os.environ[auth.TOKEN_ENV] = auth.token() or auth.new_token()
     auth.write_token(workdir / "token", os.environ[auth.TOKEN_ENV])

@@ -66,17 +66,23 @@ def test_strategy_is_a_setting_refused_when_unknown():
 
 
 def formats_pushed(fake) -> list[dict]:
-    """The formats of every state message waiting on the fake's socket (no heartbeat sent)."""
+    """The formats of every state message waiting on the fake's socket (no heartbeat sent) that
+    differ from the formats it was told before. A producer is also told its consumers, so a
+    consumer's arrival pushes it a state whose formats may be the same."""
     pushed = []
     while (message := fake.recv(timeout_s=0.3)) is not None:
-        pushed.append(message["formats"])
+        if message["formats"] != fake.told_formats:
+            pushed.append(message["formats"])
+            fake.told_formats = message["formats"]
     return pushed
 
 
 def connected(fake):
     """Heartbeats once and takes the answer: the ROUTER now knows the fake's socket."""
     fake.heartbeat()
-    assert fake.recv() is not None
+    answer = fake.recv()
+    assert answer is not None
+    fake.told_formats = answer["formats"]
     return fake
 
 

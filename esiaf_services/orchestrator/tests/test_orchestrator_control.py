@@ -17,7 +17,8 @@ def test_heartbeat_is_answered_with_full_state_and_stats_are_kept(component, htt
     vad = component("vad", kind="vad", inputs=["audio/raw"], outputs=["vad/speech"])
     vad.heartbeat()
     assert vad.recv() == {"type": "state", "peers": {"audio/raw": ["tcp://127.0.0.1:40444"]},
-                          "formats": {"audio/raw": FMT16, "vad/speech": FMT16}, "version": 1}
+                          "formats": {"audio/raw": FMT16, "vad/speech": FMT16}, "version": 1,
+                          "consumers": []}  # it has outputs: who takes them (nobody yet)
     grabber.heartbeat({"inputs": {}, "outputs": {"audio/raw": {"published": 12, "subscribers": 1}},
                        "results_sent": 0, "info": {}})
     assert grabber.recv()["type"] == "state"

@@ -154,15 +154,15 @@ def test_a_producers_state_names_the_live_consumers_of_its_outputs():
     """The only subscribers a producer's audio output takes (esiaf/gate.py): who consumes its topics, now."""
     registry = Registry()
     grabber = register(registry, "grabber", outputs=["raw"])
-    assert registry.state_of(grabber)["consumers"] == []
+    assert registry.state_of(grabber).consumers == []
     vad = register(registry, "vad", inputs=["raw"], outputs=["speech"])
     a = register(registry, "asr", inputs=["speech"], instance="asr-a")
     b = register(registry, "asr", inputs=["speech"], instance="asr-b")
-    assert registry.state_of(grabber)["consumers"] == [vad.component_id]
-    assert registry.state_of(vad)["consumers"] == ["asr-a", "asr-b"]
-    assert "consumers" not in registry.state_of(a)  # no outputs
+    assert registry.state_of(grabber).consumers == [vad.component_id]
+    assert registry.state_of(vad).consumers == ["asr-a", "asr-b"]
+    assert registry.state_of(a).consumers is None  # no outputs
     registry.declare_dead(b.component_id)
-    assert registry.state_of(vad)["consumers"] == ["asr-a"]
+    assert registry.state_of(vad).consumers == ["asr-a"]
 
 
 def test_replicas_share_the_streams_sticky_and_balanced_and_a_dead_ones_move_at_once():
