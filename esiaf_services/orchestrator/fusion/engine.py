@@ -26,7 +26,7 @@ from ..settings import FusionSettings, TimeoutSettings
 from .aggregate import aggregates, overlaps
 from .coverage import Coverage, SpanIndex, StoredResult
 from .latency import Latencies
-from .models import Completion, FusedResult, Missing, MissingReason
+from .models import Completion, FusedResult, Missing, MissingReason, bounded_lists
 
 __all__ = ["Fusion", "FusionEngine", "Publication", "StoredResult"]
 
@@ -444,13 +444,16 @@ class FusionEngine:
         window = fusion.window
         results = {t: [r.json for r in sorted(by_id.values(), key=lambda r: (r.start_ns, r.id))]
                    for t, by_id in fusion.results.items()}
+        summary = aggregates(results, window)  # from every result, before the lists are bounded
+        results, omitted = bounded_lists(results)
         missing = [Missing.model_construct(component=c, type=t, reason=cast(MissingReason, reason))
                    for c, (t, reason) in sorted(fusion.missing.items())]
         # model_construct: every value is the engine's own (results as the codec checked them on arrival)
         result = FusedResult.model_construct(
             id=fusion.id, revision=fusion.revision, fusion=fusion.settings.name,
             stream_id=fusion.anchor.stream_id, anchor=fusion.anchor.json, results=results,
-            aggregates=aggregates(results, window), completion=cast(Completion, fusion.completion),
-            missing_components=[m.component for m in missing], missing=missing, published_ns=published_ns)
+            aggregates=summary, completion=cast(Completion, fusion.completion),
+            missing_components=[m.component for m in missing], missing=missing, published_ns=published_ns,
+            omitted=omitted)
         return Publication(result=result, start_ns=window[0], end_ns=window[1],
                            trigger_received_ns=trigger_received_ns, due_ns=due_ns)

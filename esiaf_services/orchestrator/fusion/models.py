@@ -15,6 +15,12 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, GetJsonSchemaHandler
 from pydantic.json_schema import JsonSchemaValue
 
+# A fused result lists at most this many results of one kind (an ssl frame is 128 ms: 25 s of a talker's
+# directions); the aggregates are computed from all of them, and ``omitted`` counts what was left out.
+# An analyser that sends thousands of results per utterance would otherwise make every revision, and every
+# websocket client's copy of it, megabytes long.
+MAX_LISTED_PER_KIND = 200
+
 
 # a result, as stored and sent (docs/protocol.md); exactly one payload key is present
 class Span(BaseModel):
@@ -184,7 +190,25 @@ class FusedResult(BaseModel):
     published_ns: int
     seq: int = Field(default=0, description="publication number: every revision has its own, increasing; "
                                             "resume the websocket with after_seq")
+    omitted: dict[str, int] = Field(default_factory=dict, description=(
+        f"kinds with more than {MAX_LISTED_PER_KIND} results in the window: how many were left out of "
+        "`results` (evenly over the window; the aggregates count every one)"))
 
     def to_json(self) -> str:
         """The text that is stored and sent (compact; integers stay integers; NaN is refused)."""
         return json.dumps(self.model_dump(), separators=(",", ":"), allow_nan=False)
+
+
+def bounded_lists(results: dict[str, list[dict[str, Any]]],
+                  limit: int = MAX_LISTED_PER_KIND) -> tuple[dict[str, list[dict[str, Any]]], dict[str, int]]:
+    """``results`` with at most ``limit`` per kind, kept evenly over each list (its first and last among
+    them, in order), and how many of each kind were left out (only kinds that lost some)."""
+    bounded, omitted = {}, {}
+    for kind, items in results.items():
+        if len(items) <= limit:
+            bounded[kind] = items
+            continue
+        step = (len(items) - 1) / (limit - 1)
+        bounded[kind] = [items[round(i * step)] for i in range(limit)]
+        omitted[kind] = len(items) - limit
+    return bounded, omitted

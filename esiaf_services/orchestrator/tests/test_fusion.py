@@ -330,3 +330,28 @@ def test_two_fusions_with_different_anchors_run_at_once(start, fake):
     assert speech_fused["completion"] == voice_fused["completion"] == "complete"
     assert voice_fused["aggregates"]["gender"]["label"] == "female"
     assert speech_fused["anchor"]["type"] == "speech" and voice_fused["anchor"]["type"] == "vad"
+
+
+def test_a_flood_of_results_in_one_window_is_listed_bounded_and_counted(start, fake):
+    """An analyser that sends 1,000 results for one utterance: the fused result lists 200 of them,
+    evenly over the window, counts the 800 it left out, and its aggregate still weighs all 1,000."""
+    orchestrator = start()
+    asr, ssl, emo = utterance_components(orchestrator, fake)
+    t1 = time.time_ns()
+    t0 = t1 - 2 * S
+    step = 2 * S // 1000
+    with connect(f"{orchestrator.ws_url}/ws/fused") as ws:
+        for i in range(1000):
+            ssl.emit("ssl", (t0 + i * step, t0 + (i + 1) * step), **ssl_at(90 if i < 600 else 270))
+        emo.emit("emotion", (t0, t1), **emotion())
+        asr.emit("speech", (t0, t1), speech={"hypotheses": [{"text": "hello", "probability": 0.9}]})
+        fused = recv(ws, timeout_s=10)
+    listed = fused["results"]["ssl"]
+    assert len(listed) == 200 and fused["omitted"] == {"ssl": 800}
+    assert listed[0]["span"]["start_ns"] == t0 and listed[-1]["span"]["end_ns"] == t1  # the first and the last
+    starts = [r["span"]["start_ns"] for r in listed]
+    assert starts == sorted(starts) and max(b - a for a, b in zip(starts, starts[1:])) <= 6 * step  # evenly
+    assert fused["aggregates"]["ssl"]["directions"] == 1000  # the aggregate weighs every one
+    assert fused["aggregates"]["ssl"]["azimuth_deg"] == pytest.approx(90, abs=1e-6)
+    assert fused["results"]["emotion"] and "emotion" not in fused["omitted"]
+    assert len(json.dumps(fused)) < 200_000

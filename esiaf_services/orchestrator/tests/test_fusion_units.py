@@ -208,7 +208,8 @@ def test_late_results_within_the_revision_interval_make_one_revision():
     assert not any(late) and engine.next_deadline_ns() == S + 500 * MS
     assert engine.on_timer(S + 499 * MS) == []
     [revised] = engine.on_timer(S + 500 * MS)
-    assert revised.revision == 2 and len(revised.result.results["ssl"]) == 1000
+    assert revised.revision == 2 and len(revised.result.results["ssl"]) == 200  # listed: bounded
+    assert revised.result.omitted == {"ssl": 800}
     assert engine.next_deadline_ns() is None
     # a late result after the interval revises at once
     clock.now = S + 2 * S
@@ -352,12 +353,12 @@ def test_a_recogniser_that_comes_back_revises_what_was_fused_without_it_and_neve
         engine.on_result(result(20 + i, "emo", "emotion", segment.start_ns, segment.end_ns,
                                 emotion={"label": "sad"}), segment.end_ns)
     at_death = orphans.on_death("s", "asr", "speech", 6 * S, 6 * S)
-    assert [f.json["anchor"]["id"] for f in at_death] == [10, 11]
+    assert [f.result.model_dump()["anchor"]["id"] for f in at_death] == [10, 11]
     engine.on_result(result(22, "emo", "emotion", 6 * S, 8 * S, emotion={"label": "sad"}), 8 * S)
     engine.on_result(vad[2], 8 * S)
     assert orphans.on_segment(vad[2], 8 * S, alive=lambda service: True) == []  # another instance answers it
     [meanwhile] = orphans.on_segment(vad[2], 8 * S, alive=lambda service: False)  # none: nobody will
-    assert meanwhile.json["missing"] == [{"component": "asr", "type": "speech", "reason": "gone"}]
+    assert meanwhile.result.model_dump()["missing"] == [{"component": "asr", "type": "speech", "reason": "gone"}]
     assert orphans.on_segment(vad[2], 8 * S, alive=lambda service: False) == []  # once
     fused_ids = {f.id for f in [*at_death, meanwhile]}
     for i, segment in enumerate(vad):  # it comes back and answers all three, late
@@ -365,8 +366,8 @@ def test_a_recogniser_that_comes_back_revises_what_was_fused_without_it_and_neve
                         speech={"hypotheses": [{"text": f"question {i}"}]})
         assert orphans.before_result(answer, (30 + i) * S) == []
         [revised] = [f for f in engine.on_result(answer, (30 + i) * S) if f.revision > 1]
-        assert revised.id in fused_ids and revised.json["anchor"]["id"] == 30 + i
-        assert revised.json["missing"] == [] and revised.json["results"]["emotion"]
+        assert revised.id in fused_ids and revised.result.model_dump()["anchor"]["id"] == 30 + i
+        assert revised.result.model_dump()["missing"] == [] and revised.result.model_dump()["results"]["emotion"]
     assert not engine.open and len({f.id for f in engine.streams["s"].published.overlapping(0, 10 * S)}) == 3
 
 
@@ -379,8 +380,8 @@ def test_an_utterance_broken_off_by_its_vads_death_is_fused_as_lost_once():
     broken = result(1, "asr", "speech", 1 * S, 2 * S, nothing={"reason": "utterance broken off: its VAD went away"})
     engine.on_result(broken, 6 * S)
     [lost] = orphans.on_result(broken, 6 * S)
-    assert lost.json["anchor"]["id"] == 1 and lost.json["anchor"]["nothing"]["reason"].startswith("utterance broken")
-    assert lost.json["missing"] == [{"component": "vad", "type": "vad", "reason": "gone"}]
+    assert lost.result.model_dump()["anchor"]["id"] == 1 and lost.result.model_dump()["anchor"]["nothing"]["reason"].startswith("utterance broken")
+    assert lost.result.model_dump()["missing"] == [{"component": "vad", "type": "vad", "reason": "gone"}]
     nxt = result(2, "asr", "speech", 5 * S, 6 * S, speech={"hypotheses": [{"text": "go"}]})
     assert orphans.on_result(nxt, 7 * S) == [] and not orphans.segmenters_gone
     assert orphans.on_result(result(3, "asr", "speech", 1 * S, 2 * S, nothing={"reason": "x"}), 8 * S) == []
