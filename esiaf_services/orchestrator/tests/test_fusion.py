@@ -6,6 +6,7 @@ deadlines (window end + timeout) mean what they mean in a running pipeline.
 """
 from __future__ import annotations
 
+import itertools
 import json
 import time
 from collections.abc import Iterator
@@ -350,7 +351,7 @@ def test_a_flood_of_results_in_one_window_is_listed_bounded_and_counted(start, f
     assert len(listed) == 200 and fused["omitted"] == {"ssl": 800}
     assert listed[0]["span"]["start_ns"] == t0 and listed[-1]["span"]["end_ns"] == t1  # the first and the last
     starts = [r["span"]["start_ns"] for r in listed]
-    assert starts == sorted(starts) and max(b - a for a, b in zip(starts, starts[1:])) <= 6 * step  # evenly
+    assert starts == sorted(starts) and max(b - a for a, b in itertools.pairwise(starts)) <= 6 * step  # evenly
     assert fused["aggregates"]["ssl"]["directions"] == 1000  # the aggregate weighs every one
     assert fused["aggregates"]["ssl"]["azimuth_deg"] == pytest.approx(90, abs=1e-6)
     assert fused["results"]["emotion"] and "emotion" not in fused["omitted"]

@@ -380,7 +380,8 @@ def test_an_utterance_broken_off_by_its_vads_death_is_fused_as_lost_once():
     broken = result(1, "asr", "speech", 1 * S, 2 * S, nothing={"reason": "utterance broken off: its VAD went away"})
     engine.on_result(broken, 6 * S)
     [lost] = orphans.on_result(broken, 6 * S)
-    assert lost.result.model_dump()["anchor"]["id"] == 1 and lost.result.model_dump()["anchor"]["nothing"]["reason"].startswith("utterance broken")
+    anchor = lost.result.anchor
+    assert anchor["id"] == 1 and anchor["nothing"]["reason"].startswith("utterance broken")
     assert lost.result.model_dump()["missing"] == [{"component": "vad", "type": "vad", "reason": "gone"}]
     nxt = result(2, "asr", "speech", 5 * S, 6 * S, speech={"hypotheses": [{"text": "go"}]})
     assert orphans.on_result(nxt, 7 * S) == [] and not orphans.segmenters_gone
