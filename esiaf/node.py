@@ -49,6 +49,7 @@ from esiaf.links import OutputLink, OutputStats
 from esiaf.processor import Processor, SetupError
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf.receiving import InputStats, Receiver
+from esiaf.result_checks import MAX_RESULT_BYTES, BadResult, check_result
 from esiaf.results import make_result
 from esiaf.transport import STATE_ADDRESS, Transport, TransportError, topic_name
 
@@ -70,6 +71,8 @@ class Context:
         self.output_stats: dict[str, OutputStats] = {}
         self.results_sent = 0
         self.results_dropped = 0
+        self.results_invalid = 0  # results it made that the orchestrator would refuse: never sent
+        self.results_invalid_reason = ""  # the last one's
         self.refused_subscribers: dict[str, int] = {}  # handshakes refused at the outputs (CURVE), by reason
         self.sequences: dict[tuple[str, str], int] = {}  # per topic and stream: a replica sees its streams only
         self.ended = per_stream.PerStream(lambda _: set[str](), settings.max_streams, "inputs ended",
@@ -167,7 +170,20 @@ class Context:
         result = make_result(self.settings.name, kind, stream_id or self.settings.stream_id, span,
                              self.result_sequence, **payload)
         result.instance = self.processor.instance_id
-        self._send_results(b"result", result.SerializeToString(), result.stream_id)
+        body = result.SerializeToString()
+        try:  # what the orchestrator would refuse is not sent: the analyser learns it here, counted
+            if len(body) > MAX_RESULT_BYTES:
+                raise BadResult(f"{kind} result of {len(body)} bytes, more than {MAX_RESULT_BYTES}")
+            check_result(result)
+        except BadResult as exc:
+            self.results_invalid += 1
+            self.results_invalid_reason = str(exc)[:500]
+            if self.results_invalid == 1 or self.results_invalid % 100 == 0:
+                log.error("result not sent: the orchestrator would refuse it (%s) invalid=%d", exc,
+                          self.results_invalid)
+                self.poke()
+            return result
+        self._send_results(b"result", body, result.stream_id)
         return result
 
     def clock_ns(self) -> int:  # this host's wall clock, ns since the epoch: what capture times are stamped with
@@ -217,6 +233,7 @@ class Context:
         return {"inputs": {t: s.heartbeat() for t, s in list(self.input_stats.items())},
                 "outputs": {t: asdict(s) for t, s in list(self.output_stats.items())},
                 "results_sent": self.results_sent, "results_dropped": self.results_dropped,
+                "results_invalid": self.results_invalid, "results_invalid_reason": self.results_invalid_reason,
                 "refused": dict(self.refused), "refused_by_publisher": dict(self.refused_by_publisher),
                 "refused_subscribers": dict(self.refused_subscribers),
                 "info": dict(self.processor.info)}

@@ -1,4 +1,5 @@
-"""The one rule for text that ESIAF shows a person: control characters escaped.
+"""The one rule for text that ESIAF shows a person: control characters escaped; and the one rule for
+the names it takes and prints (stream ids, voice names): :func:`name_problem`.
 
 A name or a text that came from a peer (a voice's name, a stream id, a recognised text, a log line)
 may hold an ANSI escape or a carriage return, which would rewrite what a terminal shows: a forged
@@ -11,6 +12,7 @@ from __future__ import annotations
 import unicodedata
 
 CONTROL_CATEGORIES = frozenset({"Cc", "Cf", "Zl", "Zp"})
+MAX_NAME_CHARS = 200  # a stream id, a voice's name, a component's name: as the orchestrator bounds them
 
 
 def control_character(text: str) -> str | None:
@@ -25,3 +27,16 @@ def printable(text: object) -> str:
         return text
     return "".join(char.encode("unicode_escape").decode("ascii") if unicodedata.category(char) in CONTROL_CATEGORIES
                    else char for char in text)
+
+
+def name_problem(name: str, max_chars: int = MAX_NAME_CHARS) -> str | None:
+    """Why ``name`` cannot be a name (a stream id, a voice's name), or None: 1 to ``max_chars``
+    characters, none of them a control character."""
+    if not name:
+        return "must not be empty"
+    if len(name) > max_chars:
+        return f"has {len(name)} characters; at most {max_chars}"
+    bad = control_character(name)
+    if bad is not None:
+        return f"holds the control character U+{ord(bad):04X}; give a printable name"
+    return None

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from esiaf.argparsing import OneLineParser
-from esiaf.printable import control_character
+from esiaf.printable import MAX_NAME_CHARS, name_problem
 from esiaf.tools.errors import LaunchError
 from esiaf.tools.terminal import err
 
@@ -25,7 +25,6 @@ if TYPE_CHECKING:
 ANALYSERS = ("ssl", "emotion", "gender", "voiceid")  # what --without can leave out (the recogniser anchors every line)
 ON_SPEECH = ("asr", "emotion", "gender", "voiceid")  # the analysers on the VAD's output: what --replicas can scale
 MAX_REPLICAS = 8
-MAX_NAME_CHARS = 200  # a stream id, as the orchestrator and the components bound names
 MIN_RATE_HZ, MAX_RATE_HZ = 8_000, 192_000  # the rates the components take (esiaf/receiving.py, not imported: heavy)
 MAX_CHUNK_MS = 10_000.0  # a component takes at most 10 s of audio per message
 MIN_CHUNK_MS = 1.0
@@ -138,15 +137,10 @@ def check_echo(args: argparse.Namespace) -> None:
 
 
 def check_name(name: str, what: str) -> str:
-    """A name the run gives (a stream id): 1 to MAX_NAME_CHARS characters, none of them a control
-    character, as the orchestrator and the components take it."""
-    if not name:
-        raise LaunchError(f"{what} must not be empty")
-    if len(name) > MAX_NAME_CHARS:
-        raise LaunchError(f"{what} has {len(name)} characters; at most {MAX_NAME_CHARS}")
-    bad = control_character(name)
-    if bad is not None:
-        raise LaunchError(f"{what} holds the control character U+{ord(bad):04X}; give a printable name")
+    """A name the run gives (a stream id), by the one rule for names (esiaf/printable.py)."""
+    problem = name_problem(name, MAX_NAME_CHARS)
+    if problem is not None:
+        raise LaunchError(f"{what} {problem}")
     return name
 
 

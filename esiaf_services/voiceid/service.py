@@ -4,7 +4,8 @@ An utterance analyser of the SDK (:class:`esiaf.UtteranceAnalyser`) with a speak
 (``encoder.py``). Each segment's embedding is scored
 against the voices enrolled on the orchestrator (``scoring.py``); an unknown voice gets a
 per-stream anonymous id. The result is a ``voice_id`` label result: the top label (a name, or
-``voice-N``), its probability, every enrolled voice's score, and the embedding itself so the
+``voice-N``), its probability, the ``scores_reported`` best enrolled voices' cosine scores (clipped
+to 0..1: a result holds at most 1,000 entries, each a probability), and the embedding itself so the
 orchestrator can enrol a voice from a past segment. The enrolled voices come from the
 orchestrator's ``GET /voices?embeddings=1`` as a long poll (``wait_s`` = ``voices_wait_s``, with the
 ETag last seen): it answers as soon as a voice is enrolled or deleted, so enrolments reach a running
@@ -19,6 +20,7 @@ from typing import ClassVar
 
 import httpx
 import numpy as np
+from pydantic import Field
 
 from esiaf import ClassifierSettings, SetupError, Utterance, UtteranceAnalyser
 from esiaf.api_client import VOICES_MAX_WAIT_S, OrchestratorHTTP
@@ -36,6 +38,8 @@ class VoiceIdSettings(ClassifierSettings):
     anonymous_threshold: float = 0.75  # cosine to an anonymous voice's mean to be that voice again
     top_k: int = 3  # a voice's score: mean of its top_k best enrolled embeddings
     anonymous_limit: int = 16  # anonymous voices remembered per stream
+    scores_reported: int = Field(10, ge=1, le=100, description="the result's class_probabilities: this many "
+                                 "best-scoring enrolled voices (a result holds at most 1,000 entries)")
     voices_wait_s: float = 30.0  # the long poll for enrolled voices: the orchestrator answers a change at once
     voices_retry_s: float = 1.0  # after a failed request for the voices, ask again this much later
 
@@ -94,8 +98,13 @@ class VoiceId(UtteranceAnalyser):
         if reply.status_code == 304:
             return
         reply.raise_for_status()
-        voices = {v["name"]: np.asarray(v["embeddings"], np.float32) for v in reply.json()["voices"]
-                  if v["embeddings"]}
+        voices = {}
+        for voice in reply.json()["voices"]:
+            embeddings = np.asarray(voice["embeddings"], np.float32)
+            if embeddings.size and np.isfinite(embeddings).all():
+                voices[voice["name"]] = embeddings
+            elif embeddings.size:  # an older orchestrator took them unchecked: that voice alone is left out
+                log.error("voice %r left out: its embeddings hold NaN or infinity", voice["name"][:200])
         self.book = VoiceBook(voices, top_k=self.settings.top_k)  # replaced whole: the data thread reads it
         self._etag = reply.headers.get("ETag", "")
         self.info["voices"] = sorted(voices)
@@ -113,5 +122,7 @@ class VoiceId(UtteranceAnalyser):
             label, similarity = voices.assign(embedding)
             p = probability(similarity, s.anonymous_threshold)
         log.info("segment stream_id=%s voice=%s p=%.2f score=%.2f", stream_id, label, p, match.score)
-        return {"label": label, "probability": p, "class_probabilities": match.scores,
+        best = sorted(match.scores.items(), key=lambda item: -item[1])[:s.scores_reported]
+        return {"label": label, "probability": p,
+                "class_probabilities": {name: min(1.0, max(0.0, score)) for name, score in best},
                 "embedding": embedding.tolist()}

@@ -5,8 +5,9 @@ from typing import Annotated
 
 from fastapi import HTTPException, Query, Request
 
+from esiaf.result_checks import MAX_TIME_NS
+
 from ..core import Orchestrator
-from ..planes.codec import MAX_TIME_NS
 
 # Bounds of numbers that reach SQLite, whose integers end at 2**63 - 1 (past it a query failed: a
 # 500): capture times as results have them (1970..2116), ids and sequence numbers below 2**53 (a

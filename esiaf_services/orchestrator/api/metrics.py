@@ -117,6 +117,8 @@ class StateCollector(Collector):
                                    labels=COMPONENT_LABELS)
         not_sent = CounterMetricFamily("esiaf_component_results_dropped", "results the component could not send "
                                        "(its heartbeat)", labels=COMPONENT_LABELS)
+        invalid = CounterMetricFamily("esiaf_component_results_invalid", "results the component made that the "
+                                      "orchestrator would refuse, not sent (its heartbeat)", labels=COMPONENT_LABELS)
         inputs = CounterMetricFamily("esiaf_component_input_messages", "audio messages on an input topic, by "
                                      "outcome: received, lost (never arrived), bad (unusable)",
                                      labels=[*COMPONENT_LABELS, "topic", "outcome"])
@@ -142,6 +144,7 @@ class StateCollector(Collector):
             stats = _mapping(component.stats)
             sent.add_metric(labels, _count(stats.get("results_sent")))
             not_sent.add_metric(labels, _count(stats.get("results_dropped")))
+            invalid.add_metric(labels, _count(stats.get("results_invalid")))
             for topic, counts in sorted(_mapping(stats.get("inputs")).items()):
                 for outcome in ("received", "lost", "bad"):
                     inputs.add_metric([*labels, str(topic), outcome], _count(_mapping(counts).get(outcome)))
@@ -154,5 +157,5 @@ class StateCollector(Collector):
                 refused.add_metric([*labels, str(reason)], _count(count))
             for reason, count in sorted(_mapping(stats.get("refused_subscribers")).items()):
                 refused_subscribers.add_metric([*labels, str(reason)], _count(count))
-        yield from (up, age, heartbeats, received, sent, not_sent, inputs, queued, outputs, subscribers, refused,
-                    refused_subscribers)
+        yield from (up, age, heartbeats, received, sent, not_sent, invalid, inputs, queued, outputs, subscribers,
+                    refused, refused_subscribers)

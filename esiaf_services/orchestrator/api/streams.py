@@ -13,8 +13,9 @@ from typing import Any
 from fastapi import APIRouter, Depends, HTTPException, Path
 from pydantic import BaseModel, ConfigDict, Field
 
+from esiaf.result_checks import MAX_TIME_NS
+
 from ..core import Orchestrator
-from ..planes.codec import MAX_TIME_NS
 from .deps import get_core
 from .models import Problem
 

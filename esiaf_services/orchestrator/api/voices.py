@@ -27,16 +27,20 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from pydantic import BaseModel, ConfigDict, Field, StrictInt, TypeAdapter, ValidationError
 
 from esiaf.api_client import VOICES_MAX_WAIT_S
+from esiaf.printable import name_problem, printable
+from esiaf.result_checks import MAX_TIME_NS
 
 from ..core import Orchestrator
-from ..planes.codec import MAX_TIME_NS
-from ..store.voices import VoiceTable
+from ..store.voices import VoiceLimit, VoiceTable
 from .deps import get_core
 from .models import Problem
 
 router = APIRouter(tags=["voices"])
 ENCODER_RATE_HZ = 16000
 MIN_ENROL_SPEECH_S = 1.0
+MAX_ENROL_S = 60.0  # of audio, at its own rate: what is converted and embedded is at most this long
+MIN_RATE_HZ, MAX_RATE_HZ = 8_000, 192_000  # as an audio message's (esiaf/receiving.py)
+MAX_CHANNELS = 64
 
 
 class SpanEnrolment(BaseModel):
@@ -70,10 +74,15 @@ def get_voices(request: Request, core: Orchestrator = Depends(get_core)) -> Voic
 
 
 def check_name(name: str) -> str:
-    if not name.strip() or "/" in name or name != name.strip():
-        raise HTTPException(422, f"bad voice name {name!r}: it must be non-empty, without '/' or surrounding spaces")
+    """A voice's name: the one rule for names ESIAF prints (esiaf/printable.py), no '/' or surrounding
+    spaces, not an anonymous voice's ``voice-N``."""
+    problem = name_problem(name)
+    if problem is not None:
+        raise HTTPException(422, f"bad voice name {printable(name[:80])!r}: it {problem}")
+    if "/" in name or name != name.strip():
+        raise HTTPException(422, f"bad voice name {printable(name)!r}: it must be without '/' or surrounding spaces")
     if name.startswith("voice-"):
-        raise HTTPException(422, f"bad voice name {name!r}: voice-N names are for anonymous voices")
+        raise HTTPException(422, f"bad voice name {printable(name)!r}: voice-N names are for anonymous voices")
     return name
 
 
@@ -114,7 +123,8 @@ async def delete_voice(name: str, table: VoiceTable = Depends(get_voices)) -> di
 @router.post("/voices/{name:path}", summary="add to a voice: multipart WAV field 'audio', or JSON naming a "
              "past utterance {stream, start_ns, end_ns} or an anonymous voice {stream, anonymous}",
              openapi_extra={"requestBody": ENROLMENT_BODY},
-             responses={415: {"model": Problem, "description": "neither multipart nor JSON"}})
+             responses={415: {"model": Problem, "description": "neither multipart nor JSON"},
+                        409: {"model": Problem, "description": "a new voice beyond the most there may be (1,000)"}})
 async def enrol_voice(name: str, request: Request, core: Orchestrator = Depends(get_core),
                       table: VoiceTable = Depends(get_voices)) -> dict:
     check_name(name)
@@ -137,9 +147,14 @@ async def enrol_voice(name: str, request: Request, core: Orchestrator = Depends(
         embeddings, source = stored_embeddings(core, body)
     else:
         raise HTTPException(415, "no audio: send multipart field 'audio' (a WAV) or JSON {stream, start_ns, end_ns}")
-    await asyncio.to_thread(table.add, name, embeddings, source)
+    try:
+        dropped = await asyncio.to_thread(table.add, name, embeddings, source)
+    except VoiceLimit as exc:
+        raise HTTPException(409, str(exc)) from None
+    except ValueError as exc:  # stored embeddings of an older orchestrator, taken unchecked
+        raise HTTPException(422, f"cannot enrol: {exc}") from None
     table.notify()
-    return {"name": name, "added": len(embeddings), "source": source}
+    return {"name": name, "added": len(embeddings), "source": source, "dropped_oldest": dropped}
 
 
 def embed_wav(data: bytes) -> np.ndarray:
@@ -153,6 +168,7 @@ def embed_wav(data: bytes) -> np.ndarray:
     # (ZeroDivisionError), fields that do not add up (ValueError), data cut short (EOFError)
     except (ValueError, EOFError, struct.error, ZeroDivisionError, OverflowError) as exc:
         raise HTTPException(422, f"audio is not a readable WAV file: {exc}") from None
+    check_audio(int(rate_hz), samples)
     if samples.dtype.kind in "iu":
         info = np.iinfo(samples.dtype)
         samples = (samples.astype(np.float64) - (info.max + info.min + 1) / 2) / (info.max + 1)
@@ -166,6 +182,23 @@ def embed_wav(data: bytes) -> np.ndarray:
         raise HTTPException(422, f"audio has no speech to enrol: {samples.size / ENCODER_RATE_HZ:.2f} s, "
                                  f"at least {MIN_ENROL_SPEECH_S:.0f} s of speech needed")
     return shared_encoder().embed(samples)
+
+
+def check_audio(rate_hz: int, samples: np.ndarray) -> None:
+    """A WAV's audio that can be enrolled: a rate, channel count and length within bounds (checked
+    before it is converted: a header saying 1 Hz must not make gigabytes of 16 kHz audio), every
+    sample finite; 422 with the reason if not."""
+    if not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:
+        raise HTTPException(422, f"audio at {rate_hz} Hz: enrolment takes {MIN_RATE_HZ}-{MAX_RATE_HZ} Hz")
+    channels = samples.shape[1] if samples.ndim == 2 else 1
+    if not 1 <= channels <= MAX_CHANNELS:
+        raise HTTPException(422, f"audio with {channels} channels: enrolment takes 1-{MAX_CHANNELS}")
+    seconds = samples.shape[0] / rate_hz
+    if seconds > MAX_ENROL_S:
+        raise HTTPException(422, f"audio of {seconds:.1f} s: enrolment takes at most {MAX_ENROL_S:.0f} s "
+                                 "(enrol a long recording in parts)")
+    if samples.dtype.kind == "f" and not np.isfinite(samples).all():
+        raise HTTPException(422, "audio holds NaN or infinite samples")
 
 
 def stored_embeddings(core: Orchestrator, body: SpanEnrolment | AnonymousEnrolment) -> tuple[list[np.ndarray], str]:

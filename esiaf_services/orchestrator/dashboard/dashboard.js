@@ -274,7 +274,8 @@ function drawComponents() {
     const inputs = Object.values(stats.inputs || {});
     const outputs = Object.values(stats.outputs || {});
     const lost = sum(inputs.map((i) => i.lost)) + sum(outputs.map((o) => o.dropped)) + (stats.results_dropped || 0);
-    const bad = sum(inputs.map((i) => i.bad));
+    // bad: audio it could not use, and results it made that the orchestrator would refuse (not sent)
+    const bad = sum(inputs.map((i) => i.bad)) + (stats.results_invalid || 0);
     const queued = Math.max(0, ...inputs.map((i) => i.queued || 0));
     const refused = sum(Object.values(stats.refused || {}));
     const latency = state.latency.get(component.name);
@@ -285,7 +286,8 @@ function drawComponents() {
     row.append(name,
                el("td", {"class": "status", "data-status": component.status}, component.status),
                el("td", {"class": "heartbeat"}, Math.max(0, (nowNs - component.last_seen_ns) / 1e9).toFixed(1) + " s"),
-               el("td", {"class": "counters"}, lost + " / " + bad + " / " + refused),
+               el("td", {"class": "counters", "title": stats.results_invalid_reason
+                 ? "last result not sent: " + stats.results_invalid_reason : ""}, lost + " / " + bad + " / " + refused),
                el("td", {"class": "queued", "title": "audio messages found waiting at once, last heartbeat"},
                   inputs.length ? String(queued) : "–"),
                el("td", {"class": "latency"}, latency && latency.p50_ms !== null

@@ -11,6 +11,14 @@ import time
 
 import numpy as np
 
+MAX_VOICES = 1_000  # enrolled names: a voiceid's result names at most its best few, but every one is scored
+MAX_EMBEDDINGS_PER_VOICE = 200  # the oldest of a voice's embeddings are dropped beyond this
+
+
+class VoiceLimit(ValueError):
+    """An enrolment that would pass MAX_VOICES: the message says so."""
+
+
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS voices (
     id INTEGER PRIMARY KEY,
@@ -48,12 +56,28 @@ class VoiceTable:
         changed, self._changed = self._changed, asyncio.Event()
         changed.set()
 
-    def add(self, name: str, embeddings: list[np.ndarray], source: str) -> None:
+    def add(self, name: str, embeddings: list[np.ndarray], source: str) -> int:
+        """Adds ``embeddings`` (finite: a ValueError if not) to the voice ``name``, a new one only while
+        there are fewer than MAX_VOICES (VoiceLimit); keeps its newest MAX_EMBEDDINGS_PER_VOICE and
+        returns how many older ones were dropped."""
+        if any(not np.isfinite(e).all() for e in embeddings):
+            raise ValueError("an embedding holds NaN or infinity")
         with self._lock, self._db:  # one transaction: the voices and their generation
             self._db.execute("BEGIN")
+            known = self._db.execute("SELECT 1 FROM voices WHERE name = ? LIMIT 1", (name,)).fetchone()
+            if known is None:
+                (count,) = self._db.execute("SELECT COUNT(DISTINCT name) FROM voices").fetchone()
+                if count >= MAX_VOICES:
+                    raise VoiceLimit(f"{count} voices are enrolled, the most there may be ({MAX_VOICES}): "
+                                     f"delete one first")
             self._db.executemany("INSERT INTO voices (name, embedding, source, added_ns) VALUES (?, ?, ?, ?)",
                                  [(name, np.asarray(e, "<f4").tobytes(), source, time.time_ns()) for e in embeddings])
+            dropped = self._db.execute(
+                "DELETE FROM voices WHERE name = ? AND id NOT IN "
+                "(SELECT id FROM voices WHERE name = ? ORDER BY id DESC LIMIT ?)",
+                (name, name, MAX_EMBEDDINGS_PER_VOICE)).rowcount
             self._db.execute("UPDATE voices_generation SET generation = generation + 1")
+            return dropped
 
     def delete(self, name: str) -> int:
         with self._lock, self._db:
