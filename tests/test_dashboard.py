@@ -4,6 +4,7 @@ JSON API. Skipped with the reason where chromium, chromedriver or selenium is ab
 from __future__ import annotations
 
 import base64
+import itertools
 import json
 import math
 import os
@@ -270,3 +271,24 @@ def test_a_revision_replaces_its_older_version_and_the_stream_filter_filters(tmp
     finally:
         context.destroy(linger=0)
         orchestrator.close()
+
+
+def test_the_line_grows_while_a_person_speaks_and_the_fused_result_replaces_it(launch, browser):
+    """Partial results on the page: in real time, the recogniser's partials show as a growing line
+    above the fused results, and each is gone once its utterance is fused."""
+    run = launch("--input", str(REPO / "examples" / "robocup_questions.wav"), "--grammar", "robocup", "--json",
+                 "--without", "emotion,gender,voiceid,ssl", "--serve")
+    run.wait_for_line(lambda line: line.get("type") == "stream_start", timeout_s=120)
+    browser.get(f"{run.url}/?token={run.token}")
+    seen: list[str] = []
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not any(line.get("type") == "stream_end" for line in run.lines):
+        texts = browser.execute_script(
+            "return [...document.querySelectorAll('#fused li.partial .text')].map((e) => e.textContent);")
+        seen.extend(text for text in texts if not seen or seen[-1] != text)
+        time.sleep(0.05)
+    assert len(seen) >= 3, seen  # several partials shown
+    assert any(len(b.split()) > len(a.split()) for a, b in itertools.pairwise(seen)), seen  # a line that grew
+    state = poll(lambda: (s := page_state(browser)) and len(s["fused"]) >= 5 and s, timeout_s=15)
+    assert not browser.find_elements("css selector", "#fused li.partial")  # every one replaced
+    assert len(state["fused"]) == 5

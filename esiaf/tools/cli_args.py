@@ -385,6 +385,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     run.add_argument("--chunk-ms", type=chunk_ms, help="grabber chunk length in ms (default: the grabber's chunk_ms, "
                      "50 ms; see docs/benchmarks.md)")
     run.add_argument("--json", action="store_true", help="print each fused result as JSON")
+    run.add_argument("--partials", action="store_true", help="with --json: print the recognisers' partial "
+                     "results too (on a terminal they are shown anyway, as one line rewritten in place)")
     run.add_argument("-v", "--verbose", action="store_true", help="log what the launcher does")
     sub.add_parser("eval", help="evaluation harnesses through the real pipeline: esiaf eval robocup --help")
     sub.add_parser("keys", help="CURVE key pairs for ZeroMQ across hosts: esiaf keys DIR --help")

@@ -14,7 +14,7 @@ import httpx
 from websockets.exceptions import ConnectionClosed
 
 from esiaf.tools.launcher import START_TIMEOUT_S, LaunchError, OrchestratorClient, Supervisor, wait_until
-from esiaf.tools.terminal import err, out
+from esiaf.tools.terminal import err, out, partial, terminal_shows_partials
 
 log = logging.getLogger(__name__)
 
@@ -197,8 +197,13 @@ def run_over(state: Following, args: argparse.Namespace) -> int | None:
     return 1 if any(s.gave_up for s in state.streams.values()) else 0
 
 
+def shows_partials(args: argparse.Namespace) -> bool:
+    """Whether the run asks for partial results: on a terminal (shown in place), or --json --partials."""
+    return bool(args.partials) if args.json else terminal_shows_partials()
+
+
 def show_message(state: Following, message: dict[str, Any], args: argparse.Namespace) -> int | None:
-    """Prints a fused result, or a stream's end; returns the exit code once the run is over."""
+    """Prints a fused result, a partial one, or a stream's end; returns the exit code once the run is over."""
     stream = state.streams.get(message.get("stream_id", ""))
     if stream is None:
         return None  # another source's stream (a second robot streaming into this pipeline)
@@ -210,6 +215,15 @@ def show_message(state: Following, message: dict[str, Any], args: argparse.Names
             out(json.dumps(message))
         err(f"esiaf: stream {stream.stream_id + ' ' if several else ''}ended, {stream.printed} fused result(s)")
         return run_over(state, args)
+    if message.get("type") == "partial":
+        if args.json:
+            out(json.dumps(message))
+        elif not message.get("closed"):
+            what = message.get("text", "")
+            partial(f"[{stream.stream_id}] … {what}" if several else f"… {what}")
+        else:
+            partial("")
+        return None
     if message.get("type") == "fused_result":
         stream.printed += 1
         line = json.dumps(message) if args.json else format_line(message, stream.origin_ns)

@@ -30,7 +30,7 @@ from esiaf.tools.cli_args import (
     parse_without,
     stream_ids,
 )
-from esiaf.tools.cli_follow import Stream, follow
+from esiaf.tools.cli_follow import Stream, follow, shows_partials
 from esiaf.tools.feed import FusedFeed
 from esiaf.tools.launcher import (
     START_TIMEOUT_S,
@@ -128,8 +128,9 @@ def run(args: argparse.Namespace) -> int:
         for name, count in replicas.items():
             err(f"esiaf: {name} as {count} instances sharing the streams ({name}-1 ... {name}-{count})")
         # one stream: only its results; several: every stream's, each line told by its stream_id
-        feed_url = f"ws://{args.host}:{args.port}/ws/fused" + (f"?{urlencode({'stream': ids[0]})}" if len(ids) == 1
-                                                                else "")
+        # partial results: on a terminal, one line rewritten in place; with --json only if --partials asks
+        query = ({"stream": ids[0]} if len(ids) == 1 else {}) | ({"partials": 1} if shows_partials(args) else {})
+        feed_url = f"ws://{args.host}:{args.port}/ws/fused" + (f"?{urlencode(query)}" if query else "")
         with FusedFeed(feed_url) as ws:
             streams = start_grabbers(args, supervisor, pipeline, ids)
             err(f"esiaf: orchestrator at {url} (API docs: {url}/docs; token in {shown_path(workdir / 'token')}); "

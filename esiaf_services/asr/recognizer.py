@@ -191,6 +191,14 @@ class PocketsphinxRecognizer:
             return
         self._process(pcm, whole_utterance=False)
 
+    def partial(self) -> str:
+        """What the search has found so far in the open utterance ("" before any word, and while the
+        stream's first utterance is buffered for its cepstral mean)."""
+        if not self._in_utterance or self._first_utterance is not None:
+            return ""
+        best = self._decoder.hyp()
+        return " ".join(best.hypstr.split()) if best is not None else ""
+
     def finish(self) -> list[Hypothesis]:
         """End the utterance: up to ``nbest`` distinct hypotheses, best first; [] if nothing recognised."""
         if not self._in_utterance:

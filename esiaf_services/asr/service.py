@@ -25,6 +25,9 @@ JOINED_LATE_NS = 50_000_000  # the first audio of an utterance later than its sp
 
 GRAMMARS = Path(__file__).resolve().parent / "grammars"
 N_BEST_DEFAULT = {"pocketsphinx": 5, "whisper": 10}  # hypotheses per segment, unless n_best says
+# how much audio between two partial results, unless partial_interval_ms says: pocketsphinx reads its
+# running search (cheap); Whisper decodes the whole utterance so far again (beam 1), so less often
+PARTIAL_INTERVAL_MS = {"pocketsphinx": 300.0, "whisper": 1000.0}
 
 
 class AsrSettings(ComponentSettings):
@@ -54,11 +57,20 @@ class AsrSettings(ComponentSettings):
     # hypothesis ("not understood"), so its fused result still says from where, how and by whom;
     # False: a "nothing" result, and no fused result for it
     unrecognised: bool = True
+    # partial results while an utterance goes on (kind "partial": sent on the websocket, never stored)
+    partials: bool = True
+    partial_interval_ms: float | None = Field(default=None, gt=0, description=(
+        "audio between two partial results; unset: 300 ms with pocketsphinx (its running search), 1000 ms "
+        "with whisper (the utterance so far decoded again, beam 1)"))
     renamed: ClassVar[dict[str, str]] = {"nbest": "n_best"}
 
     def hypotheses(self) -> int:
         """``n_best``, or the backend's default."""
         return self.n_best or N_BEST_DEFAULT.get(self.backend, 1)
+
+    def partial_interval_ns(self) -> int:
+        """``partial_interval_ms``, or the backend's default, in ns."""
+        return round((self.partial_interval_ms or PARTIAL_INTERVAL_MS.get(self.backend, 1000.0)) * 1e6)
 
 
 def resolve_grammar(grammar: str) -> Path | None:
@@ -78,6 +90,12 @@ class StreamState:
     publisher: str = ""
     sequence: int = 0
     end_ns: int = 0
+    partial_at_ns: int = 0  # capture time the last partial was made at
+    partial_text: str = ""  # the last partial sent
+    decoded: list[str] = field(default_factory=list)  # the last partial decode's words (local agreement)
+
+    def open(self, start_ns: int) -> None:
+        self.start_ns, self.partial_at_ns, self.partial_text, self.decoded = start_ns, start_ns, "", []
 
     def broken_off(self, audio: Audio) -> str:
         """Why ``audio`` does not continue the open utterance ("" if it does, or none is open)."""
@@ -181,13 +199,38 @@ class Asr(Component):
         state = self._stream(audio.stream_id)
         state.publisher, state.sequence, state.end_ns = audio.publisher, audio.sequence, audio.end_ns
         if state.start_ns is None:
-            state.start_ns = audio.start_ns
+            state.open(audio.start_ns)
             if state.recognizer is not None:
                 state.recognizer.start()
         if state.recognizer is not None:
             state.recognizer.feed(audio.payload)
         else:
             state.chunks.append(audio.payload)
+        if self.settings.partials and audio.end_ns - state.partial_at_ns >= self.settings.partial_interval_ns():
+            self._partial(state, audio)
+
+    def _partial(self, state: StreamState, audio: Audio) -> None:
+        """What has been heard of the open utterance so far, as a ``partial`` result when it changed:
+        its text, and the ``stable`` prefix of words this decode and the one before agree on (local
+        agreement: a prefix both said is unlikely to change, so a client can show it without flicker)."""
+        state.partial_at_ns = audio.end_ns
+        if state.recognizer is not None:
+            text = state.recognizer.partial()
+        else:
+            assert self.whisper is not None  # a stream without a recogniser is a whisper segment buffer
+            samples = np.frombuffer(b"".join(state.chunks), "<i2").astype(np.float32) / 32768.0
+            long_enough = samples.size >= 0.3 * self.settings.sample_rate_hz  # less: Whisper makes words up
+            text = self.whisper.quick_text(samples, self.prompt) if long_enough else ""
+        words = text.split()
+        agreed = 0
+        while agreed < min(len(words), len(state.decoded)) and words[agreed] == state.decoded[agreed]:
+            agreed += 1
+        state.decoded = words
+        if not text or text == state.partial_text:
+            return
+        state.partial_text = text
+        self.emit("partial", (state.start_ns or audio.start_ns, audio.end_ns), stream_id=audio.stream_id,
+                  generic={"text": text, "attributes": {"stable": " ".join(words[:agreed])}})
 
     def _abandon(self, state: StreamState, stream_id: str, why: str) -> None:
         """The open utterance will never end as it began: its audio so far is no sentence of its own, and

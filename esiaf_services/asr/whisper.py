@@ -120,6 +120,15 @@ class WhisperRecognizer:
         others = self.alternatives(samples, encoded, prompt, (best.text, decoded)) if self.n_best > 1 else []
         return WhisperResult([best, *others], "")
 
+    def quick_text(self, samples: np.ndarray, prompt: str | None = None) -> str:
+        """A greedy decode (beam 1, no timestamps) of the audio so far: what a partial result shows."""
+        segments, _ = self.model.transcribe(
+            samples.astype(np.float32, copy=False), language="en", beam_size=1, without_timestamps=True,
+            condition_on_previous_text=False, vad_filter=False, initial_prompt=prompt or None)
+        text = " ".join(segment.text.strip() for segment in segments).strip()
+        self._first.encoding = None  # the hook kept this decode's encoder output: not the next one's
+        return text
+
     def alternatives(self, samples: np.ndarray, encoded, prompt: str | None,
                      best: tuple[str, ...]) -> list[Hypothesis]:
         """Up to ``n_best`` - 1 hypotheses other than those in ``best`` (distinct normalised words),

@@ -91,7 +91,7 @@ def test_the_service_reports_the_sentence_its_score_the_transcript_and_the_runne
     question = "How big is the RCMP?"
     pcm = (np.clip(spoken(question, "slt"), -1, 1) * 32767).astype("<i2")
     emitted: list = []
-    asr.emit = lambda kind, span, stream_id=None, **payload: emitted.append(payload)  # type: ignore[method-assign]
+    asr.emit = lambda kind, span, stream_id=None, **payload: None if kind == "partial" else emitted.append(payload)  # type: ignore[method-assign]
     end_ns = len(pcm) * 1_000_000_000 // 16000
     audio = Audio(topic="vad/speech", stream_id="s", publisher="vad", sequence=1, start_ns=0, end_ns=end_ns,
                   format=AudioFormat(16000, "int16", channels=1), payload=pcm.tobytes())

@@ -29,13 +29,15 @@ async def ws_fused(websocket: WebSocket,
                    after_seq: int | None = Query(
                        None, ge=0, le=MAX_ID, description="first every publication (each revision) with a "
                                                "larger seq: resume without missing revisions "
-                                               "(after_id is then ignored)")
+                                               "(after_id is then ignored)"),
+                   partials: bool = Query(False, description="also the recognisers' partial results while "
+                                          "an utterance goes on (`partial` events, never stored)")
                    ) -> None:
     core: Orchestrator = websocket.app.state.core
     client = f"{websocket.client.host}:{websocket.client.port}" if websocket.client else "-"
     # Subscribe before the client can see the connection open, and before reading the
     # backlog: nothing published meanwhile is missed.
-    subscriber = core.hub.subscribe(client, stream, fusion)
+    subscriber = core.hub.subscribe(client, stream, fusion, partials)
     tasks: set[asyncio.Task] = set()
     try:
         await websocket.accept()

@@ -15,6 +15,7 @@ const TRACK_RECENT_NS = 3e9;  // a track is drawn while it has directions this r
 
 const state = {
   fused: new Map(),  // fused id -> its newest revision
+  partials: new Map(),  // stream id -> what its recogniser has heard of the utterance going on
   lastSeq: 0,  // the newest publication received: a reconnection resumes after it
   streams: new Set(),
   streamEnd: new Map(),  // stream id -> latest capture time seen (ns)
@@ -81,7 +82,7 @@ let unauthorised = false;  // the API said 401: the page's token is missing or w
 
 function connect() {
   const scheme = location.protocol === "https:" ? "wss:" : "ws:";
-  socket = new WebSocket(scheme + "//" + location.host + withToken("/ws/fused?after_seq=" + state.lastSeq));
+  socket = new WebSocket(scheme + "//" + location.host + withToken("/ws/fused?partials=1&after_seq=" + state.lastSeq));
   socket.onopen = () => {
     reconnectMs = 250;
     $("connection").dataset.state = "live";
@@ -98,7 +99,16 @@ function connect() {
 }
 
 function onMessage(message) {
-  if (message.type === "stream_end") return;
+  if (message.type === "partial") {  // the line grows while the person speaks; closed: the fused result follows
+    if (message.closed) state.partials.delete(message.stream_id);
+    else state.partials.set(message.stream_id, message);
+    schedule();
+    return;
+  }
+  if (message.type === "stream_end") {
+    state.partials.delete(message.stream_id);
+    return;
+  }
   if (message.type !== "fused_result") return;
   if (message.seq > state.lastSeq) state.lastSeq = message.seq;
   const known = state.fused.get(message.id);
@@ -186,7 +196,13 @@ function visibleFused() {
 
 function drawFused() {
   const list = $("fused");
-  list.replaceChildren(...visibleFused().map((fused) => {
+  const growing = [...state.partials.values()].filter((p) => shown(p.stream_id)).map((partial) => {
+    const item = el("li", {"class": "partial", "data-stream": partial.stream_id});
+    item.append(el("div", {"class": "text"}, partial.text + " …"),
+                el("div", {"class": "meta"}, "hearing · " + partial.stream_id));
+    return item;
+  });
+  list.replaceChildren(...growing, ...visibleFused().map((fused) => {
     const best = bestText(fused);
     const aggregates = fused.aggregates || {};
     const ssl = aggregates.ssl;

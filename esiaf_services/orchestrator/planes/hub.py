@@ -1,4 +1,4 @@
-"""Fan-out of fused results and stream events to websocket clients.
+"""Fan-out of fused results, stream events and partial results to websocket clients.
 
 Publishing never waits: each client has its own bounded queue, drained by its
 own task. A client that falls more than ``max_queue`` messages behind is
@@ -27,19 +27,24 @@ class Outgoing:
     fused_id: int | None = None
     revision: int = 0
     seq: int = 0  # publication number of a fused result (every revision has its own)
+    partial: bool = False  # a partial result's event (partials.py): only to clients that asked for them
 
 
 class Subscriber:
-    def __init__(self, name: str, stream: str | None, fusion: str | None, max_queue: int) -> None:
+    def __init__(self, name: str, stream: str | None, fusion: str | None, max_queue: int,
+                 partials: bool = False) -> None:
         self.name = name
         self.stream = stream
         self.fusion = fusion
+        self.partials = partials
         self.queue: asyncio.Queue[Outgoing] = asyncio.Queue(maxsize=max_queue)
         self.dropped = asyncio.Event()  # set when the hub gave up on this client
         self.close_reason = ""
 
     def wants(self, message: Outgoing) -> bool:
         if self.stream is not None and message.stream_id != self.stream:
+            return False
+        if message.partial and not self.partials:
             return False
         return message.fusion is None or self.fusion is None or message.fusion == self.fusion
 
@@ -51,8 +56,8 @@ class Hub:
         self.dropped_clients = 0
 
     def subscribe(self, name: str, stream: str | None = None,
-                  fusion: str | None = None) -> Subscriber:
-        subscriber = Subscriber(name, stream, fusion, self.max_queue)
+                  fusion: str | None = None, partials: bool = False) -> Subscriber:
+        subscriber = Subscriber(name, stream, fusion, self.max_queue, partials)
         self._subscribers.add(subscriber)
         return subscriber
 

@@ -14,6 +14,8 @@ from collections import Counter, deque
 from collections.abc import Callable
 from typing import Any
 
+from esiaf.proto import esiaf_pb2 as pb
+
 from ..fusion.engine import FusionEngine, Publication, StoredResult
 from ..fusion.orphans import Orphans
 from ..registry.components import Component, Registry
@@ -25,6 +27,7 @@ from .clocks import StreamClocks
 from .codec import BadResult, parse_result, result_to_json, type_name
 from .hub import Hub, Outgoing
 from .metrics import Metrics
+from .partials import PARTIAL_KIND, Partials
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +50,7 @@ class Ingest:
         self.store = store
         self.engine = engine
         self.orphans = Orphans(engine)  # what dead recogniser instances left unanswered
+        self.partials = Partials()  # what recognisers heard of utterances still going on: sent, not stored
         self.hub = hub
         self.registry = registry
         self.streams = StreamEnds()
@@ -254,8 +258,11 @@ class Ingest:
             return []
         if not self._proven(frames, result.instance, peer_key):
             return []  # neither stored nor fused nor life: not its registration's
-        self.store.allocate_result_id()
         kind = type_name(result)
+        if kind == PARTIAL_KIND:
+            return self._on_partial(result, received_ns)
+        self.store.allocate_result_id()
+        closed = self.partials.on_result(result, received_ns)  # its final closes its partial
         self.store.add_result(
             result_id=result_id, component=result.component, type_name=kind,
             stream_id=result.stream_id, start_ns=result.span.start_ns, end_ns=result.span.end_ns,
@@ -275,11 +282,21 @@ class Ingest:
             *self.orphans.before_result(stored, received_ns), *self.engine.on_result(stored, received_ns),
             *self.orphans.on_result(stored, received_ns),
             *self.orphans.on_segment(stored, received_ns, lambda service: bool(self.registry.instances(service)))]]
+        if closed is not None:
+            outgoing.insert(0, closed)
         self.counters["results"] += 1  # stored and fused: counted once nothing can undo it
         if self.metrics is not None:
             self._observed.append((self.metrics.result_latency, (result.component, result.stream_id),
                                    as_json["latency_ms"] / 1e3))
         return outgoing
+
+    def _on_partial(self, result: pb.Result, received_ns: int) -> list[Outgoing]:
+        """A partial result: life for its component, an event for the websocket; never stored or fused."""
+        component = self.registry.get(result.instance)
+        if component is not None:
+            component.touch()
+        self.counters["partials"] += 1
+        return [self.partials.on_partial(result, received_ns)]
 
     def _store_fused(self, fused: Publication) -> Outgoing:
         seq = fused.result.seq = self.store.allocate_seq()
@@ -355,5 +372,6 @@ class Ingest:
             self.registry.end_stream(stream_id)
         if ended:
             self._on_assignments_changed()
-        return [Outgoing(text=_dumps({"type": "stream_end", "stream_id": stream_id}),
-                         stream_id=stream_id) for stream_id in ended]
+        closed = [event for stream_id in ended if (event := self.partials.on_stream_end(stream_id, now_ns))]
+        return closed + [Outgoing(text=_dumps({"type": "stream_end", "stream_id": stream_id}),
+                                  stream_id=stream_id) for stream_id in ended]
