@@ -3,6 +3,7 @@ them over DDS as a ROS 2 node would (esiaf_services/ros2/voices.py says what goe
 tracked voices every ``tracked_period_s``. docs/ros2.md describes the topics."""
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import os
@@ -12,21 +13,26 @@ import time
 from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import urlencode
 
 from pydantic import Field
+from websockets.exceptions import WebSocketException
 
 from esiaf.argparsing import OneLineParser
 from esiaf.auth import TokenError, token
-from esiaf.runner import configure_logging, settings_help
+from esiaf.runner import configure_logging, parse_set, settings_help
 from esiaf.settings import ComponentSettings, SettingsError, load_settings
+
+if TYPE_CHECKING:
+    from esiaf.tools.feed import FusedFeed
 
 log = logging.getLogger(__name__)
 
 ROS_DOMAIN_ID = "ROS_DOMAIN_ID"
 MAX_DOMAIN_ID = 232  # DDS: the port of domain d is 7400 + 250 d, under 65536
 LOG_EVERY = 100  # a refusal reason is logged the first time and every 100th
+CONNECT_RETRY_S = 0.5  # at start-up, the orchestrator's websocket is tried again this often
 
 
 class Ros2Settings(ComponentSettings):
@@ -124,11 +130,21 @@ class Ros2:
         if self.settings.health_file:
             Path(self.settings.health_file).touch()
 
-    def run(self) -> int:
+    def connect(self) -> FusedFeed:
+        """The websocket, tried until ``register_timeout_s`` has passed (the orchestrator may start later)."""
         from esiaf.tools.feed import FusedFeed
-        url = feed_url(self.settings)
-        log.info("following %s, publishing on DDS domain %d", url, self.domain)
-        with FusedFeed(url) as feed:
+        deadline = time.monotonic() + self.settings.register_timeout_s
+        while True:
+            try:
+                return FusedFeed(feed_url(self.settings))
+            except (OSError, TimeoutError, WebSocketException):
+                if time.monotonic() >= deadline:
+                    raise
+                time.sleep(CONNECT_RETRY_S)
+
+    def run(self) -> int:
+        log.info("following %s, publishing on DDS domain %d", feed_url(self.settings), self.domain)
+        with self.connect() as feed:
             next_tick = time.monotonic()
             while True:
                 now = time.monotonic()
@@ -145,11 +161,14 @@ class Ros2:
 def main(component_cls: type[Ros2], argv: Sequence[str] | None = None) -> int:
     service = component_cls.service
     parser = OneLineParser(prog=f"python -m esiaf_services.{service}", description=component_cls.__doc__,
-                           epilog=settings_help(component_cls.Settings, service))
+                           epilog=settings_help(component_cls.Settings, service),
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", help=f"YAML settings file (also ESIAF_{service.upper()}_CONFIG)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override one setting (repeatable; the value is read as YAML)")
     args = parser.parse_args(argv)
     try:
-        settings = load_settings(component_cls.Settings, service, config=args.config)
+        settings = load_settings(component_cls.Settings, service, config=args.config, **parse_set(args.set))
         domain = domain_id(settings, os.environ)
         token()
     except (SettingsError, TokenError) as exc:
@@ -164,8 +183,9 @@ def main(component_cls: type[Ros2], argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         return bridge.run()
-    except (OSError, TimeoutError) as exc:
-        print(f"{service}: the orchestrator's websocket {feed_url(settings)}: {exc}", file=sys.stderr)
+    except (OSError, TimeoutError, WebSocketException) as exc:
+        print(f"{service}: the orchestrator's websocket {feed_url(settings)}: {exc or type(exc).__name__}",
+              file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
