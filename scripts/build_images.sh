@@ -29,6 +29,7 @@ SERVICES=(
     "voiceid      -             resemblyzer==0.1.4"
     "aec          aec"
     "player       alsa"
+    "ros2         ros2"
 )
 TAG=${ESIAF_TAG:-latest}
 BASE=${ESIAF_BASE_TAG:-esiaf/base:bookworm-offline}

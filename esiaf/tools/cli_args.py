@@ -384,6 +384,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                      "with a single input only")
     run.add_argument("--chunk-ms", type=chunk_ms, help="grabber chunk length in ms (default: the grabber's chunk_ms, "
                      "50 ms; see docs/benchmarks.md)")
+    run.add_argument("--ros2", action="store_true", help="publish the voices as ROS 2 topics (REP-155, hri_msgs) "
+                     "over DDS: the ros2 service (docs/ros2.md; ROS_DOMAIN_ID honoured)")
     run.add_argument("--json", action="store_true", help="print each fused result as JSON")
     run.add_argument("--partials", action="store_true", help="with --json: print the recognisers' partial "
                      "results too (on a terminal they are shown anyway, as one line rewritten in place)")

@@ -132,6 +132,8 @@ def run(args: argparse.Namespace) -> int:
         query = ({"stream": ids[0]} if len(ids) == 1 else {}) | ({"partials": 1} if shows_partials(args) else {})
         feed_url = f"ws://{args.host}:{args.port}/ws/fused" + (f"?{urlencode(query)}" if query else "")
         with FusedFeed(feed_url) as ws:
+            if args.ros2:
+                pipeline.services["ros2"] = start_ros2(supervisor, ids)
             streams = start_grabbers(args, supervisor, pipeline, ids)
             err(f"esiaf: orchestrator at {url} (API docs: {url}/docs; token in {shown_path(workdir / 'token')}); "
                 f"logs in {shown_path(workdir / 'logs')}")
@@ -157,6 +159,19 @@ def start_grabbers(args: argparse.Namespace, supervisor: Supervisor, pipeline: P
         streams.append(Stream(stream_id, grabber, shown))
         err(f"esiaf: playing {shown} as stream {stream_id}" + (f" ({grabber.name})" if len(ids) > 1 else ""))
     return streams
+
+
+def start_ros2(supervisor: Supervisor, ids: list[str]) -> Child:
+    """--ros2: the bridge to ROS 2 (esiaf_services/ros2), following this run's streams (one: its stream;
+    several: each in a namespace of its own, /<stream id>/humans/...); the grabbers play once it follows
+    the fused results (its health file is touched), so it misses none."""
+    health = supervisor.workdir / "ros2.health"
+    health.unlink(missing_ok=True)
+    env = {"ESIAF_ROS2_HEALTH_FILE": str(health)} | (
+        {"ESIAF_ROS2_STREAM": ids[0]} if len(ids) == 1 else {"ESIAF_ROS2_NAMESPACE_PER_STREAM": "true"})
+    child = supervisor.start("ros2", env=env)
+    wait_until(health.exists, supervisor, "the ros2 bridge to follow the fused results", START_TIMEOUT_S, child)
+    return child
 
 
 def refuse_reused(client: OrchestratorClient, ids: list[str], workdir: Path) -> None:

@@ -59,7 +59,10 @@ class FusedFeed:
             self.ws = None
             print("esiaf: lost the orchestrator's websocket; reconnecting", file=sys.stderr, flush=True)
             raise TimeoutError from None
-        seq = json.loads(text).get("seq")
+        try:  # what the message is, is the caller's to judge; here only its publication number counts
+            seq = json.loads(text).get("seq")
+        except (ValueError, AttributeError):
+            seq = None
         if isinstance(seq, int):
             self.last_seq = seq
         return text

@@ -1,0 +1,3 @@
+from esiaf_services.ros2.service import Ros2, main
+
+raise SystemExit(main(Ros2))

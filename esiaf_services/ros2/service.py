@@ -1,0 +1,193 @@
+"""The ros2 service's loop: follows the orchestrator's fused results (websocket /ws/fused) and publishes
+them over DDS as a ROS 2 node would (esiaf_services/ros2/voices.py says what goes where), with the
+tracked voices every ``tracked_period_s``. docs/ros2.md describes the topics."""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import sys
+import time
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+from urllib.parse import urlencode
+
+from pydantic import Field
+from websockets.exceptions import WebSocketException
+
+from esiaf.argparsing import OneLineParser
+from esiaf.auth import TokenError, token
+from esiaf.runner import configure_logging, parse_set, settings_help
+from esiaf.settings import ComponentSettings, SettingsError, load_settings
+
+if TYPE_CHECKING:
+    from esiaf.tools.feed import FusedFeed
+
+log = logging.getLogger(__name__)
+
+ROS_DOMAIN_ID = "ROS_DOMAIN_ID"
+MAX_DOMAIN_ID = 232  # DDS: the port of domain d is 7400 + 250 d, under 65536
+LOG_EVERY = 100  # a refusal reason is logged the first time and every 100th
+CONNECT_RETRY_S = 0.5  # at start-up, the orchestrator's websocket is tried again this often
+
+
+class Ros2Settings(ComponentSettings):
+    # the DDS domain; -1: ROS_DOMAIN_ID from the environment, or 0 (ROS 2's default)
+    domain_id: int = Field(default=-1, ge=-1, le=MAX_DOMAIN_ID)
+    # the stream to follow; "": every stream of the orchestrator
+    stream: str = ""
+    # every topic under this namespace (e.g. /robot1); "": /humans/... as REP-155 names them
+    namespace: str = ""
+    # each stream's topics under a namespace of its own, its stream id (/<stream>/humans/...)
+    namespace_per_stream: bool = False
+    language: str = "en-US"  # LiveSpeech.language: the recogniser's language (IETF code)
+    frame_id: str = "esiaf_array"  # the frame of /humans/voices/<id>/direction: the microphone array's
+    tracked_period_s: float = Field(default=1.0, gt=0)  # /humans/voices/tracked republished this often
+    forget_after_s: float = Field(default=30.0, gt=0)  # a voice unheard this long leaves the tracked list
+    max_voices: int = Field(default=64, ge=1)  # voices remembered at most (least recently heard forgotten)
+
+
+def domain_id(settings: Ros2Settings, env: dict[str, str] | os._Environ[str]) -> int:
+    """The setting, else ROS_DOMAIN_ID as ROS 2 reads it (an integer 0..232; unset or empty: 0)."""
+    if settings.domain_id >= 0:
+        return settings.domain_id
+    text = env.get(ROS_DOMAIN_ID, "").strip()
+    if not text:
+        return 0
+    if not text.isdigit() or int(text) > MAX_DOMAIN_ID:
+        raise SettingsError(f"{ROS_DOMAIN_ID}={text!r}: not a DDS domain id (an integer 0..{MAX_DOMAIN_ID})")
+    return int(text)
+
+
+def feed_url(settings: Ros2Settings) -> str:
+    base = settings.orchestrator_url.rstrip("/").replace("http://", "ws://", 1).replace("https://", "wss://", 1)
+    return f"{base}/ws/fused" + (f"?{urlencode({'stream': settings.stream})}" if settings.stream else "")
+
+
+class Ros2:
+    """ESIAF's voices as ROS4HRI topics (REP-155) over Cyclone DDS, from the orchestrator's fused results."""
+
+    service = "ros2"
+    Settings = Ros2Settings
+
+    def __init__(self, settings: Ros2Settings, domain: int) -> None:
+        from esiaf_services.ros2.dds import Writers
+        from esiaf_services.ros2.voices import Voices, namespace
+        self.settings, self.domain = settings, domain
+        self.voices = Voices(prefix=namespace(settings.namespace), per_stream=settings.namespace_per_stream,
+                             language=settings.language, frame_id=settings.frame_id,
+                             forget_after_s=settings.forget_after_s, max_voices=settings.max_voices)
+        self.writers = Writers(domain)
+        self.refused: Counter[str] = Counter()
+        self.published = 0
+
+    def handle(self, text: str | bytes, now_s: float) -> None:
+        """One websocket message: published, or counted and logged (never raised)."""
+        from esiaf_services.ros2.voices import Unmappable
+        try:
+            message = json.loads(text)
+            if not isinstance(message, dict):
+                raise Unmappable("not_an_object", type(message).__name__)
+            kind = message.get("type")
+            if kind == "fused_result":
+                publications = self.voices.fused(message, now_s)
+            elif kind == "partial_result":
+                publications = self.voices.partial(message, now_s)
+            elif kind == "stream_end":
+                return
+            else:
+                raise Unmappable("unknown_type", repr(kind)[:80])
+        except json.JSONDecodeError as exc:
+            self.refuse("not_json", str(exc))
+            return
+        except Unmappable as exc:
+            self.refuse(exc.reason, str(exc))
+            return
+        self.publish(publications)
+
+    def publish(self, publications: list[tuple[str, Any]]) -> None:
+        from cyclonedds.core import DDSException
+        for topic, sample in publications:
+            try:
+                self.writers.write(topic, sample)
+            except DDSException as exc:  # a topic DDS refuses (a name too long, ...): that one is lost
+                self.refuse("dds_refused", f"{topic}: {exc}")
+                continue
+            self.published += 1
+
+    def refuse(self, reason: str, detail: str) -> None:
+        self.refused[reason] += 1
+        count = self.refused[reason]
+        if count == 1 or count % LOG_EVERY == 0:
+            log.warning("refused a websocket message reason=%s count=%d: %s", reason, count, detail[:200])
+
+    def tick(self) -> None:
+        self.publish(self.voices.tracked(time.monotonic(), time.time_ns()))
+        if self.settings.health_file:
+            Path(self.settings.health_file).touch()
+
+    def connect(self) -> FusedFeed:
+        """The websocket, tried until ``register_timeout_s`` has passed (the orchestrator may start later)."""
+        from esiaf.tools.feed import FusedFeed
+        deadline = time.monotonic() + self.settings.register_timeout_s
+        while True:
+            try:
+                return FusedFeed(feed_url(self.settings))
+            except (OSError, TimeoutError, WebSocketException):
+                if time.monotonic() >= deadline:
+                    raise
+                time.sleep(CONNECT_RETRY_S)
+
+    def run(self) -> int:
+        log.info("following %s, publishing on DDS domain %d", feed_url(self.settings), self.domain)
+        with self.connect() as feed:
+            next_tick = time.monotonic()
+            while True:
+                now = time.monotonic()
+                if now >= next_tick:
+                    self.tick()
+                    next_tick = max(next_tick + self.settings.tracked_period_s, now)
+                try:
+                    text = feed.recv(timeout=max(next_tick - time.monotonic(), 0.001))
+                except TimeoutError:
+                    continue
+                self.handle(text, time.monotonic())
+
+
+def main(component_cls: type[Ros2], argv: Sequence[str] | None = None) -> int:
+    service = component_cls.service
+    parser = OneLineParser(prog=f"python -m esiaf_services.{service}", description=component_cls.__doc__,
+                           epilog=settings_help(component_cls.Settings, service),
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", help=f"YAML settings file (also ESIAF_{service.upper()}_CONFIG)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override one setting (repeatable; the value is read as YAML)")
+    args = parser.parse_args(argv)
+    try:
+        settings = load_settings(component_cls.Settings, service, config=args.config, **parse_set(args.set))
+        domain = domain_id(settings, os.environ)
+        token()
+    except (SettingsError, TokenError) as exc:
+        print(f"{service}: {exc}", file=sys.stderr)
+        return 2
+    configure_logging(service, settings.log_level)
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(0))  # stopped as asked: say what was done
+    try:
+        bridge = component_cls(settings, domain)
+    except ImportError as exc:
+        print(f"{service}: {exc.name or exc}: not installed (pip install 'esiaf[ros2]')", file=sys.stderr)
+        return 2
+    try:
+        return bridge.run()
+    except (OSError, TimeoutError, WebSocketException) as exc:
+        print(f"{service}: the orchestrator's websocket {feed_url(settings)}: {exc or type(exc).__name__}",
+              file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        log.info("published=%d refused=%s", bridge.published, dict(bridge.refused) or 0)

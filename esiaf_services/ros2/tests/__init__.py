@@ -1,0 +1,1 @@
+"""Unit tests of the ros2 service's mapping (no DDS, no sockets)."""
