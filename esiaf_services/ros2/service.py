@@ -65,7 +65,8 @@ def domain_id(settings: Ros2Settings, env: dict[str, str] | os._Environ[str]) ->
 
 def feed_url(settings: Ros2Settings) -> str:
     base = settings.orchestrator_url.rstrip("/").replace("http://", "ws://", 1).replace("https://", "wss://", 1)
-    return f"{base}/ws/fused" + (f"?{urlencode({'stream': settings.stream})}" if settings.stream else "")
+    query = ({"stream": settings.stream} if settings.stream else {}) | {"partials": 1}  # incremental speech
+    return f"{base}/ws/fused?{urlencode(query)}"
 
 
 class Ros2:
@@ -95,7 +96,7 @@ class Ros2:
             kind = message.get("type")
             if kind == "fused_result":
                 publications = self.voices.fused(message, now_s)
-            elif kind == "partial_result":
+            elif kind == "partial":
                 publications = self.voices.partial(message, now_s)
             elif kind == "stream_end":
                 return

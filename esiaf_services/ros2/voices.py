@@ -111,19 +111,27 @@ class Voices:
         return out
 
     def partial(self, message: dict[str, Any], now_s: float) -> list[Publication]:
-        """A partial recognition (``{"type": "partial_result", "stream_id", "span", "text", "voice_id"?}``):
-        LiveSpeech with ``incremental`` set, and is_speaking True while it goes on."""
+        """A partial result (``{"type": "partial", "stream_id", "span", "text", "closed", ...}``,
+        docs/protocol.md): LiveSpeech with ``incremental`` set, and is_speaking True while it goes on,
+        on the voice ``unknown`` (nobody is known before the utterance is fused); closed: is_speaking
+        False there (the fused result's final speech goes to the voice it names)."""
         try:
             stream_id, text = message["stream_id"], message["text"]
             start_ns = int(message["span"]["start_ns"])
-            if not isinstance(stream_id, str) or not isinstance(text, str):
-                raise TypeError("stream_id or text is not a string")
+            closed = message.get("closed", False)
+            if not isinstance(stream_id, str) or not isinstance(text, str) or not isinstance(closed, bool):
+                raise TypeError("stream_id or text is not a string, or closed not a boolean")
         except (KeyError, TypeError, ValueError) as exc:
             raise Unmappable("bad_partial", f"{type(exc).__name__}: {exc}") from None
         ns = self.namespace_of(stream_id)
         voice = segment(str(message.get("voice_id") or "unknown"))
         base = f"{ns}/humans/voices/{voice}"
         out: list[Publication] = []
+        if closed:
+            if (ns, voice) in self.speaking:
+                self.speaking.discard((ns, voice))
+                out.append((f"{base}/is_speaking", Bool(False)))
+            return out
         if (ns, voice) not in self.speaking:
             self.speaking.add((ns, voice))
             out.append((f"{base}/is_speaking", Bool(True)))

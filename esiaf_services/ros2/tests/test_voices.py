@@ -82,16 +82,20 @@ def test_streams_in_namespaces_of_their_own():
     assert topics(voices.tracked(1.0, START_NS)) == ["/site/kitchen_robot/humans/voices/tracked"]
 
 
-def test_a_partial_says_is_speaking_once_and_the_final_ends_it():
+def test_partials_speak_as_unknown_their_close_ends_it_and_the_final_goes_to_the_named_voice():
     voices = Voices()
-    partial = {"type": "partial_result", "stream_id": "kitchen robot", "span": {"start_ns": START_NS},
-               "text": "go to", "voice_id": "voice-1"}
+    partial = {"type": "partial", "stream_id": "kitchen robot", "span": {"start_ns": START_NS, "end_ns": START_NS},
+               "text": "go to", "stable": "", "closed": False}
     first, second = voices.partial(partial, 0.0), voices.partial({**partial, "text": "go to the"}, 0.1)
-    assert topics(first) == ["/humans/voices/voice_1/is_speaking", "/humans/voices/voice_1/speech"]
-    assert topics(second) == ["/humans/voices/voice_1/speech"] and second[0][1].incremental == "go to the"
-    final = voices.fused(fused(aggregates={"voice_id": {"label": "voice-1"}}), 0.2)
-    assert topics(final) == ["/humans/voices/voice_1/speech", "/humans/voices/voice_1/is_speaking"]
-    assert final[1][1].data is False
+    assert topics(first) == ["/humans/voices/unknown/is_speaking", "/humans/voices/unknown/speech"]
+    assert topics(second) == ["/humans/voices/unknown/speech"] and second[0][1].incremental == "go to the"
+    closed = voices.partial({**partial, "text": "", "closed": True}, 0.2)
+    assert topics(closed) == ["/humans/voices/unknown/is_speaking"] and closed[0][1].data is False
+    assert voices.partial({**partial, "text": "", "closed": True}, 0.25) == []  # closed once
+    final = voices.fused(fused(aggregates={"voice_id": {"label": "voice-1"}}), 0.3)
+    assert topics(final) == ["/humans/voices/voice_1/is_speaking", "/humans/voices/voice_1/speech",
+                             "/humans/voices/voice_1/is_speaking"]
+    assert final[0][1].data is True and final[2][1].data is False
 
 
 def test_the_tracked_list_forgets_voices_unheard_for_long():
