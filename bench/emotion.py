@@ -36,15 +36,18 @@ import soundfile
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from esiaf.speech.classifiers import load_backend  # noqa: E402
+from esiaf.speech.segmenter import SegmenterParams  # noqa: E402
 from esiaf.tools.testing import SHARED_DATA  # noqa: E402
-from esiaf_services.emotion.backends import load_backend  # noqa: E402
+from esiaf_services.emotion.service import MODELS as EMOTION_MODELS  # noqa: E402
 from esiaf_services.emotion.tools.pipeline import EmotionPipeline, build_recording  # noqa: E402
-from esiaf_services.vad.segmenter import SegmenterParams  # noqa: E402
+from esiaf_services.gender.service import MODELS as GENDER_MODELS  # noqa: E402
 
 HANGOVER_NS = int(SegmenterParams().keep_alive_ms * 1_000_000)
 THESIS_SPEECH_S = 83 * 60
 THESIS_CPU_S = {"emotion": 30_120, "gender": 5_960}
 MODELS = {"emotion": "emotion4", "gender": "gender"}
+MODEL_DIRS = {"emotion": EMOTION_MODELS, "gender": GENDER_MODELS}  # each service's bundled models
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -58,7 +61,7 @@ def model_cost(files: list[Path], speech_s: float) -> dict[str, float]:
     """CPU seconds per second of speech, in this process, of the openSMILE features (computed once for
     both bundled models) and of each model's ONNX classifier over them."""
     samples = [soundfile.read(f, dtype="float32")[0] for f in files]
-    classifiers = {model: load_backend("onnx", model) for model in MODELS.values()}
+    classifiers = {model: load_backend("onnx", model, models_dir=MODEL_DIRS[kind]) for kind, model in MODELS.items()}
     extractor = next(iter(classifiers.values())).features.extractor  # type: ignore[attr-defined]
     started = time.process_time()
     vectors = [extractor(s) for s in samples]

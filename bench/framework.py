@@ -67,8 +67,8 @@ import soundfile
 from bench import threads
 from bench.latency import HANGOVER_NS, REPO, percentile, pipeline, synthesised_input
 from esiaf import Audio, AudioFormat
+from esiaf.speech.silero import SileroModel
 from esiaf_services.vad.service import Vad, VadSettings
-from esiaf_services.vad.silero import SileroModel
 
 FRAMEWORK = ("grabber", "vad", "orchestrator")
 PROFILED = FRAMEWORK

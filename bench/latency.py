@@ -49,7 +49,7 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != REPO / "bench"
 sys.path.insert(0, str(REPO))
 
 from bench.monolith import monolith  # noqa: E402
-from esiaf_services.vad.segmenter import SegmenterParams  # noqa: E402
+from esiaf.speech.segmenter import SegmenterParams  # noqa: E402
 
 HANGOVER_NS = int(SegmenterParams().keep_alive_ms * 1_000_000)
 

@@ -33,13 +33,13 @@ from esiaf import Audio
 from esiaf.audio import SampleClock
 from esiaf.formats import AudioFormat, encode, peak
 from esiaf.runner import limit_native_threads
+from esiaf.speech.classifiers import load_backend
+from esiaf.speech.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
+from esiaf.speech.silero import SileroModel
+from esiaf.speech.windows import Piece, WindowCutter
 from esiaf_services.asr.recognizer import PocketsphinxRecognizer
 from esiaf_services.asr.service import resolve_grammar
-from esiaf_services.emotion.backends import load_backend
 from esiaf_services.grabber.service import GrabberSettings
-from esiaf_services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
-from esiaf_services.vad.silero import SileroModel
-from esiaf_services.vad.windows import Piece, WindowCutter
 
 CHUNK_MS = GrabberSettings.model_fields["chunk_ms"].default  # what esiaf run plays in, unless told
 MIN_SPEECH_S = 0.5  # the utterance classifiers' min_speech_ms
@@ -140,7 +140,10 @@ def monolith(path: Path, grammar: str, *, fast: bool = False, vad: str = "energy
     audio, rate = soundfile.read(str(path), dtype="int16", always_2d=True)
     fmt_all, fmt = AudioFormat(rate, "int16", channels=audio.shape[1]), AudioFormat(rate, "int16")
     recognizer = PocketsphinxRecognizer(sample_rate_hz=rate, grammar=resolve_grammar(grammar))
-    labellers = {name: load_backend("onnx", model) for name, model in MODELS.items()}
+    from esiaf_services.emotion.service import MODELS as EMOTION_MODELS
+    from esiaf_services.gender.service import MODELS as GENDER_MODELS
+    folders = {"emotion": EMOTION_MODELS, "gender": GENDER_MODELS}  # each service's bundled models
+    labellers = {name: load_backend("onnx", model, models_dir=folders[name]) for name, model in MODELS.items()}
     encoder = None
     if voiceid:
         from esiaf_services.voiceid.encoder import shared_encoder

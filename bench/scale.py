@@ -45,10 +45,10 @@ sys.path.insert(0, str(REPO / "scripts"))
 from synth_questions import DEFAULT_QUESTIONS, read_questions, synthesise_to_wav  # noqa: E402
 
 from esiaf import auth  # noqa: E402
+from esiaf.speech.segmenter import SegmenterParams  # noqa: E402
 from esiaf.tools.feed import FusedFeed  # noqa: E402
 from esiaf.tools.launcher import OrchestratorClient, Supervisor, fixed_ports, wait_until  # noqa: E402
 from esiaf.tools.robocup_scoring import normalise  # noqa: E402
-from esiaf_services.vad.segmenter import SegmenterParams  # noqa: E402
 
 HANGOVER_NS = int(SegmenterParams().keep_alive_ms * 1_000_000)
 STAGGER_S = 0.7  # between the streams' starts

@@ -142,8 +142,8 @@ def evaluate(names: list[str], speakers: list[str], neutral: list[bool], embeddi
 
 
 def pipeline_latency(files: list[Path]) -> dict[str, float]:
+    from esiaf.speech.segmenter import SegmenterParams
     from esiaf_services.emotion.tools.pipeline import EmotionPipeline, build_recording
-    from esiaf_services.vad.segmenter import SegmenterParams
 
     class VoicePipeline(EmotionPipeline):  # orchestrator + vad + voiceid, fused on voice_id
         def __init__(self, workdir: Path):

@@ -80,7 +80,7 @@ def cold_work(period_s: float, repeats: int) -> tuple[float, float]:
     """µs of thread CPU per call: one Silero window, one numpy step; one call per period (0: back to back)."""
     import numpy as np
 
-    from esiaf_services.vad.silero import SileroModel
+    from esiaf.speech.silero import SileroModel
     stream = SileroModel().stream(16000)
     window = (np.random.default_rng(0).standard_normal(512) * 0.1).astype(np.float32)
     weights = np.random.default_rng(1).standard_normal((128, 512)).astype(np.float32)

@@ -1,18 +1,22 @@
 """Emotion service: classifies each VAD segment, as a whole, into an emotion.
 
 An utterance classifier of the SDK (:class:`esiaf.UtteranceClassifier`): for each segment it asks
-the configured backend (``backends.py``) for a probability per label. The SDK collects each
+the configured backend (``esiaf/speech/classifiers.py``) for a probability per label. The SDK collects each
 stream's segment, and covers audio too short or too quiet to judge with a "nothing" result, so
 fusion never waits for a label that will not come.
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 from esiaf import ClassifierSettings, UtteranceClassifier
-from esiaf_services.emotion.backends import Classifier, load_classifier
+from esiaf.speech.classifiers import Classifier, load_classifier
+
+MODELS = Path(__file__).resolve().parent / "models"  # the bundled emotion model(s), by name
 
 
 class EmotionSettings(ClassifierSettings):
-    backend: str = "onnx"  # onnx | python (see backends.py)
+    backend: str = "onnx"  # onnx | python (see esiaf/speech/classifiers.py)
     model: str = "emotion4"  # bundled model name, an .onnx file, or package.module:Class (python)
 
 
@@ -27,4 +31,4 @@ class Emotion(UtteranceClassifier):
 
     def load_model(self) -> Classifier:
         s = self.settings
-        return load_classifier(self.service, s.backend, s.model, s.model_options)
+        return load_classifier(self.service, s.backend, s.model, s.model_options, MODELS)

@@ -5,9 +5,9 @@ Two backends:
 - ``silero`` (the default): Silero VAD's speech probability per 32 ms window (ONNX, from the
   silero-vad wheel, on onnxruntime) segmented with hysteresis, minimum speech and silence
   durations, a pre-roll, and a maximum length cut at the least speech-like point
-  (:class:`~esiaf_services.vad.segmenter.ProbabilitySegmenter`). It hears speech, not loudness, so
+  (:class:`~esiaf.speech.segmenter.ProbabilitySegmenter`). It hears speech, not loudness, so
   babble and clatter 5-15 dB below the talker do not keep a segment open. It decides per window, not
-  per transport chunk (:mod:`esiaf_services.vad.windows`): its segments are the same at any chunk
+  per transport chunk (:mod:`esiaf.speech.windows`): its segments are the same at any chunk
   size, and what it forwards is cut at window boundaries. With ``windows: false`` it decides per
   chunk (the mean of the windows the chunk completes), the default until 2026-11-26.
 - ``energy``: ESIAF's original double-threshold segmenter on the chunks' peak level.
@@ -28,9 +28,9 @@ from typing import Any, ClassVar
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
 from esiaf.per_stream import PerStream
-from esiaf_services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
-from esiaf_services.vad.silero import RATES_HZ, SileroError, SileroModel, SileroStream
-from esiaf_services.vad.windows import ChunkCutter, WindowCutter, messages
+from esiaf.speech.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
+from esiaf.speech.silero import RATES_HZ, SileroError, SileroModel, SileroStream
+from esiaf.speech.windows import ChunkCutter, WindowCutter, messages
 
 log = logging.getLogger(__name__)
 
@@ -42,9 +42,9 @@ class VadSettings(ComponentSettings):
     sample_type: str = "int16"
     channels: int = 1
     backend: str = "silero"  # silero | energy
-    # silero: decide per 32 ms window (the same segments at any chunk size, esiaf_services/vad/windows.py);
+    # silero: decide per 32 ms window (the same segments at any chunk size, esiaf/speech/windows.py);
     # false: per chunk (a chunk's probability the mean of the windows it completes). The bundled emotion
-    # models are trained on the spans of both (esiaf_services/emotion/features.py VADS)
+    # models are trained on the spans of both (esiaf/speech/opensmile.py VADS)
     windows: bool = True
     max_ms: float = 8000.0
     pre_roll_ms: float = 250.0

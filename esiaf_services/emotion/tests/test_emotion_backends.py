@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import soundfile
 
+from esiaf.speech.classifiers import BackendError, OnnxClassifier, load_backend
+from esiaf.speech.opensmile import FeatureExtractor, speech_span, without_digital_silence
 from esiaf.tools.testing import REPO, shared_data
-from esiaf_services.emotion.backends import BackendError, OnnxClassifier, load_backend
-from esiaf_services.emotion.features import FeatureExtractor, speech_span, without_digital_silence
 
 DATA = REPO / "esiaf_services" / "emotion" / "tests" / "data"
 TOY = "esiaf_services.emotion.tests.toy_backend:LoudnessClassifier"
@@ -50,7 +50,7 @@ def test_python_backend_builds_the_configured_class_with_its_options():
     ("tflite", "emotion4", {}, "unknown backend 'tflite'; known: onnx, python"),
     ("python", "esiaf_services.emotion.tests.toy_backend", {}, "is 'package.module:ClassName'"),
     ("python", "esiaf_services.emotion.tests.toy_backend:Nope", {}, "cannot import the classifier"),
-    ("python", "numpy:ndarray", {}, "is not a subclass of esiaf_services.emotion.backends.Classifier"),
+    ("python", "numpy:ndarray", {}, "is not a subclass of esiaf.speech.classifiers.Classifier"),
     ("python", TOY, {"bogus": 1}, "failed: TypeError"),
 ])
 def test_unusable_backends_are_refused_with_a_clear_message(backend, model, options, message):
@@ -148,7 +148,8 @@ def test_the_extractor_computes_exactly_what_opensmile_smile_computes(feature_se
 
 def test_a_classifier_process_does_not_load_pandas():
     """The memory a classifier holds is its models and openSMILE's library, not pandas and pyarrow."""
-    code = ("import sys, numpy as np; from esiaf_services.emotion.backends import load_backend; "
-            "c = load_backend('onnx', 'emotion4'); c.classify(np.zeros(16000, np.float32) + 0.01); "
+    code = ("import sys, numpy as np; from esiaf.speech.classifiers import load_backend; "
+            "c = load_backend('onnx', 'esiaf_services/emotion/models/emotion4.onnx'); "
+            "c.classify(np.zeros(16000, np.float32) + 0.01); "
             "assert not {'pandas', 'pyarrow', 'audinterface', 'opensmile'} & set(sys.modules), sorted(sys.modules)")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=REPO, timeout=60)

@@ -14,10 +14,12 @@ import soundfile
 
 from esiaf.component import SetupError
 from esiaf.hosting import guest_class
+from esiaf.speech.classifiers import load_backend
+from esiaf.speech.opensmile import FeatureExtractor
 from esiaf.tools.testing import REPO, poll, shared_data
-from esiaf_services.emotion.backends import load_backend
-from esiaf_services.emotion.features import FeatureExtractor
+from esiaf_services.emotion.service import MODELS
 from esiaf_services.emotion.tools.pipeline import EmotionPipeline, build_recording
+from esiaf_services.gender.service import MODELS as GENDER_MODELS
 from esiaf_services.gender.service import Gender
 
 pytestmark = pytest.mark.e2e
@@ -26,7 +28,8 @@ FEATURES = "ComParE_2016@16000"  # what both bundled models classify
 
 def test_classifiers_in_one_process_share_one_extractor_and_its_answers():
     samples, _ = soundfile.read(shared_data("emodb/wav/03a01Fa.wav"), dtype="float32")
-    emotion, gender = load_backend("onnx", "emotion4"), load_backend("onnx", "gender")
+    emotion, gender = (load_backend("onnx", "emotion4", models_dir=MODELS),
+                       load_backend("onnx", "gender", models_dir=GENDER_MODELS))
     assert emotion.features is gender.features  # type: ignore[attr-defined]
     shared = emotion.features  # type: ignore[attr-defined]
     before = shared.counts()
@@ -114,7 +117,7 @@ def test_a_guest_is_named_by_its_service_or_its_class():
     assert guest_class("esiaf_services.gender.service:Gender") is Gender
     for spec, message in (("nope", "cannot import esiaf_services.nope.service"),
                           ("esiaf_services.gender.service:Nope", "has no component Nope"),
-                          ("esiaf_services.emotion.features:FeatureExtractor", "a subclass of Component")):
+                          ("esiaf.speech.opensmile:FeatureExtractor", "a subclass of Component")):
         with pytest.raises(SetupError, match=message):
             guest_class(spec)
 

@@ -14,8 +14,8 @@ import json
 import numpy as np
 import pytest
 
+from esiaf.speech.opensmile import VADS
 from esiaf.tools.testing import REPO, shared_data
-from esiaf_services.emotion.features import VADS
 from esiaf_services.emotion.tools.pipeline import EmotionPipeline, build_recording, labels_by_utterance
 
 pytestmark = pytest.mark.e2e

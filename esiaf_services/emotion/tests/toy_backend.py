@@ -1,7 +1,7 @@
 """A Python backend for the tests: 'loud' or 'quiet' by the utterance's RMS level."""
 import numpy as np
 
-from esiaf_services.emotion.backends import Classifier
+from esiaf.speech.classifiers import Classifier
 
 
 class LoudnessClassifier(Classifier):

@@ -18,7 +18,7 @@ edit by hand.
   audEERING's publication).
 - **Features**: openSMILE ComParE 2016 functionals (6,373 values per utterance), `opensmile`
   package, of the utterance's speech span as the vad service finds it, without the VAD's pre-roll
-  and hang-over: `esiaf_services/emotion/features.py`, the same code the service runs on each segment.
+  and hang-over: `esiaf/speech/opensmile.py`, the same code the service runs on each segment.
   Each utterance is in the training set three times, once with the span each way the vad service
   cuts (`features.VADS`: Silero deciding per 32 ms window, the default, and per 20 ms chunk: from a
   little before the onset to the last speech-like window; energy: onset to last loud chunk), exact
@@ -116,10 +116,13 @@ def holdout_section(models: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_card(models: Path) -> Path:
+def write_card(models: Path, *more: Path) -> Path:
+    """MODEL_CARD.md in ``models``, from the label maps there and in ``more`` folders (the gender
+    service's own models folder)."""
     sections = [HEADER]
     for name in ("emotion4", "emotion7", "gender"):
-        path = models / f"{name}.json"
+        path = next((folder / f"{name}.json" for folder in (models, *more) if (folder / f"{name}.json").is_file()),
+                     models / f"{name}.json")
         if path.is_file():
             sections.append(task_section(json.loads(path.read_text())))
     sections += [holdout_section(models), TRIED]

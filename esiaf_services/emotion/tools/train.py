@@ -26,16 +26,17 @@ from pathlib import Path
 import numpy as np
 import soundfile
 
-from esiaf.tools.testing import SHARED_DATA
-from esiaf_services.emotion.backends import MODELS
-from esiaf_services.emotion.features import (
+from esiaf.speech.opensmile import (
     VADS,
     FeatureExtractor,
     speech_segments,
     speech_span,
     without_digital_silence,
 )
+from esiaf.tools.testing import SHARED_DATA
+from esiaf_services.emotion.service import MODELS
 from esiaf_services.emotion.tools.model_card import write_card
+from esiaf_services.gender.service import MODELS as GENDER_MODELS
 
 log = logging.getLogger("train")
 
@@ -185,7 +186,10 @@ def label_map(task: Task, model, **extra) -> dict:
 
 
 def train(task: Task, data: Path, rows: list[dict[str, str]], x_all: dict[str, np.ndarray],
-          longest: dict[str, dict[str, np.ndarray]], out: Path) -> dict:
+          longest: dict[str, dict[str, np.ndarray]], out: Path, bundled: Path | None = None) -> dict:
+    """``bundled``: where the model trained on everyone goes (``out`` if None); the held-out one goes
+    to ``out``/holdout."""
+    bundled = bundled or out
     keep = np.array([r[task.column] in task.labels for r in rows])
     x = {vad: values[keep] for vad, values in x_all.items()}
     y = np.array([task.labels.get(r[task.column], "") for r in rows])[keep]
@@ -196,10 +200,10 @@ def train(task: Task, data: Path, rows: list[dict[str, str]], x_all: dict[str, n
              ", ".join(f"{vad} spans {v['accuracy']:.3f}" for vad, v in evaluation["by_vad"].items()))
     everyone = np.ones(len(y), dtype=bool)
     model = fit(task, *both(x, y, everyone))
-    export(model, both(x, y, everyone)[0], out / f"{task.name}.onnx")
+    export(model, both(x, y, everyone)[0], bundled / f"{task.name}.onnx")
     card = label_map(task, model, data=str(data.name), loso=evaluation, trained_on={
         "utterances": len(y), "speakers": sorted(set(speakers)), "spans_of_vads": list(x)})
-    (out / f"{task.name}.json").write_text(json.dumps(card, indent=1) + "\n")
+    (bundled / f"{task.name}.json").write_text(json.dumps(card, indent=1) + "\n")
 
     held = np.isin(speakers, HOLDOUT_SPEAKERS)
     holdout = fit(task, *both(x, y, ~held))
@@ -223,7 +227,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=SHARED_DATA / "emodb")
     parser.add_argument("--tasks", default=",".join(TASKS))
-    parser.add_argument("--out", type=Path, default=MODELS)
+    parser.add_argument("--out", type=Path, default=None, help="every model here (default: each bundled model "
+                        "in its service's models/, the held-out ones in esiaf_services/emotion/models/holdout)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     unknown = set(args.tasks.split(",")) - set(TASKS)
@@ -234,8 +239,9 @@ def main() -> None:
     held = [r["path"] for r in rows if r["speaker"] in HOLDOUT_SPEAKERS]
     longest = {vad: longest_segments(args.data, held, vad) for vad in VADS}
     for name in args.tasks.split(","):
-        train(TASKS[name], args.data, rows, x, longest, args.out)
-    write_card(args.out)
+        bundled = args.out or (GENDER_MODELS if name == "gender" else MODELS)
+        train(TASKS[name], args.data, rows, x, longest, args.out or MODELS, bundled)
+    write_card(args.out or MODELS, *([] if args.out else [GENDER_MODELS]))
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """The probability segmenter (Silero's backend) on chunk sequences with known answers."""
 import pytest
 
-from esiaf_services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter
+from esiaf.speech.segmenter import ProbabilityParams, ProbabilitySegmenter
 
 CHUNK_NS = 20_000_000  # 20 ms
 MS = 1_000_000

@@ -3,7 +3,7 @@ import math
 
 import pytest
 
-from esiaf_services.vad.segmenter import Segmenter, SegmenterParams, level_db
+from esiaf.speech.segmenter import Segmenter, SegmenterParams, level_db
 
 CHUNK_NS = 20_000_000  # 20 ms
 LOUD, QUIET_KEEP, SILENT = 70.0, 62.0, 40.0

@@ -4,10 +4,10 @@ import pytest
 import soundfile
 
 from esiaf import SetupError
+from esiaf.speech.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
+from esiaf.speech.silero import SileroModel
 from esiaf.tools.testing import shared_data
-from esiaf_services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
 from esiaf_services.vad.service import Vad, VadSettings
-from esiaf_services.vad.silero import SileroModel
 
 RATE = 16000
 CHUNK = 320  # 20 ms

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from esiaf import Audio, AudioFormat
+from esiaf.speech.windows import MAX_MESSAGE_S, Piece
 from esiaf_services.vad.service import Vad, VadSettings
 from esiaf_services.vad.tests.test_silero import RATE, add_noise, utterances_with_pauses
-from esiaf_services.vad.windows import MAX_MESSAGE_S, Piece
 
 FORMAT = AudioFormat(RATE, "int16", channels=1)
 NS_PER_SAMPLE = 1_000_000_000 // RATE

@@ -24,9 +24,7 @@ from typing import Any
 import numpy as np
 
 from esiaf import SetupError
-from esiaf_services.emotion.features import FeatureError, shared_extractor, without_digital_silence
-
-MODELS = Path(__file__).resolve().parent / "models"
+from esiaf.speech.opensmile import FeatureError, shared_extractor, without_digital_silence
 
 
 class BackendError(Exception):
@@ -44,17 +42,22 @@ class Classifier(ABC):
         """``samples``: one utterance, mono float32 in [-1, 1] at ``sample_rate_hz``."""
 
 
-def resolve_model(model: str) -> Path:
-    """A bundled model's name (``emotion4``) or a path to an ``.onnx`` file."""
-    bundled = MODELS / f"{model}.onnx"
-    return bundled if "/" not in model and not model.endswith(".onnx") else Path(model)
+def resolve_model(model: str, models_dir: Path | None = None) -> Path:
+    """A bundled model's name (``emotion4``: ``models_dir``/emotion4.onnx, the service's own models
+    folder) or a path to an ``.onnx`` file."""
+    if "/" in model or model.endswith(".onnx"):
+        return Path(model)
+    if models_dir is None:
+        raise BackendError(f"model {model!r} is a bundled model's name, and no models folder was given: "
+                           f"name an .onnx file")
+    return models_dir / f"{model}.onnx"
 
 
 class OnnxClassifier(Classifier):
     """openSMILE functionals of the utterance -> ONNX model -> probabilities (onnxruntime)."""
 
-    def __init__(self, model: str, label_map: str = "", threads: int = 1):
-        path = resolve_model(model)
+    def __init__(self, model: str, label_map: str = "", threads: int = 1, models_dir: Path | None = None):
+        path = resolve_model(model, models_dir)
         map_path = Path(label_map) if label_map else path.with_suffix(".json")
         if not path.is_file():
             raise BackendError(f"model file {path} does not exist")
@@ -118,7 +121,7 @@ def python_classifier(model: str, **options: Any) -> Classifier:
     except (ImportError, AttributeError) as exc:
         raise BackendError(f"cannot import the classifier {model}: {exc}") from None
     if not (isinstance(cls, type) and issubclass(cls, Classifier)):
-        raise BackendError(f"{model} is not a subclass of esiaf_services.emotion.backends.Classifier")
+        raise BackendError(f"{model} is not a subclass of esiaf.speech.classifiers.Classifier")
     try:
         classifier = cls(**options)
     except Exception as exc:  # the user's constructor: report it in one line
@@ -134,18 +137,23 @@ BACKENDS: dict[str, Callable[..., Classifier]] = {
 }
 
 
-def load_classifier(service: str, backend: str, model: str, options: dict[str, Any]) -> Classifier:
-    """A service's model, as its settings name it; a SetupError (one line) if it cannot be used."""
+def load_classifier(service: str, backend: str, model: str, options: dict[str, Any],
+                    models_dir: Path | None = None) -> Classifier:
+    """A service's model, as its settings name it (a bundled one from ``models_dir``, the service's
+    models folder); a SetupError (one line) if it cannot be used."""
     try:
-        return load_backend(backend, model, options)
+        return load_backend(backend, model, options, models_dir)
     except BackendError as exc:
         raise SetupError(f"{service} model: {exc}") from None
 
 
-def load_backend(backend: str, model: str, options: dict[str, Any] | None = None) -> Classifier:
+def load_backend(backend: str, model: str, options: dict[str, Any] | None = None,
+                 models_dir: Path | None = None) -> Classifier:
     if backend not in BACKENDS:
         raise BackendError(f"unknown backend {backend!r}; known: {', '.join(BACKENDS)}")
     try:
+        if backend == "onnx":
+            return OnnxClassifier(model, **(options or {}), models_dir=models_dir)
         return BACKENDS[backend](model, **(options or {}))
     except TypeError as exc:
         raise BackendError(f"bad model_options for the {backend} backend: {exc}") from None

@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 
 from esiaf.features import SharedExtractor, shared
-from esiaf_services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
-from esiaf_services.vad.windows import ChunkCutter, WindowCutter
+from esiaf.speech.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
+from esiaf.speech.windows import ChunkCutter, WindowCutter
 
 # each set's configuration, under opensmile's config/ (its FeatureSet values)
 FEATURE_SETS = {"eGeMAPSv02": "egemaps/v02/eGeMAPSv02", "ComParE_2016": "compare/ComParE_2016"}
@@ -193,5 +193,5 @@ def speech_segments(samples: np.ndarray, sample_rate_hz: int, chunk_ms: float = 
 
 @functools.cache
 def _silero_model():
-    from esiaf_services.vad.silero import SileroModel
+    from esiaf.speech.silero import SileroModel
     return SileroModel()

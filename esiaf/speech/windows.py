@@ -17,8 +17,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from esiaf_services.vad.segmenter import Forward
-from esiaf_services.vad.silero import SileroStream
+from esiaf.speech.segmenter import Forward
+from esiaf.speech.silero import SileroStream
 
 MAX_MESSAGE_S = 1.0  # audio in one forwarded message (a receiver refuses more than 10 s)
 
