@@ -1,0 +1,87 @@
+"""Wyoming service: a Wyoming speech-to-text server whose sessions are streams of the pipeline.
+
+Each client session (``audio-start`` ... ``audio-stop``) becomes a stream of its own
+(``wyoming-<random>``), announced to the orchestrator as a grabber announces its file and published on
+``wyoming/audio`` (16 kHz, 16-bit, mono: converted from what the client sends), ended with
+``end_of_stream``; the transcript is what the orchestrator fuses for that stream (esiaf_services/
+wyoming/server.py). The Wyoming server runs on an asyncio loop in a thread of its own; the node's
+thread (this module) does what touches the sockets: it takes the sessions' audio from a queue,
+stamps it from sample counts and publishes it.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import queue
+import threading
+import time
+
+from esiaf import Component, SampleClock, SetupError
+from esiaf_services.wyoming.commands import PUBLISHED, Chunk, Started
+from esiaf_services.wyoming.server import Server
+from esiaf_services.wyoming.settings import WyomingSettings
+
+log = logging.getLogger(__name__)
+
+IDLE_POLL_S = 0.05  # the node's thread: the longest it waits for a session's audio before servicing its sockets
+
+
+class WyomingSource(Component):
+    """Serves Wyoming speech-to-text: each client's audio into the pipeline, its transcript back."""
+
+    service = "wyoming"
+    kind = "other"
+    Settings = WyomingSettings
+    settings: WyomingSettings
+
+    options = {"port": "the Wyoming server's TCP port (default 10300)",  # noqa: RUF012 (as the grabber's)
+               "listen_host": "where the Wyoming server listens (default 127.0.0.1)"}
+
+    def __init__(self, settings: WyomingSettings):
+        super().__init__(settings)
+        self.add_output(settings.topic, PUBLISHED)
+        self.commands: queue.SimpleQueue[Started | Chunk] = queue.SimpleQueue()
+        self.clocks: dict[str, SampleClock] = {}
+        self.info.update(sessions=0, served=0, refused={})
+
+    def produce(self) -> None:
+        s = self.settings
+        if s.wait_for_subscribers and not self.wait_for_subscribers(s.topic, s.wait_for_subscribers,
+                                                                     s.wait_timeout_s) and not self.stopping:
+            log.warning("topic=%s has fewer than %d subscribers after %g s; serving anyway",
+                        s.topic, s.wait_for_subscribers, s.wait_timeout_s)
+        server = Server(s, self.commands, self.info)
+        thread = threading.Thread(target=asyncio.run, args=(server.serve(),), name="esiaf-wyoming", daemon=True)
+        thread.start()
+        if not server.listening.wait(10.0) or server.failure:
+            raise SetupError(server.failure or f"the Wyoming server did not listen on {s.listen_host}:{s.port}")
+        log.info("serving Wyoming host=%s port=%d topic=%s", s.listen_host, s.port, s.topic)
+        try:
+            while not self.stopping and thread.is_alive():
+                try:
+                    command = self.commands.get(timeout=IDLE_POLL_S)
+                except queue.Empty:
+                    self.sleep_until(time.monotonic() + 0.001)  # control messages, subscriptions
+                    continue
+                self.handle(command)
+        finally:
+            server.stop()
+            thread.join(timeout=5.0)
+
+    def handle(self, command: Started | Chunk) -> None:
+        """On the node's thread: announce a session's stream, or publish its audio."""
+        if isinstance(command, Started):
+            origin_ns = self.clock_ns()
+            self.clocks[command.stream_id] = SampleClock(origin_ns, PUBLISHED.sample_rate_hz)
+            # not realtime: a client may send faster than real time, and its audio then waits for the pipeline
+            self.announce_stream(origin_ns, command.stream_id, format=PUBLISHED.to_dict(), realtime=False,
+                                 **command.info)
+            return
+        clock = self.clocks.get(command.stream_id)
+        if clock is None:
+            return  # a session whose start was never announced: nothing to end
+        start_ns, end_ns = clock.advance(len(command.samples))
+        self.publish(self.settings.topic, command.samples, start_ns, end_ns, stream_id=command.stream_id,
+                     end_of_stream=command.last)
+        if command.last:
+            del self.clocks[command.stream_id]

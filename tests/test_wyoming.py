@@ -1,0 +1,225 @@
+"""esiaf wyoming end to end: the pipeline as processes behind a Wyoming server, its clients the
+``wyoming`` package's own AsyncTcpClient (and raw sockets for what no well-behaved client sends)."""
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import wave
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+import soxr
+from wyoming.asr import Transcribe, Transcript
+from wyoming.audio import AudioChunk, AudioStart, AudioStop
+from wyoming.client import AsyncTcpClient
+from wyoming.error import Error
+from wyoming.event import Event, async_read_event
+from wyoming.info import Describe, Info
+
+from esiaf.tools.testing import REPO, Launcher, free_port, normalise, poll
+
+pytestmark = pytest.mark.e2e
+
+QUESTIONS = REPO / "examples" / "robocup_questions.wav"
+TRUTH = json.loads((REPO / "examples" / "robocup_questions.json").read_text())["sentences"]
+START_TIMEOUT_S = 180.0  # the pipeline's start, on a busy machine
+IDLE_TIMEOUT_S = 2.0  # the server's idle time for these tests (ESIAF_WYOMING_IDLE_TIMEOUT_S)
+MAX_SESSIONS = 4
+PIPELINE = ["--grammar", "robocup", "--without", "emotion,gender,voiceid"]
+
+
+@dataclass
+class Server:
+    port: int
+    process: subprocess.Popen
+    log: Path
+
+
+def listening(port: int) -> bool:
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=1.0):
+            return True
+    except OSError:
+        return False
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory) -> Iterator[Server]:
+    workdir = tmp_path_factory.mktemp("wyoming")
+    port = free_port()
+    log = workdir / "esiaf.log"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_WYOMING_IDLE_TIMEOUT_S": str(IDLE_TIMEOUT_S),
+           "ESIAF_WYOMING_MAX_SESSIONS": str(MAX_SESSIONS), "ESIAF_WYOMING_MAX_CHUNK_BYTES": str(256 << 10)}
+    with log.open("wb") as out:
+        process = subprocess.Popen([sys.executable, "-m", "esiaf", "wyoming", "--port", str(port), "--http-port",
+                                    str(free_port()), "--workdir", str(workdir / "run"), *PIPELINE],
+                                   cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        poll(lambda: (process.poll() is None and listening(port)) or process.poll() is not None, START_TIMEOUT_S)
+        assert process.poll() is None, log.read_text()
+        yield Server(port, process, log)
+    finally:
+        os.killpg(process.pid, signal.SIGTERM)
+        try:
+            process.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+
+
+def read_wav(path: Path) -> tuple[np.ndarray, int]:
+    with wave.open(str(path)) as wav:
+        assert wav.getsampwidth() == 2 and wav.getnchannels() == 1
+        return np.frombuffer(wav.readframes(wav.getnframes()), dtype="<i2"), wav.getframerate()
+
+
+def truth_text(first: int = 0, last: int | None = None) -> str:
+    return normalise(" ".join(s["text"] for s in TRUTH[first:last]))
+
+
+async def transcribe(port: int, pcm: bytes, rate: int, width: int, channels: int, chunk_s: float = 0.1,
+                     stop: bool = True) -> Event:
+    """One transcription as Home Assistant asks for it; the first transcript or error event."""
+    async with AsyncTcpClient("127.0.0.1", port) as client:
+        await client.write_event(Transcribe(language="en").event())
+        await client.write_event(AudioStart(rate, width, channels).event())
+        step = int(rate * chunk_s) * width * channels
+        for offset in range(0, len(pcm), step):
+            await client.write_event(AudioChunk(rate, width, channels, pcm[offset:offset + step]).event())
+        if stop:
+            await client.write_event(AudioStop().event())
+        while True:
+            event = await asyncio.wait_for(client.read_event(), 120.0)
+            assert event is not None, "the server closed the connection without a transcript or an error"
+            if Transcript.is_type(event.type) or Error.is_type(event.type):
+                return event
+
+
+async def raw_exchange(port: int, data: bytes) -> Event | None:
+    """Sends bytes as they are; the first event the server answers (None: closed without one)."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    try:
+        writer.write(data)
+        await writer.drain()
+        return await asyncio.wait_for(async_read_event(reader), 30.0)
+    finally:
+        writer.close()
+
+
+def describes(port: int) -> bool:
+    async def ask() -> Event | None:
+        async with AsyncTcpClient("127.0.0.1", port) as client:
+            await client.write_event(Describe().event())
+            return await asyncio.wait_for(client.read_event(), 10.0)
+    event = asyncio.run(ask())
+    return event is not None and Info.is_type(event.type)
+
+
+def text_of(event: Event) -> str:
+    assert Transcript.is_type(event.type), event
+    return normalise(Transcript.from_event(event).text)
+
+
+def test_describe_lists_the_recogniser(server):
+    async def ask() -> Info:
+        async with AsyncTcpClient("127.0.0.1", server.port) as client:
+            await client.write_event(Describe().event())
+            event = await asyncio.wait_for(client.read_event(), 10.0)
+            assert event is not None and Info.is_type(event.type), event
+            return Info.from_event(event)
+    info = asyncio.run(ask())
+    (program,) = info.asr
+    assert program.supports_transcript_streaming is False
+    assert [model.name for model in program.models] == ["pocketsphinx"]
+    assert program.models[0].languages == ["en"]
+    assert "RoboCup" in (program.models[0].description or "")
+
+
+def test_the_demo_transcribed_as_esiaf_run_hears_it(server, tmp_path):
+    samples, rate = read_wav(QUESTIONS)
+    heard = text_of(asyncio.run(transcribe(server.port, samples.tobytes(), rate, 2, 1)))
+    assert heard == truth_text()
+    run = Launcher(["--input", str(QUESTIONS), "--fast", "--json", *PIPELINE], tmp_path / "run")
+    try:
+        assert run.process.wait(timeout=START_TIMEOUT_S) == 0, run.describe()
+    finally:
+        run.stop()
+    fused = sorted((line for line in run.lines if line.get("type") == "fused_result"),
+                   key=lambda line: line["anchor"]["span"]["start_ns"])
+    assert heard == normalise(" ".join(f["anchor"]["speech"]["hypotheses"][0]["text"] for f in fused))
+
+
+def test_48khz_stereo_float_is_converted(server):
+    samples, rate = read_wav(QUESTIONS)
+    first_two = samples[: int(TRUTH[2]["start_s"] * rate) - rate // 2]  # the first two questions
+    resampled = soxr.resample(first_two.astype(np.float32) / 32768, rate, 48_000)
+    stereo = np.stack([resampled, 0.5 * resampled], axis=1)  # the talker louder on the left
+    pcm = (np.clip(stereo, -1, 1 - 2**-31) * 2**31).astype("<i4").tobytes()
+    assert text_of(asyncio.run(transcribe(server.port, pcm, 48_000, 4, 2))) == truth_text(0, 2)
+
+
+def test_two_clients_at_once_get_their_own_text(server):
+    samples, rate = read_wav(QUESTIONS)
+    cut = int(TRUTH[2]["start_s"] * rate) - rate // 2
+
+    async def both() -> list[Event]:
+        return await asyncio.gather(transcribe(server.port, samples[:cut].tobytes(), rate, 2, 1),
+                                    transcribe(server.port, samples[cut:].tobytes(), rate, 2, 1))
+    first, second = asyncio.run(both())
+    assert text_of(first) == truth_text(0, 2)
+    assert text_of(second) == truth_text(2)
+
+
+@pytest.mark.parametrize(("data", "code"), [
+    (b"\x00\xff garbage, not JSON\n", "bad-event"),
+    (b"x" * (128 << 10), "bad-event"),  # no newline: a header past the reader's limit
+    (b'{"type": "audio-chunk", "payload_length": 999999999}\n', "too-large"),
+    (b'{"type": "audio-start", "data": {"rate": 16000, "width": 7, "channels": 1}}\n', "bad-audio"),
+    (b'{"type": "audio-chunk", "data": {"rate": 16000, "width": 2, "channels": 1}, "payload_length": 3}\nabc',
+     "bad-audio"),  # a chunk that stops mid-sample
+    (b'{"type": "audio-stop"}\n', "bad-order"),
+])
+def test_bad_input_gets_an_error_event_and_others_are_served(server, data, code):
+    event = asyncio.run(raw_exchange(server.port, data))
+    assert event is not None and Error.is_type(event.type), event
+    assert Error.from_event(event).code == code
+    assert describes(server.port)
+
+
+def test_a_client_gone_mid_chunk_leaves_the_server_serving(server):
+    samples, rate = read_wav(QUESTIONS)
+    chunk = samples[:rate].tobytes()
+    header = {"type": "audio-chunk", "data": {"rate": rate, "width": 2, "channels": 1},
+              "payload_length": len(chunk)}
+    with socket.create_connection(("127.0.0.1", server.port)) as sock:
+        sock.sendall(json.dumps(header).encode() + b"\n" + chunk[: len(chunk) // 2])
+    first_two = samples[: int(TRUTH[2]["start_s"] * rate) - rate // 2]
+    assert text_of(asyncio.run(transcribe(server.port, first_two.tobytes(), rate, 2, 1))) == truth_text(0, 2)
+
+
+def test_a_client_that_never_stops_gets_an_idle_error(server):
+    samples, rate = read_wav(QUESTIONS)
+    event = asyncio.run(transcribe(server.port, samples[: 2 * rate].tobytes(), rate, 2, 1, stop=False))
+    assert Error.is_type(event.type), event
+    assert Error.from_event(event).code == "idle"
+
+
+def test_sessions_beyond_the_bound_are_refused_with_an_error(server):
+    async def crowd() -> Event | None:
+        held = [await asyncio.open_connection("127.0.0.1", server.port) for _ in range(MAX_SESSIONS)]
+        try:
+            return await raw_exchange(server.port, b"")
+        finally:
+            for _, writer in held:
+                writer.close()
+    event = asyncio.run(crowd())
+    assert event is not None and Error.from_event(event).code == "busy"
+    poll(lambda: describes(server.port), 10.0)
