@@ -223,3 +223,28 @@ def test_sessions_beyond_the_bound_are_refused_with_an_error(server):
     event = asyncio.run(crowd())
     assert event is not None and Error.from_event(event).code == "busy"
     poll(lambda: describes(server.port), 10.0)
+
+
+def test_voice_events_where_the_vad_hears_speech_when_asked(server):
+    samples, rate = read_wav(QUESTIONS)
+    first_two = samples[: int(TRUTH[2]["start_s"] * rate) - rate // 2].tobytes()
+
+    async def ask() -> list[Event]:
+        async with AsyncTcpClient("127.0.0.1", server.port) as client:
+            await client.write_event(Transcribe(language="en", context={"voice_events": True}).event())
+            await client.write_event(AudioStart(rate, 2, 1).event())
+            for offset in range(0, len(first_two), rate // 5):
+                await client.write_event(AudioChunk(rate, 2, 1, first_two[offset:offset + rate // 5]).event())
+            await client.write_event(AudioStop().event())
+            events = []
+            while not events or not Transcript.is_type(events[-1].type):
+                event = await asyncio.wait_for(client.read_event(), 60.0)
+                assert event is not None and not Error.is_type(event.type), event
+                events.append(event)
+            return events
+    events = asyncio.run(ask())
+    assert [e.type for e in events] == ["voice-started", "voice-stopped"] * 2 + ["transcript"]
+    heard = [e.data["timestamp"] / 1000 for e in events[:4]]
+    spoken = [t for s in TRUTH[:2] for t in (s["start_s"], s["end_s"])]
+    assert all(abs(h - s) < 0.5 for h, s in zip(heard, spoken, strict=True)), (heard, spoken)
+    assert text_of(events[-1]) == truth_text(0, 2)

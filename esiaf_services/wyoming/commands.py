@@ -2,7 +2,9 @@
 stream's start, and its audio converted to what the service publishes."""
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -13,9 +15,11 @@ PUBLISHED = AudioFormat(16_000, "int16", channels=1)  # what the recogniser and 
 
 @dataclass
 class Started:
-    """A session's audio starts: announce its stream."""
+    """A session's audio starts: announce its stream. ``on_voice``, if given, is called (on the node's thread)
+    with "started" or "stopped" and the milliseconds since the stream's start as the vad hears speech."""
     stream_id: str
-    info: dict
+    info: dict[str, Any]
+    on_voice: Callable[[str, int], None] | None = None
 
 
 @dataclass

@@ -29,6 +29,7 @@ from wyoming.event import Event
 from wyoming.info import AsrModel, AsrProgram, Attribution, Describe, Info
 from wyoming.ping import Ping, Pong
 from wyoming.server import AsyncEventHandler, AsyncTcpServer
+from wyoming.vad import VoiceStarted, VoiceStopped
 
 from esiaf import auth
 from esiaf.formats import AudioFormat
@@ -163,11 +164,13 @@ class Session(AsyncEventHandler):
         peer = writer.get_extra_info("peername")
         self.peer = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
         self.language: str | None = None
+        self.voice_events = False  # asked for in transcribe's context: {"voice_events": true}
         self.stream_id: str | None = None
         self.audio: ClientAudio | None = None
         self.published_s = 0.0
         self.feed: ClientConnection | None = None
         self.fused: asyncio.Task[str] | None = None
+        self.voice_writes: set[asyncio.Task[None]] = set()  # voice events being written (kept from the collector)
 
     async def run(self) -> None:
         """Events until the client goes, is refused or idles; every refusal an ``error`` event first."""
@@ -211,7 +214,9 @@ class Session(AsyncEventHandler):
         elif Ping.is_type(event.type):
             await self.write_event(Pong(text=Ping.from_event(event).text).event())
         elif Transcribe.is_type(event.type):
-            self.language = Transcribe.from_event(event).language
+            transcribe = Transcribe.from_event(event)
+            self.language = transcribe.language
+            self.voice_events = isinstance(transcribe.context, dict) and transcribe.context.get("voice_events") is True
         elif AudioStart.is_type(event.type):
             if self.stream_id:
                 raise ProtocolError("bad-order", "audio-start while a stream is open: send audio-stop first")
@@ -237,8 +242,28 @@ class Session(AsyncEventHandler):
         self.fused = asyncio.create_task(self.collect(self.feed), name=f"fused {stream_id}")
         self.stream_id, self.audio, self.published_s = stream_id, ClientAudio(fmt, PUBLISHED), 0.0
         self.server.commands.put(Started(stream_id, {"source": "wyoming", "client": self.peer,
-                                                     "client_format": fmt.to_dict()}))
+                                                     "client_format": fmt.to_dict()},
+                                         self.voice_listener() if self.voice_events else None))
         log.info("wyoming session peer=%s stream_id=%s format=%s", self.peer, stream_id, fmt)
+
+    def voice_listener(self) -> Any:
+        """What the node's thread calls as the vad hears a voice start or stop: the event, written from the loop."""
+        loop = asyncio.get_running_loop()
+
+        async def send(kind: str, ms: int) -> None:
+            event = VoiceStarted(timestamp=ms) if kind == "started" else VoiceStopped(timestamp=ms)
+            with contextlib.suppress(ConnectionError, OSError):
+                await self.write_event(event.event())
+
+        def write(kind: str, ms: int) -> None:  # on the loop
+            task = loop.create_task(send(kind, ms))
+            self.voice_writes.add(task)
+            task.add_done_callback(self.voice_writes.discard)
+
+        def heard(kind: str, ms: int) -> None:  # on the node's thread
+            with contextlib.suppress(RuntimeError):  # the loop has ended: the session is gone
+                loop.call_soon_threadsafe(write, kind, ms)
+        return heard
 
     def format_of(self, data: dict[str, Any]) -> AudioFormat:
         try:

@@ -6,7 +6,8 @@ Each client session (``audio-start`` ... ``audio-stop``) becomes a stream of its
 ``end_of_stream``; the transcript is what the orchestrator fuses for that stream (esiaf_services/
 wyoming/server.py). The Wyoming server runs on an asyncio loop in a thread of its own; the node's
 thread (this module) does what touches the sockets: it takes the sessions' audio from a queue,
-stamps it from sample counts and publishes it.
+stamps it from sample counts and publishes it; and it hears the vad's speech (``vad/speech``), whose
+starts and ends a session that asks for them gets as ``voice-started`` / ``voice-stopped``.
 """
 from __future__ import annotations
 
@@ -15,8 +16,10 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 
-from esiaf import Component, SampleClock, SetupError
+from esiaf import Audio, Component, SampleClock, SetupError
 from esiaf_services.wyoming.commands import PUBLISHED, Chunk, Started
 from esiaf_services.wyoming.server import Server
 from esiaf_services.wyoming.settings import WyomingSettings
@@ -24,6 +27,17 @@ from esiaf_services.wyoming.settings import WyomingSettings
 log = logging.getLogger(__name__)
 
 IDLE_POLL_S = 0.05  # the node's thread: the longest it waits for a session's audio before servicing its sockets
+
+
+@dataclass
+class Listener:
+    """A session that asked to hear where the vad finds speech in its stream."""
+    on_voice: Callable[[str, int], None]
+    origin_ns: int
+    speaking: bool = False
+
+    def ms(self, time_ns: int) -> int:
+        return max(0, (time_ns - self.origin_ns) // 1_000_000)
 
 
 class WyomingSource(Component):
@@ -40,6 +54,9 @@ class WyomingSource(Component):
     def __init__(self, settings: WyomingSettings):
         super().__init__(settings)
         self.add_output(settings.topic, PUBLISHED)
+        if settings.speech_topic:
+            self.add_input(settings.speech_topic, PUBLISHED)
+        self.listeners: dict[str, Listener] = {}
         self.commands: queue.SimpleQueue[Started | Chunk] = queue.SimpleQueue()
         self.clocks: dict[str, SampleClock] = {}
         self.info.update(sessions=0, served=0, refused={})
@@ -73,6 +90,8 @@ class WyomingSource(Component):
         if isinstance(command, Started):
             origin_ns = self.clock_ns()
             self.clocks[command.stream_id] = SampleClock(origin_ns, PUBLISHED.sample_rate_hz)
+            if command.on_voice is not None:
+                self.listeners[command.stream_id] = Listener(command.on_voice, origin_ns)
             # not realtime: a client may send faster than real time, and its audio then waits for the pipeline
             self.announce_stream(origin_ns, command.stream_id, format=PUBLISHED.to_dict(), realtime=False,
                                  **command.info)
@@ -85,3 +104,20 @@ class WyomingSource(Component):
                      end_of_stream=command.last)
         if command.last:
             del self.clocks[command.stream_id]
+
+    def on_audio(self, audio: Audio) -> None:
+        """The vad's speech: its first chunk of an utterance is a voice's start."""
+        listener = self.listeners.get(audio.stream_id)
+        if listener is not None and not listener.speaking and audio.payload:
+            listener.speaking = True
+            listener.on_voice("started", listener.ms(audio.start_ns))
+
+    def on_segment_end(self, audio: Audio) -> None:
+        listener = self.listeners.get(audio.stream_id)
+        if listener is not None and listener.speaking:
+            listener.speaking = False
+            listener.on_voice("stopped", listener.ms(audio.end_ns))
+
+    def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
+        """The vad has ended a session's stream: nothing more to tell it (its audio was ended here)."""
+        self.listeners.pop(stream_id, None)

@@ -10,6 +10,9 @@ class WyomingSettings(ComponentSettings):
     listen_host: str = "127.0.0.1"  # where the Wyoming server listens (0.0.0.0: every interface)
     port: int = Field(default=10300, ge=1, le=65535)  # the Wyoming server's TCP port
     topic: str = "wyoming/audio"  # where the sessions' audio is published (what esiaf wyoming's vad hears)
+    # the vad's speech, whose starts and ends are sent as voice-started / voice-stopped to the sessions that ask
+    # for them; "" hears none
+    speech_topic: str = "vad/speech"
     model: str = "pocketsphinx"  # the recogniser, as `describe` names it
     model_description: str = ""  # ... and what it recognises (a grammar)
     languages: list[str] = Field(default_factory=lambda: ["en"])  # the recogniser's, as `describe` lists them
