@@ -17,6 +17,7 @@ import logging
 import threading
 import uuid
 from collections import Counter
+from collections.abc import Callable
 from typing import Any
 from urllib.parse import urlencode
 
@@ -101,12 +102,12 @@ def transcript_text(fused: dict[int, dict[str, Any]]) -> str:
 
 
 class Server:
-    """The Wyoming server of one wyoming service: its settings, the sessions' shared counters, and the
-    queue to the node's thread."""
+    """The Wyoming server of one wyoming service: its settings, the sessions' shared counters, and how
+    commands reach the node's thread (``submit``)."""
 
-    def __init__(self, settings: WyomingSettings, commands: Any, info: dict[str, Any]):
+    def __init__(self, settings: WyomingSettings, submit: Callable[[Started | Chunk], None], info: dict[str, Any]):
         self.settings = settings
-        self.commands = commands
+        self.submit = submit
         self.info = info  # reported with the service's heartbeats
         self.refused: Counter[str] = Counter()
         self.sessions = 0
@@ -241,7 +242,7 @@ class Session(AsyncEventHandler):
             raise ProtocolError("unavailable", f"the pipeline's orchestrator does not answer: {exc}") from None
         self.fused = asyncio.create_task(self.collect(self.feed), name=f"fused {stream_id}")
         self.stream_id, self.audio, self.published_s = stream_id, ClientAudio(fmt, PUBLISHED), 0.0
-        self.server.commands.put(Started(stream_id, {"source": "wyoming", "client": self.peer,
+        self.server.submit(Started(stream_id, {"source": "wyoming", "client": self.peer,
                                                      "client_format": fmt.to_dict()},
                                          self.voice_listener() if self.voice_events else None))
         log.info("wyoming session peer=%s stream_id=%s format=%s", self.peer, stream_id, fmt)
@@ -291,7 +292,7 @@ class Session(AsyncEventHandler):
 
     def publish(self, samples: Any, last: bool = False) -> None:
         assert self.stream_id is not None
-        self.server.commands.put(Chunk(self.stream_id, samples, last))
+        self.server.submit(Chunk(self.stream_id, samples, last))
 
     async def audio_stopped(self) -> bool:
         """audio-stop: the stream ends; its transcript once the orchestrator says the stream has ended."""

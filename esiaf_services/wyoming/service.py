@@ -15,7 +15,6 @@ import asyncio
 import logging
 import queue
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -26,7 +25,9 @@ from esiaf_services.wyoming.settings import WyomingSettings
 
 log = logging.getLogger(__name__)
 
-IDLE_POLL_S = 0.05  # the node's thread: the longest it waits for a session's audio before servicing its sockets
+# the node's thread waits on its sockets this long at most (a session's command wakes it at once): how soon it
+# sees that the server's thread has died
+IDLE_WAIT_MS = 1_000
 
 
 @dataclass
@@ -67,23 +68,33 @@ class WyomingSource(Component):
                                                                      s.wait_timeout_s) and not self.stopping:
             log.warning("topic=%s has fewer than %d subscribers after %g s; serving anyway",
                         s.topic, s.wait_for_subscribers, s.wait_timeout_s)
-        server = Server(s, self.commands, self.info)
+        server = Server(s, self.submit, self.info)
         thread = threading.Thread(target=asyncio.run, args=(server.serve(),), name="esiaf-wyoming", daemon=True)
         thread.start()
         if not server.listening.wait(10.0) or server.failure:
             raise SetupError(server.failure or f"the Wyoming server did not listen on {s.listen_host}:{s.port}")
         log.info("serving Wyoming host=%s port=%d topic=%s", s.listen_host, s.port, s.topic)
         try:
+            node = self.context.node
+            assert node is not None  # produce() runs in a node
             while not self.stopping and thread.is_alive():
-                try:
-                    command = self.commands.get(timeout=IDLE_POLL_S)
-                except queue.Empty:
-                    self.sleep_until(time.monotonic() + 0.001)  # control messages, subscriptions
-                    continue
-                self.handle(command)
+                node.service(IDLE_WAIT_MS)  # the vad's speech, control messages, subscriptions; or woken
+                while True:
+                    try:
+                        command = self.commands.get_nowait()
+                    except queue.Empty:
+                        break
+                    self.handle(command)
         finally:
             server.stop()
             thread.join(timeout=5.0)
+
+    def submit(self, command: Started | Chunk) -> None:
+        """From the server's thread: a command for the node's thread, which is woken for it."""
+        self.commands.put(command)
+        node = self.context.node
+        if node is not None and node.transport is not None:
+            node.transport.wake()
 
     def handle(self, command: Started | Chunk) -> None:
         """On the node's thread: announce a session's stream, or publish its audio."""
