@@ -24,6 +24,7 @@ from wyoming.error import Error
 from wyoming.event import Event, async_read_event
 from wyoming.info import Describe, Info
 
+from esiaf.tools.cli_wyoming import listening
 from esiaf.tools.testing import REPO, Launcher, free_port, normalise, poll
 
 pytestmark = pytest.mark.e2e
@@ -43,14 +44,6 @@ class Server:
     log: Path
 
 
-def listening(port: int) -> bool:
-    try:
-        with socket.create_connection(("127.0.0.1", port), timeout=1.0):
-            return True
-    except OSError:
-        return False
-
-
 @pytest.fixture(scope="module")
 def server(tmp_path_factory) -> Iterator[Server]:
     workdir = tmp_path_factory.mktemp("wyoming")
@@ -63,7 +56,7 @@ def server(tmp_path_factory) -> Iterator[Server]:
                                     str(free_port()), "--workdir", str(workdir / "run"), *PIPELINE],
                                    cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
     try:
-        poll(lambda: (process.poll() is None and listening(port)) or process.poll() is not None, START_TIMEOUT_S)
+        poll(lambda: process.poll() is not None or listening("127.0.0.1", port), START_TIMEOUT_S)
         assert process.poll() is None, log.read_text()
         yield Server(port, process, log)
     finally:
