@@ -284,19 +284,21 @@ def parse_replicas(texts: Sequence[str], without: set[str], plugins: Sequence[st
     return replicas
 
 
-def check_port_free(host: str, port: int) -> None:
+def check_port_free(host: str, port: int, host_option: str = "--host",
+                    in_use: str = "another orchestrator running? use --port") -> None:
+    """``host:port`` can be listened on; else a LaunchError naming the option to change (``host_option``)
+    and what to do when the port is taken (``in_use``)."""
     with socket.socket() as probe:
         # as the orchestrator will (uvicorn): connections of an earlier run in TIME_WAIT do not count
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             probe.bind((host, port))
         except socket.gaierror as exc:
-            raise LaunchError(f"cannot listen on {host}:{port}: {exc.strerror} (check --host)") from None
+            raise LaunchError(f"cannot listen on {host}:{port}: {exc.strerror} (check {host_option})") from None
         except OSError as exc:
-            raise LaunchError(f"cannot listen on {host}:{port}: {exc.strerror} (another orchestrator running? "
-                              f"use --port)") from None
+            raise LaunchError(f"cannot listen on {host}:{port}: {exc.strerror} ({in_use})") from None
         except (ValueError, UnicodeError) as exc:  # a NUL or an unencodable name
-            raise LaunchError(f"cannot listen on {host!r}: {exc} (check --host)") from None
+            raise LaunchError(f"cannot listen on {host!r}: {exc} (check {host_option})") from None
 
 
 def port_number(text: str) -> int:
@@ -332,6 +334,13 @@ def channel_count(text: str) -> int:
     return count
 
 
+def language_code(text: str) -> str:
+    """--language: a language tag as Home Assistant gives them (en, en-US, de_DE)."""
+    if not re.fullmatch(r"[A-Za-z]{2,3}([-_][A-Za-z0-9]{2,8})*", text):
+        raise argparse.ArgumentTypeError(f"a language code such as en or en-US, not {text!r}")
+    return text
+
+
 def add_recogniser_options(parser: argparse.ArgumentParser) -> None:
     """What the pipeline recognises with: esiaf run's and esiaf wyoming's."""
     parser.add_argument("--grammar", help="JSGF grammar file for the recogniser, or 'robocup' (with --asr whisper: "
@@ -356,8 +365,8 @@ def add_wyoming_parser(sub: argparse._SubParsersAction) -> None:
                          help="the Wyoming server's TCP port (default 10300)")
     wyoming.add_argument("--listen", default="127.0.0.1", help="the address the Wyoming server listens on (default "
                          "127.0.0.1; 0.0.0.0: every interface, for Home Assistant on another host)")
-    wyoming.add_argument("--language", action="append", metavar="CODE", help="a language the recogniser takes, as "
-                         "describe lists it (default en); repeatable")
+    wyoming.add_argument("--language", action="append", type=language_code, metavar="CODE",
+                         help="a language the recogniser takes, as describe lists it (default en); repeatable")
     add_recogniser_options(wyoming)
     wyoming.add_argument("--without", metavar="ANALYSERS", help="analysers to leave out, separated by commas: "
                          "emotion, gender, voiceid (the transcript is the recogniser's; they only cost CPU here)")

@@ -50,8 +50,8 @@ def serve(args: argparse.Namespace) -> int:
         raise LaunchError("esiaf wyoming needs the wyoming package: pip install 'esiaf[wyoming]'")
     without = parse_without(args.without)
     check_settings(os.environ, known_services())
-    check_port_free(args.host, args.port)
-    check_port_free(args.listen, args.wyoming_port)
+    check_port_free(args.host, args.port, in_use="another orchestrator running? use --http-port")
+    check_port_free(args.listen, args.wyoming_port, "--listen", "another Wyoming server running? use --port")
     workdir, supervisor, client = prepare(args, {})
     try:
         start_orchestrator(args, supervisor, client, workdir)
