@@ -1,10 +1,12 @@
 """esiaf wyoming end to end: the pipeline as processes behind a Wyoming server, its clients the
-``wyoming`` package's own AsyncTcpClient (and raw sockets for what no well-behaved client sends)."""
+``wyoming`` package's own AsyncTcpClient, wyoming-bench's (a benchmark from PyPI), and raw sockets
+for what no well-behaved client sends."""
 from __future__ import annotations
 
 import asyncio
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -241,3 +243,24 @@ def test_voice_events_where_the_vad_hears_speech_when_asked(server):
     spoken = [t for s in TRUTH[:2] for t in (s["start_s"], s["end_s"])]
     assert all(abs(h - s) < 0.5 for h, s in zip(heard, spoken, strict=True)), (heard, spoken)
     assert text_of(events[-1]) == truth_text(0, 2)
+
+
+def test_wyoming_bench_from_pypi_transcribes_every_question(server, tmp_path):
+    """wyoming-bench, a client no one here wrote: its corpus is the demo's questions, one WAV each."""
+    bench = shutil.which("wyoming-bench") or str(Path(sys.executable).parent / "wyoming-bench")
+    if not Path(bench).is_file():
+        pytest.skip("wyoming-bench is not installed (the test extra of pyproject.toml has it)")
+    samples, rate = read_wav(QUESTIONS)
+    for n, sentence in enumerate(TRUTH):
+        first, last = int((sentence["start_s"] - 0.5) * rate), int((sentence["end_s"] + 0.5) * rate)
+        with wave.open(str(tmp_path / f"q{n}.wav"), "wb") as out:
+            out.setnchannels(1)
+            out.setsampwidth(2)
+            out.setframerate(rate)
+            out.writeframes(samples[max(0, first):last].tobytes())
+        (tmp_path / f"q{n}.txt").write_text(sentence["text"])
+    done = subprocess.run([bench, "stt", "--corpus", str(tmp_path), "--mode", "non_streaming", "--rounds", "1",
+                           "--warmup", "0", f"127.0.0.1:{server.port}"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert f"ok={len(TRUTH)} fail=0" in done.stdout, done.stdout
+    assert "WER=0.0%" in done.stdout, done.stdout
