@@ -42,6 +42,10 @@ log = logging.getLogger(__name__)
 
 ATTRIBUTION = Attribution(name="ESIAF", url="https://github.com/esiaf")
 LOG_EVERY = 100  # a refusal is logged the first time for its reason, then every 100th
+# commands waiting for the node's thread (every session's; a chunk is what the client sent in one event): past
+# it, a session reads no more from its client until the pipeline has taken some, so TCP slows the client down
+MAX_BACKLOG = 500
+BACKLOG_WAIT_S = 0.01
 
 
 class ProtocolError(Exception):
@@ -105,9 +109,11 @@ class Server:
     """The Wyoming server of one wyoming service: its settings, the sessions' shared counters, and how
     commands reach the node's thread (``submit``)."""
 
-    def __init__(self, settings: WyomingSettings, submit: Callable[[Started | Chunk], None], info: dict[str, Any]):
+    def __init__(self, settings: WyomingSettings, submit: Callable[[Started | Chunk], None],
+                 backlog: Callable[[], int], info: dict[str, Any]):
         self.settings = settings
         self.submit = submit
+        self.backlog = backlog  # commands the node's thread has not taken yet
         self.info = info  # reported with the service's heartbeats
         self.refused: Counter[str] = Counter()
         self.sessions = 0
@@ -288,6 +294,8 @@ class Session(AsyncEventHandler):
         if self.published_s > self.server.settings.max_session_s:
             raise ProtocolError("too-long", f"more than {self.server.settings.max_session_s:g} s of audio in one "
                                 "audio-start ... audio-stop; the stream is ended without a transcript")
+        while self.server.backlog() > MAX_BACKLOG:  # the pipeline is behind: let it catch up
+            await asyncio.sleep(BACKLOG_WAIT_S)
         self.publish(samples)
 
     def publish(self, samples: Any, last: bool = False) -> None:

@@ -68,7 +68,7 @@ class WyomingSource(Component):
                                                                      s.wait_timeout_s) and not self.stopping:
             log.warning("topic=%s has fewer than %d subscribers after %g s; serving anyway",
                         s.topic, s.wait_for_subscribers, s.wait_timeout_s)
-        server = Server(s, self.submit, self.info)
+        server = Server(s, self.submit, self.commands.qsize, self.info)
         thread = threading.Thread(target=asyncio.run, args=(server.serve(),), name="esiaf-wyoming", daemon=True)
         thread.start()
         if not server.listening.wait(10.0) or server.failure:
