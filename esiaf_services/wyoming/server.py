@@ -248,12 +248,11 @@ class Session(AsyncEventHandler):
             raise ProtocolError("unavailable", f"the pipeline's orchestrator does not answer: {exc}") from None
         self.fused = asyncio.create_task(self.collect(self.feed), name=f"fused {stream_id}")
         self.stream_id, self.audio, self.published_s = stream_id, ClientAudio(fmt, PUBLISHED), 0.0
-        self.server.submit(Started(stream_id, {"source": "wyoming", "client": self.peer,
-                                                     "client_format": fmt.to_dict()},
-                                         self.voice_listener() if self.voice_events else None))
+        info = {"source": "wyoming", "client": self.peer, "client_format": fmt.to_dict()}
+        self.server.submit(Started(stream_id, info, self.voice_listener() if self.voice_events else None))
         log.info("wyoming session peer=%s stream_id=%s format=%s", self.peer, stream_id, fmt)
 
-    def voice_listener(self) -> Any:
+    def voice_listener(self) -> Callable[[str, int], None]:
         """What the node's thread calls as the vad hears a voice start or stop: the event, written from the loop."""
         loop = asyncio.get_running_loop()
 
