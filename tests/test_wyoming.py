@@ -4,6 +4,7 @@ for what no well-behaved client sends."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import shutil
@@ -46,28 +47,35 @@ class Server:
     log: Path
 
 
-@pytest.fixture(scope="module")
-def server(tmp_path_factory) -> Iterator[Server]:
-    workdir = tmp_path_factory.mktemp("wyoming")
+@contextlib.contextmanager
+def esiaf_wyoming(workdir: Path, pipeline: list[str]) -> Iterator[Server]:
+    """``esiaf wyoming`` as a process on free ports, with this module's bounds; stopped (SIGTERM) at the end."""
     port = free_port()
     log = workdir / "esiaf.log"
     env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_WYOMING_IDLE_TIMEOUT_S": str(IDLE_TIMEOUT_S),
            "ESIAF_WYOMING_MAX_SESSIONS": str(MAX_SESSIONS), "ESIAF_WYOMING_MAX_CHUNK_BYTES": str(256 << 10)}
     with log.open("wb") as out:
         process = subprocess.Popen([sys.executable, "-m", "esiaf", "wyoming", "--port", str(port), "--http-port",
-                                    str(free_port()), "--workdir", str(workdir / "run"), *PIPELINE],
+                                    str(free_port()), "--workdir", str(workdir / "run"), *pipeline],
                                    cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         poll(lambda: process.poll() is not None or listening("127.0.0.1", port), START_TIMEOUT_S)
         assert process.poll() is None, log.read_text()
         yield Server(port, process, log)
     finally:
-        os.killpg(process.pid, signal.SIGTERM)
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGTERM)
         try:
             process.wait(timeout=30)
         except subprocess.TimeoutExpired:
             os.killpg(process.pid, signal.SIGKILL)
             process.wait()
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory) -> Iterator[Server]:
+    with esiaf_wyoming(tmp_path_factory.mktemp("wyoming"), PIPELINE) as started:
+        yield started
 
 
 def read_wav(path: Path) -> tuple[np.ndarray, int]:
@@ -264,3 +272,20 @@ def test_wyoming_bench_from_pypi_transcribes_every_question(server, tmp_path):
     assert done.returncode == 0, done.stdout + done.stderr
     assert f"ok={len(TRUTH)} fail=0" in done.stdout, done.stdout
     assert "WER=0.0%" in done.stdout, done.stdout
+
+
+def test_a_server_told_to_stop_tells_its_clients(tmp_path):
+    """SIGTERM to esiaf wyoming: a client in the middle of a stream gets an error event, not a bare close."""
+    with esiaf_wyoming(tmp_path, ["--without", "emotion,gender,voiceid"]) as own:
+        async def stopped_mid_stream() -> Event | None:
+            async with AsyncTcpClient("127.0.0.1", own.port) as client:
+                await client.write_event(AudioStart(16000, 2, 1).event())
+                await client.write_event(AudioChunk(16000, 2, 1, bytes(3200)).event())
+                await client.write_event(Describe().event())  # answered: the chunk has been taken
+                assert Info.is_type((await asyncio.wait_for(client.read_event(), 10.0)).type)
+                os.killpg(own.process.pid, signal.SIGTERM)
+                return await asyncio.wait_for(client.read_event(), 30.0)
+        event = asyncio.run(stopped_mid_stream())
+        assert event is not None and Error.is_type(event.type), event
+        assert Error.from_event(event).code == "stopping"
+        assert own.process.wait(timeout=30) == 0

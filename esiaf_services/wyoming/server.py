@@ -210,6 +210,12 @@ class Session(AsyncEventHandler):
             self.server.info["sessions"] = self.server.sessions
             self.writer.close()
 
+    async def stop(self) -> None:
+        """The server is stopping (the service was told to): the client is told so before it is closed."""
+        await self.refuse("stopping", "the server is stopping; the stream is ended without a transcript"
+                          if self.stream_id else "the server is stopping")
+        await super().stop()
+
     async def refuse(self, code: str, text: str) -> None:
         self.server.refuse(code, self.peer, text)
         with contextlib.suppress(ConnectionError, OSError):
