@@ -17,6 +17,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 import soxr
@@ -45,23 +46,31 @@ class Server:
     port: int
     process: subprocess.Popen
     log: Path
+    url: str  # the orchestrator's
+    workdir: Path
+
+    def components(self) -> list[dict]:
+        token = (self.workdir / "token").read_text().strip()
+        response = httpx.get(f"{self.url}/components", headers={"Authorization": f"Bearer {token}"}, timeout=5)
+        response.raise_for_status()
+        return response.json()["items"]
 
 
 @contextlib.contextmanager
 def esiaf_wyoming(workdir: Path, pipeline: list[str]) -> Iterator[Server]:
     """``esiaf wyoming`` as a process on free ports, with this module's bounds; stopped (SIGTERM) at the end."""
-    port = free_port()
+    port, http_port = free_port(), free_port()
     log = workdir / "esiaf.log"
     env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_WYOMING_IDLE_TIMEOUT_S": str(IDLE_TIMEOUT_S),
            "ESIAF_WYOMING_MAX_SESSIONS": str(MAX_SESSIONS), "ESIAF_WYOMING_MAX_CHUNK_BYTES": str(256 << 10)}
     with log.open("wb") as out:
         process = subprocess.Popen([sys.executable, "-m", "esiaf", "wyoming", "--port", str(port), "--http-port",
-                                    str(free_port()), "--workdir", str(workdir / "run"), *pipeline],
+                                    str(http_port), "--workdir", str(workdir / "run"), *pipeline],
                                    cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         poll(lambda: process.poll() is not None or listening("127.0.0.1", port), START_TIMEOUT_S)
         assert process.poll() is None, log.read_text()
-        yield Server(port, process, log)
+        yield Server(port, process, log, f"http://127.0.0.1:{http_port}", workdir / "run")
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(process.pid, signal.SIGTERM)
@@ -289,3 +298,13 @@ def test_a_server_told_to_stop_tells_its_clients(tmp_path):
         assert event is not None and Error.is_type(event.type), event
         assert Error.from_event(event).code == "stopping"
         assert own.process.wait(timeout=30) == 0
+
+
+def test_refusals_are_counted_by_code_in_the_services_heartbeat(server):
+    def refused() -> dict[str, int]:
+        wyoming = next(c for c in server.components() if c["name"] == "wyoming" and c["status"] == "alive")
+        return wyoming["stats"]["info"].get("refused") or {}
+    before = refused().get("bad-order", 0)
+    event = asyncio.run(raw_exchange(server.port, b'{"type": "audio-stop"}\n'))
+    assert event is not None and Error.from_event(event).code == "bad-order"
+    poll(lambda: refused().get("bad-order", 0) == before + 1, 30.0)
