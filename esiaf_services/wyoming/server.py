@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import importlib.metadata
 import json
 import logging
 import threading
@@ -40,12 +41,21 @@ from esiaf_services.wyoming.settings import WyomingSettings
 
 log = logging.getLogger(__name__)
 
-ATTRIBUTION = Attribution(name="ESIAF", url="https://github.com/esiaf")
+ATTRIBUTION = Attribution(name="ESIAF", url="")  # pyproject.toml names no project URL to give
+
 LOG_EVERY = 100  # a refusal is logged the first time for its reason, then every 100th
 # commands waiting for the node's thread (every session's; a chunk is what the client sent in one event): past
 # it, a session reads no more from its client until the pipeline has taken some, so TCP slows the client down
 MAX_BACKLOG = 500
 BACKLOG_WAIT_S = 0.01
+
+
+def esiaf_version() -> str | None:
+    """The installed esiaf distribution's version, as describe gives it (None: not installed, run from a tree)."""
+    try:
+        return importlib.metadata.version("esiaf")
+    except importlib.metadata.PackageNotFoundError:
+        return None
 
 
 class ProtocolError(Exception):
@@ -158,7 +168,7 @@ class Server:
         model = AsrModel(name=s.model, description=s.model_description or s.model, attribution=ATTRIBUTION,
                          installed=True, version=None, languages=list(s.languages))
         return Info(asr=[AsrProgram(name="esiaf", description="ESIAF speech-analysis pipeline",
-                                    attribution=ATTRIBUTION, installed=True, version=None, models=[model],
+                                    attribution=ATTRIBUTION, installed=True, version=esiaf_version(), models=[model],
                                     supports_transcript_streaming=False)])
 
 
