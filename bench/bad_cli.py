@@ -1,4 +1,4 @@
-"""Bad values given to ``esiaf run`` and to the services: how each is answered.
+"""Bad values given to ``esiaf run``, ``esiaf wyoming`` and to the services: how each is answered.
 
     python -m bench.bad_cli [--repo DIR] [--only SUBSTRING] [--port 18690]
 
@@ -36,7 +36,7 @@ class Case:
     name: str
     args: list[str]  # after `esiaf run` (or the service's command line)
     env: dict[str, str] = field(default_factory=dict)
-    command: str = "run"  # "run": esiaf run; else the service run as python -m esiaf_services.<command>
+    command: str = "run"  # "run": esiaf run; "wyoming": esiaf wyoming; else python -m esiaf_services.<command>
     # a setting of one service only, which that service checks as it starts: esiaf run answers once the
     # orchestrator and that service have started, not at once
     at_start: bool = False
@@ -127,8 +127,21 @@ def service_cases() -> list[Case]:
             Case("grabber a 1 Hz WAV", ["--input", "{wav1hz}"], command="grabber")]
 
 
+def wyoming_cases() -> list[Case]:
+    """esiaf wyoming's own options, and a setting its service checks as it starts."""
+    given = {"--port 0": ["--port", "0"], "--port abc": ["--port", "abc"],
+             "--http-port 70000": ["--http-port", "70000"], "--listen 256.1.1.1": ["--listen", "256.1.1.1"],
+             "--language e": ["--language", "e"],
+             "--grammar missing": ["--grammar", "{tmp}/nope.gram"], "--without foo": ["--without", "foo"],
+             "--input (esiaf run's)": ["--input", WAV], "ESIAF_TOKEN_FILE missing": []}
+    return [*(Case(f"wyoming {name}", args, {"ESIAF_TOKEN_FILE": "{tmp}/no-token"} if not args else {},
+                   command="wyoming") for name, args in given.items()),
+            Case("wyoming ESIAF_WYOMING_MAX_SESSIONS=0", [], {"ESIAF_WYOMING_MAX_SESSIONS": "0"}, command="wyoming",
+                 at_start=True)]
+
+
 CASES = [*port_cases(), *chunk_cases(), *workdir_cases(), *token_cases(), *setting_cases(), *input_cases(),
-         *option_cases(), *service_cases()]
+         *option_cases(), *service_cases(), *wyoming_cases()]
 
 
 def prepare(tmp: Path) -> dict[str, str]:
@@ -168,6 +181,10 @@ def run_case(case: Case, tmp: Path, repo: Path = REPO, port: int = 18690, timeou
             command += ["--workdir", str(tmp / "work")]
         if "--port" not in args:
             command += ["--port", str(port)]
+    elif case.command == "wyoming":  # esiaf wyoming: the orchestrator on port, the Wyoming server on port + 1
+        command = [sys.executable, "-m", "esiaf", "wyoming", *args, "--workdir", str(tmp / "work")]
+        command += [] if "--http-port" in args else ["--http-port", str(port)]
+        command += [] if "--port" in args else ["--port", str(port + 1)]
     else:
         command = [sys.executable, "-m", f"esiaf_services.{case.command}", *args]
         if case.command == "orchestrator" and "--db" not in args:

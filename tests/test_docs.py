@@ -133,8 +133,8 @@ def command_problem(command: str) -> str | None:
     argv = words(command)
     if not argv:
         return None
-    if argv[0] not in ("run", "eval", "keys"):
-        return f"esiaf has no subcommand {argv[0]!r} (run, eval, keys)"
+    if argv[0] not in ("run", "eval", "keys", "wyoming"):
+        return f"esiaf has no subcommand {argv[0]!r} (run, eval, keys, wyoming)"
     problem = parse_problem(argv[0], argv[1:])
     if problem and argv[-1].startswith("--"):  # an option named in prose, its value left out
         problem = parse_problem(argv[0], [*argv[1:], "X"]) and problem
@@ -150,6 +150,8 @@ def parse_problem(subcommand: str, args: list[str]) -> str | None:
                 if not {"--input", "--mic"} & {a.split("=")[0] for a in args}:
                     args = ["--input", "speech.wav", *args]  # a fragment that names options only
                 cli_args.parse_args(["run", *args])
+            elif subcommand == "wyoming":
+                cli_args.parse_args(["wyoming", *args])
             elif subcommand == "eval" and args:
                 _, rest = evaluation.parse_args(args)
                 if rest:

@@ -5,6 +5,7 @@
     esiaf run --mic DEVICE [--array SPEC]
     esiaf eval robocup [--runs N] [--seed S] [--snr LO:HI] [--array SPEC] [-- RUN OPTIONS]
     esiaf keys DIR [--component NAME ...]      (CURVE key pairs: esiaf/keys.py)
+    esiaf wyoming [--port 10300] [--listen ADDR] [--grammar FILE|robocup] [--asr ...]   (docs/wyoming.md)
 
 It starts the orchestrator, the recogniser, the VAD, the emotion, gender and voiceid services (on the VAD's
 output, like the recogniser) and the grabber (with a microphone array also the ssl service and the
@@ -77,6 +78,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, _terminate)  # like Ctrl-C, the services are stopped on the way out
     from esiaf.tools.cli_start import run
     try:
+        if args.command == "wyoming":
+            from esiaf.tools.cli_wyoming import serve
+            return serve(args)
         return run(args)
     except Terminated:
         err("esiaf: stopped (SIGTERM)")

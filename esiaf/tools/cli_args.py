@@ -278,19 +278,21 @@ def parse_replicas(texts: Sequence[str], without: set[str], plugins: Sequence[st
     return replicas
 
 
-def check_port_free(host: str, port: int) -> None:
+def check_port_free(host: str, port: int, host_option: str = "--host",
+                    in_use: str = "another orchestrator running? use --port") -> None:
+    """``host:port`` can be listened on; else a LaunchError naming the option to change (``host_option``)
+    and what to do when the port is taken (``in_use``)."""
     with socket.socket() as probe:
         # as the orchestrator will (uvicorn): connections of an earlier run in TIME_WAIT do not count
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             probe.bind((host, port))
         except socket.gaierror as exc:
-            raise LaunchError(f"cannot listen on {host}:{port}: {exc.strerror} (check --host)") from None
+            raise LaunchError(f"cannot listen on {host}:{port}: {exc.strerror} (check {host_option})") from None
         except OSError as exc:
-            raise LaunchError(f"cannot listen on {host}:{port}: {exc.strerror} (another orchestrator running? "
-                              f"use --port)") from None
+            raise LaunchError(f"cannot listen on {host}:{port}: {exc.strerror} ({in_use})") from None
         except (ValueError, UnicodeError) as exc:  # a NUL or an unencodable name
-            raise LaunchError(f"cannot listen on {host!r}: {exc} (check --host)") from None
+            raise LaunchError(f"cannot listen on {host!r}: {exc} (check {host_option})") from None
 
 
 def port_number(text: str) -> int:
@@ -324,6 +326,55 @@ def channel_count(text: str) -> int:
     if not 1 <= count <= 64:
         raise argparse.ArgumentTypeError(f"a channel count from 1 to 64, not {text!r}")
     return count
+
+
+def language_code(text: str) -> str:
+    """--language: a language tag as Home Assistant gives them (en, en-US, de_DE)."""
+    if not re.fullmatch(r"[A-Za-z]{2,3}([-_][A-Za-z0-9]{2,8})*", text):
+        raise argparse.ArgumentTypeError(f"a language code such as en or en-US, not {text!r}")
+    return text
+
+
+def add_recogniser_options(parser: argparse.ArgumentParser) -> None:
+    """What the pipeline recognises with: esiaf run's and esiaf wyoming's."""
+    parser.add_argument("--grammar", help="JSGF grammar file for the recogniser, or 'robocup' (with --asr whisper: "
+                        "the allowed sentences its transcripts are matched to)")
+    parser.add_argument("--vad", choices=("silero", "energy"), help="the voice activity detector: silero (default, "
+                        "a neural VAD that babble does not fool) or energy (the original double threshold)")
+    parser.add_argument("--asr", choices=("pocketsphinx", "whisper"), help="the recogniser (default pocketsphinx)")
+
+
+def add_workdir_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--workdir", type=Path, default=Path(".esiaf"), help="logs and database (default .esiaf)")
+    parser.add_argument("--recover", action="store_true", help="if the workdir's database is corrupt, start on a "
+                        "copy of what can still be read (the orchestrator's log says what was lost; the damaged file "
+                        "is kept)")
+
+
+def add_wyoming_parser(sub: argparse._SubParsersAction) -> None:
+    """``esiaf wyoming``: the pipeline behind a Wyoming speech-to-text server (docs/wyoming.md)."""
+    wyoming = sub.add_parser("wyoming", help="serve the pipeline as a Wyoming speech-to-text server (Home "
+                             "Assistant): esiaf wyoming --port 10300")
+    wyoming.add_argument("--port", dest="wyoming_port", type=port_number, default=10300,
+                         help="the Wyoming server's TCP port (default 10300)")
+    wyoming.add_argument("--listen", default="127.0.0.1", help="the address the Wyoming server listens on (default "
+                         "127.0.0.1; 0.0.0.0: every interface, for Home Assistant on another host)")
+    wyoming.add_argument("--language", action="append", type=language_code, metavar="CODE",
+                         help="a language the recogniser takes, as describe lists it (default en); repeatable")
+    add_recogniser_options(wyoming)
+    wyoming.add_argument("--without", metavar="ANALYSERS", help="analysers to leave out, separated by commas: "
+                         "emotion, gender, voiceid (the transcript is the recogniser's; they only cost CPU here)")
+    wyoming.add_argument("--apart", action="store_true", help="run emotion and gender each in a process of its own")
+    wyoming.add_argument("--host", default="127.0.0.1", help="orchestrator address (default 127.0.0.1)")
+    wyoming.add_argument("--http-port", dest="port", type=port_number, default=8000,
+                         help="orchestrator HTTP port (default 8000)")
+    add_workdir_options(wyoming)
+    wyoming.add_argument("-v", "--verbose", action="store_true", help="log what the launcher does")
+    # what esiaf run's pipeline code reads and esiaf wyoming does not offer: one mono source, no grabber
+    wyoming.set_defaults(input=None, mic=None, array=None, mic_channels=None, channels=None, replicas=[],
+                         vad_in_grabber=False, plugins=[], no_beamformer=False, beamformer=None, ssl_algorithm=None,
+                         fast=False, player=None, playback=None, serve=True, stream_id=None, chunk_ms=None,
+                         json=False, source_topic="wyoming/audio")
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -368,18 +419,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     run.add_argument("--playback", type=Path, metavar="ROBOT.wav", help="with one --input: what the robot said, on "
                      "the input's timeline: the player plays it in step with the input (to loudspeaker.wav in the "
                      "workdir) and the echo canceller takes it out of the microphones")
-    run.add_argument("--grammar", help="JSGF grammar file for the recogniser, or 'robocup' (with --asr whisper: "
-                     "the allowed sentences its transcripts are matched to)")
-    run.add_argument("--vad", choices=("silero", "energy"), help="the voice activity detector: silero (default, "
-                     "a neural VAD that babble does not fool) or energy (the original double threshold)")
-    run.add_argument("--asr", choices=("pocketsphinx", "whisper"), help="the recogniser (default pocketsphinx)")
+    add_recogniser_options(run)
     run.add_argument("--serve", action="store_true", help="keep the services up after the files have played, "
                      "until Ctrl-C or SIGTERM")
     run.add_argument("--host", default="127.0.0.1", help="orchestrator address (default 127.0.0.1)")
     run.add_argument("--port", type=port_number, default=8000, help="orchestrator HTTP port (default 8000)")
-    run.add_argument("--workdir", type=Path, default=Path(".esiaf"), help="logs and database (default .esiaf)")
-    run.add_argument("--recover", action="store_true", help="if the workdir's database is corrupt, start on a copy "
-                     "of what can still be read (the orchestrator's log says what was lost; the damaged file is kept)")
+    add_workdir_options(run)
     run.add_argument("--stream-id", help="name of this capture session (default: input name + time); "
                      "with a single input only")
     run.add_argument("--chunk-ms", type=chunk_ms, help="grabber chunk length in ms (default: the grabber's chunk_ms, "
@@ -389,7 +434,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     run.add_argument("--json", action="store_true", help="print each fused result as JSON")
     run.add_argument("--partials", action="store_true", help="with --json: print the recognisers' partial "
                      "results too (on a terminal they are shown anyway, as one line rewritten in place)")
+    run.set_defaults(source_topic="grabber/audio")  # what the first services hear (esiaf wyoming: its own)
     run.add_argument("-v", "--verbose", action="store_true", help="log what the launcher does")
+    add_wyoming_parser(sub)
     sub.add_parser("eval", help="evaluation harnesses through the real pipeline: esiaf eval robocup --help")
     sub.add_parser("keys", help="CURVE key pairs for ZeroMQ across hosts: esiaf keys DIR --help")
     return parser.parse_args(argv)

@@ -88,20 +88,8 @@ def run(args: argparse.Namespace) -> int:
     check_settings(os.environ, services)
     check_port_free(args.host, args.port)
     args.stream_id = ids[0] if len(ids) == 1 else None
-    url = f"http://{args.host}:{args.port}"
-    workdir = args.workdir.resolve()
-    try:  # only now, every argument checked: a refused command line writes nothing
-        workdir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise LaunchError(f"--workdir {workdir} cannot be made: {exc.strerror}") from None
-    # one token per run (or the one given): every service presents it, every query needs it
-    os.environ[auth.TOKEN_ENV] = auth.token() or auth.new_token()
-    auth.write_token(workdir / "token", os.environ[auth.TOKEN_ENV])
-    supervisor = Supervisor(workdir, env={"ESIAF_ORCHESTRATOR_URL": url}
-                            | ({"ESIAF_STREAM_ID": ids[0]} if len(ids) == 1 else {})
-                            | ({"ESIAF_AUDIO_QUEUE": os.environ.get("ESIAF_AUDIO_QUEUE", str(FAST_AUDIO_QUEUE))}
-                               if args.fast else {}))
-    client = OrchestratorClient(url)
+    workdir, supervisor, client = prepare(args, {"ESIAF_STREAM_ID": ids[0]} if len(ids) == 1 else {})
+    url = client.url
     try:
         start_orchestrator(args, supervisor, client, workdir)
         refuse_reused(client, ids, workdir)
@@ -142,6 +130,24 @@ def run(args: argparse.Namespace) -> int:
     finally:
         client.close()
         supervisor.stop()
+
+
+def prepare(args: argparse.Namespace, env: dict[str, str]) -> tuple[Path, Supervisor, OrchestratorClient]:
+    """Once every argument is checked: the workdir made, the run's token, a supervisor whose services
+    find the orchestrator (with ``env`` too), a client of the orchestrator."""
+    url = f"http://{args.host}:{args.port}"
+    workdir = args.workdir.resolve()
+    try:  # only now, every argument checked: a refused command line writes nothing
+        workdir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise LaunchError(f"--workdir {workdir} cannot be made: {exc.strerror}") from None
+    # one token per run (or the one given): every service presents it, every query needs it
+    os.environ[auth.TOKEN_ENV] = auth.token() or auth.new_token()
+    auth.write_token(workdir / "token", os.environ[auth.TOKEN_ENV])
+    supervisor = Supervisor(workdir, env={"ESIAF_ORCHESTRATOR_URL": url} | env
+                            | ({"ESIAF_AUDIO_QUEUE": os.environ.get("ESIAF_AUDIO_QUEUE", str(FAST_AUDIO_QUEUE))}
+                               if args.fast else {}))
+    return workdir, supervisor, OrchestratorClient(url)
 
 
 def start_grabbers(args: argparse.Namespace, supervisor: Supervisor, pipeline: Pipeline,
@@ -241,7 +247,7 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
         if not beamforming:
             grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"] = "2"
     consumers = int(grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"])
-    if microphones != "grabber/audio":
+    if "aec" in services:
         grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"] = "1"
     labellers = [name for name in ("emotion", "gender", "voiceid") if name not in without]
     hosts = hosted_labellers(labellers, replicas, args.apart)
@@ -263,7 +269,7 @@ def start_echo_cancelling(args: argparse.Namespace, supervisor: Supervisor, serv
     """With --player or --playback: the player and the echo canceller (grabber/audio + player/audio ->
     aec/audio); the topic the first services are to hear."""
     if args.player is None and args.playback is None:
-        return "grabber/audio"
+        return getattr(args, "source_topic", "grabber/audio")  # esiaf wyoming's own source: wyoming/audio
     aec_env = {"ESIAF_AEC_CHANNELS": str(channels)}
     if args.playback is not None:
         # a replay: the robot's voice is on the input's timeline, from the stream's start; a chunk waits for
@@ -334,7 +340,7 @@ def wait_for_subscriptions(client: OrchestratorClient, supervisor: Supervisor, p
     the plug-ins on vad/speech), so no audio is played before anyone hears it; a grabber hosting the
     vad is told to wait for the vad's consumers itself (they subscribe once it has registered)."""
     services = pipeline.services
-    if pipeline.microphones != "grabber/audio":
+    if "aec" in services:
         wait_until(lambda: topic_ready(client, pipeline.microphones, pipeline.microphone_consumers), supervisor,
                    f"the first services to subscribe to {pipeline.microphones}", START_TIMEOUT_S, services["aec"])
     if "splitter" in services:
