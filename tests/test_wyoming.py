@@ -121,7 +121,10 @@ async def raw_exchange(port: int, data: bytes) -> Event | None:
     try:
         writer.write(data)
         await writer.drain()
-        return await asyncio.wait_for(async_read_event(reader), 30.0)
+        while True:  # past the transcript stream's start, which a stream's first audio sends
+            event = await asyncio.wait_for(async_read_event(reader), 30.0)
+            if event is None or event.type != "transcript-start":
+                return event
     finally:
         writer.close()
 
@@ -149,7 +152,7 @@ def test_describe_lists_the_recogniser(server):
             return Info.from_event(event)
     info = asyncio.run(ask())
     (program,) = info.asr
-    assert program.supports_transcript_streaming is False
+    assert program.supports_transcript_streaming is True  # from the recogniser's partial results
     assert [model.name for model in program.models] == ["pocketsphinx"]
     assert program.models[0].languages == ["en"]
     assert "RoboCup" in (program.models[0].description or "")
@@ -254,12 +257,42 @@ def test_voice_events_where_the_vad_hears_speech_when_asked(server):
                 assert event is not None and not Error.is_type(event.type), event
                 events.append(event)
             return events
-    events = asyncio.run(ask())
+    events = [e for e in asyncio.run(ask()) if not e.type.startswith("transcript-")]  # streamed: the next test's
     assert [e.type for e in events] == ["voice-started", "voice-stopped"] * 2 + ["transcript"]
     heard = [e.data["timestamp"] / 1000 for e in events[:4]]
     spoken = [t for s in TRUTH[:2] for t in (s["start_s"], s["end_s"])]
     assert all(abs(h - s) < 0.5 for h, s in zip(heard, spoken, strict=True)), (heard, spoken)
     assert text_of(events[-1]) == truth_text(0, 2)
+
+
+def test_the_transcript_streams_in_chunks_that_are_never_taken_back(server):
+    """transcript-start with the audio, transcript-chunk events as the recogniser's stable words and fused
+    utterances come, then the transcript and transcript-stop (the order of the protocol's README)."""
+    samples, rate = read_wav(QUESTIONS)
+    first_three = samples[: int(TRUTH[3]["start_s"] * rate) - rate // 2].tobytes()
+
+    async def ask() -> tuple[Info, list[Event]]:
+        async with AsyncTcpClient("127.0.0.1", server.port) as client:
+            await client.write_event(Describe().event())
+            info = Info.from_event(await asyncio.wait_for(client.read_event(), 10.0))
+            await client.write_event(Transcribe(language="en").event())
+            await client.write_event(AudioStart(rate, 2, 1).event())
+            for offset in range(0, len(first_three), rate // 5):
+                await client.write_event(AudioChunk(rate, 2, 1, first_three[offset:offset + rate // 5]).event())
+            await client.write_event(AudioStop().event())
+            events: list[Event] = []
+            while not events or events[-1].type != "transcript-stop":
+                event = await asyncio.wait_for(client.read_event(), 60.0)
+                assert event is not None and not Error.is_type(event.type), event
+                events.append(event)
+            return info, events
+    info, events = asyncio.run(ask())
+    assert info.asr[0].supports_transcript_streaming
+    types = [e.type for e in events]
+    assert types[0] == "transcript-start" and types[-2:] == ["transcript", "transcript-stop"], types
+    assert set(types[1:-2]) == {"transcript-chunk"} and len(types) - 3 >= 3, types  # several chunks
+    streamed = "".join(e.data["text"] for e in events if e.type == "transcript-chunk")
+    assert normalise(streamed) == text_of(events[-2]) == truth_text(0, 3)
 
 
 def test_wyoming_bench_from_pypi_transcribes_every_question(server, tmp_path):
@@ -291,6 +324,7 @@ def test_a_server_told_to_stop_tells_its_clients(tmp_path):
                 await client.write_event(AudioStart(16000, 2, 1).event())
                 await client.write_event(AudioChunk(16000, 2, 1, bytes(3200)).event())
                 await client.write_event(Describe().event())  # answered: the chunk has been taken
+                assert (await asyncio.wait_for(client.read_event(), 10.0)).type == "transcript-start"
                 assert Info.is_type((await asyncio.wait_for(client.read_event(), 10.0)).type)
                 os.killpg(own.process.pid, signal.SIGTERM)
                 return await asyncio.wait_for(client.read_event(), 30.0)

@@ -24,7 +24,7 @@ from urllib.parse import urlencode
 
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import WebSocketException
-from wyoming.asr import Transcribe, Transcript
+from wyoming.asr import Transcribe, Transcript, TranscriptChunk, TranscriptStart, TranscriptStop
 from wyoming.audio import AudioChunk, AudioStart, AudioStop
 from wyoming.error import Error
 from wyoming.event import Event
@@ -169,7 +169,7 @@ class Server:
                          installed=True, version=None, languages=list(s.languages))
         return Info(asr=[AsrProgram(name="esiaf", description="ESIAF speech-analysis pipeline",
                                     attribution=ATTRIBUTION, installed=True, version=esiaf_version(), models=[model],
-                                    supports_transcript_streaming=False)])
+                                    supports_transcript_streaming=s.stream_transcripts)])
 
 
 class Session(AsyncEventHandler):
@@ -188,6 +188,8 @@ class Session(AsyncEventHandler):
         self.feed: ClientConnection | None = None
         self.fused: asyncio.Task[str] | None = None
         self.voice_writes: set[asyncio.Task[None]] = set()  # voice events being written (kept from the collector)
+        self.streamed = ""  # the transcript so far sent in transcript-chunk events (None sent: "")
+        self.stream_started = False  # transcript-start sent for the open stream
 
     async def run(self) -> None:
         """Events until the client goes, is refused or idles; every refusal an ``error`` event first."""
@@ -256,7 +258,8 @@ class Session(AsyncEventHandler):
         """Opens the session's stream: the fused results' feed first (nothing missed), then the announcement."""
         fmt = self.format_of(data)
         stream_id = f"wyoming-{uuid.uuid4().hex[:12]}"
-        url = f"{self.server.feed_url}?{urlencode({'stream': stream_id})}"
+        streaming = self.server.settings.stream_transcripts
+        url = f"{self.server.feed_url}?{urlencode({'stream': stream_id} | ({'partials': 1} if streaming else {}))}"
         try:
             self.feed = await connect(url, additional_headers=auth.headers(), open_timeout=10.0,
                                       ssl=auth.tls_context() if url.startswith("wss:") else None)
@@ -265,6 +268,10 @@ class Session(AsyncEventHandler):
         self.fused = asyncio.create_task(self.collect(self.feed), name=f"fused {stream_id}")
         self.stream_id, self.audio, self.published_s = stream_id, ClientAudio(fmt, PUBLISHED), 0.0
         info = {"source": "wyoming", "client": self.peer, "client_format": fmt.to_dict()}
+        self.streamed, self.stream_started = "", False
+        if streaming:  # the stream of transcript chunks starts with the audio (the protocol's order)
+            await self.write_event(TranscriptStart(language=self.language).event())
+            self.stream_started = True
         self.server.submit(Started(stream_id, info, self.voice_listener() if self.voice_events else None))
         log.info("wyoming session peer=%s stream_id=%s format=%s", self.peer, stream_id, fmt)
 
@@ -336,10 +343,14 @@ class Session(AsyncEventHandler):
         self.server.info["served"] = self.server.info.get("served", 0) + 1
         log.info("wyoming transcript peer=%s stream_id=%s text=%r", self.peer, stream_id, text)
         await self.write_event(Transcript(text=text, language=self.language).event())
+        if self.stream_started:  # after the transcript, as the protocol asks (it is there for older clients)
+            self.stream_started = False
+            await self.write_event(TranscriptStop().event())
         return True
 
     async def collect(self, feed: ClientConnection) -> str:
-        """The stream's fused results until its end: the text of their latest revisions."""
+        """The stream's fused results until its end: the text of their latest revisions. Meanwhile, with
+        transcript streaming, what is known for sure so far as transcript-chunk events (:meth:`stream_more`)."""
         fused: dict[int, dict[str, Any]] = {}
         async for text in feed:
             message = json.loads(text)
@@ -347,7 +358,21 @@ class Session(AsyncEventHandler):
                 return transcript_text(fused)
             if message.get("type") == "fused_result" and "speech" in message.get("anchor", {}):
                 fused[message["id"]] = message
+                await self.stream_more(transcript_text(fused))
+            elif message.get("type") == "partial" and not message.get("closed"):
+                stable = str(message.get("stable") or "").strip()
+                await self.stream_more(" ".join(part for part in (transcript_text(fused), stable) if part))
         raise OSError("the orchestrator closed the fused results' websocket")
+
+    async def stream_more(self, known: str) -> None:
+        """A transcript-chunk with what ``known`` (the utterances fused so far and the stable words of the one
+        going on) adds to what was streamed; nothing if it does not extend it (a chunk is never taken back:
+        the final transcript says what was decided)."""
+        if not self.stream_started or not known.startswith(self.streamed) or len(known) <= len(self.streamed):
+            return
+        chunk, self.streamed = known[len(self.streamed):], known
+        with contextlib.suppress(ConnectionError, OSError):
+            await self.write_event(TranscriptChunk(text=chunk).event())
 
     async def end_stream(self) -> None:
         """The client went or was refused with a stream open: it ends without a transcript."""

@@ -16,6 +16,9 @@ class WyomingSettings(ComponentSettings):
     model: str = "pocketsphinx"  # the recogniser, as `describe` names it
     model_description: str = ""  # ... and what it recognises (a grammar)
     languages: list[str] = Field(default_factory=lambda: ["en"])  # the recogniser's, as `describe` lists them
+    # transcript-start / transcript-chunk / transcript-stop while the client speaks, from the recogniser's
+    # partial results (their stable words only: a chunk is never taken back); false: the transcript alone
+    stream_transcripts: bool = True
     max_sessions: int = Field(default=32, ge=1)  # connections served at once; more get an error event
     max_chunk_bytes: int = Field(default=1 << 20, ge=1024)  # an event's payload (an audio chunk) at most
     max_data_bytes: int = Field(default=64 << 10, ge=1024)  # an event's JSON data at most
