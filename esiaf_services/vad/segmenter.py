@@ -67,6 +67,11 @@ class Segmenter(Generic[T]):
     def active(self) -> bool:
         return self._speech_start_ns is not None
 
+    @property
+    def speech_start_ns(self) -> int | None:
+        """The open segment's speech start, if one is open."""
+        return self._speech_start_ns
+
     def process(self, item: T, start_ns: int, end_ns: int, level: float, *,
                 force_end: bool = False) -> list[Forward[T]]:
         """One chunk in, what to forward out. ``force_end`` closes an open segment on this chunk."""
@@ -159,6 +164,11 @@ class ProbabilitySegmenter(Generic[T]):
     @property
     def active(self) -> bool:
         return self._start_ns is not None
+
+    @property
+    def speech_start_ns(self) -> int | None:
+        """The open (confirmed) segment's speech start, if one is open."""
+        return self._start_ns
 
     def process(self, item: T, start_ns: int, end_ns: int, probability: float, *,
                 force_end: bool = False) -> list[Forward[T]]:

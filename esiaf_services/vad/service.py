@@ -12,7 +12,11 @@ Two backends:
   chunk (the mean of the windows the chunk completes), the default until 2026-11-26.
 - ``energy``: ESIAF's original double-threshold segmenter on the chunks' peak level.
 
-The VAD result of a segment carries its mean speech probability (1 with ``energy``).
+The VAD result of a segment carries its mean speech probability (1 with ``energy``), and is emitted when
+the segment ends. As soon as a segment opens (Silero: ``min_speech_ms`` of speech heard), with
+``speech_start_events`` a ``speech_start`` result says so (esiaf.results.speech_start: its span runs from
+the speech's start to the capture time the vad decided): the orchestrator's barge-in (a person speaking
+while the robot plays) does not wait for the utterance's end.
 
 A vad that joins a stream after its start (its first message of the stream is not the publisher's first:
 it was started, or restarted after a crash, while the stream went on) may join in the middle of an
@@ -28,6 +32,7 @@ from typing import Any, ClassVar
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
 from esiaf.per_stream import PerStream
+from esiaf.results import SPEECH_START, speech_start
 from esiaf_services.vad.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
 from esiaf_services.vad.silero import RATES_HZ, SileroError, SileroModel, SileroStream
 from esiaf_services.vad.windows import ChunkCutter, WindowCutter, messages
@@ -47,6 +52,7 @@ class VadSettings(ComponentSettings):
     # models are trained on the spans of both (esiaf_services/emotion/features.py VADS)
     windows: bool = True
     max_ms: float = 8000.0
+    speech_start_events: bool = True  # a speech_start result as soon as a segment opens (barge-in)
     pre_roll_ms: float = 250.0
     # silero
     model_path: str = ""  # "" = silero_vad.onnx from the silero-vad wheel
@@ -154,7 +160,13 @@ class Vad(Component):
                 stream.mid_speech = False
                 log.info("stream_id=%s joined at sequence %d: segmenting from its first silence, at start_ns=%d",
                          audio.stream_id, audio.sequence, piece.start_ns)
+            was_open = segmenter.active
             forwards += segmenter.process(piece, piece.start_ns, piece.end_ns, score, force_end=piece.end_of_stream)
+            onset_ns = segmenter.speech_start_ns
+            if not was_open and onset_ns is not None and self.settings.speech_start_events:
+                self.emit(SPEECH_START, (onset_ns, max(onset_ns, piece.end_ns)), stream_id=audio.stream_id,
+                          generic=speech_start(score if stream.silero is not None or isinstance(cutter, WindowCutter)
+                                               else 1.0))
         for message in messages(forwards, audio.format.sample_rate_hz):
             piece, forward = message.piece, message.forward
             end_of_stream = forward.ended and piece.end_of_stream
