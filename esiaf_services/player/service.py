@@ -8,9 +8,18 @@ rest by sample count from there (a device plays at its own pace; a file is paced
 unless ``fast``). The last chunk of an item ends the utterance (``segmentation_ended``), so the
 echo canceller knows the robot stopped on purpose; an item stopped early ends with an empty chunk.
 
-Work comes from ``input`` and ``say`` (played at start: ``esiaf run --playback``), or from
-:meth:`Player.play` and :meth:`Player.say_text` (any thread). While an item plays, the heartbeat's
-info carries ``playing``: its name and span in capture time.
+Work comes from ``input`` and ``say`` (played at start: ``esiaf run --playback``), from
+:meth:`Player.play` and :meth:`Player.say_text` (any thread), or from the orchestrator's commands
+(:meth:`Player.on_command`: ``POST /streams/{stream}/say`` and ``/play``, ``DELETE
+/streams/{stream}/playing``, and a barge-in under the stream's policy, docs/protocol.md "Commands").
+
+The orchestrator knows what plays: each item is reported as a ``playback`` result (a kind of its own:
+``text`` its name, ``attributes`` ``{"item": n, "stopped": false}``) spanning the capture time it is
+to play, when it starts; an item stopped early (a stop, a barge-in under ``stop``, the player stopping)
+is reported again with its real end (``"stopped": true``): the later result of an item revises the
+earlier. While an item plays, the heartbeat's info carries ``playing``: its name and span in capture
+time (a heartbeat goes out when it starts and ends). A barge-in under ``duck`` plays the rest of the
+current item ``duck_db`` lower.
 
 ``follow_stream`` stamps the first item as played from the start of the player's stream as its
 grabber announced it to the orchestrator (waiting for it), so a recorded robot voice lines up with
@@ -34,6 +43,8 @@ import numpy as np
 
 from esiaf import AudioFormat, Component, ComponentSettings, SampleClock, SetupError
 from esiaf.api_client import OrchestratorHTTP
+from esiaf.control_messages import BargeIn, Command, Play, Say, StopPlaying
+from esiaf.results import PLAYBACK, playback
 from esiaf_services.player.sinks import AlsaSink, FileSink
 from esiaf_services.player.tts import SpeechError, say
 
@@ -56,6 +67,7 @@ class PlayerSettings(ComponentSettings):
     exit_when_done: bool = False  # stop once input and say are played
     wait_for_subscribers: int = 0  # before the first item, wait until the topic has this many subscribers
     wait_timeout_s: float = 30.0
+    duck_db: float = 15.0  # a barge-in under the duck policy plays the rest of the item this much lower
 
 
 @dataclass
@@ -68,7 +80,7 @@ class Player(Component):
     """Plays sound files and flite sentences; publishes what it plays on player/audio."""
 
     service = "player"
-    kind = "other"
+    kind = PLAYBACK  # its results: what it plays, when
     Settings = PlayerSettings
     settings: PlayerSettings  # an instance of Settings: its fields, for type checkers
     options: ClassVar[dict[str, str]] = {"device": "ALSA playback device (see aplay -L)",
@@ -92,6 +104,8 @@ class Player(Component):
         self._cut = threading.Event()  # stop_playing(): the current item ends at its next chunk
         self.sink: AlsaSink | FileSink | None = None
         self.played = 0  # items played to their end or stopped
+        self.items = 0  # items started: each playback result names its item's number
+        self._gain = 1.0  # the current item's (a duck lowers it)
         if settings.input:  # read early: a bad file fails before registration
             self.play_file(Path(settings.input))
         if settings.say:
@@ -134,6 +148,30 @@ class Player(Component):
         with self._lock:
             self._queue.clear()
         self._cut.set()
+
+    def on_command(self, command: Command) -> None:
+        """The orchestrator's orders for its stream (on the data thread: between two chunks while it plays)."""
+        if command.stream_id != self.settings.stream_id:
+            log.warning("ignored order=%s for stream_id=%s: this player plays stream_id=%s", command.order.action,
+                        command.stream_id, self.settings.stream_id)
+            return
+        order = command.order
+        if isinstance(order, Say):
+            try:
+                self.say_text(order.text, order.voice)
+            except SpeechError as exc:
+                log.warning("cannot say %r: %s", order.text[:80], exc)
+        elif isinstance(order, Play):
+            pcm = np.frombuffer(order.pcm[:len(order.pcm) // 2 * 2], dtype="<i2")
+            self.play(pcm.astype(np.float64) / 32768.0, order.name)
+        elif isinstance(order, StopPlaying):
+            self.stop_playing()
+        elif isinstance(order, BargeIn) and self.info.get("playing"):
+            log.info("barge-in at capture_ns=%d policy=%s", order.capture_ns, order.policy)
+            if order.policy == "stop":
+                self.stop_playing()
+            elif order.policy == "duck":
+                self._gain = 10 ** (-abs(self.settings.duck_db) / 20)
 
     # -- playing ------------------------------------------------------------------------
     def produce(self) -> None:
@@ -184,10 +222,14 @@ class Player(Component):
         sink = self.sink
         assert sink is not None  # setup() made it
         self._cut.clear()
+        self._gain = 1.0
         pcm = np.clip(np.rint(item.samples * 32767), -32768, 32767).astype(np.int16)
         clock = SampleClock(origin_ns, self.format.sample_rate_hz)
-        self.info["playing"] = {"name": item.name, "start_ns": origin_ns,
+        self.items += 1
+        number = self.items
+        self.info["playing"] = {"name": item.name, "item": number, "start_ns": origin_ns,
                                 "end_ns": clock.time_at(len(pcm))}
+        self._report(number, item.name, origin_ns, clock.time_at(len(pcm)), stopped=False)
         log.info("playing name=%r seconds=%.2f start_ns=%d", item.name, len(pcm) / self.format.sample_rate_hz,
                  origin_ns)
         for first in range(0, len(pcm), self.chunk_frames):
@@ -195,9 +237,12 @@ class Player(Component):
                 sink.drop()
                 now_ns = clock.time_at(clock.frames)
                 self.publish(self.settings.topic, b"", now_ns, now_ns, segmentation_ended=True)
+                self._report(number, item.name, origin_ns, now_ns, stopped=True)
                 log.info("stopped name=%r after %.2f s", item.name, clock.frames / self.format.sample_rate_hz)
                 break
             part = pcm[first:first + self.chunk_frames]
+            if self._gain != 1.0:  # ducked: what is played (and published as the reference) is lower
+                part = np.rint(part * self._gain).astype(np.int16)
             start_ns, end_ns = clock.advance(len(part))
             if not sink.paced and not self.settings.fast:  # a file: written just before it is played
                 ahead_ns = start_ns - round(self.settings.ahead_ms * 1e6) - self.clock_ns()
@@ -207,6 +252,12 @@ class Player(Component):
             self.publish(self.settings.topic, part, start_ns, end_ns, segmentation_ended=clock.frames >= len(pcm))
         self.played += 1
         self.info["playing"] = None
+        self.context.poke()  # the heartbeat says it stopped playing
+
+    def _report(self, number: int, name: str, start_ns: int, end_ns: int, *, stopped: bool) -> None:
+        """A playback result: what plays (or played, if ``stopped``) when; a heartbeat with ``playing``."""
+        self.emit(PLAYBACK, (start_ns, end_ns), generic=playback(name, number, stopped))
+        self.context.poke()
 
     def teardown(self) -> None:
         if self.sink is not None:
