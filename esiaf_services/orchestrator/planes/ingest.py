@@ -16,6 +16,7 @@ from typing import Any
 
 from ..fusion.engine import FusionEngine, Publication, StoredResult
 from ..fusion.orphans import Orphans
+from ..fusion.playback import SPEECH_START, Played
 from ..registry.components import Component, Registry
 from ..registry.streams import StreamEnds
 from ..store.database import Store, StoreUnavailable
@@ -68,6 +69,9 @@ class Ingest:
         self.clocks = clocks or StreamClocks(registry)
         self._store_retry: asyncio.TimerHandle | None = None
         self._on_assignments_changed = on_assignments_changed
+        # a person started speaking while the stream's robot played: (stream, onset, what played, direction)
+        # -> the barge_in event to publish (planes/players.py)
+        self.on_barge_in: Callable[[str, int, Played, float | None], Outgoing] | None = None
 
     def restore(self) -> None:
         """Warm start from the database (store/warmstart.py)."""
@@ -271,7 +275,8 @@ class Ingest:
         stored = StoredResult(id=result_id, component=result.component, type=kind,
                               stream_id=result.stream_id, start_ns=result.span.start_ns,
                               end_ns=result.span.end_ns, json=as_json)
-        outgoing = [self._store_fused(fused) for fused in [
+        outgoing = self._barge_in(stored) if kind == SPEECH_START else []
+        outgoing += [self._store_fused(fused) for fused in [
             *self.orphans.before_result(stored, received_ns), *self.engine.on_result(stored, received_ns),
             *self.orphans.on_result(stored, received_ns),
             *self.orphans.on_segment(stored, received_ns, lambda service: bool(self.registry.instances(service)))]]
@@ -280,6 +285,15 @@ class Ingest:
             self._observed.append((self.metrics.result_latency, (result.component, result.stream_id),
                                    as_json["latency_ms"] / 1e3))
         return outgoing
+
+    def _barge_in(self, speech_start: StoredResult) -> list[Outgoing]:
+        """A vad's speech start (span: onset, decision): a barge-in if the stream's robot was playing then."""
+        onset_ns = speech_start.start_ns
+        item = self.engine.playing_at(speech_start.stream_id, onset_ns)
+        if item is None or self.on_barge_in is None:
+            return []
+        direction = self.engine.direction(speech_start.stream_id, onset_ns, max(speech_start.end_ns, onset_ns + 1))
+        return [self.on_barge_in(speech_start.stream_id, onset_ns, item, direction)]
 
     def _store_fused(self, fused: Publication) -> Outgoing:
         seq = fused.result.seq = self.store.allocate_seq()
@@ -292,7 +306,7 @@ class Ingest:
         self.counters[f"completion_{fused.result.completion}" if fused.revision == 1
                       else "revisions"] += 1
         message = Outgoing(text=text, stream_id=fused.stream_id, fusion=fused.fusion,
-                           fused_id=fused.id, revision=fused.revision, seq=seq)
+                           fused_id=fused.id, revision=fused.revision, seq=seq, robot=fused.result.source == "robot")
         anchor_received_ns = fused.result.anchor.get("received_ns")
         if self.metrics is not None and fused.revision == 1 and isinstance(anchor_received_ns, int):
             labels = (fused.fusion, fused.stream_id, fused.result.completion)
