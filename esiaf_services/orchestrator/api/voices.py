@@ -17,10 +17,7 @@ a past utterance (JSON ``{"stream", "start_ns", "end_ns"}``: the embeddings of t
 from __future__ import annotations
 
 import asyncio
-import io
 import json
-import struct
-from math import gcd
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
@@ -33,6 +30,7 @@ from ..planes.codec import MAX_TIME_NS
 from ..store.voices import VoiceTable
 from .deps import get_core
 from .models import Problem
+from .wav import read_wav, resample
 
 router = APIRouter(tags=["voices"])
 ENCODER_RATE_HZ = 16000
@@ -143,25 +141,9 @@ async def enrol_voice(name: str, request: Request, core: Orchestrator = Depends(
 
 
 def embed_wav(data: bytes) -> np.ndarray:
-    from scipy.io import wavfile
-    from scipy.signal import resample_poly
-
     from esiaf_services.voiceid.encoder import shared_encoder
-    try:
-        rate_hz, samples = wavfile.read(io.BytesIO(data))
-    # what scipy's reader raises for a header cut short (struct.error), 0 channels or 0 bits per sample
-    # (ZeroDivisionError), fields that do not add up (ValueError), data cut short (EOFError)
-    except (ValueError, EOFError, struct.error, ZeroDivisionError, OverflowError) as exc:
-        raise HTTPException(422, f"audio is not a readable WAV file: {exc}") from None
-    if samples.dtype.kind in "iu":
-        info = np.iinfo(samples.dtype)
-        samples = (samples.astype(np.float64) - (info.max + info.min + 1) / 2) / (info.max + 1)
-    samples = samples.astype(np.float32)
-    if samples.ndim == 2:
-        samples = samples.mean(axis=1)
-    if rate_hz != ENCODER_RATE_HZ:  # any rate is converted, not refused
-        divisor = gcd(int(rate_hz), ENCODER_RATE_HZ)
-        samples = resample_poly(samples, ENCODER_RATE_HZ // divisor, int(rate_hz) // divisor).astype(np.float32)
+    rate_hz, samples = read_wav(data)
+    samples = resample(samples, rate_hz, ENCODER_RATE_HZ)  # any rate is converted, not refused
     if samples.size < MIN_ENROL_SPEECH_S * ENCODER_RATE_HZ or float(np.max(np.abs(samples))) < 1e-3:
         raise HTTPException(422, f"audio has no speech to enrol: {samples.size / ENCODER_RATE_HZ:.2f} s, "
                                  f"at least {MIN_ENROL_SPEECH_S:.0f} s of speech needed")
