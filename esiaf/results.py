@@ -54,10 +54,11 @@ def speech_start(probability: float) -> pb.GenericResult:
     return generic(probability=min(1.0, max(0.0, float(probability))))
 
 
-def playback(name: str, item: int, stopped: bool) -> pb.GenericResult:
-    """The payload of a ``playback`` event: what plays (``text``), its number at the player, and whether this
-    report is its real end after a stop (it then revises the item's first report)."""
-    return generic(text=name[:200], attributes={"item": item, "stopped": stopped})
+def playback(name: str, item: int, stopped: bool, part: int = 0) -> pb.GenericResult:
+    """The payload of a ``playback`` event: what plays (``text``), its number at the player, the part of it
+    (a stretch that sounds), and whether this report is the part's real end after a stop (it then revises
+    the part's first report)."""
+    return generic(text=name[:200], attributes={"item": item, "part": part, "stopped": stopped})
 
 
 def hypothesis(text: str, probability: float, words: Sequence[Mapping[str, Any]] = ()) -> pb.Hypothesis:

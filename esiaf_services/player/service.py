@@ -13,12 +13,15 @@ Work comes from ``input`` and ``say`` (played at start: ``esiaf run --playback``
 (:meth:`Player.on_command`: ``POST /streams/{stream}/say`` and ``/play``, ``DELETE
 /streams/{stream}/playing``, and a barge-in under the stream's policy, docs/protocol.md "Commands").
 
-The orchestrator knows what plays: each item is reported as a ``playback`` result (a kind of its own:
-``text`` its name, ``attributes`` ``{"item": n, "stopped": false}``) spanning the capture time it is
-to play, when it starts; an item stopped early (a stop, a barge-in under ``stop``, the player stopping)
-is reported again with its real end (``"stopped": true``): the later result of an item revises the
-earlier. While an item plays, the heartbeat's info carries ``playing``: its name and span in capture
-time (a heartbeat goes out when it starts and ends). A barge-in under ``duck`` plays the rest of the
+The orchestrator knows what plays: when an item starts, each part of it that sounds (above
+``SILENT_DBFS``, pauses shorter than ``PAUSE_S`` bridged) is reported as a ``playback`` result (a kind of
+its own: ``text`` the item's name, ``attributes`` ``{"item": n, "part": k, "stopped": false}``) spanning
+the capture time it is to play: a recorded robot voice with long silences (``esiaf run --playback``)
+is not "playing" in them. An item stopped early (a stop, a barge-in under ``stop``, the player stopping)
+has each part not played to its end reported again with its real end (``"stopped": true``; a part not
+begun: zero length at the stop): the later result of a part revises the earlier. While an item plays,
+the heartbeat's info carries ``playing``: its name and span in capture time (a heartbeat goes out when
+it starts and ends). A barge-in under ``duck`` plays the rest of the
 current item ``duck_db`` lower.
 
 ``follow_stream`` stamps the first item as played from the start of the player's stream as its
@@ -50,6 +53,8 @@ from esiaf_services.player.tts import SpeechError, say
 
 log = logging.getLogger(__name__)
 IDLE_POLL_S = 0.02  # how soon a new item starts when the player is idle
+SILENT_DBFS = -50.0  # a 20 ms frame below this level (dB re full scale RMS) is silence in a playback report
+PAUSE_S = 0.5  # ... and a silence shorter than this within a part does not end it
 
 
 class PlayerSettings(ComponentSettings):
@@ -229,7 +234,10 @@ class Player(Component):
         number = self.items
         self.info["playing"] = {"name": item.name, "item": number, "start_ns": origin_ns,
                                 "end_ns": clock.time_at(len(pcm))}
-        self._report(number, item.name, origin_ns, clock.time_at(len(pcm)), stopped=False)
+        parts = sounding(pcm, self.format.sample_rate_hz)
+        for part, (first, last) in enumerate(parts):
+            self._report(number, part, item.name, clock.time_at(first), clock.time_at(last), stopped=False)
+        self.context.poke()  # a heartbeat with playing
         log.info("playing name=%r seconds=%.2f start_ns=%d", item.name, len(pcm) / self.format.sample_rate_hz,
                  origin_ns)
         for first in range(0, len(pcm), self.chunk_frames):
@@ -237,7 +245,10 @@ class Player(Component):
                 sink.drop()
                 now_ns = clock.time_at(clock.frames)
                 self.publish(self.settings.topic, b"", now_ns, now_ns, segmentation_ended=True)
-                self._report(number, item.name, origin_ns, now_ns, stopped=True)
+                for part, (first, last) in enumerate(parts):
+                    if last > clock.frames:  # not played to its end: its real end, or none if not begun
+                        self._report(number, part, item.name, clock.time_at(min(first, clock.frames)), now_ns,
+                                     stopped=True)
                 log.info("stopped name=%r after %.2f s", item.name, clock.frames / self.format.sample_rate_hz)
                 break
             part = pcm[first:first + self.chunk_frames]
@@ -254,11 +265,28 @@ class Player(Component):
         self.info["playing"] = None
         self.context.poke()  # the heartbeat says it stopped playing
 
-    def _report(self, number: int, name: str, start_ns: int, end_ns: int, *, stopped: bool) -> None:
-        """A playback result: what plays (or played, if ``stopped``) when; a heartbeat with ``playing``."""
-        self.emit(PLAYBACK, (start_ns, end_ns), generic=playback(name, number, stopped))
-        self.context.poke()
-
     def teardown(self) -> None:
         if self.sink is not None:
             self.sink.close()
+
+    def _report(self, number: int, part: int, name: str, start_ns: int, end_ns: int, *, stopped: bool) -> None:
+        """A playback result: when a part of an item plays (or played, if ``stopped``)."""
+        self.emit(PLAYBACK, (start_ns, end_ns), generic=playback(name, number, stopped, part))
+
+
+def sounding(pcm: np.ndarray, rate_hz: int) -> list[tuple[int, int]]:
+    """The parts of ``pcm`` that sound, as (first, end) frames: 20 ms frames above SILENT_DBFS, pauses
+    shorter than PAUSE_S bridged."""
+    hop = max(1, rate_hz // 50)
+    count = len(pcm) // hop + (len(pcm) % hop > 0)
+    frames = np.zeros(count * hop)
+    frames[:len(pcm)] = pcm / 32768.0
+    level = 10 * np.log10(np.mean(frames.reshape(count, hop) ** 2, axis=1) + 1e-20)
+    parts: list[tuple[int, int]] = []
+    for index in np.flatnonzero(level > SILENT_DBFS):
+        first, end = int(index) * hop, min(len(pcm), (int(index) + 1) * hop)
+        if parts and first - parts[-1][1] < PAUSE_S * rate_hz:
+            parts[-1] = (parts[-1][0], end)
+        else:
+            parts.append((first, end))
+    return parts

@@ -1,8 +1,9 @@
 """What the robot itself said: its player's ``playback`` results, and whether an utterance is its own voice.
 
-A player reports each item it plays as a ``playback`` result spanning the capture time it is to play,
-and again with its real end if it was stopped early (``attributes.stopped``); the later result of an
-item (its ``instance`` and ``attributes.item``) revises the earlier. Pure: no I/O.
+A player reports each part of an item it plays that sounds as a ``playback`` result spanning the capture
+time it is to play, and again with its real end if it was stopped early (``attributes.stopped``); the
+later result of a part (its ``instance``, ``attributes.item`` and ``attributes.part``) revises the
+earlier. Pure: no I/O.
 
 The rule for the robot's own voice (residual echo the canceller left, recognised as speech), on a fused
 result of a stream whose robot played during its span (docs/protocol.md, "Fused results"):
@@ -37,7 +38,7 @@ SAY_PREFIX = "say: "  # a player's name for a sentence it says
 class Played:
     """One item the robot played (its latest report)."""
 
-    key: tuple[str, int]  # the player instance, its item number
+    key: tuple[str, int, int]  # the player instance, its item number, the part
     name: str
     start_ns: int
     end_ns: int
@@ -51,12 +52,12 @@ class Played:
 
 def played(results: Iterable[dict[str, Any]]) -> list[Played]:
     """The items that ``playback`` results (their JSON) report, each by its latest report, by start."""
-    latest: dict[tuple[str, int], tuple[int, Played]] = {}
+    latest: dict[tuple[str, int, int], tuple[int, Played]] = {}
     for result in results:
         payload = result.get(PLAYBACK) or {}
         attributes = payload.get("attributes") or {}
         try:
-            key = (str(result.get("instance", "")), int(attributes.get("item", 0)))
+            key = (str(result.get("instance", "")), int(attributes.get("item", 0)), int(attributes.get("part", 0)))
         except (TypeError, ValueError):
             continue
         item = Played(key=key, name=str(payload.get("text", "")), start_ns=result["span"]["start_ns"],

@@ -74,18 +74,20 @@ def test_a_wav_longer_than_the_cap_at_the_players_rate_is_413(orchestrator, tmp_
     player.stop()
 
 
-def result(item: int, start_ns: int, end_ns: int, sequence: int, stopped: bool = False, name: str = "x") -> dict:
+def result(item: int, start_ns: int, end_ns: int, sequence: int, stopped: bool = False, name: str = "x",
+           part: int = 0) -> dict:
     return {"instance": "player-1", "sequence": sequence, "span": {"start_ns": start_ns, "end_ns": end_ns},
-            "playback": {"text": name, "attributes": {"item": float(item), "stopped": stopped}}}
+            "playback": {"text": name, "attributes": {"item": float(item), "part": float(part), "stopped": stopped}}}
 
 
 def test_an_items_later_report_revises_its_span_and_the_overlap_is_the_unions_share():
-    items = played([result(1, 0, 100, 1), result(2, 100, 300, 2), result(1, 0, 40, 3, stopped=True)])
-    assert [(p.start_ns, p.end_ns, p.stopped) for p in items] == [(0, 40, True), (100, 300, False)]
+    items = played([result(1, 0, 100, 1), result(2, 100, 300, 2), result(1, 0, 40, 3, stopped=True),
+                    result(1, 120, 180, 4, part=1), result(1, 40, 40, 5, stopped=True, part=1)])
+    assert [(p.start_ns, p.end_ns, p.stopped) for p in items] == [(0, 40, True), (40, 40, True), (100, 300, False)]
     assert overlap_share(items, 0, 200) == pytest.approx((40 + 100) / 200)
     overlapping = played([result(1, 0, 100, 1), result(2, 50, 150, 2)])
     assert overlap_share(overlapping, 0, 200) == pytest.approx(150 / 200)  # counted once where they overlap
-    assert playing_at(items, 50) is None and playing_at(items, 120) is items[1]
+    assert playing_at(items, 50) is None and playing_at(items, 120) is items[2]
 
 
 def test_the_robot_is_recognised_by_overlap_and_its_own_words():
@@ -96,3 +98,25 @@ def test_the_robot_is_recognised_by_overlap_and_its_own_words():
     assert not is_robot(0.9, said, other, {})  # a person talking over it says other words
     assert not is_robot(0.3, said, asr, {})  # mostly outside what it played
     assert is_robot(0.9, said, {"vad": {"probability": 0.9}}, {})  # no text: the overlap decides
+
+
+def test_fusion_tags_an_utterance_inside_the_robots_playback_and_not_one_outside_it():
+    import itertools
+
+    from esiaf_services.orchestrator.fusion.engine import FusionEngine, StoredResult
+    from esiaf_services.orchestrator.settings import FusionSettings
+    ids = itertools.count(1)
+    engine = FusionEngine([FusionSettings(name="u", anchor="vad")], allocate_id=lambda: next(ids))
+
+    def stored(result_id: int, type_: str, start_ns: int, end_ns: int, **payload) -> StoredResult:
+        json = {"id": result_id, "instance": "player-1", "sequence": result_id, "type": type_,
+                "span": {"start_ns": start_ns, "end_ns": end_ns}, **payload}
+        return StoredResult(id=result_id, component=type_, type=type_, stream_id="s", start_ns=start_ns,
+                            end_ns=end_ns, json=json)
+    report = result(1, 1000, 3000, 1)["playback"]
+    assert engine.on_result(stored(1, "playback", 1000, 3000, playback=report), 0) == []  # fuses nothing
+    assert engine.playing_at("s", 2000) is not None and engine.playing_at("s", 3500) is None
+    echo, = engine.on_result(stored(2, "vad", 1200, 2800, vad={"probability": 0.9}), 0)
+    person, = engine.on_result(stored(3, "vad", 2500, 4500, vad={"probability": 0.9}), 0)
+    assert (echo.result.source, echo.result.playback_overlap) == ("robot", 1.0)
+    assert (person.result.source, person.result.playback_overlap) == ("person", 0.25)
