@@ -390,7 +390,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                      "with a single input only")
     run.add_argument("--chunk-ms", type=chunk_ms, help="grabber chunk length in ms (default: the grabber's chunk_ms, "
                      "50 ms; see docs/benchmarks.md)")
-    run.add_argument("--json", action="store_true", help="print each fused result as JSON")
+    run.add_argument("--json", action="store_true", help="print each fused result as JSON, and each barge_in event "
+                     "(a person starting to speak while the robot plays)")
+    run.add_argument("--include-robot", action="store_true", help="also print the robot's own voice heard back "
+                     "(fused results with source robot, left out by default)")
     run.add_argument("-v", "--verbose", action="store_true", help="log what the launcher does")
     sub.add_parser("eval", help="evaluation harnesses through the real pipeline: esiaf eval robocup --help")
     sub.add_parser("keys", help="CURVE key pairs for ZeroMQ across hosts: esiaf keys DIR --help")

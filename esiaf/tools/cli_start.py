@@ -128,8 +128,9 @@ def run(args: argparse.Namespace) -> int:
         for name, count in replicas.items():
             err(f"esiaf: {name} as {count} instances sharing the streams ({name}-1 ... {name}-{count})")
         # one stream: only its results; several: every stream's, each line told by its stream_id
-        feed_url = f"ws://{args.host}:{args.port}/ws/fused" + (f"?{urlencode({'stream': ids[0]})}" if len(ids) == 1
-                                                                else "")
+        query = {**({"stream": ids[0]} if len(ids) == 1 else {}),
+                 **({"include_robot": "true"} if args.include_robot else {})}
+        feed_url = f"ws://{args.host}:{args.port}/ws/fused" + (f"?{urlencode(query)}" if query else "")
         with FusedFeed(feed_url) as ws:
             streams = start_grabbers(args, supervisor, pipeline, ids)
             err(f"esiaf: orchestrator at {url} (API docs: {url}/docs; token in {shown_path(workdir / 'token')}); "
