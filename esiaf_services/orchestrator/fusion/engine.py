@@ -317,13 +317,12 @@ class FusionEngine:
         return None if index is None else playing_at(played(r.json for r in index.overlapping(capture_ns, capture_ns)),
                                                      capture_ns)
 
-    def direction(self, stream_id: str, start_ns: int, end_ns: int) -> float | None:
-        """The talker's azimuth the localiser heard within [start_ns, end_ns], if it heard one."""
+    def talker(self, stream_id: str, start_ns: int, end_ns: int) -> dict[str, Any] | None:
+        """The ssl aggregate of what the localiser heard within [start_ns, end_ns], if it heard anything."""
         index = self._memory(stream_id).index.get("ssl")
         if index is None:
             return None
-        ssl = ssl_aggregate([r.json for r in index.overlapping(start_ns, end_ns)], (start_ns, end_ns))
-        return None if ssl is None or ssl.get("background") else float(ssl["azimuth_deg"])
+        return ssl_aggregate([r.json for r in index.overlapping(start_ns, end_ns)], (start_ns, end_ns))
 
     # restoring after a restart (results first, then fused results, then open fusions)
     def restore_result(self, result: StoredResult) -> None:
@@ -466,12 +465,13 @@ class FusionEngine:
         index = memory.index.get(PLAYBACK)
         items = played(r.json for r in index.overlapping(*window)) if index is not None else []
         share = round(overlap_share(items, *window), 4)
-        robot = is_robot(share, items, fusion.anchor.json, results)
+        fused_aggregates = aggregates(results, window)
+        robot = is_robot(share, items, fusion.anchor.json, results, fused_aggregates.get("ssl"))
         # model_construct: every value is the engine's own (results as the codec checked them on arrival)
         result = FusedResult.model_construct(
             id=fusion.id, revision=fusion.revision, fusion=fusion.settings.name,
             stream_id=fusion.anchor.stream_id, anchor=fusion.anchor.json, results=results,
-            aggregates=aggregates(results, window), completion=cast(Completion, fusion.completion),
+            aggregates=fused_aggregates, completion=cast(Completion, fusion.completion),
             missing_components=[m.component for m in missing], missing=missing, published_ns=published_ns,
             playback_overlap=share, source="robot" if robot else "person")
         return Publication(result=result, start_ns=window[0], end_ns=window[1],

@@ -16,7 +16,7 @@ from typing import Any
 
 from ..fusion.engine import FusionEngine, Publication, StoredResult
 from ..fusion.orphans import Orphans
-from ..fusion.playback import SPEECH_START, Played
+from ..fusion.playback import SELF, SPEECH_START, Played
 from ..registry.components import Component, Registry
 from ..registry.streams import StreamEnds
 from ..store.database import Store, StoreUnavailable
@@ -287,12 +287,17 @@ class Ingest:
         return outgoing
 
     def _barge_in(self, speech_start: StoredResult) -> list[Outgoing]:
-        """A vad's speech start (span: onset, decision): a barge-in if the stream's robot was playing then."""
+        """A vad's speech start (span: onset, decision): a barge-in if the stream's robot was playing then,
+        unless the localiser heard it come from the robot's own loudspeaker (ssl's ``self``)."""
         onset_ns = speech_start.start_ns
         item = self.engine.playing_at(speech_start.stream_id, onset_ns)
         if item is None or self.on_barge_in is None:
             return []
-        direction = self.engine.direction(speech_start.stream_id, onset_ns, max(speech_start.end_ns, onset_ns + 1))
+        talker = self.engine.talker(speech_start.stream_id, onset_ns, max(speech_start.end_ns, onset_ns + 1))
+        if talker is not None and talker.get("source_id") == SELF:
+            self.counters["barge_ins_from_self"] += 1
+            return []
+        direction = None if talker is None or talker.get("background") else float(talker["azimuth_deg"])
         return [self.on_barge_in(speech_start.stream_id, onset_ns, item, direction)]
 
     def _store_fused(self, fused: Publication) -> Outgoing:
