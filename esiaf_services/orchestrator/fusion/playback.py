@@ -13,9 +13,12 @@ result of a stream whose robot played during its span (docs/protocol.md, "Fused 
   evidence there is does not speak for a person: the recognised text, if there is one and the robot said
   a text, is similar to it (at least ``ROBOT_TEXT_SIMILARITY`` of its words are the robot's, in the robot's
   order: :func:`text_similarity`). A person who
-  talks over the robot says other words: ``person``. Without a recognised text (no asr in the fusion, or a
-  played sound file), the overlap alone decides. The localiser's direction is not used yet: it does not
-  mark the robot's loudspeaker.
+  talks over the robot says other words: ``person``. Where the localiser marks the robot's loudspeaker
+  (ssl's ``self_azimuth_deg``: directions with ``source_id`` ``self``) and its directions within the
+  window place the talker on another track that is not background, that is a person too. Without a
+  recognised text (no asr in the fusion, nothing recognised, or a sound file played without a
+  transcript) and without
+  the localiser's word, the overlap alone decides.
 """
 from __future__ import annotations
 
@@ -28,10 +31,11 @@ from esiaf.results import PLAYBACK, SPEECH_START
 
 from .aggregate import overlap_ns
 
-__all__ = ["PLAYBACK", "SPEECH_START", "Played", "is_robot", "overlap_share", "played", "playing_at"]
+__all__ = ["PLAYBACK", "SELF", "SPEECH_START", "Played", "is_robot", "overlap_share", "played", "playing_at"]
 ROBOT_OVERLAP = 0.5
 ROBOT_TEXT_SIMILARITY = 0.5
 SAY_PREFIX = "say: "  # a player's name for a sentence it says
+SELF = "self"  # the ssl service's source id of the robot's own loudspeaker (its self_azimuth_deg setting)
 
 
 @dataclass(frozen=True)
@@ -107,20 +111,26 @@ def text_similarity(heard: str, said: str) -> float:
 
 
 def _heard_text(results: dict[str, list[dict[str, Any]]], anchor: dict[str, Any]) -> str | None:
-    """The best hypothesis's words of the utterance (the anchor's, or its speech results'), or None."""
+    """The best hypothesis's words of the utterance (the anchor's, or its speech results'), or None where
+    nothing was recognised (no hypothesis, or an empty one: out of a closed set)."""
     for result in [anchor, *results.get("speech", [])]:
         hypotheses = (result.get("speech") or {}).get("hypotheses") or []
         if hypotheses:
             best = hypotheses[0]
-            return str(best.get("raw_text") or best.get("text") or "")
+            return str(best.get("raw_text") or best.get("text") or "") or None
     return None
 
 
 def is_robot(share: float, items: list[Played], anchor: dict[str, Any],
-             results: dict[str, list[dict[str, Any]]]) -> bool:
-    """The module's rule: the utterance is the robot's own voice."""
+             results: dict[str, list[dict[str, Any]]], ssl: dict[str, Any] | None = None) -> bool:
+    """The module's rule: the utterance is the robot's own voice. ``ssl``: the fused result's ssl aggregate."""
     if share < ROBOT_OVERLAP:
         return False
     said = " ".join(p.text for p in items if p.text)
     heard = _heard_text(results, anchor)
-    return heard is None or not said or text_similarity(heard, said) >= ROBOT_TEXT_SIMILARITY
+    if heard is not None and said and text_similarity(heard, said) < ROBOT_TEXT_SIMILARITY:
+        return False
+    # the localiser marks the robot's loudspeaker (self) and placed the talker elsewhere: a person
+    marks_self = any(d.get("source_id") == SELF for r in results.get("ssl", [])
+                     for d in (r.get("ssl") or {}).get("directions", []))
+    return not (marks_self and ssl is not None and ssl.get("source_id") != SELF and not ssl.get("background"))

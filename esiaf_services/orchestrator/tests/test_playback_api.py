@@ -120,3 +120,22 @@ def test_fusion_tags_an_utterance_inside_the_robots_playback_and_not_one_outside
     person, = engine.on_result(stored(3, "vad", 2500, 4500, vad={"probability": 0.9}), 0)
     assert (echo.result.source, echo.result.playback_overlap) == ("robot", 1.0)
     assert (person.result.source, person.result.playback_overlap) == ("person", 0.25)
+
+
+def test_the_localiser_speaks_for_a_person_only_where_it_marks_the_robots_loudspeaker():
+    said = played([result(1, 0, 100, 1)])  # a sound file: no text to compare
+    vad = {"vad": {"probability": 0.9}}
+
+    def ssl(*source_ids: str) -> dict:
+        return {"ssl": [{"ssl": {"directions": [{"source_id": s, "azimuth_deg": 0.0} for s in source_ids]}}]}
+    elsewhere = {"source_id": "s2", "background": False}
+    assert not is_robot(0.9, said, vad, ssl("self", "s2"), elsewhere)  # the talker is not at its loudspeaker
+    assert is_robot(0.9, said, vad, ssl("self"), {"source_id": "self", "background": True})
+    assert is_robot(0.9, said, vad, ssl("s2"), elsewhere)  # no loudspeaker marked: the overlap decides
+
+
+def test_an_utterance_with_nothing_recognised_inside_the_robots_speech_is_the_robots():
+    said = played([result(1, 0, 100, 1, name="say: The kitchen is on your left.")])
+    out_of_set = {"speech": {"hypotheses": [{"text": "", "raw_text": "", "probability": 0.1, "words": []}]}}
+    assert is_robot(0.9, said, out_of_set, {})
+    assert not is_robot(0.4, said, out_of_set, {})
