@@ -373,7 +373,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                      "of the microphones before anything hears them")
     run.add_argument("--playback", type=Path, metavar="ROBOT.wav", help="with one --input: what the robot said, on "
                      "the input's timeline: the player plays it in step with the input (to loudspeaker.wav in the "
-                     "workdir) and the echo canceller takes it out of the microphones")
+                     "workdir) and the echo canceller takes it out of the microphones; ROBOT.json beside it, a list of "
+                     "{start_s, text}, says what the robot says (fusion tells the robot's voice from a person's by it)")
     run.add_argument("--grammar", help="JSGF grammar file for the recogniser, or 'robocup' (with --asr whisper: "
                      "the allowed sentences its transcripts are matched to)")
     run.add_argument("--vad", choices=("silero", "energy"), help="the voice activity detector: silero (default, "

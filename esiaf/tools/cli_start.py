@@ -257,6 +257,9 @@ def start_echo_cancelling(args: argparse.Namespace, supervisor: Supervisor, serv
                       "ESIAF_PLAYER_OUTPUT": str(supervisor.workdir / "loudspeaker.wav"),
                       "ESIAF_PLAYER_WAIT_TIMEOUT_S": str(10 * START_TIMEOUT_S),
                       "ESIAF_PLAYER_FAST": "true" if args.fast else "false"}
+        transcript = args.playback.with_suffix(".json")  # what the robot says in it: fusion tells its voice by it
+        if transcript.is_file():
+            player_env["ESIAF_PLAYER_TRANSCRIPT"] = str(transcript)
         aec_env |= {"ESIAF_AEC_EXPECT_REFERENCE": "true", "ESIAF_AEC_HOLD_MS": str(10 * START_TIMEOUT_S * 1000)}
     else:
         player_env = {"ESIAF_PLAYER_DEVICE": args.player}

@@ -33,11 +33,12 @@ has the reference before the echo.
 """
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
@@ -61,6 +62,9 @@ class PlayerSettings(ComponentSettings):
     device: str = ""  # ALSA playback device (aplay -L)
     output: str = ""  # ... or a file or FIFO to write to (raw s16le; WAV if it ends in .wav)
     input: str = ""  # a sound file to play at start
+    # ... what the robot says in it: a JSON list of {"start_s", "text"} on its timeline (esiaf run --playback
+    # takes ROBOT.json beside ROBOT.wav); each part that sounds is reported as saying the texts starting in it
+    transcript: str = ""
     say: str = ""  # a sentence to say at start (after input)
     voice: str = "slt"  # flite voice
     topic: str = "player/audio"
@@ -79,6 +83,7 @@ class PlayerSettings(ComponentSettings):
 class Item:
     name: str
     samples: np.ndarray  # float, full scale 1, at the player's rate
+    said: list[tuple[float, str]] = field(default_factory=list)  # its transcript: (start_s, text), by start
 
 
 class Player(Component):
@@ -90,7 +95,8 @@ class Player(Component):
     settings: PlayerSettings  # an instance of Settings: its fields, for type checkers
     options: ClassVar[dict[str, str]] = {"device": "ALSA playback device (see aplay -L)",
                                          "output": "file or FIFO to play to instead of a device",
-                                         "input": "sound file to play at start", "say": "sentence to say at start"}
+                                         "input": "sound file to play at start", "say": "sentence to say at start",
+                                         "transcript": "what the input says: JSON [{start_s, text}]"}
 
     def __init__(self, settings: PlayerSettings):
         super().__init__(settings)
@@ -111,8 +117,11 @@ class Player(Component):
         self.played = 0  # items played to their end or stopped
         self.items = 0  # items started: each playback result names its item's number
         self._gain = 1.0  # the current item's (a duck lowers it)
+        if settings.transcript and not settings.input:
+            raise SetupError("a transcript (--transcript) says what the input file says: give --input too")
         if settings.input:  # read early: a bad file fails before registration
-            self.play_file(Path(settings.input))
+            self.play_file(Path(settings.input), read_transcript(Path(settings.transcript))
+                           if settings.transcript else [])
         if settings.say:
             try:
                 self.say_text(settings.say, settings.voice)
@@ -126,12 +135,13 @@ class Player(Component):
         log.info("player ready sink=%s format=%s", s.device or s.output, self.format)
 
     # -- what to play (any thread) ------------------------------------------------------
-    def play(self, samples: np.ndarray, name: str) -> None:
-        """Queues mono float samples (full scale 1) at the player's rate."""
+    def play(self, samples: np.ndarray, name: str, said: list[tuple[float, str]] | None = None) -> None:
+        """Queues mono float samples (full scale 1) at the player's rate; ``said``: its transcript."""
         with self._lock:
-            self._queue.append(Item(name, np.clip(np.asarray(samples, dtype=np.float64), -1.0, 1.0)))
+            self._queue.append(Item(name, np.clip(np.asarray(samples, dtype=np.float64), -1.0, 1.0),
+                                    sorted(said or [])))
 
-    def play_file(self, path: Path) -> None:
+    def play_file(self, path: Path, said: list[tuple[float, str]] | None = None) -> None:
         import soundfile
         import soxr
         try:
@@ -142,7 +152,7 @@ class Player(Component):
             raise SetupError(f"{path} has {samples.shape[1]} channels; the player plays mono")
         mono = samples[:, 0]
         self.play(soxr.resample(mono, rate, self.format.sample_rate_hz) if rate != self.format.sample_rate_hz
-                  else mono, path.name)
+                  else mono, path.name, said)
 
     def say_text(self, text: str, voice: str = "slt") -> None:
         """Queues ``text`` spoken by flite; SpeechError if it cannot be."""
@@ -235,8 +245,9 @@ class Player(Component):
         self.info["playing"] = {"name": item.name, "item": number, "start_ns": origin_ns,
                                 "end_ns": clock.time_at(len(pcm))}
         parts = sounding(pcm, self.format.sample_rate_hz)
+        names = part_names(item, parts, self.format.sample_rate_hz)
         for part, (first, last) in enumerate(parts):
-            self._report(number, part, item.name, clock.time_at(first), clock.time_at(last), stopped=False)
+            self._report(number, part, names[part], clock.time_at(first), clock.time_at(last), stopped=False)
         self.context.poke()  # a heartbeat with playing
         log.info("playing name=%r seconds=%.2f start_ns=%d", item.name, len(pcm) / self.format.sample_rate_hz,
                  origin_ns)
@@ -247,7 +258,7 @@ class Player(Component):
                 self.publish(self.settings.topic, b"", now_ns, now_ns, segmentation_ended=True)
                 for part, (first, last) in enumerate(parts):
                     if last > clock.frames:  # not played to its end: its real end, or none if not begun
-                        self._report(number, part, item.name, clock.time_at(min(first, clock.frames)), now_ns,
+                        self._report(number, part, names[part], clock.time_at(min(first, clock.frames)), now_ns,
                                      stopped=True)
                 log.info("stopped name=%r after %.2f s", item.name, clock.frames / self.format.sample_rate_hz)
                 break
@@ -272,6 +283,27 @@ class Player(Component):
     def _report(self, number: int, part: int, name: str, start_ns: int, end_ns: int, *, stopped: bool) -> None:
         """A playback result: when a part of an item plays (or played, if ``stopped``)."""
         self.emit(PLAYBACK, (start_ns, end_ns), generic=playback(name, number, stopped, part))
+
+
+def read_transcript(path: Path) -> list[tuple[float, str]]:
+    """A transcript file: a JSON list of {"start_s": number, "text": string}; SetupError if it is not one."""
+    try:
+        entries = json.loads(path.read_text())
+        return [(float(e["start_s"]), str(e["text"])) for e in entries]
+    except OSError as exc:
+        raise SetupError(f"cannot read the transcript {path}: {exc.strerror}") from None
+    except (ValueError, TypeError, KeyError) as exc:
+        raise SetupError(f"{path} is not a transcript (a JSON list of {{\"start_s\", \"text\"}}): {exc}") from None
+
+
+def part_names(item: Item, parts: list[tuple[int, int]], rate_hz: int) -> list[str]:
+    """Each part's name: "say: " and the texts of the item's transcript starting in it (from 0.3 s before it
+    sounds), or the item's name."""
+    names = []
+    for first, last in parts:
+        texts = [text for start_s, text in item.said if first / rate_hz - 0.3 <= start_s < last / rate_hz]
+        names.append(f"say: {' '.join(texts)}" if texts else item.name)
+    return names
 
 
 def sounding(pcm: np.ndarray, rate_hz: int) -> list[tuple[int, int]]:

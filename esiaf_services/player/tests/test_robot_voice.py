@@ -185,3 +185,19 @@ def test_an_item_is_reported_by_the_parts_that_sound():
     pcm[4 * RATE:round(4.2 * RATE)] = 3000
     assert sounding(pcm, RATE) == [(RATE, round(2.8 * RATE)), (4 * RATE, round(4.2 * RATE))]
     assert sounding(np.zeros(RATE, dtype=np.int16), RATE) == []
+
+
+def test_a_transcript_names_the_parts_of_a_recorded_robot_voice(tmp_path):
+    from esiaf import SetupError
+    from esiaf_services.player.service import Item, part_names, read_transcript
+    transcript = tmp_path / "robot.json"
+    transcript.write_text(json.dumps([{"start_s": 1.0, "text": "Hello."}, {"start_s": 4.0, "text": "Goodbye."}]))
+    item = Item("robot.wav", np.zeros(6 * RATE), read_transcript(transcript))
+    parts = [(RATE + RATE // 10, 2 * RATE), (3 * RATE, 3 * RATE + RATE // 2), (4 * RATE, 5 * RATE)]
+    assert part_names(item, parts, RATE) == ["say: Hello.", "robot.wav", "say: Goodbye."]
+    for bad in ('{"start_s": 1}', '[{"text": "no start"}]', "not json"):
+        transcript.write_text(bad)
+        with pytest.raises(SetupError, match="not a transcript"):
+            read_transcript(transcript)
+    with pytest.raises(SetupError, match="cannot read the transcript"):
+        read_transcript(tmp_path / "missing.json")
