@@ -201,3 +201,38 @@ def test_a_transcript_names_the_parts_of_a_recorded_robot_voice(tmp_path):
             read_transcript(transcript)
     with pytest.raises(SetupError, match="cannot read the transcript"):
         read_transcript(tmp_path / "missing.json")
+
+
+class Talker(Component):
+    """Says that speech began, as a vad does (a speech_start result, esiaf.results), when told to."""
+
+    service = "talker"
+    kind = "speech_start"
+
+    def produce(self):
+        while not self.stopping:
+            self.sleep_until(time.monotonic() + 0.02)
+
+
+def test_under_duck_the_rest_of_the_item_plays_lower(orchestrator, tmp_path):
+    from esiaf.results import SPEECH_START, speech_start
+    out = tmp_path / "loudspeaker.raw"
+    robot = player(orchestrator, out, "robot")
+    assert orchestrator.http.put("/streams/robot/barge-in", json={"policy": "duck"}).json() == {"policy": "duck"}
+    talker = start(Talker(Talker.Settings(name="talker", orchestrator_url=orchestrator.url, stream_id="robot")))
+    poll(lambda: talker.control is not None and talker.control.registration is not None, timeout_s=20)
+    with connect(f"{orchestrator.ws_url}/ws/fused?stream=robot") as ws:
+        assert orchestrator.http.post("/streams/robot/play", content=wav(tone(4.0, 0.5))).status_code == 202
+        playing = poll(lambda: orchestrator.http.get("/streams/robot/playing").json()["playing"], timeout_s=20)
+        onset_ns = playing["start_ns"] + 10**9  # a person speaks 1 s into it
+        poll(lambda: time.time_ns() > onset_ns + 200_000_000, timeout_s=5)
+        talker.emit(SPEECH_START, (onset_ns, onset_ns + 150_000_000), generic=speech_start(0.9))
+        event = json.loads(ws.recv(timeout=10))
+    assert event["type"] == "barge_in" and event["policy"] == "duck" and event["capture_ns"] == onset_ns
+    poll(lambda: robot.played == 1, timeout_s=20)  # played to its end, not stopped
+    played = np.frombuffer(out.read_bytes(), dtype="<i2").astype(float) / 32768
+    assert len(played) == 4 * RATE
+    assert np.max(np.abs(played[:RATE])) == pytest.approx(0.5, abs=0.01)
+    assert np.max(np.abs(played[3 * RATE:])) == pytest.approx(0.5 * 10 ** (-15 / 20), abs=0.01)  # duck_db 15
+    talker.stop()
+    robot.stop()
