@@ -178,7 +178,11 @@ def start_orchestrator(args: argparse.Namespace, supervisor: Supervisor, client:
                                                      "--db", str(workdir / "esiaf.db")]
                                     + (["--recover"] if args.recover else []),
                                     env={"ESIAF_ORCHESTRATOR_CONTROL_PORT": str(ports["control"]),
-                                         "ESIAF_ORCHESTRATOR_RESULTS_PORT": str(ports["results"])})
+                                         "ESIAF_ORCHESTRATOR_RESULTS_PORT": str(ports["results"]),
+                                         # a recorded robot voice: its echo is in the recording whatever a
+                                         # barge-in does, and a stopped reference would leave it uncancelled
+                                         **({"ESIAF_ORCHESTRATOR_BARGE_IN_POLICY": "ignore"}
+                                            if args.playback is not None else {})})
     wait_until(client.healthy, supervisor, "the orchestrator to answer", START_TIMEOUT_S, orchestrator)
     for line in client.recovered() if args.recover else []:
         err(f"esiaf: --recover: {line}")
