@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Request
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from esiaf.control_messages import MAX_PCM_BYTES, MAX_TEXT, BargeInPolicy, Play, PlayerOrder, Say, StopPlaying
 
@@ -124,7 +124,10 @@ async def playing(stream: str, core: Orchestrator = Depends(get_core)) -> Playin
         player, item = core.players.playing(stream)
     except NoPlayer as exc:
         raise HTTPException(exc.status, str(exc)) from None
-    now = PlayingItem.model_validate(item) if item else None
+    try:  # a heartbeat's info is the player's word: one that is not an item reads as nothing playing
+        now = PlayingItem.model_validate(item) if item else None
+    except ValidationError:
+        now = None
     return Playing(stream_id=stream, player=player.component_id, playing=now, barge_in=core.players.policy(stream))
 
 

@@ -64,7 +64,8 @@ class Players:
     def playing(self, stream_id: str) -> tuple[Component, dict[str, Any] | None]:
         """The stream's player and what it plays now (its last heartbeat's ``playing``), if anything."""
         player = self.player_of(stream_id)
-        playing = ((player.stats or {}).get("info") or {}).get("playing")
+        info = (player.stats or {}).get("info")
+        playing = info.get("playing") if isinstance(info, dict) else None
         return player, playing if isinstance(playing, dict) else None
 
     def policy(self, stream_id: str) -> BargeInPolicy:
