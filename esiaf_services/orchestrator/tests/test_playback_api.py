@@ -9,11 +9,19 @@ import numpy as np
 import pytest
 import soundfile
 
-from esiaf.tools.testing import poll
+from esiaf.tools.testing import Orchestrator, poll
 from esiaf_services.orchestrator.fusion.playback import is_robot, overlap_share, played, playing_at
 from esiaf_services.player.service import Player
 
 RATE = 16000
+
+
+@pytest.fixture(scope="module")
+def api(tmp_path_factory):
+    """One orchestrator for the refusals (they change nothing; no player is ever registered on it)."""
+    running = Orchestrator(tmp_path_factory.mktemp("api"))
+    yield running
+    running.close()
 
 
 def wav(samples: np.ndarray, rate: int = RATE, subtype: str = "PCM_16", fmt: str = "WAV") -> bytes:
@@ -32,8 +40,8 @@ def wav(samples: np.ndarray, rate: int = RATE, subtype: str = "PCM_16", fmt: str
     (wav(np.array([0.1, np.inf], dtype=np.float32), subtype="FLOAT"), 422, "not finite"),
     (wav(np.zeros(RATE) + 0.1), 404, "no player plays stream 'robot'"),  # a good WAV, but no player
 ])
-def test_play_refuses_what_is_not_a_playable_wav(orchestrator, body, status, reason):
-    answer = orchestrator.http.post("/streams/robot/play", content=body)
+def test_play_refuses_what_is_not_a_playable_wav(api, body, status, reason):
+    answer = api.http.post("/streams/robot/play", content=body)
     assert answer.status_code == status and reason in answer.json()["detail"], answer.text
 
 
@@ -41,25 +49,25 @@ def test_play_refuses_what_is_not_a_playable_wav(orchestrator, body, status, rea
     ({"text": ""}, "text"), ({}, "text"), ({"text": "x" * 2001}, "text"), ({"text": 5}, "text"),
     ({"text": "hi", "voice": "slt; rm -rf /"}, "voice"), ({"text": "hi", "speed": 2}, "speed"),
 ])
-def test_say_refuses_a_bad_request_by_field(orchestrator, body, field):
-    answer = orchestrator.http.post("/streams/robot/say", json=body)
+def test_say_refuses_a_bad_request_by_field(api, body, field):
+    answer = api.http.post("/streams/robot/say", json=body)
     assert answer.status_code == 422 and field in answer.text
 
 
-def test_orders_for_a_stream_without_a_player_are_404_with_the_reason(orchestrator):
+def test_orders_for_a_stream_without_a_player_are_404_with_the_reason(api):
     for method, path, kwargs in [("POST", "/streams/robot/say", {"json": {"text": "Hello."}}),
                                  ("DELETE", "/streams/robot/playing", {}), ("GET", "/streams/robot/playing", {})]:
-        answer = orchestrator.http.request(method, path, **kwargs)
+        answer = api.http.request(method, path, **kwargs)
         assert answer.status_code == 404 and "no player plays stream 'robot'" in answer.json()["detail"]
 
 
-def test_the_barge_in_policy_is_per_stream_and_checked(orchestrator):
-    assert orchestrator.http.get("/streams/a/barge-in").json() == {"policy": "stop"}  # the setting's default
-    assert orchestrator.http.put("/streams/a/barge-in", json={"policy": "duck"}).status_code == 200
-    assert orchestrator.http.get("/streams/a/barge-in").json() == {"policy": "duck"}
-    assert orchestrator.http.get("/streams/b/barge-in").json() == {"policy": "stop"}
+def test_the_barge_in_policy_is_per_stream_and_checked(api):
+    assert api.http.get("/streams/a/barge-in").json() == {"policy": "stop"}  # the setting's default
+    assert api.http.put("/streams/a/barge-in", json={"policy": "duck"}).status_code == 200
+    assert api.http.get("/streams/a/barge-in").json() == {"policy": "duck"}
+    assert api.http.get("/streams/b/barge-in").json() == {"policy": "stop"}
     for bad in ({"policy": "shout"}, {}, {"policy": "stop", "extra": 1}):
-        assert orchestrator.http.put("/streams/a/barge-in", json=bad).status_code == 422
+        assert api.http.put("/streams/a/barge-in", json=bad).status_code == 422
 
 
 def test_a_wav_longer_than_the_cap_at_the_players_rate_is_413(orchestrator, tmp_path):
