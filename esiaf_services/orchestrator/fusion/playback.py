@@ -10,15 +10,19 @@ result of a stream whose robot played during its span (docs/protocol.md, "Fused 
 
 - ``playback_overlap``: the share of the anchor's span that overlaps what the robot played (0..1);
 - the utterance is the robot's (``source: "robot"``) when ``playback_overlap >= ROBOT_OVERLAP`` and the
-  evidence there is does not speak for a person: the recognised text, if there is one and the robot said
-  a text, is similar to it (at least ``ROBOT_TEXT_SIMILARITY`` of its words are the robot's, in the robot's
-  order: :func:`text_similarity`). A person who
-  talks over the robot says other words: ``person``. Where the localiser marks the robot's loudspeaker
-  (ssl's ``self_azimuth_deg``: directions with ``source_id`` ``self``) and its directions within the
-  window place the talker on another track that is not background, that is a person too. Without a
-  recognised text (no asr in the fusion, nothing recognised, or a sound file played without a
-  transcript) and without
-  the localiser's word, the overlap alone decides.
+  evidence there is does not speak for a person:
+
+  - words were recognised (a hypothesis that is not empty) and the robot's words are known (a ``say:``
+    item, or a transcript): the heard words must be at least ``ROBOT_TEXT_SIMILARITY`` the robot's, in
+    its order (:func:`text_similarity`); a person who talks over the robot says other words;
+  - words were recognised and the robot's are not known (a sound file played without a transcript):
+    nothing tells them from the robot's, and the words are taken for a person's (a question is not
+    lost; the robot's echo recognised as words is shown, so give the robot's words);
+  - nothing was recognised (no asr in the fusion, or an empty hypothesis: out of a closed set): the
+    overlap decides;
+  - and where the localiser marks the robot's loudspeaker (ssl's ``self_azimuth_deg``: directions with
+    ``source_id`` ``self``) and places the talker on another track that is not background, that is a
+    person too.
 """
 from __future__ import annotations
 
@@ -128,7 +132,7 @@ def is_robot(share: float, items: list[Played], anchor: dict[str, Any],
         return False
     said = " ".join(p.text for p in items if p.text)
     heard = _heard_text(results, anchor)
-    if heard is not None and said and text_similarity(heard, said) < ROBOT_TEXT_SIMILARITY:
+    if heard is not None and (not said or text_similarity(heard, said) < ROBOT_TEXT_SIMILARITY):
         return False
     # the localiser marks the robot's loudspeaker (self) and placed the talker elsewhere: a person
     marks_self = any(d.get("source_id") == SELF for r in results.get("ssl", [])

@@ -106,6 +106,9 @@ def test_the_robot_is_recognised_by_overlap_and_its_own_words():
     assert not is_robot(0.9, said, other, {})  # a person talking over it says other words
     assert not is_robot(0.3, said, asr, {})  # mostly outside what it played
     assert is_robot(0.9, said, {"vad": {"probability": 0.9}}, {})  # no text: the overlap decides
+    a_file = played([result(1, 0, 100, 1, name="answer.wav")])  # the robot's words not known
+    assert not is_robot(0.9, a_file, asr, {})  # words were heard: a person's, not lost
+    assert is_robot(0.9, a_file, {"vad": {"probability": 0.9}}, {})
 
 
 def test_fusion_tags_an_utterance_inside_the_robots_playback_and_not_one_outside_it():
