@@ -7,7 +7,8 @@ and carries the registration's ``control_key``, every ``heartbeat_interval_s`` (
 :meth:`ControlClient.poke` is called, and on a connection made again); once idle for
 ``idle_heartbeat_interval_s`` it beats that often instead, until :meth:`ControlClient.busy` says
 audio or results moved. It passes every state message the orchestrator pushes or answers with
-(peers and formats) to the data thread through an inproc PAIR socket. Each heartbeat gives back the
+(peers and formats), and every command it sends (a player's orders), to the data thread through an
+inproc PAIR socket. Each heartbeat gives back the
 number of the last state applied; while it is current the answer is a short ``ack``, and the data
 thread sleeps on. When the
 orchestrator answers ``unknown`` (it restarted, or thought us dead) the thread
@@ -40,6 +41,7 @@ from esiaf.clock import ClockEstimate
 from esiaf.control_messages import (
     Ack,
     BeatNow,
+    Command,
     Fatal,
     Heartbeat,
     LocalState,
@@ -383,6 +385,8 @@ class ControlClient:
                 pace.next_beat = pace.last_heard
         elif isinstance(message, BeatNow):  # the orchestrator saw a connection of ours close
             pace.beat_now = True
+        elif isinstance(message, Command):  # an order: the data thread carries it out, in order with its work
+            state_out.send(encode(message))
         elif isinstance(message, Unknown):
             log.warning("orchestrator does not know component_id=%s: registering again", self.component_id)
             return self._renew(dealer, state_out, pace)

@@ -5,9 +5,10 @@ Each message is one JSON object in one ZeroMQ frame, told apart by its ``type``;
 model and each direction a discriminated union on ``type``:
 
 - component → orchestrator (DEALER → ROUTER): :class:`Heartbeat`;
-- orchestrator → component: :class:`State`, :class:`Ack`, :class:`Unknown`, :class:`BeatNow`;
+- orchestrator → component: :class:`State`, :class:`Ack`, :class:`Unknown`, :class:`BeatNow`, and
+  :class:`Command` (an order for one component, e.g. a player's: say, play, stop, barge-in);
 - inside a component, its heartbeat thread → its data thread (an inproc PAIR socket): :class:`LocalState`,
-  :class:`Fatal`.
+  :class:`Fatal`, and the :class:`Command` as it came.
 
 Why pydantic and JSON, not a protobuf ``oneof``: the bytes on the wire stay what they were (JSON, the same
 fields), so an SDK and an orchestrator of different releases still understand each other; a heartbeat's
@@ -38,15 +39,18 @@ from pydantic import (
 )
 from typing_extensions import TypedDict
 
-__all__ = ["MAX_MESSAGE_BYTES", "Ack", "BeatNow", "ClockReport", "Fatal", "Heartbeat", "LocalState",
-           "MessageError", "State", "ToComponent", "ToDataThread", "ToOrchestrator", "Unknown",
-           "Unrecognised", "WireFormat", "encode", "parse_to_component", "parse_to_data_thread",
-           "parse_to_orchestrator"]
+__all__ = ["MAX_MESSAGE_BYTES", "MAX_PCM_BYTES", "Ack", "BargeIn", "BargeInPolicy", "BeatNow", "ClockReport",
+           "Command", "Fatal", "Heartbeat", "LocalState", "MessageError", "Play", "PlayerOrder", "Say", "State",
+           "StopPlaying", "ToComponent", "ToDataThread", "ToOrchestrator", "Unknown", "Unrecognised", "WireFormat",
+           "encode", "parse_to_component", "parse_to_data_thread", "parse_to_orchestrator"]
 
 MAX_MESSAGE_BYTES = 1 << 20  # a control message longer than this is refused unread (a heartbeat is ~1 KB)
 MAX_TIME_NS = 2**62  # a time stamp beyond 2116 is not believed (sums of them never overflow int64)
 MAX_CLOCK_OFFSET_NS = 366 * 86_400 * 10**9  # a clock further off than a year is not believed
 MAX_NAME = 1024  # component ids, keys, endpoints, types: longer is not one of ours
+# a Play order's PCM (16-bit mono at the player's rate): base64 in JSON, it stays under MAX_MESSAGE_BYTES
+MAX_PCM_BYTES = 700_000  # 21.8 s at 16 kHz, 7.3 s at 48 kHz
+MAX_TEXT = 2000  # a Say order's text
 
 T = TypeVar("T")
 
@@ -180,7 +184,59 @@ class BeatNow(Message):
     type: Literal["beat_now"] = "beat_now"
 
 
-ToComponent = Annotated[State | Ack | Unknown | BeatNow, Field(discriminator="type")]
+# orders for one component (only a player takes these; any other logs and ignores them)
+
+BargeInPolicy = Literal["stop", "duck", "ignore"]
+
+
+class Say(Message):
+    """Say ``text`` with the TTS ``voice`` (queued after what is already playing)."""
+
+    action: Literal["say"] = "say"
+    text: Annotated[str, Field(min_length=1, max_length=MAX_TEXT)]
+    voice: Annotated[str, Field(max_length=64)] = "slt"
+
+
+class Play(Message):
+    """Play these samples (queued after what is already playing)."""
+
+    model_config = ConfigDict(extra="ignore", frozen=True, ser_json_bytes="base64", val_json_bytes="base64")
+
+    action: Literal["play"] = "play"
+    name: Annotated[str, Field(max_length=256)] = Field(description="what to call it (playback results, GET "
+                                                        "/streams/{stream}/playing)")
+    pcm: Annotated[bytes, Field(max_length=MAX_PCM_BYTES)] = Field(
+        description="16-bit little-endian mono PCM at the player's rate (base64 in JSON)")
+
+
+class StopPlaying(Message):
+    """Stop the item playing now and forget the queued ones."""
+
+    action: Literal["stop"] = "stop"
+
+
+class BargeIn(Message):
+    """A person started speaking over the robot at ``capture_ns``: apply ``policy`` (stop: as StopPlaying;
+    duck: play the rest of the current item lower; ignore: nothing)."""
+
+    action: Literal["barge_in"] = "barge_in"
+    policy: BargeInPolicy
+    capture_ns: TimeNs
+
+
+PlayerOrder = Annotated[Say | Play | StopPlaying | BargeIn, Field(discriminator="action")]
+
+
+class Command(Message):
+    """An order for the component, for one of its streams: sent to the connection its key last came on
+    (dropped if none); its effect shows in what it reports (a player's playback results and heartbeat)."""
+
+    type: Literal["command"] = "command"
+    stream_id: Name
+    order: PlayerOrder
+
+
+ToComponent = Annotated[State | Ack | Unknown | BeatNow | Command, Field(discriminator="type")]
 
 
 # inside a component: heartbeat thread -> data thread (inproc)
@@ -206,11 +262,11 @@ class Fatal(Message):
     error: str = Field(description="why, one line")
 
 
-ToDataThread = Annotated[LocalState | Fatal, Field(discriminator="type")]
+ToDataThread = Annotated[LocalState | Fatal | Command, Field(discriminator="type")]
 
 _TO_ORCHESTRATOR: TypeAdapter[Heartbeat | Unrecognised] = TypeAdapter(ToOrchestrator)
-_TO_COMPONENT: TypeAdapter[State | Ack | Unknown | BeatNow] = TypeAdapter(ToComponent)
-_TO_DATA_THREAD: TypeAdapter[LocalState | Fatal] = TypeAdapter(ToDataThread)
+_TO_COMPONENT: TypeAdapter[State | Ack | Unknown | BeatNow | Command] = TypeAdapter(ToComponent)
+_TO_DATA_THREAD: TypeAdapter[LocalState | Fatal | Command] = TypeAdapter(ToDataThread)
 
 
 def _parse(adapter: TypeAdapter[Any], data: bytes) -> Any:
@@ -229,12 +285,12 @@ def parse_to_orchestrator(data: bytes) -> Heartbeat | Unrecognised:
     return _parse(_TO_ORCHESTRATOR, data)  # type: ignore[no-any-return]
 
 
-def parse_to_component(data: bytes) -> State | Ack | Unknown | BeatNow:
+def parse_to_component(data: bytes) -> State | Ack | Unknown | BeatNow | Command:
     """A message the orchestrator sent a component; raises :class:`MessageError`."""
     return _parse(_TO_COMPONENT, data)  # type: ignore[no-any-return]
 
 
-def parse_to_data_thread(data: bytes) -> LocalState | Fatal:
+def parse_to_data_thread(data: bytes) -> LocalState | Fatal | Command:
     """A message a component's heartbeat thread handed its data thread; raises :class:`MessageError`."""
     return _parse(_TO_DATA_THREAD, data)  # type: ignore[no-any-return]
 

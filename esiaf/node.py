@@ -43,7 +43,7 @@ from esiaf import binding, keys, per_stream, signals
 from esiaf.api_client import announce_stream
 from esiaf.audio import Audio
 from esiaf.control import ControlClient
-from esiaf.control_messages import Fatal, LocalState, parse_to_data_thread
+from esiaf.control_messages import Command, Fatal, LocalState, parse_to_data_thread
 from esiaf.formats import AudioFormat, encode
 from esiaf.links import OutputLink, OutputStats
 from esiaf.processor import Processor, SetupError
@@ -89,6 +89,7 @@ class Context:
         self.declared()
         # a hosted processor's state from the orchestrator (formats), applied on the data thread
         self._formats: queue.SimpleQueue[dict[str, Any]] = queue.SimpleQueue()
+        self._commands: queue.SimpleQueue[Command] = queue.SimpleQueue()  # a guest's, until its next message
         self._zmq: zmq.Context | None = None  # a hosted processor's: its control thread's state socket
         self._state_thread: threading.Thread | None = None
         self._transport: Transport | None = None  # hosted: the node's sockets, whose output its consumers may take
@@ -275,6 +276,16 @@ class Context:
         log.info("subscribers topic=%s count=%d", topic, stats.subscribers)
         self.poke()
 
+    def command(self, command: Command) -> None:
+        """An order from the orchestrator, to the processor's on_command (on the data thread); a handler's
+        exception is logged, as an audio handler's is."""
+        try:
+            self.processor.on_command(command)
+        except Exception:
+            if self.node is not None and self.node.strict:
+                raise
+            log.exception("on_command failed order=%s stream_id=%s", command.order.action, command.stream_id)
+
     def refuse_subscriber(self, reason: str) -> None:
         count = self.refused_subscribers[reason] = self.refused_subscribers.get(reason, 0) + 1
         if count == 1 or count % 100 == 0:
@@ -285,6 +296,8 @@ class Context:
         exception is counted and logged, and the loop goes on)."""
         while not self._formats.empty():
             self.apply_formats(self._formats.get())
+        while not self._commands.empty():
+            self.command(self._commands.get())
         received = self.receiver.receive(frames)
         if received is None:
             return  # refused (counted and logged), or a topic this processor does not take
@@ -363,6 +376,8 @@ class Context:
                 if isinstance(message, Fatal):  # the orchestrator will not have it: stop, as it would alone
                     log.error("guest %s stopping the node: %s", self.processor.service, message.error)
                     node.stop(exit_code=1)
+                elif isinstance(message, Command):
+                    self._commands.put(message)  # carried out on the data thread, at the next message
                 else:
                     self._formats.put(message.formats)  # applied on the data thread, at the next message
                     if self._transport is not None:  # who may subscribe to its outputs on the node's socket
@@ -554,7 +569,10 @@ class Node:
         """The processor whose output ``topic`` is (a hosted one's first), if any."""
         return next((c for c in [*self.contexts[1:], self.primary] if topic in c.output_stats), None)
 
-    def _apply_state(self, state: LocalState | Fatal) -> None:
+    def _apply_state(self, state: LocalState | Fatal | Command) -> None:
+        if isinstance(state, Command):
+            self.primary.command(state)
+            return
         if isinstance(state, Fatal):
             log.error("stopping: %s", state.error)
             self.stop(exit_code=1)

@@ -21,6 +21,7 @@ from typing import Any, ClassVar, Protocol
 import numpy as np
 
 from esiaf.audio import Audio
+from esiaf.control_messages import Command
 from esiaf.formats import AudioFormat
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf.results import valid_kind
@@ -124,6 +125,12 @@ class Processor:
         """Every input has ended ``stream_id``. By default, end it on every output too."""
         for topic in self.outputs:
             self._context().publish(topic, b"", audio.end_ns, audio.end_ns, stream_id=stream_id, end_of_stream=True)
+
+    def on_command(self, command: Command) -> None:
+        """An order from the orchestrator (esiaf/control_messages.py, Command: a player's say, play, stop
+        and barge-in), on the data thread between other handlers. By default it is logged and ignored."""
+        log.warning("ignored a command order=%s stream_id=%s: %s takes none", command.order.action,
+                    command.stream_id, self.service)
 
     def stream_inputs(self) -> set[str]:
         """The inputs whose end ends a stream here: every input, unless a processor says otherwise (an echo

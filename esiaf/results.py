@@ -43,6 +43,24 @@ def generic(label: str = "", probability: float = 0.0, class_probabilities: Mapp
     return payload
 
 
+# Events: kinds of their own, not built into the proto, that the SDK defines for every service and the
+# orchestrator understands (docs/protocol.md, "Results"); they say nothing of the audio's coverage.
+SPEECH_START = "speech_start"  # a vad opened a segment: span = (speech start, the capture time it decided)
+PLAYBACK = "playback"  # a player plays an item: span = when it plays (revised by a later one if stopped early)
+
+
+def speech_start(probability: float) -> pb.GenericResult:
+    """The payload of a ``speech_start`` event: the speech probability when the segment opened."""
+    return generic(probability=min(1.0, max(0.0, float(probability))))
+
+
+def playback(name: str, item: int, stopped: bool, part: int = 0) -> pb.GenericResult:
+    """The payload of a ``playback`` event: what plays (``text``), its number at the player, the part of it
+    (a stretch that sounds), and whether this report is the part's real end after a stop (it then revises
+    the part's first report)."""
+    return generic(text=name[:200], attributes={"item": item, "part": part, "stopped": stopped})
+
+
 def hypothesis(text: str, probability: float, words: Sequence[Mapping[str, Any]] = ()) -> pb.Hypothesis:
     return pb.Hypothesis(text=text, probability=probability, words=[pb.WordTiming(**w) for w in words])
 

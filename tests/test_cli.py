@@ -229,3 +229,22 @@ def test_serve_goes_on_after_a_stream_without_end_and_a_failed_grabber(monkeypat
     err = capsys.readouterr().err
     assert err.count("service grabber-2 failed\nesiaf: stream b has no more audio; still serving") == 1
     assert "no end of stream" not in err
+
+
+def test_a_barge_in_is_printed_as_json_with_the_fused_results_and_said_on_stderr_without(capsys):
+    import argparse
+    import types
+
+    from esiaf.tools import cli_follow
+    event = {"type": "barge_in", "stream_id": "s", "capture_ns": ORIGIN_NS + 2_500_000_000, "policy": "stop"}
+    for as_json in (True, False):
+        stream = cli_follow.Stream("s", types.SimpleNamespace(), "a.wav")
+        stream.origin_ns = ORIGIN_NS
+        state = cli_follow.Following(streams={"s": stream}, next_progress=0.0)
+        args = argparse.Namespace(json=as_json, serve=False, mic=None)
+        assert cli_follow.show_message(state, event, args) is None
+        out, err = capsys.readouterr()
+        if as_json:
+            assert json.loads(out) == event and stream.printed == 0  # not counted as a fused result
+        else:
+            assert out == "" and "barge-in at 2.50 s (stop)" in err

@@ -10,13 +10,19 @@ import pytest
 
 from esiaf.control_messages import (
     MAX_MESSAGE_BYTES,
+    MAX_PCM_BYTES,
     Ack,
+    BargeIn,
     BeatNow,
+    Command,
     Fatal,
     Heartbeat,
     LocalState,
     MessageError,
+    Play,
+    Say,
     State,
+    StopPlaying,
     Unknown,
     Unrecognised,
     encode,
@@ -76,11 +82,34 @@ def test_the_data_thread_reads_what_the_heartbeat_thread_hands_it():
     assert parse_to_data_thread(encode(Fatal(error="refused"))) == Fatal(error="refused")
 
 
+def test_a_command_travels_as_json_and_reaches_the_data_thread_as_it_came():
+    pcm = bytes(range(256)) * 4
+    for order in (Say(text="Hello.", voice="kal"), Play(name="beep", pcm=pcm), StopPlaying(),
+                  BargeIn(policy="duck", capture_ns=7)):
+        command = Command(stream_id="robot1", order=order)
+        assert parse_to_component(encode(command)) == command == parse_to_data_thread(encode(command))
+    wire = json.loads(encode(Command(stream_id="r", order=Play(name="beep", pcm=b"\x01\x02"))))
+    assert wire == {"type": "command", "stream_id": "r", "order": {"action": "play", "name": "beep", "pcm": "AQI="}}
+
+
+@pytest.mark.parametrize("order", [{"action": "say", "text": ""}, {"action": "jump"},
+                                   {"action": "barge_in", "policy": "shout", "capture_ns": 1},
+                                   {"action": "play", "name": "x", "pcm": "not base64!"}])
+def test_a_malformed_order_is_refused_with_a_reason(order):
+    with pytest.raises(MessageError, match="order"):
+        parse_to_component(json.dumps({"type": "command", "stream_id": "r", "order": order}).encode())
+
+
+def test_a_play_order_longer_than_its_cap_is_refused():
+    with pytest.raises(ValueError, match="at most"):
+        Play(name="long", pcm=bytes(MAX_PCM_BYTES + 2))
+
+
 def test_the_protocol_page_lists_each_message_with_the_modules_fields():
     text = (Path(__file__).parent.parent / "docs" / "protocol.md").read_text()
     rows = {m.group(1): re.findall(r"`(\w+)`", m.group(2))
             for m in re.finditer(r"^\| `(\w+)` \| [^|]+ \| ([^|]*) \|$", text, re.MULTILINE)}
-    for model in (Heartbeat, State, Ack, Unknown, BeatNow):
+    for model in (Heartbeat, State, Ack, Unknown, BeatNow, Command):
         kind = model.model_fields["type"].default
         fields = [f for f in model.model_fields if f != "type"]
         if model is Heartbeat:  # the clock's fields are listed after it

@@ -67,6 +67,17 @@ class Segmenter(Generic[T]):
     def active(self) -> bool:
         return self._speech_start_ns is not None
 
+    @property
+    def speech_start_ns(self) -> int | None:
+        """The open segment's speech start, if one is open."""
+        return self._speech_start_ns
+
+    @property
+    def speech_heard(self) -> tuple[int, int] | None:
+        """Speech begun and not ended: (its start, how long of it has been heard, ns), if any."""
+        start = self._speech_start_ns
+        return None if start is None else (start, self._last_loud_end_ns - start)
+
     def process(self, item: T, start_ns: int, end_ns: int, level: float, *,
                 force_end: bool = False) -> list[Forward[T]]:
         """One chunk in, what to forward out. ``force_end`` closes an open segment on this chunk."""
@@ -159,6 +170,22 @@ class ProbabilitySegmenter(Generic[T]):
     @property
     def active(self) -> bool:
         return self._start_ns is not None
+
+    @property
+    def speech_start_ns(self) -> int | None:
+        """The open (confirmed) segment's speech start, if one is open."""
+        return self._start_ns
+
+    @property
+    def speech_heard(self) -> tuple[int, int] | None:
+        """Speech begun and not ended or dropped, confirmed as a segment or not yet: (the start of its first
+        window above ``threshold``, how long from there to its last window above ``threshold_off``, ns)."""
+        if self._start_ns is not None:
+            return self._start_ns, self._last_speech_end_ns - self._start_ns
+        if self._candidate:
+            onset = self._candidate[0].start_ns
+            return onset, self._last_speech_end_ns - onset
+        return None
 
     def process(self, item: T, start_ns: int, end_ns: int, probability: float, *,
                 force_end: bool = False) -> list[Forward[T]]:

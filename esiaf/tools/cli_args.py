@@ -418,7 +418,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                      "of the microphones before anything hears them")
     run.add_argument("--playback", type=Path, metavar="ROBOT.wav", help="with one --input: what the robot said, on "
                      "the input's timeline: the player plays it in step with the input (to loudspeaker.wav in the "
-                     "workdir) and the echo canceller takes it out of the microphones")
+                     "workdir) and the echo canceller takes it out of the microphones; ROBOT.json beside it, a list of "
+                     "{start_s, text}, says what the robot says (fusion tells the robot's voice from a person's by it)")
     add_recogniser_options(run)
     run.add_argument("--serve", action="store_true", help="keep the services up after the files have played, "
                      "until Ctrl-C or SIGTERM")
@@ -431,9 +432,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                      "50 ms; see docs/benchmarks.md)")
     run.add_argument("--ros2", action="store_true", help="publish the voices as ROS 2 topics (REP-155, hri_msgs) "
                      "over DDS: the ros2 service (docs/ros2.md; ROS_DOMAIN_ID honoured)")
-    run.add_argument("--json", action="store_true", help="print each fused result as JSON")
+    run.add_argument("--json", action="store_true", help="print each fused result as JSON, and each barge_in event "
+                     "(a person starting to speak while the robot plays)")
     run.add_argument("--partials", action="store_true", help="with --json: print the recognisers' partial "
                      "results too (on a terminal they are shown anyway, as one line rewritten in place)")
+    run.add_argument("--include-robot", action="store_true", help="also print the robot's own voice heard back "
+                     "(fused results with source robot, left out by default)")
     run.set_defaults(source_topic="grabber/audio")  # what the first services hear (esiaf wyoming: its own)
     run.add_argument("-v", "--verbose", action="store_true", help="log what the launcher does")
     add_wyoming_parser(sub)

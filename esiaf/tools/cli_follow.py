@@ -224,6 +224,13 @@ def show_message(state: Following, message: dict[str, Any], args: argparse.Names
         else:
             partial("")
         return None
+    if message.get("type") == "barge_in":  # a person started speaking while the robot played
+        if args.json:
+            out(json.dumps(message))
+        else:
+            err(f"esiaf: barge-in{' on ' + stream.stream_id if several else ''} at "
+                f"{(message['capture_ns'] - stream.origin_ns) / 1e9:.2f} s ({message.get('policy', '')})")
+        return None
     if message.get("type") == "fused_result":
         stream.printed += 1
         line = json.dumps(message) if args.json else format_line(message, stream.origin_ns)

@@ -117,7 +117,8 @@ def run(args: argparse.Namespace) -> int:
             err(f"esiaf: {name} as {count} instances sharing the streams ({name}-1 ... {name}-{count})")
         # one stream: only its results; several: every stream's, each line told by its stream_id
         # partial results: on a terminal, one line rewritten in place; with --json only if --partials asks
-        query = ({"stream": ids[0]} if len(ids) == 1 else {}) | ({"partials": 1} if shows_partials(args) else {})
+        query = {**({"stream": ids[0]} if len(ids) == 1 else {}), **({"partials": 1} if shows_partials(args) else {}),
+                 **({"include_robot": "true"} if args.include_robot else {})}
         feed_url = f"ws://{args.host}:{args.port}/ws/fused" + (f"?{urlencode(query)}" if query else "")
         with FusedFeed(feed_url) as ws:
             if args.ros2:
@@ -199,7 +200,11 @@ def start_orchestrator(args: argparse.Namespace, supervisor: Supervisor, client:
                                                      "--db", str(workdir / "esiaf.db")]
                                     + (["--recover"] if args.recover else []),
                                     env={"ESIAF_ORCHESTRATOR_CONTROL_PORT": str(ports["control"]),
-                                         "ESIAF_ORCHESTRATOR_RESULTS_PORT": str(ports["results"])})
+                                         "ESIAF_ORCHESTRATOR_RESULTS_PORT": str(ports["results"]),
+                                         # a recorded robot voice: its echo is in the recording whatever a
+                                         # barge-in does, and a stopped reference would leave it uncancelled
+                                         **({"ESIAF_ORCHESTRATOR_BARGE_IN_POLICY": "ignore"}
+                                            if args.playback is not None else {})})
     wait_until(client.healthy, supervisor, "the orchestrator to answer", START_TIMEOUT_S, orchestrator)
     for line in client.recovered() if args.recover else []:
         err(f"esiaf: --recover: {line}")
@@ -278,6 +283,9 @@ def start_echo_cancelling(args: argparse.Namespace, supervisor: Supervisor, serv
                       "ESIAF_PLAYER_OUTPUT": str(supervisor.workdir / "loudspeaker.wav"),
                       "ESIAF_PLAYER_WAIT_TIMEOUT_S": str(10 * START_TIMEOUT_S),
                       "ESIAF_PLAYER_FAST": "true" if args.fast else "false"}
+        transcript = args.playback.with_suffix(".json")  # what the robot says in it: fusion tells its voice by it
+        if transcript.is_file():
+            player_env["ESIAF_PLAYER_TRANSCRIPT"] = str(transcript)
         aec_env |= {"ESIAF_AEC_EXPECT_REFERENCE": "true", "ESIAF_AEC_HOLD_MS": str(10 * START_TIMEOUT_S * 1000)}
     else:
         player_env = {"ESIAF_PLAYER_DEVICE": args.player}

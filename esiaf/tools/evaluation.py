@@ -132,7 +132,7 @@ def robot_speaks(scene, questions: list[tuple[str, str]], run_dir: Path) -> Path
     """Adds the robot's loudspeaker to ``scene``: it answers each question with a flite sentence long enough
     to run into the next question, 7 cm in front of and below the array's centre, its echo 10 dB above the
     talkers and ROBOT_DELAY_S later than the reference; returns the reference (robot.wav), on the scene's
-    timeline, for ``esiaf run --playback``."""
+    timeline, for ``esiaf run --playback`` (with its transcript, robot.json, beside it)."""
     import soundfile
 
     from esiaf.scenes import NoiseSource, speak
@@ -142,11 +142,16 @@ def robot_speaks(scene, questions: list[tuple[str, str]], run_dir: Path) -> Path
     total = round((max(s.onset_s + len(c) / fs for s, c in zip(scene.speech, clips, strict=True)) + scene.tail_s)
                   * fs)
     robot = np.zeros(total)
+    transcript = []
     for source, clip in zip(scene.speech, clips, strict=True):
         at = round((source.onset_s + 0.3) * fs) + len(clip)
-        said = speak(f"The answer to your question is: {answers.get(source.say, 'I do not know')}. "
-                     f"Do you have another question for me?", "kal16", fs)[:max(0, total - at)]
+        text = (f"The answer to your question is: {answers.get(source.say, 'I do not know')}. "
+                f"Do you have another question for me?")
+        said = speak(text, "kal16", fs)[:max(0, total - at)]
         robot[at:at + len(said)] = said
+        if len(said):
+            transcript.append({"start_s": at / fs, "text": text})
+    (run_dir / "robot.json").write_text(json.dumps(transcript))  # what it says: esiaf run --playback reads it
     reference = run_dir / "robot.wav"
     soundfile.write(str(reference), (0.5 * robot / max(np.max(np.abs(robot)), 1e-9)).astype(np.float32), fs)
     delay = round(ROBOT_DELAY_S * fs)

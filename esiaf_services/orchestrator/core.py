@@ -28,6 +28,7 @@ from .planes.control import ControlPlane
 from .planes.hub import Hub
 from .planes.ingest import Ingest
 from .planes.metrics import Metrics
+from .planes.players import Players
 from .planes.results import ResultsLoop
 from .planes.zap import Guard
 from .registry.components import Component, Registry
@@ -78,6 +79,7 @@ class Orchestrator:
         self._store: Store | None = None
         self._control: ControlPlane | None = None
         self._ingest: Ingest | None = None
+        self._players: Players | None = None
         self._results: ResultsLoop | None = None
         self.metrics = Metrics()
         self.control_endpoint = ""
@@ -102,6 +104,10 @@ class Orchestrator:
     @property
     def ingest(self) -> Ingest:
         return _running(self._ingest, "ingest")
+
+    @property
+    def players(self) -> Players:
+        return _running(self._players, "players")
 
     @property
     def guard(self) -> Guard:
@@ -164,6 +170,8 @@ class Orchestrator:
                               metrics=self.metrics, stream_end_grace_s=self.settings.stream_end_grace_s,
                               stream_end_stall_grace_s=self.settings.stream_end_stall_grace_s,
                               on_assignments_changed=self._push_soon)
+        self._players = Players(self.registry, self.control, settings.barge_in_policy)
+        self._ingest.on_barge_in = self._players.barge_in
         self._results = ResultsLoop(results_socket, self._ingest, bind_peer_key=self.guard.mechanism == "curve")
         try:
             self.ingest.restore()

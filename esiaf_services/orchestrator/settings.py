@@ -8,6 +8,7 @@ from typing import Annotated, Any
 
 from pydantic import Field, field_validator, model_validator
 
+from esiaf.control_messages import BargeInPolicy
 from esiaf.results import KIND_PATTERN, RESULT_TYPES
 from esiaf.settings import StrictModel, load_settings
 
@@ -101,6 +102,9 @@ class OrchestratorSettings(StrictModel):
     # consumer that stops reading keeps its audio (esiaf/transport.py STALL_MS)
     stream_end_stall_grace_s: float = Field(default=60.0, ge=0)
     format_strategy: Strategy = "min_conversions"  # how each topic's wire format is chosen
+    # what a stream's player does when a person starts speaking while the robot plays (a barge-in):
+    # stop, duck (the rest of the item lower) or ignore; per stream: PUT /streams/{stream}/barge-in
+    barge_in_policy: BargeInPolicy = "stop"
     # each recognised utterance with its direction, emotion, gender and voice; a fusion waits only
     # for live components of a fused type, so without ssl/emotion/gender/voiceid nothing waits
     fusions: list[FusionSettings] = Field(

@@ -8,7 +8,11 @@ The incoming chunks are cut into frames of ``frame_ms`` on the sample stream. Pe
 - otherwise an SSL result with up to ``max_sources`` directions (azimuth, elevation where the
   array can tell, confidence; a second or third peak only if at least ``min_relative`` as strong
   as the first), each with the id of the tracked source it belongs to, and marked ``background``
-  where that track has stayed in one place for ``background_s`` (a loudspeaker, not a talker).
+  where that track has stayed in one place for ``background_s`` (a loudspeaker, not a talker). With
+  ``self_azimuth_deg`` set (the robot's own loudspeaker, a setting: it is where the robot's head puts
+  it, not estimated), a direction within ``self_width_deg`` / 2 of it is the robot itself: its
+  ``source_id`` is ``self`` and it is ``background`` (fusion never takes it for the talker, the
+  beamformer never steers at it, and the robot's own voice heard back is told by it).
 
 Every chunk is forwarded unchanged on ``output_topic`` once its samples have been localised,
 carrying the directions of the frame it ends in as SSL meta. The end of a stream's last frame,
@@ -32,6 +36,7 @@ from esiaf_services.ssl.doa import Localiser, LocaliserError, NoiseFloor
 from esiaf_services.ssl.tracker import Tracker
 
 log = logging.getLogger(__name__)
+SELF = "self"  # the source id of a direction at the robot's own loudspeaker
 
 
 class SslSettings(ComponentSettings):
@@ -57,6 +62,9 @@ class SslSettings(ComponentSettings):
     gate_deg: float = 12.0  # tracking: a direction this close to a live track continues it
     hold_ms: float = 1500.0  # tracking: a source unseen this long has ended
     background_s: float = 8.0  # a track this old is background (0 = never)
+    # the robot's own loudspeaker, counter-clockwise from the array's x axis (None: not marked), and how wide
+    self_azimuth_deg: float | None = None
+    self_width_deg: float = Field(default=40.0, gt=0, le=360)
 
 
 @dataclass
@@ -186,6 +194,9 @@ class Ssl(Component):
             direction.elevation_known = self.localiser.reports_elevation
             direction.track_azimuth_deg = track.azimuth_deg
             direction.background = track.background
+            if s.self_azimuth_deg is not None and \
+                    abs((direction.azimuth_deg - s.self_azimuth_deg + 180.0) % 360.0 - 180.0) <= s.self_width_deg / 2:
+                direction.source_id, direction.background = SELF, True
         self.counts["located"] += 1
         self.info["frames"] = dict(self.counts)
         self.emit("ssl", span, stream_id=stream_id,

@@ -12,7 +12,14 @@ Two backends:
   chunk (the mean of the windows the chunk completes), the default until 2026-11-26.
 - ``energy``: ESIAF's original double-threshold segmenter on the chunks' peak level.
 
-The VAD result of a segment carries its mean speech probability (1 with ``energy``).
+The VAD result of a segment carries its mean speech probability (1 with ``energy``), and is emitted when
+the segment ends. Earlier, once ``speech_start_ms`` of speech has been heard (Silero: from its first
+window above ``threshold``; less than ``min_speech_ms``, which opens a segment), with
+``speech_start_events`` a ``speech_start`` result says so (esiaf.results.speech_start: its span runs
+from the speech's start to the capture time the vad decided), once per stretch of speech: the
+orchestrator's barge-in (a person speaking while the robot plays) waits neither for the utterance's
+end nor for its segment to open. Speech shorter than ``min_speech_ms`` is announced too and never
+segmented (a cough): a barge-in on it is the price of the shorter wait.
 
 A vad that joins a stream after its start (its first message of the stream is not the publisher's first:
 it was started, or restarted after a crash, while the stream went on) may join in the middle of an
@@ -28,6 +35,7 @@ from typing import Any, ClassVar
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
 from esiaf.per_stream import PerStream
+from esiaf.results import SPEECH_START, speech_start
 from esiaf.speech.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
 from esiaf.speech.silero import RATES_HZ, SileroError, SileroModel, SileroStream
 from esiaf.speech.windows import ChunkCutter, WindowCutter, messages
@@ -47,6 +55,8 @@ class VadSettings(ComponentSettings):
     # models are trained on the spans of both (esiaf/speech/opensmile.py VADS)
     windows: bool = True
     max_ms: float = 8000.0
+    speech_start_events: bool = True  # a speech_start result as soon as speech begins (barge-in)
+    speech_start_ms: float = 150.0  # ... once this much of it is heard (the segment opens at min_speech_ms)
     pre_roll_ms: float = 250.0
     # silero
     model_path: str = ""  # "" = silero_vad.onnx from the silero-vad wheel
@@ -71,6 +81,7 @@ class VadStream:
     silero: SileroStream | None
     mid_speech: bool | None = None  # None: not known before its first message
     silence_ns: int = 0  # ... while it waits: how long it has been silent
+    announced: bool = False  # the speech going on was announced (speech_start)
 
 
 class Vad(Component):
@@ -155,6 +166,8 @@ class Vad(Component):
                 log.info("stream_id=%s joined at sequence %d: segmenting from its first silence, at start_ns=%d",
                          audio.stream_id, audio.sequence, piece.start_ns)
             forwards += segmenter.process(piece, piece.start_ns, piece.end_ns, score, force_end=piece.end_of_stream)
+            if self.settings.speech_start_events:
+                self._announce(stream, audio.stream_id, piece.end_ns, score)
         for message in messages(forwards, audio.format.sample_rate_hz):
             piece, forward = message.piece, message.forward
             end_of_stream = forward.ended and piece.end_of_stream
@@ -168,6 +181,20 @@ class Vad(Component):
                 self.info["segments"] = self.segments
                 self.emit("vad", forward.segment, stream_id=audio.stream_id, vad={"probability": forward.probability})
                 log.info("segment stream_id=%s start_ns=%d end_ns=%d", audio.stream_id, *forward.segment)
+
+    def _announce(self, stream: VadStream, stream_id: str, now_ns: int, score: float) -> None:
+        """A speech_start result once speech has gone on for speech_start_ms (or opened a segment), once
+        per stretch of speech."""
+        heard = stream.segmenter.speech_heard
+        if heard is None:
+            stream.announced = False
+            return
+        onset_ns, length_ns = heard
+        if not stream.announced and (length_ns >= self.settings.speech_start_ms * 1e6 or stream.segmenter.active):
+            stream.announced = True
+            probability = score if self.settings.backend == "silero" else 1.0
+            self.emit(SPEECH_START, (onset_ns, max(onset_ns, now_ns)), stream_id=stream_id,
+                      generic=speech_start(probability))
 
     def _silent(self, score: float) -> bool:
         """A window or chunk that is no speech (below the threshold that keeps a segment going)."""

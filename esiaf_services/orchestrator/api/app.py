@@ -12,7 +12,7 @@ from esiaf import auth
 
 from ..core import Orchestrator
 from ..settings import OrchestratorSettings
-from . import components, dashboard, fused, fusions, health, latency, metrics, results, streams, topics, ws
+from . import components, dashboard, fused, fusions, health, latency, metrics, playback, results, streams, topics, ws
 from .auth import TokenAuth
 from .errors import with_allow_header
 from .limits import BodyLimit
@@ -48,7 +48,8 @@ def create_app(settings: OrchestratorSettings, *,
 
     app = FastAPIOffline(title="ESIAF orchestrator", version="0.1.0", description=DESCRIPTION,
                          lifespan=lifespan)
-    for module in (components, topics, streams, results, latency, fused, ws, fusions, health, metrics, dashboard):
+    for module in (components, topics, streams, playback, results, latency, fused, ws, fusions, health, metrics,
+                   dashboard):
         app.include_router(module.router)
     app.mount(dashboard.ASSETS_PREFIX, dashboard.assets(), name="dashboard")
     app.include_router(voices_router)

@@ -17,10 +17,7 @@ a past utterance (JSON ``{"stream", "start_ns", "end_ns"}``: the embeddings of t
 from __future__ import annotations
 
 import asyncio
-import io
 import json
-import struct
-from math import gcd
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
@@ -34,13 +31,12 @@ from ..core import Orchestrator
 from ..store.voices import VoiceLimit, VoiceTable
 from .deps import get_core
 from .models import Problem
+from .wav import read_wav, resample
 
 router = APIRouter(tags=["voices"])
 ENCODER_RATE_HZ = 16000
 MIN_ENROL_SPEECH_S = 1.0
 MAX_ENROL_S = 60.0  # of audio, at its own rate: what is converted and embedded is at most this long
-MIN_RATE_HZ, MAX_RATE_HZ = 8_000, 192_000  # as an audio message's (esiaf/receiving.py)
-MAX_CHANNELS = 64
 
 
 class SpanEnrolment(BaseModel):
@@ -158,47 +154,13 @@ async def enrol_voice(name: str, request: Request, core: Orchestrator = Depends(
 
 
 def embed_wav(data: bytes) -> np.ndarray:
-    from scipy.io import wavfile
-    from scipy.signal import resample_poly
-
     from esiaf_services.voiceid.encoder import shared_encoder
-    try:
-        rate_hz, samples = wavfile.read(io.BytesIO(data))
-    # what scipy's reader raises for a header cut short (struct.error), 0 channels or 0 bits per sample
-    # (ZeroDivisionError), fields that do not add up (ValueError), data cut short (EOFError)
-    except (ValueError, EOFError, struct.error, ZeroDivisionError, OverflowError) as exc:
-        raise HTTPException(422, f"audio is not a readable WAV file: {exc}") from None
-    check_audio(int(rate_hz), samples)
-    if samples.dtype.kind in "iu":
-        info = np.iinfo(samples.dtype)
-        samples = (samples.astype(np.float64) - (info.max + info.min + 1) / 2) / (info.max + 1)
-    samples = samples.astype(np.float32)
-    if samples.ndim == 2:
-        samples = samples.mean(axis=1)
-    if rate_hz != ENCODER_RATE_HZ:  # any rate is converted, not refused
-        divisor = gcd(int(rate_hz), ENCODER_RATE_HZ)
-        samples = resample_poly(samples, ENCODER_RATE_HZ // divisor, int(rate_hz) // divisor).astype(np.float32)
+    rate_hz, samples = read_wav(data, max_s=MAX_ENROL_S)  # rate, channels, length, finite: checked first
+    samples = resample(samples, rate_hz, ENCODER_RATE_HZ)  # any rate is converted, not refused
     if samples.size < MIN_ENROL_SPEECH_S * ENCODER_RATE_HZ or float(np.max(np.abs(samples))) < 1e-3:
         raise HTTPException(422, f"audio has no speech to enrol: {samples.size / ENCODER_RATE_HZ:.2f} s, "
                                  f"at least {MIN_ENROL_SPEECH_S:.0f} s of speech needed")
     return shared_encoder().embed(samples)
-
-
-def check_audio(rate_hz: int, samples: np.ndarray) -> None:
-    """A WAV's audio that can be enrolled: a rate, channel count and length within bounds (checked
-    before it is converted: a header saying 1 Hz must not make gigabytes of 16 kHz audio), every
-    sample finite; 422 with the reason if not."""
-    if not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:
-        raise HTTPException(422, f"audio at {rate_hz} Hz: enrolment takes {MIN_RATE_HZ}-{MAX_RATE_HZ} Hz")
-    channels = samples.shape[1] if samples.ndim == 2 else 1
-    if not 1 <= channels <= MAX_CHANNELS:
-        raise HTTPException(422, f"audio with {channels} channels: enrolment takes 1-{MAX_CHANNELS}")
-    seconds = samples.shape[0] / rate_hz
-    if seconds > MAX_ENROL_S:
-        raise HTTPException(422, f"audio of {seconds:.1f} s: enrolment takes at most {MAX_ENROL_S:.0f} s "
-                                 "(enrol a long recording in parts)")
-    if samples.dtype.kind == "f" and not np.isfinite(samples).all():
-        raise HTTPException(422, "audio holds NaN or infinite samples")
 
 
 def stored_embeddings(core: Orchestrator, body: SpanEnrolment | AnonymousEnrolment) -> tuple[list[np.ndarray], str]:

@@ -1,5 +1,5 @@
-"""websocket /ws/fused: the stored fused results after ``after_id``, then live ones and
-stream events."""
+"""websocket /ws/fused: the stored fused results after ``after_id``, then live ones, stream events and
+barge-in events (without the robot's own voice unless ``include_robot=true``)."""
 from __future__ import annotations
 
 import asyncio
@@ -31,13 +31,14 @@ async def ws_fused(websocket: WebSocket,
                                                "larger seq: resume without missing revisions "
                                                "(after_id is then ignored)"),
                    partials: bool = Query(False, description="also the recognisers' partial results while "
-                                          "an utterance goes on (`partial` events, never stored)")
+                                          "an utterance goes on (`partial` events, never stored)"),
+                   include_robot: bool = Query(False, description="also fused results of the robot's own voice")
                    ) -> None:
     core: Orchestrator = websocket.app.state.core
     client = f"{websocket.client.host}:{websocket.client.port}" if websocket.client else "-"
     # Subscribe before the client can see the connection open, and before reading the
     # backlog: nothing published meanwhile is missed.
-    subscriber = core.hub.subscribe(client, stream, fusion, partials)
+    subscriber = core.hub.subscribe(client, stream, fusion, partials, include_robot)
     tasks: set[asyncio.Task] = set()
     try:
         await websocket.accept()
@@ -72,8 +73,8 @@ async def _send(websocket: WebSocket, core: Orchestrator, subscriber: Subscriber
     sent: dict[int, int] = {}  # fused id -> revision sent from the backlog
     last_seq = after_seq or 0
     while after_seq is not None:
-        rows = core.store.publications(after_seq=last_seq, fusion=subscriber.fusion,
-                                       stream=subscriber.stream, limit=BACKLOG_PAGE)
+        rows = core.store.publications(after_seq=last_seq, fusion=subscriber.fusion, stream=subscriber.stream,
+                                       limit=BACKLOG_PAGE, include_robot=subscriber.include_robot)
         for seq, text in rows:
             await websocket.send_text(text)
             last_seq = seq
@@ -81,8 +82,8 @@ async def _send(websocket: WebSocket, core: Orchestrator, subscriber: Subscriber
             break
     cursor = after_id if after_seq is None else None  # after_seq, if given, has sent it all
     while cursor is not None:
-        page = core.store.query_fused(fusion=subscriber.fusion, stream=subscriber.stream,
-                                      after_id=cursor, limit=BACKLOG_PAGE)
+        page = core.store.query_fused(fusion=subscriber.fusion, stream=subscriber.stream, after_id=cursor,
+                                      limit=BACKLOG_PAGE, include_robot=subscriber.include_robot)
         for text in page.items:
             await websocket.send_text(text)
         sent.update(page.revisions)

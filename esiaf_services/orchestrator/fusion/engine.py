@@ -23,13 +23,15 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol, cast
 
 from ..settings import FusionSettings, TimeoutSettings
-from .aggregate import aggregates, overlaps
+from .aggregate import aggregates, overlaps, ssl_aggregate
 from .coverage import Coverage, SpanIndex, StoredResult
 from .latency import Latencies
 from .models import Completion, FusedResult, Missing, MissingReason, bounded_lists
+from .playback import PLAYBACK, SPEECH_START, Played, is_robot, overlap_share, played, playing_at
 
 __all__ = ["Fusion", "FusionEngine", "Publication", "StoredResult"]
 
+EVENTS = (PLAYBACK, SPEECH_START)  # kinds that report no coverage of the audio (fusion/playback.py)
 PRUNE_EVERY = 64  # results per stream between two prunings of its memory
 MAX_REPLAYED_STREAMS = 10_000  # replayed streams remembered (whose latencies are not learnt)
 COMPLETE, TIMED_OUT, COMPONENTS_GONE = "complete", "timed_out", "components_gone"
@@ -309,6 +311,19 @@ class FusionEngine:
         heapq.heappush(self._revisions, (due_ns, fusion.id))
         return []
 
+    def playing_at(self, stream_id: str, capture_ns: int) -> Played | None:
+        """What the stream's robot was playing at ``capture_ns`` (its playback results), if anything."""
+        index = self._memory(stream_id).index.get(PLAYBACK)
+        return None if index is None else playing_at(played(r.json for r in index.overlapping(capture_ns, capture_ns)),
+                                                     capture_ns)
+
+    def talker(self, stream_id: str, start_ns: int, end_ns: int) -> dict[str, Any] | None:
+        """The ssl aggregate of what the localiser heard within [start_ns, end_ns], if it heard anything."""
+        index = self._memory(stream_id).index.get("ssl")
+        if index is None:
+            return None
+        return ssl_aggregate([r.json for r in index.overlapping(start_ns, end_ns)], (start_ns, end_ns))
+
     # restoring after a restart (results first, then fused results, then open fusions)
     def restore_result(self, result: StoredResult) -> None:
         self._remember(result)
@@ -349,11 +364,12 @@ class FusionEngine:
 
     def _remember(self, result: StoredResult) -> StreamMemory:
         memory = self._memory(result.stream_id)
-        coverage = memory.coverage.get(result.component)
-        if coverage is None:
-            coverage = memory.coverage[result.component] = Coverage()
-        coverage.add(result.start_ns, result.end_ns)
-        memory.ended.discard(result.component)
+        if result.type not in EVENTS:  # a playback or speech start says nothing of the audio analysed
+            coverage = memory.coverage.get(result.component)
+            if coverage is None:
+                coverage = memory.coverage[result.component] = Coverage()
+            coverage.add(result.start_ns, result.end_ns)
+            memory.ended.discard(result.component)
         if not result.is_nothing:
             index = memory.index.get(result.type)
             if index is None:
@@ -445,15 +461,19 @@ class FusionEngine:
         results = {t: [r.json for r in sorted(by_id.values(), key=lambda r: (r.start_ns, r.id))]
                    for t, by_id in fusion.results.items()}
         summary = aggregates(results, window)  # from every result, before the lists are bounded
-        results, omitted = bounded_lists(results)
         missing = [Missing.model_construct(component=c, type=t, reason=cast(MissingReason, reason))
                    for c, (t, reason) in sorted(fusion.missing.items())]
+        index = memory.index.get(PLAYBACK)
+        items = played(r.json for r in index.overlapping(*window)) if index is not None else []
+        share = round(overlap_share(items, *window), 4)
+        robot = is_robot(share, items, fusion.anchor.json, results, summary.get("ssl"))
+        results, omitted = bounded_lists(results)
         # model_construct: every value is the engine's own (results as the codec checked them on arrival)
         result = FusedResult.model_construct(
             id=fusion.id, revision=fusion.revision, fusion=fusion.settings.name,
             stream_id=fusion.anchor.stream_id, anchor=fusion.anchor.json, results=results,
             aggregates=summary, completion=cast(Completion, fusion.completion),
             missing_components=[m.component for m in missing], missing=missing, published_ns=published_ns,
-            omitted=omitted)
+            omitted=omitted, playback_overlap=share, source="robot" if robot else "person")
         return Publication(result=result, start_ns=window[0], end_ns=window[1],
                            trigger_received_ns=trigger_received_ns, due_ns=due_ns)

@@ -188,6 +188,11 @@ class FusedResult(BaseModel):
     missing_components: list[str] = Field(description="components that had not covered the window")
     missing: list[Missing]
     published_ns: int
+    playback_overlap: float = Field(default=0.0, description="the share of the window its stream's robot was "
+                                    "playing (its player's playback results), 0..1")
+    source: Literal["person", "robot"] = Field(default="person", description='"robot": the robot\'s own voice '
+                                               "heard back (fusion/playback.py's rule); left out of GET /fused, "
+                                               "/ws/fused and esiaf run unless include_robot=true")
     seq: int = Field(default=0, description="publication number: every revision has its own, increasing; "
                                             "resume the websocket with after_seq")
     omitted: dict[str, int] = Field(default_factory=dict, description=(

@@ -30,6 +30,7 @@ import zmq.asyncio
 from esiaf.control_messages import (
     Ack,
     BeatNow,
+    Command,
     Heartbeat,
     MessageError,
     State,
@@ -221,7 +222,7 @@ class ControlPlane:
                       component.state_version)
             self.send(component, self.versioned(component))
 
-    def send(self, component: Component, message: State | Ack) -> None:
+    def send(self, component: Component, message: State | Ack | Command) -> None:
         # Only to the routing id that last presented the component's key; none yet: its first
         # heartbeat's answer carries the full state. ROUTER drops messages to a peer that is gone.
         if component.control_route is None:

@@ -28,15 +28,17 @@ class Outgoing:
     revision: int = 0
     seq: int = 0  # publication number of a fused result (every revision has its own)
     partial: bool = False  # a partial result's event (partials.py): only to clients that asked for them
+    robot: bool = False  # a fused result of the robot's own voice: only to clients that include it
 
 
 class Subscriber:
     def __init__(self, name: str, stream: str | None, fusion: str | None, max_queue: int,
-                 partials: bool = False) -> None:
+                 partials: bool = False, include_robot: bool = False) -> None:
         self.name = name
         self.stream = stream
         self.fusion = fusion
         self.partials = partials
+        self.include_robot = include_robot
         self.queue: asyncio.Queue[Outgoing] = asyncio.Queue(maxsize=max_queue)
         self.dropped = asyncio.Event()  # set when the hub gave up on this client
         self.close_reason = ""
@@ -45,6 +47,8 @@ class Subscriber:
         if self.stream is not None and message.stream_id != self.stream:
             return False
         if message.partial and not self.partials:
+            return False
+        if message.robot and not self.include_robot:
             return False
         return message.fusion is None or self.fusion is None or message.fusion == self.fusion
 
@@ -56,8 +60,8 @@ class Hub:
         self.dropped_clients = 0
 
     def subscribe(self, name: str, stream: str | None = None,
-                  fusion: str | None = None, partials: bool = False) -> Subscriber:
-        subscriber = Subscriber(name, stream, fusion, self.max_queue, partials)
+                  fusion: str | None = None, partials: bool = False, include_robot: bool = False) -> Subscriber:
+        subscriber = Subscriber(name, stream, fusion, self.max_queue, partials, include_robot)
         self._subscribers.add(subscriber)
         return subscriber
 

@@ -18,6 +18,7 @@ from esiaf.proto import esiaf_pb2 as pb
 
 from ..fusion.engine import FusionEngine, Publication, StoredResult
 from ..fusion.orphans import Orphans
+from ..fusion.playback import SELF, SPEECH_START, Played
 from ..registry.components import Component, Registry
 from ..registry.streams import StreamEnds
 from ..store.database import Store, StoreUnavailable
@@ -72,6 +73,9 @@ class Ingest:
         self.clocks = clocks or StreamClocks(registry)
         self._store_retry: asyncio.TimerHandle | None = None
         self._on_assignments_changed = on_assignments_changed
+        # a person started speaking while the stream's robot played: (stream, onset, what played, direction)
+        # -> the barge_in event to publish (planes/players.py)
+        self.on_barge_in: Callable[[str, int, Played, float | None], Outgoing] | None = None
 
     def restore(self) -> None:
         """Warm start from the database (store/warmstart.py)."""
@@ -278,7 +282,8 @@ class Ingest:
         stored = StoredResult(id=result_id, component=result.component, type=kind,
                               stream_id=result.stream_id, start_ns=result.span.start_ns,
                               end_ns=result.span.end_ns, json=as_json)
-        outgoing = [self._store_fused(fused) for fused in [
+        outgoing = self._barge_in(stored) if kind == SPEECH_START else []
+        outgoing += [self._store_fused(fused) for fused in [
             *self.orphans.before_result(stored, received_ns), *self.engine.on_result(stored, received_ns),
             *self.orphans.on_result(stored, received_ns),
             *self.orphans.on_segment(stored, received_ns, lambda service: bool(self.registry.instances(service)))]]
@@ -298,6 +303,20 @@ class Ingest:
         self.counters["partials"] += 1
         return [self.partials.on_partial(result, received_ns)]
 
+    def _barge_in(self, speech_start: StoredResult) -> list[Outgoing]:
+        """A vad's speech start (span: onset, decision): a barge-in if the stream's robot was playing then,
+        unless the localiser heard it come from the robot's own loudspeaker (ssl's ``self``)."""
+        onset_ns = speech_start.start_ns
+        item = self.engine.playing_at(speech_start.stream_id, onset_ns)
+        if item is None or self.on_barge_in is None:
+            return []
+        talker = self.engine.talker(speech_start.stream_id, onset_ns, max(speech_start.end_ns, onset_ns + 1))
+        if talker is not None and talker.get("source_id") == SELF:
+            self.counters["barge_ins_from_self"] += 1
+            return []
+        direction = None if talker is None or talker.get("background") else float(talker["azimuth_deg"])
+        return [self.on_barge_in(speech_start.stream_id, onset_ns, item, direction)]
+
     def _store_fused(self, fused: Publication) -> Outgoing:
         seq = fused.result.seq = self.store.allocate_seq()
         text = fused.result.to_json()  # serialised once: stored, served and sent as this text
@@ -309,7 +328,7 @@ class Ingest:
         self.counters[f"completion_{fused.result.completion}" if fused.revision == 1
                       else "revisions"] += 1
         message = Outgoing(text=text, stream_id=fused.stream_id, fusion=fused.fusion,
-                           fused_id=fused.id, revision=fused.revision, seq=seq)
+                           fused_id=fused.id, revision=fused.revision, seq=seq, robot=fused.result.source == "robot")
         anchor_received_ns = fused.result.anchor.get("received_ns")
         if self.metrics is not None and fused.revision == 1 and isinstance(anchor_received_ns, int):
             labels = (fused.fusion, fused.stream_id, fused.result.completion)

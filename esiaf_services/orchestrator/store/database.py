@@ -304,19 +304,24 @@ class Store:
 
     def query_fused(self, *, fusion: str | None = None, stream: str | None = None,
                     start_ns: int | None = None, end_ns: int | None = None,
-                    after_id: int | None = None, limit: int = 100) -> Page:
-        """The latest revision of each fused result whose anchor span overlaps the range."""
+                    after_id: int | None = None, limit: int = 100, include_robot: bool = True) -> Page:
+        """The latest revision of each fused result whose anchor span overlaps the range (without the
+        robot's own voice, ``"source": "robot"``, unless ``include_robot``)."""
         where, args = _common_filters(stream, start_ns, end_ns, after_id)
         where.append("revision = (SELECT MAX(f2.revision) FROM fused AS f2 WHERE f2.id = fused.id)")
+        if not include_robot:
+            where.append(NOT_ROBOT)
         if fusion is not None:
             where.append("fusion = ?")
             args.append(fusion)
         return self._page("SELECT id, revision, json FROM fused", where, args, limit)
 
     def publications(self, *, after_seq: int, fusion: str | None = None,
-                     stream: str | None = None, limit: int = 100) -> list[tuple[int, str]]:
+                     stream: str | None = None, limit: int = 100, include_robot: bool = True) -> list[tuple[int, str]]:
         """(seq, JSON) of every publication (each revision) after ``after_seq``, in order."""
         where, args = _common_filters(stream, None, None, None)
+        if not include_robot:
+            where.append(NOT_ROBOT)
         where.append("seq > ?")
         args.append(after_seq)
         if fusion is not None:
@@ -331,6 +336,10 @@ class Store:
         return Page(items=[text for _, _, text in rows],
                     next_after_id=rows[-1][0] if rows else None,
                     revisions={row_id: revision for row_id, revision, _ in rows})
+
+
+# a fused result that is not the robot's own voice (fusion/playback.py); older ones have no source
+NOT_ROBOT = "json_extract(json, '$.source') IS NOT 'robot'"
 
 
 class Checkpointer:

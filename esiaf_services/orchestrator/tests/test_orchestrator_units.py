@@ -76,7 +76,8 @@ def test_anchor_only_fusions_publish_each_matching_anchor_at_once():
     assert fused[0].result.model_dump() == {
         "type": "fused_result", "id": 1, "revision": 1, "fusion": "speech", "stream_id": "r1", "anchor": {"id": 1},
         "results": {}, "aggregates": {}, "completion": "complete", "missing_components": [], "missing": [],
-        "published_ns": 99, "seq": 0, "omitted": {}}  # numbered when stored
+        "published_ns": 99, "playback_overlap": 0.0, "source": "person", "seq": 0,
+        "omitted": {}}  # numbered when stored
     assert [f.fusion for f in engine.on_result(stored(stream="r2", result_id=2), 30)] == ["speech"]
     assert [f.fusion for f in engine.on_result(stored(type_="vad", result_id=3), 30)] == ["vad"]
     assert engine.on_result(stored(type_="gender", result_id=4), 30) == []

@@ -58,3 +58,15 @@ def test_only_the_microphone_channels_are_localised():
     six = np.concatenate([decoy, mics, np.zeros((len(mics), 1))], axis=1)  # ReSpeaker 6-channel firmware layout
     frames = localise(six, RATE, array="respeaker4", channels=6, mic_channels=[1, 2, 3, 4], bin_snr_db=0)
     assert frames and all(angle_difference_deg(f.azimuth_deg, 250.0) <= 5 for f in frames), frames
+
+
+def test_the_robots_own_loudspeaker_is_self_and_background_and_a_talker_elsewhere_is_not():
+    array = load_array("respeaker4")
+    forwarded = []
+    signals = np.concatenate([plane_wave(array, 100.0, seconds=0.6), plane_wave(array, 200.0, seconds=0.6, seed=3)])
+    localise(signals, RATE, array="respeaker4", bin_snr_db=0, self_azimuth_deg=90.0, self_width_deg=40.0,
+             on_forward=lambda topic, audio, **meta: forwarded.append((audio, meta["ssl_directions"])))
+    loudspeaker = [d for audio, ds in forwarded if 0.2 <= audio.start_ns / 1e9 < 0.5 for d in ds]
+    person = [d for audio, ds in forwarded if 0.9 <= audio.start_ns / 1e9 < 1.1 for d in ds]
+    assert loudspeaker and all(d.source_id == "self" and d.background for d in loudspeaker)
+    assert person and all(d.source_id != "self" and not d.background for d in person)

@@ -18,14 +18,29 @@ class Recording(Vad):
     def __init__(self, settings: VadSettings):
         super().__init__(settings)
         self.sent: list[tuple[bytes, int, int, dict]] = []
-        self.spans: list[tuple[int, int]] = []
+        self.spans: list[tuple[int, int]] = []  # of its vad results
+        self.starts: list[tuple[int, int, int]] = []  # its speech_start events: span, and when (messages sent)
 
     def publish(self, topic, audio, start_ns, end_ns, **meta):
         self.sent.append((bytes(audio), start_ns, end_ns, meta))
         return len(self.sent)
 
     def emit(self, kind, span, **payload):
-        self.spans.append(span)
+        if kind == "speech_start":
+            self.starts.append((*span, len(self.sent)))
+        else:
+            self.spans.append(span)
+
+
+def opening(vad: Recording) -> list:
+    """The first message forwarded of each segment."""
+    firsts, new = [], True
+    for message in vad.sent:
+        if new and message[0]:
+            firsts.append(message)
+            new = False
+        new = new or bool(message[3].get("segmentation_ended"))
+    return firsts
 
 
 def play(pcm: bytes, chunk_frames: int, backend: str = "silero") -> Recording:
@@ -78,6 +93,14 @@ def test_what_is_forwarded_is_the_streams_audio_contiguous_with_one_end_per_segm
             segment_audio = b""
     assert ended == len(vad.spans)
     assert vad.sent[-1][3]["end_of_stream"]  # after the last segment: consumers hear that the stream ended
+    # each segment was announced before any of its audio was forwarded, its start within the onset padding
+    # of the segment's: speech_start_ms (150 ms) of speech heard, before the segment opens at min_speech_ms
+    pad_ns = int(VadSettings().onset_pad_ms * 1e6)
+    for (start, decided, sent), (segment_start, segment_end), first in zip(vad.starts, vad.spans, opening(vad),
+                                                                          strict=True):
+        assert segment_start <= start <= segment_start + pad_ns and start < decided <= segment_end
+        assert sent <= vad.sent.index(first)
+
     # no more messages than chunks of the audio forwarded (plus a segment's end mid-chunk): the
     # pre-roll and the onset held back go out together, and at 20 ms a message is a 32 ms window
     chunks = sum(len(payload) for payload, *_ in vad.sent) / (2 * RATE * chunk_ms / 1000)

@@ -1,0 +1,140 @@
+"""What the robot itself said: its player's ``playback`` results, and whether an utterance is its own voice.
+
+A player reports each part of an item it plays that sounds as a ``playback`` result spanning the capture
+time it is to play, and again with its real end if it was stopped early (``attributes.stopped``); the
+later result of a part (its ``instance``, ``attributes.item`` and ``attributes.part``) revises the
+earlier. Pure: no I/O.
+
+The rule for the robot's own voice (residual echo the canceller left, recognised as speech), on a fused
+result of a stream whose robot played during its span (docs/protocol.md, "Fused results"):
+
+- ``playback_overlap``: the share of the anchor's span that overlaps what the robot played (0..1);
+- the utterance is the robot's (``source: "robot"``) when ``playback_overlap >= ROBOT_OVERLAP`` and the
+  evidence there is does not speak for a person:
+
+  - words were recognised (a hypothesis that is not empty) and the robot's words are known (a ``say:``
+    item, or a transcript): the heard words must be at least ``ROBOT_TEXT_SIMILARITY`` the robot's, in
+    its order (:func:`text_similarity`); a person who talks over the robot says other words;
+  - words were recognised and the robot's are not known (a sound file played without a transcript):
+    nothing tells them from the robot's, and the words are taken for a person's (a question is not
+    lost; the robot's echo recognised as words is shown, so give the robot's words);
+  - nothing was recognised (no asr in the fusion, or an empty hypothesis: out of a closed set): the
+    overlap decides;
+  - and where the localiser marks the robot's loudspeaker (ssl's ``self_azimuth_deg``: directions with
+    ``source_id`` ``self``) and places the talker on another track that is not background, that is a
+    person too.
+"""
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+from esiaf.results import PLAYBACK, SPEECH_START
+
+from .aggregate import overlap_ns
+
+__all__ = ["PLAYBACK", "SELF", "SPEECH_START", "Played", "is_robot", "overlap_share", "played", "playing_at"]
+ROBOT_OVERLAP = 0.5
+ROBOT_TEXT_SIMILARITY = 0.5
+SAY_PREFIX = "say: "  # a player's name for a sentence it says
+SELF = "self"  # the ssl service's source id of the robot's own loudspeaker (its self_azimuth_deg setting)
+
+
+@dataclass(frozen=True)
+class Played:
+    """One item the robot played (its latest report)."""
+
+    key: tuple[str, int, int]  # the player instance, its item number, the part
+    name: str
+    start_ns: int
+    end_ns: int
+    stopped: bool
+
+    @property
+    def text(self) -> str:
+        """What the robot said, if the item is a sentence."""
+        return self.name[len(SAY_PREFIX):] if self.name.startswith(SAY_PREFIX) else ""
+
+
+def played(results: Iterable[dict[str, Any]]) -> list[Played]:
+    """The items that ``playback`` results (their JSON) report, each by its latest report, by start."""
+    latest: dict[tuple[str, int, int], tuple[int, Played]] = {}
+    for result in results:
+        payload = result.get(PLAYBACK) or {}
+        attributes = payload.get("attributes") or {}
+        try:
+            key = (str(result.get("instance", "")), int(attributes.get("item", 0)), int(attributes.get("part", 0)))
+        except (TypeError, ValueError):
+            continue
+        item = Played(key=key, name=str(payload.get("text", "")), start_ns=result["span"]["start_ns"],
+                      end_ns=result["span"]["end_ns"], stopped=bool(attributes.get("stopped", False)))
+        order = int(result.get("sequence", 0))
+        if key not in latest or order >= latest[key][0]:
+            latest[key] = (order, item)
+    return sorted((item for _, item in latest.values()), key=lambda p: (p.start_ns, p.key))
+
+
+def overlap_share(items: Iterable[Played], start_ns: int, end_ns: int) -> float:
+    """The share of [start_ns, end_ns] that any of ``items`` covers (their union), 0..1."""
+    length = end_ns - start_ns
+    if length <= 0:
+        return float(any(p.start_ns <= start_ns <= p.end_ns for p in items))
+    covered, reach = 0, start_ns
+    for item in sorted(items, key=lambda p: p.start_ns):
+        lo, hi = max(item.start_ns, reach), min(item.end_ns, end_ns)
+        if hi > lo:
+            covered += overlap_ns(lo, hi, start_ns, end_ns)
+            reach = hi
+    return min(1.0, covered / length)
+
+
+def playing_at(items: Iterable[Played], capture_ns: int) -> Played | None:
+    """The item playing at ``capture_ns``, if any."""
+    return next((p for p in items if p.start_ns <= capture_ns < p.end_ns), None)
+
+
+def _words(text: str) -> list[str]:
+    return re.findall(r"[\w']+", text.lower())
+
+
+def text_similarity(heard: str, said: str) -> float:
+    """The share of the heard words that the robot said in that order: their longest common subsequence
+    over the heard words (0..1; 0 when nothing was heard). Words in common alone ("is", "the") are not
+    enough: "where is the bathroom" against "the kitchen is on your left" is 0.25, not 0.5."""
+    heard_words, said_words = _words(heard), _words(said)
+    if not heard_words:
+        return 0.0
+    row = [0] * (len(said_words) + 1)
+    for word in heard_words:
+        diagonal = 0
+        for j, other in enumerate(said_words, 1):
+            diagonal, row[j] = row[j], diagonal + 1 if word == other else max(row[j], row[j - 1])
+    return row[-1] / len(heard_words)
+
+
+def _heard_text(results: dict[str, list[dict[str, Any]]], anchor: dict[str, Any]) -> str | None:
+    """The best hypothesis's words of the utterance (the anchor's, or its speech results'), or None where
+    nothing was recognised (no hypothesis, or an empty one: out of a closed set)."""
+    for result in [anchor, *results.get("speech", [])]:
+        hypotheses = (result.get("speech") or {}).get("hypotheses") or []
+        if hypotheses:
+            best = hypotheses[0]
+            return str(best.get("raw_text") or best.get("text") or "") or None
+    return None
+
+
+def is_robot(share: float, items: list[Played], anchor: dict[str, Any],
+             results: dict[str, list[dict[str, Any]]], ssl: dict[str, Any] | None = None) -> bool:
+    """The module's rule: the utterance is the robot's own voice. ``ssl``: the fused result's ssl aggregate."""
+    if share < ROBOT_OVERLAP:
+        return False
+    said = " ".join(p.text for p in items if p.text)
+    heard = _heard_text(results, anchor)
+    if heard is not None and (not said or text_similarity(heard, said) < ROBOT_TEXT_SIMILARITY):
+        return False
+    # the localiser marks the robot's loudspeaker (self) and placed the talker elsewhere: a person
+    marks_self = any(d.get("source_id") == SELF for r in results.get("ssl", [])
+                     for d in (r.get("ssl") or {}).get("directions", []))
+    return not (marks_self and ssl is not None and ssl.get("source_id") != SELF and not ssl.get("background"))

@@ -1,0 +1,152 @@
+"""The robot's-voice routes refuse bad input with one clear reason (real orchestrator process, real HTTP
+client), and fusion's rule for the robot's own voice (fusion/playback.py) on results as stored."""
+from __future__ import annotations
+
+import io
+import threading
+
+import numpy as np
+import pytest
+import soundfile
+
+from esiaf.tools.testing import Orchestrator, poll
+from esiaf_services.orchestrator.fusion.playback import is_robot, overlap_share, played, playing_at
+from esiaf_services.player.service import Player
+
+RATE = 16000
+
+
+@pytest.fixture(scope="module")
+def api(tmp_path_factory):
+    """One orchestrator for the refusals (they change nothing; no player is ever registered on it)."""
+    running = Orchestrator(tmp_path_factory.mktemp("api"))
+    yield running
+    running.close()
+
+
+def wav(samples: np.ndarray, rate: int = RATE, subtype: str = "PCM_16", fmt: str = "WAV") -> bytes:
+    buffer = io.BytesIO()
+    soundfile.write(buffer, samples, rate, format=fmt, subtype=subtype)
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize(("body", "status", "reason"), [
+    (b"", 422, "no audio"),
+    (b"RIFF\x00\x00", 422, "not a readable WAV"),
+    (b"this is text, not sound", 422, "not a readable WAV"),
+    (wav(np.zeros((RATE, 4)) + 0.1), 422, "4 channels"),
+    (wav(np.zeros(0)), 422, "no samples"),
+    (wav(np.array([0.1, np.nan, 0.2], dtype=np.float32), subtype="FLOAT"), 422, "not finite"),
+    (wav(np.array([0.1, np.inf], dtype=np.float32), subtype="FLOAT"), 422, "not finite"),
+    (wav(np.zeros(RATE) + 0.1), 404, "no player plays stream 'robot'"),  # a good WAV, but no player
+])
+def test_play_refuses_what_is_not_a_playable_wav(api, body, status, reason):
+    answer = api.http.post("/streams/robot/play", content=body)
+    assert answer.status_code == status and reason in answer.json()["detail"], answer.text
+
+
+@pytest.mark.parametrize(("body", "field"), [
+    ({"text": ""}, "text"), ({}, "text"), ({"text": "x" * 2001}, "text"), ({"text": 5}, "text"),
+    ({"text": "hi", "voice": "slt; rm -rf /"}, "voice"), ({"text": "hi", "speed": 2}, "speed"),
+])
+def test_say_refuses_a_bad_request_by_field(api, body, field):
+    answer = api.http.post("/streams/robot/say", json=body)
+    assert answer.status_code == 422 and field in answer.text
+
+
+def test_orders_for_a_stream_without_a_player_are_404_with_the_reason(api):
+    for method, path, kwargs in [("POST", "/streams/robot/say", {"json": {"text": "Hello."}}),
+                                 ("DELETE", "/streams/robot/playing", {}), ("GET", "/streams/robot/playing", {})]:
+        answer = api.http.request(method, path, **kwargs)
+        assert answer.status_code == 404 and "no player plays stream 'robot'" in answer.json()["detail"]
+
+
+def test_the_barge_in_policy_is_per_stream_and_checked(api):
+    assert api.http.get("/streams/a/barge-in").json() == {"policy": "stop"}  # the setting's default
+    assert api.http.put("/streams/a/barge-in", json={"policy": "duck"}).status_code == 200
+    assert api.http.get("/streams/a/barge-in").json() == {"policy": "duck"}
+    assert api.http.get("/streams/b/barge-in").json() == {"policy": "stop"}
+    for bad in ({"policy": "shout"}, {}, {"policy": "stop", "extra": 1}):
+        assert api.http.put("/streams/a/barge-in", json=bad).status_code == 422
+
+
+def test_a_wav_longer_than_the_cap_at_the_players_rate_is_413(orchestrator, tmp_path):
+    player = Player(Player.Settings(name="player", orchestrator_url=orchestrator.url, stream_id="robot",
+                                    output=str(tmp_path / "out.raw")))
+    threading.Thread(target=player.run, daemon=True).start()
+    poll(lambda: orchestrator.http.get("/streams/robot/playing").status_code == 200, timeout_s=20)
+    # 8 kHz for 45 s: small as sent (720,000 bytes), 720,000 samples at the player's 16 kHz
+    answer = orchestrator.http.post("/streams/robot/play", content=wav(np.zeros(45 * 8000) + 0.01, 8000))
+    assert answer.status_code == 413 and "at most 21.9 s" in answer.json()["detail"]
+    assert orchestrator.http.post("/streams/robot/play", content=wav(np.zeros(RATE) + 0.01)).status_code == 202
+    player.stop()
+
+
+def result(item: int, start_ns: int, end_ns: int, sequence: int, stopped: bool = False, name: str = "x",
+           part: int = 0) -> dict:
+    return {"instance": "player-1", "sequence": sequence, "span": {"start_ns": start_ns, "end_ns": end_ns},
+            "playback": {"text": name, "attributes": {"item": float(item), "part": float(part), "stopped": stopped}}}
+
+
+def test_an_items_later_report_revises_its_span_and_the_overlap_is_the_unions_share():
+    items = played([result(1, 0, 100, 1), result(2, 100, 300, 2), result(1, 0, 40, 3, stopped=True),
+                    result(1, 120, 180, 4, part=1), result(1, 40, 40, 5, stopped=True, part=1)])
+    assert [(p.start_ns, p.end_ns, p.stopped) for p in items] == [(0, 40, True), (40, 40, True), (100, 300, False)]
+    assert overlap_share(items, 0, 200) == pytest.approx((40 + 100) / 200)
+    overlapping = played([result(1, 0, 100, 1), result(2, 50, 150, 2)])
+    assert overlap_share(overlapping, 0, 200) == pytest.approx(150 / 200)  # counted once where they overlap
+    assert playing_at(items, 50) is None and playing_at(items, 120) is items[2]
+
+
+def test_the_robot_is_recognised_by_overlap_and_its_own_words():
+    said = played([result(1, 0, 100, 1, name="say: The kitchen is on your left.")])
+    asr = {"speech": {"hypotheses": [{"text": "the kitchen is on your left", "probability": 0.9, "words": []}]}}
+    other = {"speech": {"hypotheses": [{"text": "where is the bathroom", "probability": 0.9, "words": []}]}}
+    assert is_robot(0.9, said, asr, {})  # its own words, while it played
+    assert not is_robot(0.9, said, other, {})  # a person talking over it says other words
+    assert not is_robot(0.3, said, asr, {})  # mostly outside what it played
+    assert is_robot(0.9, said, {"vad": {"probability": 0.9}}, {})  # no text: the overlap decides
+    a_file = played([result(1, 0, 100, 1, name="answer.wav")])  # the robot's words not known
+    assert not is_robot(0.9, a_file, asr, {})  # words were heard: a person's, not lost
+    assert is_robot(0.9, a_file, {"vad": {"probability": 0.9}}, {})
+
+
+def test_fusion_tags_an_utterance_inside_the_robots_playback_and_not_one_outside_it():
+    import itertools
+
+    from esiaf_services.orchestrator.fusion.engine import FusionEngine, StoredResult
+    from esiaf_services.orchestrator.settings import FusionSettings
+    ids = itertools.count(1)
+    engine = FusionEngine([FusionSettings(name="u", anchor="vad")], allocate_id=lambda: next(ids))
+
+    def stored(result_id: int, type_: str, start_ns: int, end_ns: int, **payload) -> StoredResult:
+        json = {"id": result_id, "instance": "player-1", "sequence": result_id, "type": type_,
+                "span": {"start_ns": start_ns, "end_ns": end_ns}, **payload}
+        return StoredResult(id=result_id, component=type_, type=type_, stream_id="s", start_ns=start_ns,
+                            end_ns=end_ns, json=json)
+    report = result(1, 1000, 3000, 1)["playback"]
+    assert engine.on_result(stored(1, "playback", 1000, 3000, playback=report), 0) == []  # fuses nothing
+    assert engine.playing_at("s", 2000) is not None and engine.playing_at("s", 3500) is None
+    echo, = engine.on_result(stored(2, "vad", 1200, 2800, vad={"probability": 0.9}), 0)
+    person, = engine.on_result(stored(3, "vad", 2500, 4500, vad={"probability": 0.9}), 0)
+    assert (echo.result.source, echo.result.playback_overlap) == ("robot", 1.0)
+    assert (person.result.source, person.result.playback_overlap) == ("person", 0.25)
+
+
+def test_the_localiser_speaks_for_a_person_only_where_it_marks_the_robots_loudspeaker():
+    said = played([result(1, 0, 100, 1)])  # a sound file: no text to compare
+    vad = {"vad": {"probability": 0.9}}
+
+    def ssl(*source_ids: str) -> dict:
+        return {"ssl": [{"ssl": {"directions": [{"source_id": s, "azimuth_deg": 0.0} for s in source_ids]}}]}
+    elsewhere = {"source_id": "s2", "background": False}
+    assert not is_robot(0.9, said, vad, ssl("self", "s2"), elsewhere)  # the talker is not at its loudspeaker
+    assert is_robot(0.9, said, vad, ssl("self"), {"source_id": "self", "background": True})
+    assert is_robot(0.9, said, vad, ssl("s2"), elsewhere)  # no loudspeaker marked: the overlap decides
+
+
+def test_an_utterance_with_nothing_recognised_inside_the_robots_speech_is_the_robots():
+    said = played([result(1, 0, 100, 1, name="say: The kitchen is on your left.")])
+    out_of_set = {"speech": {"hypotheses": [{"text": "", "raw_text": "", "probability": 0.1, "words": []}]}}
+    assert is_robot(0.9, said, out_of_set, {})
+    assert not is_robot(0.4, said, out_of_set, {})
