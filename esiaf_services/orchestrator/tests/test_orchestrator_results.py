@@ -50,7 +50,7 @@ def test_speech_result_is_stored_and_published_fused(orch, component, http):
         # the default fusion fuses ssl, emotion, gender and voice_id; none is running, so nothing waits
         "stream_id": "default", "results": {"ssl": [], "emotion": [], "gender": [], "voice_id": []},
         "aggregates": {"ssl": None, "emotion": None, "gender": None, "voice_id": None}, "completion": "complete",
-        "missing_components": [], "missing": [], "seq": 1, "playback_overlap": 0.0, "source": "person"}
+        "missing_components": [], "missing": [], "seq": 1, "playback_overlap": 0.0, "source": "person", "omitted": {}}
     assert isinstance(fused["published_ns"], int)
     assert fused["published_ns"] >= anchor["received_ns"]
 
