@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import httpx
 import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
@@ -111,12 +112,22 @@ def test_an_mcap_that_is_truncated_or_not_mcap_is_one_line_and_exit_2(tmp_path, 
     assert not (tmp_path / "w").exists()  # refused before anything started
 
 
+def test_a_recording_is_never_written_over(tmp_path):
+    kept = tmp_path / "kept.mcap"
+    kept.write_bytes(b"an earlier recording")
+    for command in (["run", "--input", str(DEMO), "--record", str(kept), "--port", str(free_port()), "--workdir",
+                     str(tmp_path / "w")], ["record", "--out", str(kept), "--url", "http://127.0.0.1:9"]):
+        done = esiaf(*command)
+        assert done.returncode == 2 and len(done.stderr.splitlines()) == 1 and "exists" in done.stderr, done.stderr
+    assert kept.read_bytes() == b"an earlier recording"
+
+
 def test_esiaf_record_attaches_to_a_running_orchestrator(tmp_path):
     pipeline = Launcher(["--input", str(DEMO), "--grammar", "robocup", "--without", "emotion,gender,voiceid",
                          "--json", "--serve"], tmp_path / "work")
     recording = tmp_path / "attached.mcap"
     try:
-        poll(lambda: (tmp_path / "work" / "token").exists(), 60)
+        poll(lambda: httpx.get(f"{pipeline.url}/health").status_code == 200, 60)
         recorder = subprocess.Popen([sys.executable, "-m", "esiaf", "record", "--out", str(recording), "--url",
                                      pipeline.url, "--token-file", str(tmp_path / "work" / "token")],
                                     cwd=REPO, stderr=subprocess.PIPE, text=True)

@@ -217,6 +217,8 @@ def check_recording(args: argparse.Namespace) -> None:
     if args.record is not None:
         if args.record.is_dir() or not args.record.absolute().parent.is_dir():
             raise LaunchError(f"--record {args.record}: give a file in a folder that exists")
+        if args.record.is_file():
+            raise LaunchError(f"--record {args.record} exists: give another name, or remove it")
         if args.vad_in_grabber:
             raise LaunchError("--record: not possible with --vad-in-grabber (the grabber waits for the vad's "
                               "consumers, not for the recorder)")

@@ -169,7 +169,8 @@ def start_recorder(args: argparse.Namespace, supervisor: Supervisor, pipeline: P
         waited = int(pipeline.grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"])
         pipeline.grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"] = str(waited + 1)
     return supervisor.start("recorder", ["--out", str(args.record), "--url", url, "--topics", ",".join(topics),
-                                         "--max-mb", str(args.record_max_mb), "--max-s", str(args.record_max_s)],
+                                         "--max-mb", str(args.record_max_mb), "--max-s", str(args.record_max_s),
+                                         "--go-on"],
                             target=["-m", "esiaf.tools.mcap_record"])
 
 

@@ -7,6 +7,7 @@ direction, voice), matched by their windows' times from each stream's start (doc
 """
 from __future__ import annotations
 
+import argparse
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -94,13 +95,17 @@ def session_utterances(path: Path) -> list[Utterance]:
     return [utterance(fused, info.start_ns) for fused in recorded_fused(path) if fused.stream_id == info.stream_id]
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     parser = OneLineParser(prog="esiaf mcap", description="ESIAF recordings (MCAP)")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
     compare = sub.add_parser("diff", help="the fused results of two recordings of the same audio, compared")
     compare.add_argument("recorded", type=Path)
     compare.add_argument("replayed", type=Path)
-    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    return parser.parse_args(argv)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = parse_args(sys.argv[1:] if argv is None else argv)
     try:
         lines = diff(session_utterances(args.recorded), session_utterances(args.replayed))
     except SessionError as exc:

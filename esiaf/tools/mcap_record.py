@@ -28,9 +28,10 @@ from urllib.parse import urlencode
 
 import httpx
 from pydantic import Field
+from websockets.exceptions import WebSocketException
 
 from esiaf import auth
-from esiaf.api_client import OrchestratorHTTP, declared_format
+from esiaf.api_client import OrchestratorHTTP, declared_format, why
 from esiaf.argparsing import OneLineParser
 from esiaf.audio import Audio
 from esiaf.component import Component
@@ -39,7 +40,7 @@ from esiaf.processor import SetupError
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf.settings import ComponentSettings, SettingsError, load_settings
 from esiaf.tools.mcap_convert import fused_from_json, partial_from_json, result_from_json
-from esiaf.tools.mcap_writer import RotatingWriter
+from esiaf.tools.mcap_writer import RotatingWriter, next_part
 from esiaf.tools.terminal import err
 
 log = logging.getLogger(__name__)
@@ -55,6 +56,7 @@ class RecorderSettings(ComponentSettings):
     stream: str = ""  # only this stream's results and fused results ("" every stream's)
     max_mb: float = 0.0  # a new file once one reaches this size (0: no limit)
     max_s: float = 0.0  # ... or has been written this long (0: no limit)
+    go_on: bool = False  # `out` may exist: write the next part not written yet (a recorder restarted by esiaf run)
 
 
 class Recorder(Component):
@@ -74,6 +76,8 @@ class Recorder(Component):
         self._done = threading.Event()
         self._threads: list[threading.Thread] = []
         self._results_after = 0
+        self.audio_s: dict[str, float] = {}  # seconds of audio recorded, per topic
+        self._cpu_from: float | None = None  # this process's CPU time at the first chunk recorded
 
     def setup(self) -> None:
         s = self.settings
@@ -85,7 +89,8 @@ class Recorder(Component):
             self.add_input(topic, AudioFormat.from_dict(declared))
         self.writer = RotatingWriter(Path(s.out), max_bytes=int(s.max_mb * 1024 * 1024), max_s=s.max_s,
                                      metadata={"orchestrator": s.orchestrator_url, "topics": ",".join(s.topics),
-                                               "started_ns": str(self.started_ns)})
+                                               "started_ns": str(self.started_ns)},
+                                     first_part=next_part(Path(s.out)) if s.go_on else 1)
         if self.writer.failed:
             raise SetupError(f"--out: {self.writer.failed}")
         from esiaf.tools.feed import FusedFeed
@@ -93,7 +98,7 @@ class Recorder(Component):
         ws_url = s.orchestrator_url.replace("http", "ws", 1) + "/ws/fused?" + urlencode(query)
         try:
             feed = FusedFeed(ws_url)
-        except (OSError, TimeoutError) as exc:
+        except (OSError, TimeoutError, WebSocketException) as exc:  # refused, or the token refused
             raise SetupError(f"cannot follow {ws_url}: {exc}") from None
         self._threads = [threading.Thread(target=self._follow, args=(feed,), name="recorder-fused", daemon=True),
                          threading.Thread(target=self._poll_results, name="recorder-results", daemon=True)]
@@ -108,6 +113,9 @@ class Recorder(Component):
     # -- audio ---------------------------------------------------------------------------
     def on_audio(self, audio: Audio) -> None:
         assert self.writer is not None
+        if self._cpu_from is None:
+            self._cpu_from = time.process_time()
+        self.audio_s[audio.topic] = self.audio_s.get(audio.topic, 0.0) + (audio.end_ns - audio.start_ns) / 1e9
         message = pb.AugmentedAudio(stream_id=audio.stream_id, topic=audio.topic, publisher=audio.publisher,
                                     sequence=audio.sequence, start_ns=audio.start_ns, end_ns=audio.end_ns,
                                     format=audio.format.to_proto(), payload=audio.payload)
@@ -190,7 +198,10 @@ class Recorder(Component):
         self.writer.close()
         if not self.writer.failed:
             files = ", ".join(str(path) for path in self.writer.paths)
-            err(f"esiaf: recorded {self.writer.messages} messages to {files}")
+            audio_s = max(self.audio_s.values(), default=0.0)
+            cpu_s = time.process_time() - self._cpu_from if self._cpu_from is not None else 0.0
+            err(f"esiaf: recorded {self.writer.messages} messages ({audio_s:.1f} s of audio, {cpu_s:.2f} CPU-s "
+                f"from its first chunk) to {files}")
 
 
 def parse_args(argv: Sequence[str]) -> argparse.Namespace:
@@ -204,6 +215,7 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     parser.add_argument("--stream", default="", help="record only this stream's results (default: every stream's)")
     parser.add_argument("--max-mb", type=float, default=0.0, help="a new file once one is this large (MB)")
     parser.add_argument("--max-s", type=float, default=0.0, help="a new file once one has been written this long")
+    parser.add_argument("--go-on", action="store_true", help=argparse.SUPPRESS)  # esiaf run's: after a restart
     parser.add_argument("-v", "--verbose", action="store_true", help="log what the recorder does")
     return parser.parse_args(argv)
 
@@ -217,17 +229,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.max_mb < 0 or args.max_s < 0:
         err("esiaf record: --max-mb and --max-s take a positive limit (0: none)")
         return 2
-    if args.out.is_dir() or not args.out.parent.is_dir():
+    if args.out.is_dir() or not args.out.absolute().parent.is_dir():
         err(f"esiaf record: --out {args.out} is a folder, or its folder does not exist: give a file")
+        return 2
+    if args.out.exists() and not args.go_on and args.out.is_file():
+        err(f"esiaf record: --out {args.out} exists: give another name, or remove it")
         return 2
     try:
         auth.token()
         settings = load_settings(RecorderSettings, "recorder", orchestrator_url=args.url.rstrip("/"),
                                  out=str(args.out), topics=topics, stream=args.stream, max_mb=args.max_mb,
-                                 max_s=args.max_s,
+                                 max_s=args.max_s, go_on=args.go_on,
                                  log_level="INFO" if args.verbose else "WARNING")
     except (SettingsError, auth.TokenError) as exc:
         err(f"esiaf record: {exc}")
+        return 2
+    try:  # reachable, and the token taken: said now, not after waiting for a producer
+        with OrchestratorHTTP(settings.orchestrator_url) as http:
+            response = http.get("/topics")
+    except httpx.HTTPError as exc:
+        err(f"esiaf record: cannot reach the orchestrator at {settings.orchestrator_url} (--url): {exc}")
+        return 2
+    if response.status_code != 200:
+        err(f"esiaf record: the orchestrator at {settings.orchestrator_url} answered GET /topics with "
+            f"{response.status_code}: {why(response)} (the token: ESIAF_TOKEN, ESIAF_TOKEN_FILE or --token-file)")
         return 2
     logging.basicConfig(level=settings.log_level, format="%(asctime)s %(levelname)s %(name)s %(message)s")
     from esiaf.control import RegistrationError

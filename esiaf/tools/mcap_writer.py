@@ -27,13 +27,21 @@ def part_path(path: Path, number: int) -> Path:
     return path if number == 1 else path.with_name(f"{path.stem}-{number}{path.suffix}")
 
 
+def next_part(path: Path) -> int:
+    """The number of the first part of ``path`` not written yet: where a restarted recorder goes on."""
+    number = 1
+    while part_path(path, number).is_file():  # a device (/dev/full) is written again
+        number += 1
+    return number
+
+
 class RotatingWriter:
     """Writes messages to ``path`` and its numbered successors. ``max_bytes`` and ``max_s`` (0: no limit)
     bound each file; ``metadata`` is written into every file. Thread-safe. After a failed write
     (``failed`` says why) every later message is dropped."""
 
     def __init__(self, path: Path, max_bytes: int = 0, max_s: float = 0.0, metadata: dict[str, str] | None = None,
-                 compression: CompressionType = CompressionType.LZ4) -> None:
+                 compression: CompressionType = CompressionType.LZ4, first_part: int = 1) -> None:
         self.path = path
         self.max_bytes = max_bytes
         self.max_s = max_s
@@ -41,6 +49,7 @@ class RotatingWriter:
         self.compression = compression
         self.chunk_bytes = CHUNK_BYTES if not max_bytes else max(MIN_CHUNK_BYTES, min(CHUNK_BYTES, max_bytes // 8))
         self.paths: list[Path] = []
+        self.part = first_part - 1  # the number of the part being written
         self.messages = 0
         self.failed = ""
         self._lock = threading.Lock()
@@ -50,12 +59,13 @@ class RotatingWriter:
         self._guard(self._open)
 
     def _open(self) -> None:
-        path = part_path(self.path, len(self.paths) + 1)
+        self.part += 1
+        path = part_path(self.path, self.part)
         self._file = path.open("wb")
         self.paths.append(path)
         self._writer = Writer(self._file, chunk_size=self.chunk_bytes, compression=self.compression,
                               profile="esiaf")
-        self._writer.add_metadata("esiaf", {**self.metadata, "part": str(len(self.paths))})
+        self._writer.add_metadata("esiaf", {**self.metadata, "part": str(self.part)})
         self._opened = time.monotonic()
         log.info("recording to %s", path)
 
