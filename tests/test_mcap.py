@@ -67,6 +67,7 @@ def test_a_recorded_demo_decodes_and_its_replay_gives_the_same_fused_results(tmp
     assert {"results/speech", "results/vad", "partials"} <= set(recorded)
     assert len(recorded["results/speech"]) == QUESTIONS
     assert len(utterances(recorded)) == QUESTIONS
+    assert {"asr", "vad", "grabber"} <= {event["name"] for event in recorded["components"] if "name" in event}
 
     done = run(tmp_path / "second", "--input", str(recording), "--record", str(replayed), "--diff")
     assert f"diff: {QUESTIONS} recorded utterances, {QUESTIONS} replayed, 0 differences" in done.stdout

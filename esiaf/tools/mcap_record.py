@@ -7,10 +7,12 @@ The recorder is an SDK consumer component (service ``recorder``): it subscribes 
 (each in the format its producer declared, so the audio is kept as it was sent) and writes every
 chunk as an ``esiaf.AugmentedAudio``; it follows the orchestrator's websocket with partials for the
 fused results (``esiaf.FusedResult``, every revision) and partials (``esiaf.Result`` of kind
-``partial``), and pages ``GET /results`` for every stored result (``esiaf.Result``). Each message's
-log time is its capture time (a chunk's start, a result's span start, a fused result's window
-start, a partial's end). On SIGTERM or Ctrl-C it catches up on what the orchestrator fused meanwhile
-and finishes the file. ``esiaf run --record FILE.mcap`` starts it beside the pipeline.
+``partial``), pages ``GET /results`` for every stored result (``esiaf.Result``), and notes each
+component that registers, dies or leaves (``GET /components``, a ``google.protobuf.Struct``). Each
+message's log time is its capture time (a chunk's start, a result's span start, a fused result's
+window start, a partial's end); a component's event, the wall clock. On SIGTERM or Ctrl-C it
+catches up on what the orchestrator fused meanwhile and finishes the file. ``esiaf run --record
+FILE.mcap`` starts it beside the pipeline.
 """
 from __future__ import annotations
 
@@ -27,6 +29,7 @@ from typing import Any, ClassVar
 from urllib.parse import urlencode
 
 import httpx
+from google.protobuf.struct_pb2 import Struct
 from pydantic import Field
 from websockets.exceptions import WebSocketException
 
@@ -46,8 +49,10 @@ from esiaf.tools.terminal import err
 log = logging.getLogger(__name__)
 
 RESULTS_POLL_S = 1.0  # GET /results is asked this often for what was stored since
+COMPONENTS_EVERY = 2  # ... and GET /components every this many polls, for components that came or changed status
+COMPONENT_FIELDS = ("component_id", "name", "instance", "kind", "status", "host", "pid")
 PAGE = 1000  # results and fused results per request (the API's largest page)
-FUSED_TOPIC, PARTIAL_TOPIC, RESULTS_PREFIX = "fused", "partials", "results/"
+FUSED_TOPIC, PARTIAL_TOPIC, RESULTS_PREFIX, COMPONENTS_TOPIC = "fused", "partials", "results/", "components"
 
 
 class RecorderSettings(ComponentSettings):
@@ -77,6 +82,7 @@ class Recorder(Component):
         self._threads: list[threading.Thread] = []
         self._results_after = 0
         self.audio_s: dict[str, float] = {}  # seconds of audio recorded, per topic
+        self.component_status: dict[str, str] = {}  # component id -> its status last recorded
         self._cpu_from: float | None = None  # this process's CPU time at the first chunk recorded
 
     def setup(self) -> None:
@@ -172,13 +178,40 @@ class Recorder(Component):
                 self.writer.write(RESULTS_PREFIX + (item.get("type") or "unknown"), result, result.span.start_ns)
                 self._results_after = max(self._results_after, int(item.get("id") or 0))
 
+    def _components_once(self, http: OrchestratorHTTP) -> None:
+        """A component that registered, died or left since the last look: its event, as a Struct (wall clock)."""
+        listed = {str(component.get("component_id")): component
+                  for component in http.get("/components").raise_for_status().json()["items"]}
+        for key in set(self.component_status) - set(listed):  # left: no longer listed
+            if self.component_status[key] != "gone":
+                listed[key] = {"component_id": key, "status": "gone"}
+        for key, component in listed.items():
+            status = str(component.get("status"))
+            if self.component_status.get(key) == status:
+                continue
+            fields = {name: component[name] for name in COMPONENT_FIELDS if component.get(name) is not None}
+            self._write_event({"event": "seen" if key not in self.component_status else "status", **fields})
+            self.component_status[key] = status
+
+    def _write_event(self, fields: dict[str, Any]) -> None:
+        assert self.writer is not None
+        event = Struct()
+        event.update(fields)
+        self.writer.write(COMPONENTS_TOPIC, event, time.time_ns())
+
     def _poll_results(self) -> None:
+        polls = 0
         with OrchestratorHTTP(self.settings.orchestrator_url) as http:
-            while not self._done.wait(RESULTS_POLL_S):
+            while True:
                 try:
+                    if polls % COMPONENTS_EVERY == 0:
+                        self._components_once(http)
                     self._results_once(http)
                 except (httpx.HTTPError, ValueError, KeyError) as exc:
                     log.info("results not read: %s", exc)
+                polls += 1
+                if self._done.wait(RESULTS_POLL_S):
+                    return
 
     def teardown(self) -> None:
         """Catches up on the results and fused results stored meanwhile, then finishes the file."""
@@ -189,6 +222,7 @@ class Recorder(Component):
             return
         try:
             with OrchestratorHTTP(self.settings.orchestrator_url) as http:
+                self._components_once(http)
                 self._results_once(http)
                 for items, _ in self._pages(http, "/fused", 0):
                     for item in items:

@@ -6,6 +6,7 @@ if it is there). The grabber plays the recorded chunks as they were, stamped wit
 times, in real time or as fast as the pipeline takes them (``--fast``)."""
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -97,7 +98,7 @@ def recorded_audio(path: Path) -> Iterator[pb.AugmentedAudio]:
             yield chunk
 
 
-@dataclass
+@dataclass(frozen=True)
 class SessionInfo:
     """What a replay needs to know before it starts."""
     format: AudioFormat
@@ -107,7 +108,17 @@ class SessionInfo:
 
 
 def check_session(path: Path) -> SessionInfo:
-    """Reads the whole recording once: its audio's format and length; SessionError if it cannot be replayed."""
+    """Reads the whole recording once: its audio's format and length; SessionError if it cannot be replayed.
+    Asked again of the same file unchanged (esiaf run checks its inputs twice), it answers from memory."""
+    try:
+        stat = path.stat()
+    except OSError as exc:
+        raise SessionError(f"cannot read {path}: {exc.strerror}") from None
+    return _check_session(path.absolute(), stat.st_size, stat.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=8)
+def _check_session(path: Path, size: int, mtime_ns: int) -> SessionInfo:
     fmt: AudioFormat | None = None
     frames, stream_id, start_ns = 0, "", 0
     for chunk in recorded_audio(path):
