@@ -12,6 +12,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf.tools.mcap_writer import RotatingWriter, next_part
 
+
 def chunk(n: int) -> pb.AugmentedAudio:
     """50 ms of 16 kHz int16 mono noise, which compresses as little as audio does."""
     return pb.AugmentedAudio(sequence=n, start_ns=n * 50_000_000, end_ns=(n + 1) * 50_000_000,
