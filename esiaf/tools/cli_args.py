@@ -69,9 +69,9 @@ def check_input(path: Path) -> int:
 
 
 def sound_suffixes() -> set[str]:
-    """The file name endings --input FOLDER plays: what libsndfile reads, and headerless .raw/.pcm."""
+    """The file name endings --input FOLDER plays: what libsndfile reads, headerless .raw/.pcm, and recordings."""
     import soundfile
-    return {f".{name.lower()}" for name in soundfile.available_formats()} | {".aif", ".oga", ".raw", ".pcm"}
+    return {f".{name.lower()}" for name in soundfile.available_formats()} | {".aif", ".oga", ".raw", ".pcm", ".mcap"}
 
 
 def expand_inputs(paths: Sequence[Path]) -> list[Path]:
