@@ -21,7 +21,7 @@ from typing import ClassVar
 import pytest
 
 from esiaf.keys import main as keys_main
-from esiaf.tools import cli_args, docgen, evaluation
+from esiaf.tools import cli_args, docgen, evaluation, mcap_diff, mcap_record
 from esiaf.tools.testing import REPO
 
 DOCS = sorted([REPO / "README.md", REPO / "CONTRIBUTING.md", REPO / "CHANGELOG.md",
@@ -133,8 +133,8 @@ def command_problem(command: str) -> str | None:
     argv = words(command)
     if not argv:
         return None
-    if argv[0] not in ("run", "eval", "keys", "wyoming"):
-        return f"esiaf has no subcommand {argv[0]!r} (run, eval, keys, wyoming)"
+    if argv[0] not in ("run", "eval", "keys", "wyoming", "record", "mcap"):
+        return f"esiaf has no subcommand {argv[0]!r} (run, eval, keys, wyoming, record, mcap)"
     problem = parse_problem(argv[0], argv[1:])
     if problem and argv[-1].startswith("--"):  # an option named in prose, its value left out
         problem = parse_problem(argv[0], [*argv[1:], "X"]) and problem
@@ -156,6 +156,10 @@ def parse_problem(subcommand: str, args: list[str]) -> str | None:
                 _, rest = evaluation.parse_args(args)
                 if rest:
                     cli_args.parse_args(["run", "--input", "speech.wav", *rest])
+            elif subcommand == "record":  # a fragment without --out names the command or its options only
+                mcap_record.parse_args(args if "--out" in args else ["--out", "X.mcap", *args])
+            elif subcommand == "mcap" and args[1:]:  # `esiaf mcap diff` named in prose: the command only
+                mcap_diff.parse_args(args)
             elif subcommand == "keys":
                 help_text = io.StringIO()
                 with contextlib.suppress(SystemExit), contextlib.redirect_stdout(help_text):

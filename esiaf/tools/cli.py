@@ -1,11 +1,14 @@
 """The ``esiaf`` command: ``esiaf run`` starts the whole pipeline as local processes.
 
-    esiaf run --input FILE|FOLDER [--input ...] [--array SPEC] [--fast] [--grammar FILE|robocup] [--serve]
+    esiaf run --input FILE|FOLDER|SESSION.mcap [--input ...] [--array SPEC] [--fast] [--grammar FILE|robocup]
+              [--serve] [--record FILE.mcap] [--diff]
               [--without emotion,...] [--replicas asr=2 ...]
     esiaf run --mic DEVICE [--array SPEC]
     esiaf eval robocup [--runs N] [--seed S] [--snr LO:HI] [--array SPEC] [-- RUN OPTIONS]
     esiaf keys DIR [--component NAME ...]      (CURVE key pairs: esiaf/keys.py)
     esiaf wyoming [--port 10300] [--listen ADDR] [--grammar FILE|robocup] [--asr ...]   (docs/wyoming.md)
+    esiaf record --out FILE.mcap [--url URL]   (a running pipeline to MCAP: esiaf/tools/mcap_record.py)
+    esiaf mcap diff RECORDED.mcap REPLAYED.mcap (esiaf/tools/mcap_diff.py)
 
 It starts the orchestrator, the recogniser, the VAD, the emotion, gender and voiceid services (on the VAD's
 output, like the recogniser) and the grabber (with a microphone array also the ssl service and the
@@ -64,6 +67,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if argv[:1] == ["eval"]:
         from esiaf.tools.evaluation import main as evaluate
         return evaluate(argv[1:])
+    if argv[:1] == ["record"]:
+        from esiaf.tools.mcap_record import main as record
+        return record(argv[1:])
+    if argv[:1] == ["mcap"]:
+        from esiaf.tools.mcap_diff import main as mcap
+        return mcap(argv[1:])
     if argv[:1] == ["keys"]:
         from esiaf.keys import main as make_keys
         return make_keys(argv[1:])

@@ -43,6 +43,16 @@ def check_input(path: Path) -> int:
         raise LaunchError(f"cannot read input file {path}: {exc.strerror}") from None
     if path.suffix.lower() in (".raw", ".pcm"):
         return 1  # headerless: read as 16 kHz int16 mono
+    from esiaf.tools.mcap_replay import SessionError, check_session, is_mcap
+    if is_mcap(path):  # a recording (esiaf run --record): its audio is replayed
+        try:
+            fmt = check_session(path).format
+        except SessionError as exc:
+            raise LaunchError(str(exc)) from None
+        if not MIN_RATE_HZ <= fmt.sample_rate_hz <= MAX_RATE_HZ:
+            raise LaunchError(f"input file {path}: its audio is {fmt.sample_rate_hz} Hz; the analysers take "
+                              f"{MIN_RATE_HZ} to {MAX_RATE_HZ} Hz")
+        return fmt.channels
     import soundfile
     try:
         info = soundfile.info(str(path))
@@ -59,9 +69,9 @@ def check_input(path: Path) -> int:
 
 
 def sound_suffixes() -> set[str]:
-    """The file name endings --input FOLDER plays: what libsndfile reads, and headerless .raw/.pcm."""
+    """The file name endings --input FOLDER plays: what libsndfile reads, headerless .raw/.pcm, and recordings."""
     import soundfile
-    return {f".{name.lower()}" for name in soundfile.available_formats()} | {".aif", ".oga", ".raw", ".pcm"}
+    return {f".{name.lower()}" for name in soundfile.available_formats()} | {".aif", ".oga", ".raw", ".pcm", ".mcap"}
 
 
 def expand_inputs(paths: Sequence[Path]) -> list[Path]:
@@ -202,6 +212,27 @@ def resolve_paths(args: argparse.Namespace) -> None:
         args.array = str(Path(args.array).resolve())
 
 
+def check_recording(args: argparse.Namespace) -> None:
+    """--record and --diff: a file whose folder is there, limits that are limits, one recording to diff."""
+    if args.record is not None:
+        if args.record.is_dir() or not args.record.absolute().parent.is_dir():
+            raise LaunchError(f"--record {args.record}: give a file in a folder that exists")
+        if args.record.is_file():
+            raise LaunchError(f"--record {args.record} exists: give another name, or remove it")
+        if args.vad_in_grabber:
+            raise LaunchError("--record: not possible with --vad-in-grabber (the grabber waits for the vad's "
+                              "consumers, not for the recorder)")
+        args.record = args.record.absolute()
+    elif args.record_max_mb or args.record_max_s or args.record_topics:
+        raise LaunchError("--record-max-mb, --record-max-s and --record-topics bound a recording: give --record too")
+    if args.record_max_mb < 0 or args.record_max_s < 0:
+        raise LaunchError("--record-max-mb and --record-max-s take a positive limit (0: none)")
+    if args.diff:
+        from esiaf.tools.mcap_replay import is_mcap
+        if not args.input or len(args.input) != 1 or not is_mcap(args.input[0]):
+            raise LaunchError("--diff compares a replay with its recording: give one --input FILE.mcap")
+
+
 def check_values(args: argparse.Namespace) -> None:
     """What the command line asks for that can be checked before the pipeline's modules are imported."""
     if args.stream_id is not None:
@@ -213,6 +244,7 @@ def check_values(args: argparse.Namespace) -> None:
     check_settings(os.environ)
     parse_without(args.without)
     resolve_paths(args)
+    check_recording(args)
     if args.input:
         args.input = expand_inputs(args.input)
         check_inputs(args.input)
@@ -383,7 +415,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     run = sub.add_parser("run", help="run every service as a local process")
     source = run.add_mutually_exclusive_group(required=True)
     source.add_argument("--input", type=Path, action="append", help="sound file to play (WAV/FLAC/... of any "
-                        "rate and sample type, or .raw: 16 kHz s16le mono), or a folder: each sound file in it; "
+                        "rate and sample type, or .raw: 16 kHz s16le mono; or an .mcap recording: its audio), or a "
+                        "folder: each sound file in it; "
                         "repeatable: every file is played at once, each as a stream of its own")
     source.add_argument("--mic", metavar="DEVICE", help="ALSA capture device (see arecord -L)")
     run.add_argument("--array", help="microphone array of a multi-channel input or --mic: pepper4, respeaker4, "
@@ -432,6 +465,16 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                      "50 ms; see docs/benchmarks.md)")
     run.add_argument("--ros2", action="store_true", help="publish the voices as ROS 2 topics (REP-155, hri_msgs) "
                      "over DDS: the ros2 service (docs/ros2.md; ROS_DOMAIN_ID honoured)")
+    run.add_argument("--record", type=Path, metavar="FILE.mcap", help="record the run to MCAP: the audio, every "
+                     "result, the fused results and partials (docs/recording.md); replay it with --input FILE.mcap")
+    run.add_argument("--record-topics", metavar="TOPICS", help="with --record: the audio topics to record, "
+                     "separated by commas (default grabber/audio)")
+    run.add_argument("--record-max-mb", type=float, default=0.0, metavar="MB", help="with --record: a new file "
+                     "(FILE-2.mcap, ...) once one is this large")
+    run.add_argument("--record-max-s", type=float, default=0.0, metavar="S", help="with --record: a new file once "
+                     "one has been written this long")
+    run.add_argument("--diff", action="store_true", help="with --input FILE.mcap: print how the replay's fused "
+                     "results differ from the recorded ones (text, direction, voice per utterance)")
     run.add_argument("--json", action="store_true", help="print each fused result as JSON, and each barge_in event "
                      "(a person starting to speak while the robot plays)")
     run.add_argument("--partials", action="store_true", help="with --json: print the recognisers' partial "
@@ -443,4 +486,6 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     add_wyoming_parser(sub)
     sub.add_parser("eval", help="evaluation harnesses through the real pipeline: esiaf eval robocup --help")
     sub.add_parser("keys", help="CURVE key pairs for ZeroMQ across hosts: esiaf keys DIR --help")
+    sub.add_parser("record", help="record a running pipeline to MCAP: esiaf record --help")
+    sub.add_parser("mcap", help="compare recordings: esiaf mcap diff RECORDED.mcap REPLAYED.mcap")
     return parser.parse_args(argv)

@@ -9,8 +9,11 @@ import functools
 import json
 import logging
 import os
+import signal
+import subprocess
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -42,7 +45,7 @@ from esiaf.tools.launcher import (
     wait_until,
 )
 from esiaf.tools.plugins import resolve as resolve_plugin
-from esiaf.tools.terminal import err
+from esiaf.tools.terminal import err, out
 
 if TYPE_CHECKING:
     from esiaf.arrays import ArrayGeometry
@@ -120,14 +123,15 @@ def run(args: argparse.Namespace) -> int:
         query = {**({"stream": ids[0]} if len(ids) == 1 else {}), **({"partials": 1} if shows_partials(args) else {}),
                  **({"include_robot": "true"} if args.include_robot else {})}
         feed_url = f"ws://{args.host}:{args.port}/ws/fused" + (f"?{urlencode(query)}" if query else "")
-        with FusedFeed(feed_url) as ws:
+        with FusedFeed(feed_url) as ws, recording(args, supervisor, pipeline, url):
             if args.ros2:
                 pipeline.services["ros2"] = start_ros2(supervisor, ids)
             streams = start_grabbers(args, supervisor, pipeline, ids)
             err(f"esiaf: orchestrator at {url} (API docs: {url}/docs; token in {shown_path(workdir / 'token')}); "
                 f"logs in {shown_path(workdir / 'logs')}")
             err(f"esiaf: dashboard at {url}/?token={os.environ[auth.TOKEN_ENV]}")
-            return follow(ws, supervisor, client, streams, args)
+            code = follow(ws, supervisor, client, streams, args)
+            return show_diff(args.input[0], client, streams[0], code) if args.diff else code
     finally:
         client.close()
         supervisor.stop()
@@ -149,6 +153,55 @@ def prepare(args: argparse.Namespace, env: dict[str, str]) -> tuple[Path, Superv
                             | ({"ESIAF_AUDIO_QUEUE": os.environ.get("ESIAF_AUDIO_QUEUE", str(FAST_AUDIO_QUEUE))}
                                if args.fast else {}))
     return workdir, supervisor, OrchestratorClient(url)
+
+
+@contextmanager
+def recording(args: argparse.Namespace, supervisor: Supervisor, pipeline: Pipeline, url: str) -> Iterator[None]:
+    """--record: the recorder (esiaf/tools/mcap_record.py), a consumer of the audio topics that follows the
+    fused results, started before the grabbers (they wait for it too, so that it hears their first chunk) and
+    stopped before the orchestrator (it catches up on what was fused meanwhile)."""
+    if args.record is None:
+        yield
+        return
+    recorder = start_recorder(args, supervisor, pipeline, url)
+    try:
+        yield
+    finally:
+        stop_recorder(recorder)
+
+
+def start_recorder(args: argparse.Namespace, supervisor: Supervisor, pipeline: Pipeline, url: str) -> Child:
+    topics = [topic.strip() for topic in (args.record_topics or "grabber/audio").split(",") if topic.strip()]
+    if "grabber/audio" in topics:
+        waited = int(pipeline.grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"])
+        pipeline.grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"] = str(waited + 1)
+    return supervisor.start("recorder", ["--out", str(args.record), "--url", url, "--topics", ",".join(topics),
+                                         "--max-mb", str(args.record_max_mb), "--max-s", str(args.record_max_s),
+                                         "--go-on"],
+                            target=["-m", "esiaf.tools.mcap_record"])
+
+
+def stop_recorder(recorder: Child, timeout_s: float = 3 * START_TIMEOUT_S) -> None:
+    """Ends the recording: the recorder catches up with the orchestrator and finishes its file."""
+    if recorder.process.poll() is None:
+        recorder.process.send_signal(signal.SIGTERM)
+    try:
+        recorder.process.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        err(f"esiaf: the recorder did not finish in {timeout_s:g} s (its log: {recorder.log_path})")
+    for line in recorder.tail().splitlines():  # its summary, or why it stopped
+        if line.strip().startswith("esiaf"):
+            err(line.strip())
+
+
+def show_diff(recording: Path, client: OrchestratorClient, stream: Stream, code: int) -> int:
+    """--diff: the replay's fused results against the recording's (esiaf/tools/mcap_diff.py); the run's exit code."""
+    from esiaf.tools.mcap_convert import fused_from_json
+    from esiaf.tools.mcap_diff import diff, session_utterances, utterance
+    replayed = [utterance(fused_from_json(item), stream.origin_ns or 0) for item in client.fused(stream.stream_id)]
+    for line in diff(session_utterances(recording), sorted(replayed, key=lambda u: u.start_s)):
+        out(line)
+    return code
 
 
 def start_grabbers(args: argparse.Namespace, supervisor: Supervisor, pipeline: Pipeline,

@@ -324,6 +324,20 @@ class OrchestratorClient:
         response.raise_for_status()
         return response.json()
 
+    def fused(self, stream_id: str) -> list[dict[str, Any]]:
+        """Every fused result of a stream (``GET /fused``, page by page), each at its latest revision."""
+        items: list[dict[str, Any]] = []
+        after_id = 0
+        while True:
+            response = self._http.get(f"{self.url}/fused", params={"stream": stream_id, "after_id": after_id,
+                                                                   "limit": 1000})
+            response.raise_for_status()
+            page = response.json()
+            items.extend(page["items"])
+            if len(page["items"]) < 1000 or page.get("next_after_id") is None:
+                return items
+            after_id = page["next_after_id"]
+
     def announce(self, stream_id: str, info: dict[str, Any]) -> None:
         """Announces a stream ahead of its source (which announces it again, with its start)."""
         response = self._http.put(f"{self.url}/streams/{quote(stream_id, safe='')}",

@@ -17,13 +17,14 @@ from typing import ClassVar
 
 from esiaf import AudioFormat, Component, SampleClock, SetupError
 from esiaf.hosting import HostSettings
-from esiaf_services.grabber.sources import AlsaSource, FileSource
+from esiaf.tools.mcap_replay import McapSource
+from esiaf_services.grabber.sources import AlsaSource, FileSource, open_file
 
 log = logging.getLogger(__name__)
 
 
 class GrabberSettings(HostSettings):
-    input: str = ""  # a sound file or .raw/.pcm file; empty = live capture from `device`
+    input: str = ""  # a sound file, .raw/.pcm file or .mcap recording; empty = live capture from `device`
     device: str = ""  # ALSA device name for live capture
     topic: str = "grabber/audio"
     # the transport chunk, files and live capture (the ALSA period) alike, chosen by measurement (docs/
@@ -48,7 +49,8 @@ class Grabber(Component):
     Settings = GrabberSettings
     settings: GrabberSettings  # an instance of Settings: its fields, for type checkers
 
-    options: ClassVar[dict[str, str]] = {"input": "sound file to play (WAV, FLAC, ... or headerless .raw)",
+    options: ClassVar[dict[str, str]] = {"input": "sound file to play (WAV, FLAC, ..., headerless .raw) or an "
+                                                  ".mcap recording (its audio)",
                                          "device": "ALSA capture device (see arecord -L)",
                                          "fast": "play as fast as possible"}
 
@@ -62,9 +64,9 @@ class Grabber(Component):
             self.raw_format = AudioFormat(settings.sample_rate_hz, settings.sample_type, channels=settings.channels)
         except ValueError as exc:
             raise SetupError(f"bad capture format: {exc}") from None
-        self.source: FileSource | AlsaSource | None = None
+        self.source: FileSource | McapSource | AlsaSource | None = None
         if settings.input:  # open early: a bad file fails before registration
-            self.source = FileSource(Path(settings.input), self.raw_format, settings.chunk_ms)
+            self.source = open_file(Path(settings.input), self.raw_format, settings.chunk_ms)
             self.add_output(settings.topic, self.source.format)
         else:
             self.add_output(settings.topic, self.raw_format)

@@ -1,4 +1,5 @@
-"""Where the grabber's audio comes from: a file (WAV/FLAC/... or raw) or an ALSA device.
+"""Where the grabber's audio comes from: a file (WAV/FLAC/..., raw, or an MCAP recording's audio) or an
+ALSA device.
 
 A source yields (frames, channels) arrays of a fixed format, one chunk at a time.
 """
@@ -7,13 +8,16 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterator
 from pathlib import Path
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
 from esiaf import AudioFormat, SetupError
 from esiaf.formats import FormatError, decode
 from esiaf.receiving import MAX_CHANNELS, MAX_RATE_HZ, MIN_RATE_HZ
+
+if TYPE_CHECKING:
+    from esiaf.tools.mcap_replay import McapSource
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +79,18 @@ class FileSource:
             while len(block := handle.read(block_frames, dtype=self._read_dtype, always_2d=True)):
                 for offset in range(0, len(block), self.chunk_frames):
                     yield block[offset:offset + self.chunk_frames]
+
+
+def open_file(path: Path, raw_format: AudioFormat, chunk_ms: float) -> FileSource | McapSource:
+    """The source of an input file: a recording's audio, chunk by chunk as recorded, if it is MCAP
+    (esiaf/tools/mcap_replay.py); else a sound or raw file."""
+    from esiaf.tools.mcap_replay import McapSource, SessionError, is_mcap
+    if not is_mcap(path):
+        return FileSource(path, raw_format, chunk_ms)
+    try:
+        return McapSource(path)
+    except SessionError as exc:
+        raise SetupError(str(exc)) from None
 
 
 class AlsaSource:
