@@ -406,7 +406,9 @@ def add_wyoming_parser(sub: argparse._SubParsersAction) -> None:
     wyoming.set_defaults(input=None, mic=None, array=None, mic_channels=None, channels=None, replicas=[],
                          vad_in_grabber=False, plugins=[], no_beamformer=False, beamformer=None, ssl_algorithm=None,
                          fast=False, player=None, playback=None, serve=True, stream_id=None, chunk_ms=None,
-                         json=False, source_topic="wyoming/audio")
+                         json=False, partials=False, include_robot=False, ros2=False, record=None,
+                         record_topics=None, record_max_mb=0.0, record_max_s=0.0, diff=False,
+                         source_topic="wyoming/audio")
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
