@@ -129,7 +129,8 @@ class VoiceTable:
         """Each voice: name, count (embeddings), enrolled and learnt (of them), sources, and per encoder
         its enrolled and learnt counts (``encoders``: every encoder's, whatever ``encoder`` says); with
         ``encoder``, only that encoder's embeddings are counted (a voice with none of them is still
-        listed, with count 0); with ``embeddings``, they too."""
+        listed, with count 0), without it the most any one encoder has (a WAV embedded by each encoder
+        counts once); with ``embeddings``, they too."""
         voices: dict[str, dict] = {}
         with self._lock:  # the sync routes run in a thread pool: one statement at a time
             rows = self._db.execute("SELECT name, embedding, source, encoder FROM voices ORDER BY id").fetchall()
@@ -148,6 +149,11 @@ class VoiceTable:
                 voice["sources"].append(source)
             if embeddings:
                 voice["embeddings"].append(np.frombuffer(blob, "<f4").tolist())
+        if encoder is None:  # an utterance is embedded once per encoder: counted once, by its best-kept encoder
+            for voice in voices.values():
+                voice["enrolled"] = max(e["enrolled"] for e in voice["encoders"].values())
+                voice["learnt"] = max(e["learnt"] for e in voice["encoders"].values())
+                voice["count"] = voice["enrolled"] + voice["learnt"]
         return list(voices.values())
 
     def close(self) -> None:
