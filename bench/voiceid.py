@@ -98,14 +98,21 @@ def through_room(utterances: list[np.ndarray]) -> list[np.ndarray]:
 
 
 def eer(genuine: np.ndarray, impostor: np.ndarray) -> tuple[float, float]:
-    """Equal error rate and the threshold where false rejections = false acceptances."""
-    best, rate = (1.0, 0.0), 0.5
+    """Equal error rate and the threshold where false rejections = false acceptances; where a range of
+    thresholds is as close (trials that separate perfectly: every threshold between the highest
+    impostor and the lowest genuine score), the middle of that range."""
+    best, rate, closest = 1.0, 0.5, []
     for threshold in np.unique(np.concatenate([genuine, impostor])):
         false_reject, false_accept = np.mean(genuine < threshold), np.mean(impostor >= threshold)
         gap = abs(false_reject - false_accept)
-        if gap < best[0]:
-            best, rate = (gap, threshold), (false_reject + false_accept) / 2
-    return float(rate), float(best[1])
+        if gap < best - 1e-12:
+            best, rate, closest = gap, (false_reject + false_accept) / 2, [threshold]
+        elif abs(gap - best) <= 1e-12:
+            closest.append(threshold)
+    if best == 0.0 and rate == 0.0:  # separated: the last tied threshold is the lowest genuine score
+        below = impostor[impostor < closest[0]]
+        return 0.0, float((closest[-1] + (below.max() if below.size else closest[0])) / 2)
+    return float(rate), float((closest[0] + closest[-1]) / 2)
 
 
 def enrolment(speakers: list[str], neutral: list[bool]) -> dict[str, list[int]]:
@@ -190,6 +197,7 @@ def main() -> None:
     parser.add_argument("--every", type=int, default=1, help="a subset: every Nth EmoDB file (default 1: all)")
     parser.add_argument("--no-room", action="store_true", help="leave out the room rows")
     parser.add_argument("--learning", action="store_true", help="also learning as it goes, in file order")
+    parser.add_argument("--learn-margin", type=float, default=LEARN_MARGIN, help="the learning rule's margin")
     parser.add_argument("--cache", help="a folder keeping the embeddings (and their CPU time) between runs")
     parser.add_argument("--pipeline", action="store_true", help="also measure latency through the pipeline")
     parser.add_argument("--variants", action="store_true", help="also evaluate the variants of VARIANTS (a table)")
@@ -231,7 +239,7 @@ def main() -> None:
                 row.update({f"{condition}_{subset}_{k}": v for k, v in figures.items()})
         if args.learning:
             row.update(learning(speakers, neutral, embedded["clean"][0][model],
-                                row["clean_calibrated_threshold"]))
+                                row["clean_calibrated_threshold"], args.learn_margin))
         print(f"[{model}]", flush=True)
         show(row)
     print_table(rows, list(conditions), args.learning)
@@ -295,7 +303,8 @@ def calibration_clips() -> list[tuple[str, np.ndarray]]:
 def calibrate(speakers: list[str], embeddings: np.ndarray) -> tuple[float, float]:
     """The open-set EER threshold (and EER) on the calibration voices: each speaker enrolled from its
     first ENROL_UTTERANCES clips; genuine trials its other clips against its voice, impostor trials
-    each speaker's clips' best score over the others' voices (that speaker left out)."""
+    each speaker's clips' best score over the others' voices (that speaker left out). Where genuine
+    and impostor trials separate (EER 0, as the clean ones do), the middle of the gap (eer)."""
     ids = sorted(set(speakers))
     enrol = {s: [i for i, sp in enumerate(speakers) if sp == s][:ENROL_UTTERANCES] for s in ids}
     voices = {s: embeddings[idx] for s, idx in enrol.items()}
@@ -315,9 +324,10 @@ LEARN_MARGIN = 0.05  # cosine over the next voice (set beforehand, not fitted on
 LEARNT_PER_VOICE = 50
 
 
-def learning(speakers: list[str], neutral: list[bool], embeddings: np.ndarray, threshold: float) -> dict[str, float]:
+def learning(speakers: list[str], neutral: list[bool], embeddings: np.ndarray, threshold: float,
+             margin: float = 0.05) -> dict[str, float]:
     """Closed set, each voice enrolled from 3 neutral utterances, then every other utterance in file order,
-    identified; one the voice wins by LEARN_MARGIN over the next and by the threshold is added to it
+    identified; one the voice wins by ``margin`` over the next and over the threshold is added to it
     (scoring.LearningBook, at most LEARNT_PER_VOICE learnt). Accuracy over the last half of each speaker's
     trials, with and without learning, and how many were learnt and how many of those wrongly."""
     from esiaf_services.voiceid.scoring import LearningRule
@@ -328,7 +338,7 @@ def learning(speakers: list[str], neutral: list[bool], embeddings: np.ndarray, t
     for speaker in enrol:
         own = [i for i in trials if speakers[i] == speaker]
         last_half.update(own[len(own) // 2:])
-    rule = LearningRule(threshold=threshold, margin=LEARN_MARGIN)
+    rule = LearningRule(threshold=threshold, margin=margin)
     fixed = VoiceBook({s: embeddings[idx] for s, idx in enrol.items()})
     voices = {s: list(embeddings[idx]) for s, idx in enrol.items()}
     learnt = {s: 0 for s in enrol}

