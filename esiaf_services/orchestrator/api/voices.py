@@ -30,6 +30,7 @@ import json
 import logging
 import struct
 from math import gcd
+from typing import Annotated, Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
@@ -73,11 +74,21 @@ class AnonymousEnrolment(BaseModel):
                                   f"(default {DEFAULT_MODEL}; 512 floats: fused)")
 
 
+Component = Annotated[float, Field(ge=-1.0, le=1.0, allow_inf_nan=False)]  # of a unit-length embedding
+
+
 class LearntEmbedding(BaseModel):
-    """An utterance's embedding a voiceid identified as this voice with a margin."""
+    """An utterance's embedding (256 floats) a voiceid identified as this voice with a margin."""
     model_config = ConfigDict(extra="forbid")
-    encoder: Model
-    embedding: list[float] = Field(min_length=256, max_length=512)
+    encoder: Literal["ge2e", "dvector"]
+    embedding: list[Component] = Field(min_length=SIZES["ge2e"], max_length=SIZES["ge2e"])
+
+
+class LearntFused(BaseModel):
+    """The same of the fused encoder (512 floats)."""
+    model_config = ConfigDict(extra="forbid")
+    encoder: Literal["fused"]
+    embedding: list[Component] = Field(min_length=SIZES["fused"], max_length=SIZES["fused"])
 
 
 ENROLMENT = TypeAdapter(SpanEnrolment | AnonymousEnrolment)
@@ -150,11 +161,9 @@ async def delete_voice(name: str, table: VoiceTable = Depends(get_voices)) -> di
 
 @router.post("/voices/{name}/learnt", summary="a voiceid's confidently identified utterance, learnt by that voice",
              responses={404: {"model": Problem, "description": "no voice of that name"}})
-async def learn(name: str, body: LearntEmbedding, table: VoiceTable = Depends(get_voices)) -> dict:
+async def learn(name: str, body: Annotated[LearntEmbedding | LearntFused, Field(discriminator="encoder")],
+                table: VoiceTable = Depends(get_voices)) -> dict:
     embedding = np.asarray(body.embedding, np.float32)
-    if embedding.size != SIZES[body.encoder] or not np.isfinite(embedding).all():
-        raise HTTPException(422, f"a {body.encoder} embedding is {SIZES[body.encoder]} finite floats, "
-                                 f"not {embedding.size}")
     try:
         dropped = await asyncio.to_thread(table.add, name, [embedding], LEARNT, body.encoder, True)
     except KeyError:
