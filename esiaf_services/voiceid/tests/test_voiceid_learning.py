@@ -113,8 +113,23 @@ def test_a_database_from_before_the_encoder_column_keeps_its_voices_as_ge2e(tmp_
         orchestrator.close()
 
 
-def test_the_voiceid_learns_a_confident_utterance_but_not_a_quiet_or_overlapped_one(running):
-    """Each case is identified as Anna; only the loud, not overlapped one is posted as learnt."""
+TOKEN = "learning-token-0123456789abcdef"
+
+
+def test_the_voiceid_learns_a_confident_utterance_but_not_a_quiet_or_overlapped_one(tmp_path, monkeypatch):
+    """Each case is identified as Anna; only the loud, not overlapped one is posted as learnt, with the
+    token the orchestrator asks for (ESIAF_TOKEN, as every service has it)."""
+    running = Orchestrator(tmp_path, env={"ESIAF_TOKEN": TOKEN})
+    try:
+        assert running.http.get("/voices").status_code == 401  # no token, no voices
+        running.http.headers["Authorization"] = f"Bearer {TOKEN}"
+        monkeypatch.setenv("ESIAF_TOKEN", TOKEN)  # the voiceid's requests carry it
+        identify_and_learn(running)
+    finally:
+        running.close()
+
+
+def identify_and_learn(running: Orchestrator) -> None:
     from esiaf.api_client import OrchestratorHTTP
     from esiaf.testing import run_analyser
     from esiaf_services.voiceid.service import VoiceId, VoiceIdSettings
