@@ -97,7 +97,7 @@ class VoiceId(UtteranceAnalyser):
         self.anonymous: PerStream[AnonymousVoices] = PerStream(
             lambda _: AnonymousVoices(self.anonymous_threshold, settings.anonymous_limit), settings.max_streams,
             "anonymous voices", info=self.info)
-        self._learnt: queue.Queue[tuple[str, list[float]]] = queue.Queue(maxsize=100)
+        self._learnt: queue.Queue[tuple[str, list[float]] | None] = queue.Queue(maxsize=100)  # None: stop
         self._learner: threading.Thread | None = None
         self._etag = ""
         self._poller: threading.Thread | None = None
@@ -123,6 +123,10 @@ class VoiceId(UtteranceAnalyser):
     def teardown(self) -> None:
         self._halt.set()
         if self._learner is not None:  # it posts what is queued before it ends
+            try:
+                self._learnt.put(None, timeout=1.0)
+            except queue.Full:  # the orchestrator is not taking them: the daemon thread is left to end
+                log.warning("learnt embeddings not posted at shutdown: %d queued", self._learnt.qsize())
             self._learner.join(timeout=10.0)
         super().teardown()
 
@@ -158,11 +162,8 @@ class VoiceId(UtteranceAnalyser):
 
     def _post_learnt(self) -> None:
         with OrchestratorHTTP(self.settings.orchestrator_url, timeout_s=10.0) as client:
-            while not (self._halt.is_set() and self._learnt.empty()):
-                try:
-                    name, embedding = self._learnt.get(timeout=0.2)
-                except queue.Empty:
-                    continue
+            while (item := self._learnt.get()) is not None:  # blocks: no wake-ups while nothing is learnt
+                name, embedding = item
                 try:
                     reply = client.post(f"/voices/{quote(name, safe='')}/learnt",
                                         json={"encoder": self.settings.model, "embedding": embedding})
