@@ -1,7 +1,19 @@
 """Voiceid: speaker identification on EmoDB, clean and through a simulated room; CPU and latency.
 
 Every EmoDB utterance (10 speakers, 535, acted emotions) is cut to its speech span
-(``esiaf.scenes.speech_bounds``, as a VAD segment would be) and embedded by the numpy encoder.
+(``esiaf.scenes.speech_bounds``, as a VAD segment would be) and embedded by each encoder of
+``--models`` (ge2e, dvector, fused: esiaf_services/voiceid/encoders.py); every figure below is
+given per encoder, side by side in a closing table.
+
+- thresholds: each encoder's is calibrated on voices that are not EmoDB's (CMU ARCTIC's two
+  speakers, flite's four voices reading RoboCup questions: ``calibration_clips``), the open-set
+  EER point there (the middle of the gap where they separate); the EmoDB false rejections and
+  acceptances at it are reported, never a threshold fitted on EmoDB;
+- ``--learning``: closed set, each speaker's utterances in file order after the 3-utterance
+  neutral enrolment, learning as it goes (``scoring.LearningRule``, ``--learn-margin``): accuracy
+  over the last half of each speaker's utterances, with and without learning;
+- ``--every N``: a subset (every Nth file, and every enrolment utterance); ``--no-room``;
+  ``--cache DIR``: embeddings kept between runs;
 
 - closed set: each speaker enrolled from 3 neutral utterances (the first by file name), every
   other utterance identified among the 10 (``closed_accuracy``);
@@ -28,7 +40,8 @@ Every EmoDB utterance (10 speakers, 535, acted emotions) is cut to its speech sp
   grabber → vad → voiceid → orchestrator: arrival of the fused result minus (end of the segment's
   speech + the VAD's hang-over), as bench/emotion.py.
 
-    python bench/voiceid.py [--pipeline] [--variants] [--room-enrolment]
+    python bench/voiceid.py [--models ge2e,dvector,fused] [--every N] [--no-room] [--learning]
+                            [--cache DIR] [--pipeline] [--variants] [--room-enrolment]
 """
 from __future__ import annotations
 
@@ -205,6 +218,10 @@ def main() -> None:
                         help="also room trials against clean enrolment, with and without reverberant copies")
     args = parser.parse_args()
     models = args.models.split(",")
+    if args.no_room and (args.variants or args.room_enrolment):
+        parser.error("--variants and --room-enrolment need the room (leave out --no-room)")
+    if not set(models) <= set(MODELS):
+        parser.error(f"--models: some of {', '.join(MODELS)}")
     data = load_emodb()
     first_neutral = enrolment([d[1] for d in data], [d[2] for d in data])  # the subset keeps every enrolment
     keep = sorted({i for idx in first_neutral.values() for i in idx} | set(range(0, len(data), args.every)))
