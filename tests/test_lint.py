@@ -61,6 +61,8 @@ KNOWN_CROSS_SERVICE = {  # (the importing service, the module it imports)
     ("emotion", "esiaf_services.gender.service"),
     # the orchestrator embeds an enrolment's audio with the voiceid service's encoder
     ("orchestrator", "esiaf_services.voiceid.encoder"),
+    ("orchestrator", "esiaf_services.voiceid.encoders"),
+    ("orchestrator", "esiaf_services.voiceid.quality"),
 }
 
 

@@ -56,10 +56,11 @@ def _mel_to_hz(mel: np.ndarray) -> np.ndarray:
     return np.where(mel >= 15.0, 1000.0 * np.exp((np.log(6.4) / 27.0) * (mel - 15.0)), mel * (200.0 / 3))
 
 
-@lru_cache(maxsize=1)
-def mel_filters() -> np.ndarray:
-    """(40, 201) slaney-normalised triangular filters, as ``librosa.filters.mel(sr=16000, n_fft=400, n_mels=40)``."""
-    fft_hz = np.linspace(0, SAMPLE_RATE_HZ / 2, WINDOW_SAMPLES // 2 + 1)
+@lru_cache(maxsize=2)
+def mel_filters(n_fft: int = WINDOW_SAMPLES) -> np.ndarray:
+    """(40, n_fft/2 + 1) slaney-normalised triangular filters, as ``librosa.filters.mel(sr=16000,
+    n_fft=n_fft, n_mels=40)`` (librosa's default: slaney scale and area normalisation)."""
+    fft_hz = np.linspace(0, SAMPLE_RATE_HZ / 2, n_fft // 2 + 1)
     mel_hz = _mel_to_hz(np.linspace(_hz_to_mel(0.0), _hz_to_mel(SAMPLE_RATE_HZ / 2), MEL_CHANNELS + 2))
     widths = np.diff(mel_hz)
     ramps = mel_hz[:, None] - fft_hz[None, :]

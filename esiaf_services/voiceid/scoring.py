@@ -76,6 +76,23 @@ class VoiceBook:
         return Match(best if scores[best] >= threshold else "", scores[best], p, scores)
 
 
+@dataclass(frozen=True)
+class LearningRule:
+    """When an identified utterance is confident enough to be learnt by its voice: its score is at
+    least ``margin`` above the threshold and ``margin`` above the next voice's score (with a single
+    voice enrolled, the threshold alone)."""
+
+    threshold: float
+    margin: float
+
+    def learns(self, scores: dict[str, float]) -> bool:
+        if not scores:
+            return False
+        ranked = sorted(scores.values(), reverse=True)
+        next_best = ranked[1] if len(ranked) > 1 else -math.inf
+        return ranked[0] >= self.threshold + self.margin and ranked[0] - next_best >= self.margin
+
+
 class AnonymousVoices:
     """Unknown voices of one stream: ``voice-1``, ``voice-2``, … kept by running mean embedding.
 

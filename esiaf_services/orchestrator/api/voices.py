@@ -1,23 +1,33 @@
 """Enrolled voices: the ``/voices`` routes (the table is store/voices.py).
 
-A voice is a name and one or more speaker embeddings (256 float32, unit length, from
-``esiaf_services/voiceid/encoder.py``). They live in the orchestrator's SQLite file, in a table of
-their own, and every voiceid instance asks ``GET /voices?embeddings=1&wait_s=30`` with the ETag
-it last saw: a long poll, answered at once when the voices differ from that ETag, else when they
-change (an enrolment or a deletion here), when the server shuts down, or with a 304 after
-``wait_s`` — so an enrolment reaches every voiceid at once, and an idle voiceid and orchestrator
-do not wake every second to ask.
+A voice is a name and one or more speaker embeddings (unit length, each tagged with the encoder
+that made it: ``ge2e``, ``dvector`` or ``fused``, ``esiaf_services/voiceid/encoders.py``; a voiceid
+asks only for its own encoder's and never compares two encoders' embeddings). They live in the
+orchestrator's SQLite file, in a table of their own, and every voiceid instance asks
+``GET /voices?embeddings=1&encoder=...&wait_s=30`` with the ETag it last saw: a long poll, answered
+at once when the voices differ from that ETag, else when they change (an enrolment, a learnt
+embedding or a deletion here), when the server shuts down, or with a 304 after ``wait_s`` — so an
+enrolment reaches every voiceid at once, and an idle voiceid and orchestrator do not wake every
+second to ask.
 
 ``POST /voices/{name}`` adds embeddings from a WAV of any rate (multipart field ``audio``,
-embedded here with the numpy encoder: enrolment then works whether or not a voiceid runs), from
-a past utterance (JSON ``{"stream", "start_ns", "end_ns"}``: the embeddings of the stored
-``voice_id`` results overlapping that span), or from an anonymous voice (JSON
-``{"stream", "anonymous": "voice-2"}``: every stored result of that stream with that label).
+embedded here with every encoder, so a voiceid of any model finds it: enrolment then works whether
+or not a voiceid runs), from a past utterance (JSON ``{"stream", "start_ns", "end_ns"}``: the
+embeddings of the stored ``voice_id`` results overlapping that span), or from an anonymous voice
+(JSON ``{"stream", "anonymous": "voice-2"}``: every stored result of that stream with that label);
+the JSON forms take ``"encoder"``, the voiceid's model that made those results (default
+``DEFAULT_MODEL``; a 512-float embedding is ``fused``'s).
+
+``POST /voices/{name}/learnt`` is the voiceid's: an embedding of an utterance it identified as that
+voice with a margin (``{"encoder", "embedding"}``), kept as ``learnt`` (bounded per voice; never
+creates a voice). ``POST /voices/{name}/forget-learnt`` deletes a voice's learnt embeddings.
 """
 from __future__ import annotations
 
 import asyncio
 import json
+import logging
+from typing import Annotated, Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
@@ -26,16 +36,18 @@ from pydantic import BaseModel, ConfigDict, Field, StrictInt, TypeAdapter, Valid
 from esiaf.api_client import VOICES_MAX_WAIT_S
 from esiaf.printable import name_problem, printable
 from esiaf.result_checks import MAX_TIME_NS
+from esiaf_services.voiceid.encoders import DEFAULT_MODEL, MODELS, SIZES, Model
 
 from ..core import Orchestrator
-from ..store.voices import VoiceLimit, VoiceTable
+from ..store.voices import LEARNT, VoiceLimit, VoiceTable
 from .deps import get_core
 from .models import Problem
 from .wav import read_wav, resample
 
 router = APIRouter(tags=["voices"])
 ENCODER_RATE_HZ = 16000
-MIN_ENROL_SPEECH_S = 1.0
+MIN_ENROL_SPEECH_S = 1.0  # from the first frame of speech to the last (esiaf_services/voiceid/quality.py)
+log = logging.getLogger(__name__)
 MAX_ENROL_S = 60.0  # of audio, at its own rate: what is converted and embedded is at most this long
 
 
@@ -45,6 +57,8 @@ class SpanEnrolment(BaseModel):
     stream: str
     start_ns: StrictInt = Field(ge=0, le=MAX_TIME_NS)
     end_ns: StrictInt = Field(ge=0, le=MAX_TIME_NS)
+    encoder: Model | None = Field(None, description="the model of the voiceid that made the results "
+                                  f"(default {DEFAULT_MODEL}; 512 floats: fused)")
 
 
 class AnonymousEnrolment(BaseModel):
@@ -52,6 +66,25 @@ class AnonymousEnrolment(BaseModel):
     model_config = ConfigDict(extra="forbid")
     stream: str
     anonymous: str = Field(examples=["voice-2"])
+    encoder: Model | None = Field(None, description="the model of the voiceid that made the results "
+                                  f"(default {DEFAULT_MODEL}; 512 floats: fused)")
+
+
+Component = Annotated[float, Field(ge=-1.0, le=1.0, allow_inf_nan=False)]  # of a unit-length embedding
+
+
+class LearntEmbedding(BaseModel):
+    """An utterance's embedding (256 floats) a voiceid identified as this voice with a margin."""
+    model_config = ConfigDict(extra="forbid")
+    encoder: Literal["ge2e", "dvector"]
+    embedding: list[Component] = Field(min_length=SIZES["ge2e"], max_length=SIZES["ge2e"])
+
+
+class LearntFused(BaseModel):
+    """The same of the fused encoder (512 floats)."""
+    model_config = ConfigDict(extra="forbid")
+    encoder: Literal["fused"]
+    embedding: list[Component] = Field(min_length=SIZES["fused"], max_length=SIZES["fused"])
 
 
 ENROLMENT = TypeAdapter(SpanEnrolment | AnonymousEnrolment)
@@ -89,7 +122,13 @@ async def list_voices(request: Request, embeddings: bool = False,
                       wait_s: float = Query(0.0, ge=0.0, le=VOICES_MAX_WAIT_S, description=(
                           "with ?embeddings=1 and If-None-Match the current ETag: wait up to this long for a "
                           "change before answering 304 (a long poll)")),
+                      encoder: Model | None = Query(None, description=(
+                          "count (and with ?embeddings=1, give) only this encoder's embeddings; with "
+                          f"?embeddings=1 it defaults to {MODELS[0]}, what a voiceid asked for before encoders "
+                          "were named")),
                       core: Orchestrator = Depends(get_core), table: VoiceTable = Depends(get_voices)) -> Response:
+    if embeddings and encoder is None:
+        encoder = MODELS[0]
     changed = table.changed()  # taken before the ETag is read: a change between the two is not missed
     etag = await asyncio.to_thread(table.etag)
     seen = request.headers.get("if-none-match")
@@ -103,7 +142,7 @@ async def list_voices(request: Request, embeddings: bool = False,
         etag = await asyncio.to_thread(table.etag)
     if embeddings and seen == etag:
         return Response(status_code=304, headers={"ETag": etag})
-    body = json.dumps({"voices": await asyncio.to_thread(table.listing, embeddings)})
+    body = json.dumps({"voices": await asyncio.to_thread(table.listing, embeddings, encoder)})
     return Response(body, media_type="application/json", headers={"ETag": etag})
 
 
@@ -114,6 +153,30 @@ async def delete_voice(name: str, table: VoiceTable = Depends(get_voices)) -> di
         raise HTTPException(404, f"no voice named {name!r}")
     table.notify()
     return {"deleted": name}
+
+
+@router.post("/voices/{name}/learnt", summary="a voiceid's confidently identified utterance, learnt by that voice",
+             responses={404: {"model": Problem, "description": "no voice of that name"}})
+async def learn(name: str, body: Annotated[LearntEmbedding | LearntFused, Field(discriminator="encoder")],
+                table: VoiceTable = Depends(get_voices)) -> dict:
+    embedding = np.asarray(body.embedding, np.float32)
+    try:
+        dropped = await asyncio.to_thread(table.add, name, [embedding], LEARNT, body.encoder, True)
+    except KeyError:
+        raise HTTPException(404, f"no voice named {name!r}") from None
+    table.notify()
+    return {"name": name, "learnt": 1, "encoder": body.encoder, "dropped_oldest_learnt": dropped}
+
+
+@router.post("/voices/{name}/forget-learnt", summary="delete the embeddings a voice learnt (its enrolment stays)",
+             responses={404: {"model": Problem, "description": "no voice of that name"}})
+async def forget_learnt(name: str, table: VoiceTable = Depends(get_voices)) -> dict:
+    forgotten = await asyncio.to_thread(table.forget_learnt, name)
+    if forgotten is None:
+        raise HTTPException(404, f"no voice named {name!r}")
+    if forgotten:
+        table.notify()
+    return {"name": name, "forgotten": forgotten}
 
 
 @router.post("/voices/{name:path}", summary="add to a voice: multipart WAV field 'audio', or JSON naming a "
@@ -131,7 +194,7 @@ async def enrol_voice(name: str, request: Request, core: Orchestrator = Depends(
         if upload is None or isinstance(upload, str):
             raise HTTPException(422, "no audio: send the WAV file as multipart field 'audio'")
         data = await upload.read()
-        embeddings = [await asyncio.to_thread(embed_wav, data)]
+        by_encoder = await asyncio.to_thread(embed_wav, data)
         source = "wav"
     elif kind.startswith("application/json"):
         try:
@@ -141,26 +204,63 @@ async def enrol_voice(name: str, request: Request, core: Orchestrator = Depends(
                                      "start_ns <= end_ns) or {\"stream\", \"anonymous\"}: "
                                      + "; ".join(e["msg"] for e in exc.errors()[:3])) from None
         embeddings, source = stored_embeddings(core, body)
+        by_encoder = {encoder_of(body, embeddings): embeddings}
     else:
         raise HTTPException(415, "no audio: send multipart field 'audio' (a WAV) or JSON {stream, start_ns, end_ns}")
+    dropped = 0
     try:
-        dropped = await asyncio.to_thread(table.add, name, embeddings, source)
+        for encoder, embeddings in by_encoder.items():
+            dropped = max(dropped, await asyncio.to_thread(table.add, name, embeddings, source, encoder))
     except VoiceLimit as exc:
         raise HTTPException(409, str(exc)) from None
     except ValueError as exc:  # stored embeddings of an older orchestrator, taken unchecked
         raise HTTPException(422, f"cannot enrol: {exc}") from None
-    table.notify()
-    return {"name": name, "added": len(embeddings), "source": source, "dropped_oldest": dropped}
+    finally:
+        table.notify()
+    return {"name": name, "added": len(next(iter(by_encoder.values()))), "source": source,
+            "encoders": list(by_encoder), "dropped_oldest": dropped}
 
 
-def embed_wav(data: bytes) -> np.ndarray:
-    from esiaf_services.voiceid.encoder import shared_encoder
+def encoder_of(body: SpanEnrolment | AnonymousEnrolment, embeddings: list[np.ndarray]) -> str:
+    """The encoder that made a voiceid's stored embeddings: the body's, else fused for 512 floats, else
+    the default model; 422 if their size is not that encoder's."""
+    sizes = {e.size for e in embeddings}
+    encoder = body.encoder or ("fused" if sizes == {SIZES["fused"]} else DEFAULT_MODEL)
+    if sizes != {SIZES[encoder]}:
+        raise HTTPException(422, f"cannot enrol: the stored embeddings have {sorted(sizes)} floats, "
+                                 f"a {encoder} embedding {SIZES[encoder]} (name the voiceid's model as \"encoder\")")
+    return encoder
+
+
+def embed_wav(data: bytes) -> dict[str, list[np.ndarray]]:
+    """The WAV's embedding by every encoder that loads here (fused when both do); 422 without enough speech."""
+    from esiaf_services.voiceid.encoder import EncoderError
+    from esiaf_services.voiceid.encoders import fuse, shared_encoder
+    from esiaf_services.voiceid.quality import problem as speech_problem
     rate_hz, samples = read_wav(data, max_s=MAX_ENROL_S)  # rate, channels, length, finite: checked first
     samples = resample(samples, rate_hz, ENCODER_RATE_HZ)  # any rate is converted, not refused
     if samples.size < MIN_ENROL_SPEECH_S * ENCODER_RATE_HZ or float(np.max(np.abs(samples))) < 1e-3:
         raise HTTPException(422, f"audio has no speech to enrol: {samples.size / ENCODER_RATE_HZ:.2f} s, "
                                  f"at least {MIN_ENROL_SPEECH_S:.0f} s of speech needed")
-    return shared_encoder().embed(samples)
+    problem = speech_problem(samples, MIN_ENROL_SPEECH_S)
+    if problem is not None:
+        raise HTTPException(422, f"audio has no speech to enrol: {problem}")
+    out: dict[str, list[np.ndarray]] = {}
+    for model in ("ge2e", "dvector"):
+        try:
+            out[model] = [shared_encoder(model).embed(samples)]
+        except EncoderError as exc:
+            if model not in _unloadable:
+                _unloadable.add(model)
+                log.error("enrolment without the %s encoder: %s", model, exc)
+    if not out:
+        raise HTTPException(503, "no speaker encoder loads in the orchestrator: " + ", ".join(sorted(_unloadable)))
+    if len(out) == 2:
+        out["fused"] = [fuse(out["ge2e"][0], out["dvector"][0])]
+    return out
+
+
+_unloadable: set[str] = set()  # encoders that failed to load here: said once in the log
 
 
 def stored_embeddings(core: Orchestrator, body: SpanEnrolment | AnonymousEnrolment) -> tuple[list[np.ndarray], str]:

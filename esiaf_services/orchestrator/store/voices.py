@@ -1,6 +1,13 @@
-"""The enrolled voices table: names and speaker embeddings (256 float32 each) in the orchestrator's
-SQLite file, in a table of their own (``CREATE TABLE IF NOT EXISTS``, on a connection of their
-own), and the event long polls of ``GET /voices`` wait on for a change (api/voices.py)."""
+"""The enrolled voices table: names and speaker embeddings (float32) in the orchestrator's SQLite
+file, in a table of their own (``CREATE TABLE IF NOT EXISTS``, on a connection of their own), and
+the event long polls of ``GET /voices`` wait on for a change (api/voices.py).
+
+Each embedding row says which encoder made it (``encoder``: ge2e, dvector or fused; a file from
+before the column gets it with ``ALTER TABLE``, every older row ``ge2e``, the only encoder then)
+and where it came from (``source``: wav, span, anonymous, or ``learnt``: posted by a voiceid for
+an utterance it identified confidently). Per voice and encoder, the newest MAX_EMBEDDINGS_PER_VOICE
+enrolled and the newest MAX_LEARNT_PER_VOICE learnt are kept: learning never pushes out an
+enrolled embedding."""
 from __future__ import annotations
 
 import asyncio
@@ -12,7 +19,10 @@ import time
 import numpy as np
 
 MAX_VOICES = 1_000  # enrolled names: a voiceid's result names at most its best few, but every one is scored
-MAX_EMBEDDINGS_PER_VOICE = 200  # the oldest of a voice's embeddings are dropped beyond this
+MAX_EMBEDDINGS_PER_VOICE = 200  # the oldest of a voice's enrolled embeddings (per encoder) are dropped beyond this
+MAX_LEARNT_PER_VOICE = 50  # the oldest of a voice's learnt embeddings (per encoder) are dropped beyond this
+LEARNT = "learnt"
+LEGACY_ENCODER = "ge2e"  # every embedding stored before the encoder column was GE2E's
 
 
 class VoiceLimit(ValueError):
@@ -25,7 +35,8 @@ CREATE TABLE IF NOT EXISTS voices (
     name TEXT NOT NULL,
     embedding BLOB NOT NULL,
     source TEXT NOT NULL,
-    added_ns INTEGER NOT NULL
+    added_ns INTEGER NOT NULL,
+    encoder TEXT NOT NULL DEFAULT 'ge2e'
 );
 CREATE INDEX IF NOT EXISTS voices_name ON voices (name);
 CREATE TABLE IF NOT EXISTS voices_generation (
@@ -40,6 +51,9 @@ class VoiceTable:
     def __init__(self, path: str) -> None:
         self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False, timeout=5.0)
         self._db.executescript(SCHEMA)
+        columns = {row[1] for row in self._db.execute("PRAGMA table_info(voices)")}
+        if "encoder" not in columns:  # a file from before the column: its rows were GE2E's
+            self._db.execute(f"ALTER TABLE voices ADD COLUMN encoder TEXT NOT NULL DEFAULT '{LEGACY_ENCODER}'")
         # the ETag: a random epoch per database (a new file never repeats an old one's) and a generation
         # counted up at every change, kept with the voices (a voice deleted and another enrolled in its
         # place, which may take its row id, never repeat an ETag)
@@ -56,28 +70,47 @@ class VoiceTable:
         changed, self._changed = self._changed, asyncio.Event()
         changed.set()
 
-    def add(self, name: str, embeddings: list[np.ndarray], source: str) -> int:
-        """Adds ``embeddings`` (finite: a ValueError if not) to the voice ``name``, a new one only while
-        there are fewer than MAX_VOICES (VoiceLimit); keeps its newest MAX_EMBEDDINGS_PER_VOICE and
-        returns how many older ones were dropped."""
+    def add(self, name: str, embeddings: list[np.ndarray], source: str, encoder: str = LEGACY_ENCODER,
+            existing_only: bool = False) -> int:
+        """Adds ``embeddings`` of ``encoder`` (finite: a ValueError if not) to the voice ``name``, a new one
+        only while there are fewer than MAX_VOICES (VoiceLimit) and not with ``existing_only`` (then
+        KeyError); keeps its newest MAX_EMBEDDINGS_PER_VOICE enrolled and MAX_LEARNT_PER_VOICE learnt
+        embeddings of that encoder and returns how many older ones of that source were dropped."""
         if any(not np.isfinite(e).all() for e in embeddings):
             raise ValueError("an embedding holds NaN or infinity")
+        learnt = source == LEARNT
         with self._lock, self._db:  # one transaction: the voices and their generation
             self._db.execute("BEGIN")
             known = self._db.execute("SELECT 1 FROM voices WHERE name = ? LIMIT 1", (name,)).fetchone()
+            if known is None and existing_only:
+                raise KeyError(name)
             if known is None:
                 (count,) = self._db.execute("SELECT COUNT(DISTINCT name) FROM voices").fetchone()
                 if count >= MAX_VOICES:
                     raise VoiceLimit(f"{count} voices are enrolled, the most there may be ({MAX_VOICES}): "
                                      f"delete one first")
-            self._db.executemany("INSERT INTO voices (name, embedding, source, added_ns) VALUES (?, ?, ?, ?)",
-                                 [(name, np.asarray(e, "<f4").tobytes(), source, time.time_ns()) for e in embeddings])
+            self._db.executemany(
+                "INSERT INTO voices (name, embedding, source, added_ns, encoder) VALUES (?, ?, ?, ?, ?)",
+                [(name, np.asarray(e, "<f4").tobytes(), source, time.time_ns(), encoder) for e in embeddings])
+            kind = "source = ?" if learnt else "source != ?"
             dropped = self._db.execute(
-                "DELETE FROM voices WHERE name = ? AND id NOT IN "
-                "(SELECT id FROM voices WHERE name = ? ORDER BY id DESC LIMIT ?)",
-                (name, name, MAX_EMBEDDINGS_PER_VOICE)).rowcount
+                f"DELETE FROM voices WHERE name = ? AND encoder = ? AND {kind} AND id NOT IN "
+                f"(SELECT id FROM voices WHERE name = ? AND encoder = ? AND {kind} ORDER BY id DESC LIMIT ?)",
+                (name, encoder, LEARNT, name, encoder, LEARNT,
+                 MAX_LEARNT_PER_VOICE if learnt else MAX_EMBEDDINGS_PER_VOICE)).rowcount
             self._db.execute("UPDATE voices_generation SET generation = generation + 1")
             return dropped
+
+    def forget_learnt(self, name: str) -> int | None:
+        """Deletes the voice's learnt embeddings (every encoder's): how many, None if no such voice."""
+        with self._lock, self._db:
+            self._db.execute("BEGIN")
+            if self._db.execute("SELECT 1 FROM voices WHERE name = ? LIMIT 1", (name,)).fetchone() is None:
+                return None
+            deleted = self._db.execute("DELETE FROM voices WHERE name = ? AND source = ?", (name, LEARNT)).rowcount
+            if deleted:
+                self._db.execute("UPDATE voices_generation SET generation = generation + 1")
+            return deleted
 
     def delete(self, name: str) -> int:
         with self._lock, self._db:
@@ -92,17 +125,35 @@ class VoiceTable:
             epoch, generation = self._db.execute("SELECT epoch, generation FROM voices_generation").fetchone()
         return f'"{epoch}-{generation}"'
 
-    def listing(self, embeddings: bool) -> list[dict]:
+    def listing(self, embeddings: bool, encoder: str | None = None) -> list[dict]:
+        """Each voice: name, count (embeddings), enrolled and learnt (of them), sources, and per encoder
+        its enrolled and learnt counts (``encoders``: every encoder's, whatever ``encoder`` says); with
+        ``encoder``, only that encoder's embeddings are counted (a voice with none of them is still
+        listed, with count 0), without it the most any one encoder has (a WAV embedded by each encoder
+        counts once); with ``embeddings``, they too."""
         voices: dict[str, dict] = {}
         with self._lock:  # the sync routes run in a thread pool: one statement at a time
-            rows = self._db.execute("SELECT name, embedding, source FROM voices ORDER BY id").fetchall()
-        for name, blob, source in rows:
-            voice = voices.setdefault(name, {"name": name, "count": 0, "sources": []})
+            rows = self._db.execute("SELECT name, embedding, source, encoder FROM voices ORDER BY id").fetchall()
+        for name, blob, source, made_by in rows:
+            voice = voices.setdefault(name, {"name": name, "count": 0, "enrolled": 0, "learnt": 0, "sources": [],
+                                             "encoders": {}})
+            per_encoder = voice["encoders"].setdefault(made_by, {"enrolled": 0, "learnt": 0})
+            per_encoder["learnt" if source == LEARNT else "enrolled"] += 1
+            if embeddings:
+                voice.setdefault("embeddings", [])
+            if encoder is not None and made_by != encoder:
+                continue
             voice["count"] += 1
+            voice["learnt" if source == LEARNT else "enrolled"] += 1
             if source not in voice["sources"]:
                 voice["sources"].append(source)
             if embeddings:
-                voice.setdefault("embeddings", []).append(np.frombuffer(blob, "<f4").tolist())
+                voice["embeddings"].append(np.frombuffer(blob, "<f4").tolist())
+        if encoder is None:  # an utterance is embedded once per encoder: counted once, by its best-kept encoder
+            for voice in voices.values():
+                voice["enrolled"] = max(e["enrolled"] for e in voice["encoders"].values())
+                voice["learnt"] = max(e["learnt"] for e in voice["encoders"].values())
+                voice["count"] = voice["enrolled"] + voice["learnt"]
         return list(voices.values())
 
     def close(self) -> None:

@@ -1,0 +1,158 @@
+"""Voices that learn, and embeddings kept per encoder, through the orchestrator as a process (real
+SQLite file, real HTTP) and the voiceid's analyser with its real encoders."""
+from __future__ import annotations
+
+import io
+import sqlite3
+
+import numpy as np
+import pytest
+import soundfile
+from scipy.io import wavfile
+
+from esiaf.tools.testing import Orchestrator, poll, shared_data
+from esiaf_services.orchestrator.store.voices import MAX_LEARNT_PER_VOICE
+
+AEW = "speech/cmu_arctic/cmu_arctic_us_aew_a000{}.wav"
+
+
+@pytest.fixture
+def running(tmp_path):
+    orchestrator = Orchestrator(tmp_path)
+    yield orchestrator
+    orchestrator.close()
+
+
+def wav_bytes(samples: np.ndarray, rate_hz: int = 16000) -> bytes:
+    out = io.BytesIO()
+    wavfile.write(out, rate_hz, samples)
+    return out.getvalue()
+
+
+def speech(n: int) -> np.ndarray:
+    samples, rate = soundfile.read(shared_data(AEW.format(n)), dtype="float32")
+    assert rate == 16000
+    return samples
+
+
+def enrol(orchestrator: Orchestrator, name: str, samples: np.ndarray):
+    return orchestrator.http.post(f"/voices/{name}", files={"audio": ("a.wav", wav_bytes(samples))}, timeout=120)
+
+
+def voice(orchestrator: Orchestrator, name: str) -> dict:
+    return next(v for v in orchestrator.http.get("/voices").json()["voices"] if v["name"] == name)
+
+
+def test_a_wav_is_enrolled_for_every_encoder_and_each_voiceid_gets_only_its_own(running):
+    reply = enrol(running, "Anna", speech(1))
+    assert reply.status_code == 200 and sorted(reply.json()["encoders"]) == ["dvector", "fused", "ge2e"], reply.text
+    listed = voice(running, "Anna")
+    assert listed["encoders"] == {m: {"enrolled": 1, "learnt": 0} for m in ("ge2e", "dvector", "fused")}
+    for model, size in (("ge2e", 256), ("dvector", 256), ("fused", 512)):
+        voices = running.http.get("/voices", params={"embeddings": 1, "encoder": model}).json()["voices"]
+        assert [len(e) for e in voices[0]["embeddings"]] == [size]
+    old_client = running.http.get("/voices", params={"embeddings": 1}).json()["voices"]  # asks for no encoder
+    assert [len(e) for e in old_client[0]["embeddings"]] == [256] and old_client[0]["count"] == 1  # GE2E's
+
+
+def test_noise_and_a_short_word_are_refused_with_the_reason(running):
+    rng = np.random.default_rng(0)
+    noise = (0.1 * rng.standard_normal(3 * 16000)).astype(np.float32)
+    refused = enrol(running, "Noise", noise)
+    assert refused.status_code == 422 and "no speech found" in refused.json()["detail"], refused.text
+    word = np.zeros(2 * 16000, np.float32)
+    first = speech(1)
+    loud = np.flatnonzero(np.abs(first) > 0.1)[0]
+    word[8000:8000 + 4800] = first[loud:loud + 4800]  # 0.3 s of speech in 2 s of silence
+    refused = enrol(running, "Word", word)
+    assert refused.status_code == 422 and "only 0.3" in refused.json()["detail"], refused.text
+    assert running.http.get("/voices").json()["voices"] == []
+
+
+def test_learnt_embeddings_are_bounded_forgotten_on_request_and_survive_a_restart(running):
+    from esiaf_services.voiceid.encoders import shared_encoder
+    assert enrol(running, "Anna", speech(1)).status_code == 200
+    learnt = shared_encoder("dvector").embed(speech(2)).tolist()
+    for _ in range(MAX_LEARNT_PER_VOICE + 3):
+        reply = running.http.post("/voices/Anna/learnt", json={"encoder": "dvector", "embedding": learnt})
+        assert reply.status_code == 200, reply.text
+    assert reply.json()["dropped_oldest_learnt"] == 1  # the oldest learnt went, not the enrolled one
+    anna = voice(running, "Anna")
+    assert anna["encoders"]["dvector"] == {"enrolled": 1, "learnt": MAX_LEARNT_PER_VOICE}
+    assert anna["encoders"]["ge2e"] == {"enrolled": 1, "learnt": 0}
+    refused = running.http.post("/voices/Nobody/learnt", json={"encoder": "dvector", "embedding": learnt})
+    assert refused.status_code == 404  # learning never creates a voice
+    wrong = running.http.post("/voices/Anna/learnt", json={"encoder": "fused", "embedding": learnt})
+    assert wrong.status_code == 422 and "512" in wrong.text
+    running.process.terminate()  # as a service manager stops it
+    running.process.wait(timeout=30)
+    running.start()  # the same port and database file
+    assert voice(running, "Anna")["encoders"]["dvector"] == {"enrolled": 1, "learnt": MAX_LEARNT_PER_VOICE}
+    forgotten = running.http.post("/voices/Anna/forget-learnt")
+    assert forgotten.status_code == 200 and forgotten.json()["forgotten"] == MAX_LEARNT_PER_VOICE
+    anna = voice(running, "Anna")
+    assert anna["learnt"] == 0 and anna["enrolled"] == 1 and "learnt" not in anna["sources"]
+    assert running.http.post("/voices/Nobody/forget-learnt").status_code == 404
+
+
+def test_a_database_from_before_the_encoder_column_keeps_its_voices_as_ge2e(tmp_path):
+    db = sqlite3.connect(tmp_path / "o.db")
+    db.executescript("""CREATE TABLE voices (id INTEGER PRIMARY KEY, name TEXT NOT NULL, embedding BLOB NOT NULL,
+                        source TEXT NOT NULL, added_ns INTEGER NOT NULL);""")
+    db.execute("INSERT INTO voices (name, embedding, source, added_ns) VALUES ('Old', ?, 'wav', 1)",
+               (np.full(256, 1 / 16, "<f4").tobytes(),))
+    db.commit()
+    db.close()
+    orchestrator = Orchestrator(tmp_path)
+    try:
+        old = voice(orchestrator, "Old")
+        assert old["encoders"] == {"ge2e": {"enrolled": 1, "learnt": 0}}
+        assert orchestrator.http.get("/voices", params={"embeddings": 1, "encoder": "dvector"}).json()["voices"][0][
+            "embeddings"] == []  # never given to a voiceid of another encoder
+    finally:
+        orchestrator.close()
+
+
+TOKEN = "learning-token-0123456789abcdef"
+
+
+def test_the_voiceid_learns_a_confident_utterance_but_not_a_quiet_or_overlapped_one(tmp_path, monkeypatch):
+    """Each case is identified as Anna; only the loud, not overlapped one is posted as learnt, with the
+    token the orchestrator asks for (ESIAF_TOKEN, as every service has it)."""
+    running = Orchestrator(tmp_path, env={"ESIAF_TOKEN": TOKEN})
+    try:
+        assert running.http.get("/voices").status_code == 401  # no token, no voices
+        running.http.headers["Authorization"] = f"Bearer {TOKEN}"
+        monkeypatch.setenv("ESIAF_TOKEN", TOKEN)  # the voiceid's requests carry it
+        identify_and_learn(running)
+    finally:
+        running.close()
+
+
+def identify_and_learn(running: Orchestrator) -> None:
+    from esiaf.api_client import OrchestratorHTTP
+    from esiaf.testing import run_analyser
+    from esiaf_services.voiceid.service import VoiceId, VoiceIdSettings
+
+    assert enrol(running, "Anna", np.concatenate([speech(1), speech(3)])).status_code == 200
+
+    def learnt() -> int:
+        return voice(running, "Anna")["encoders"]["dvector"]["learnt"]
+
+    clip = speech(2)  # 3.4 s, RMS about -21 dBFS
+    rms_db = 20 * np.log10(float(np.sqrt(np.mean(clip.astype(np.float64) ** 2))))
+    for what, gate, overlapped in (("quieter than learn_min_dbfs", {"learn_min_dbfs": rms_db + 1}, False),
+                                   ("shorter than learn_min_speech_ms", {"learn_min_speech_ms": 5000.0}, False),
+                                   ("overlapping playback", {}, True), ("confident", {}, False)):
+        service = VoiceId(VoiceIdSettings(name="voiceid", model="dvector", voices_wait_s=1.0, learn=True,
+                                          orchestrator_url=running.url, **gate))
+        if overlapped:
+            service.overlaps_playback = lambda utterance: True  # type: ignore[method-assign]
+        with OrchestratorHTTP(running.url) as client:
+            service.refresh_voices(client)  # the enrolled voices before the first utterance
+        emitted = run_analyser(service, (clip, 16000), spans=[(0.0, clip.size / 16000)])
+        assert len(emitted) == 1 and emitted[0].payload["label"] == "Anna", (what, emitted)
+        if what == "confident":
+            poll(lambda: learnt() == 1, timeout_s=20)
+        else:
+            assert learnt() == 0, what
