@@ -35,7 +35,8 @@ pytestmark = [pytest.mark.containers, pytest.mark.timeout(3600)]  # the first on
 
 
 OPTIONAL = ("fastapi", "uvicorn", "pocketsphinx", "alsaaudio", "pyroomacoustics", "opensmile", "onnxruntime")
-CARRIES = {"orchestrator": {"fastapi", "uvicorn"}, "grabber": {"alsaaudio"}, "vad": {"onnxruntime"},
+# the orchestrator embeds WAV enrolments with the voiceid's encoders: the d-vector's ONNX needs onnxruntime
+CARRIES = {"orchestrator": {"fastapi", "uvicorn", "onnxruntime"}, "grabber": {"alsaaudio"}, "vad": {"onnxruntime"},
            "asr": {"pocketsphinx"}, "splitter": set(), "ssl": {"pyroomacoustics"}, "beamformer": set(),
            "emotion": {"opensmile", "onnxruntime"}, "gender": {"opensmile", "onnxruntime"}}
 
