@@ -103,8 +103,7 @@ def main(component_cls: type[Processor], argv: Sequence[str] | None = None) -> i
                                  **{**overrides, **cli})
         token()  # a token file that cannot be read: said now, not at the first request
     except (SettingsError, TokenError) as exc:
-        print(f"{service}: {exc}", file=sys.stderr)
-        return 2
+        return refuse_start(service, exc)
     configure_logging(service, settings.log_level)
     services = known_services() | {service}
     for name in unknown_variables(os.environ, services):
@@ -113,8 +112,14 @@ def main(component_cls: type[Processor], argv: Sequence[str] | None = None) -> i
             "settings are not known here)", name, ", ".join(sorted(services)))
     try:
         return hosting_node(component_cls(settings)).run()
-    except (SetupError, RegistrationError) as exc:  # one line on stderr, which is its log too
-        print(f"{service}: {exc}", file=sys.stderr)
-        return 2
+    except (SetupError, RegistrationError) as exc:
+        return refuse_start(service, exc)
     except KeyboardInterrupt:
         return 130
+
+
+def refuse_start(service: str, problem: object) -> int:
+    """A service that cannot start: one line on stderr (before logging is set up; after, stderr is its
+    log too), naming the service and what is wrong, and exit code 2."""
+    print(f"{service}: {problem}", file=sys.stderr)
+    return 2

@@ -21,7 +21,7 @@ from websockets.exceptions import WebSocketException
 
 from esiaf.argparsing import OneLineParser
 from esiaf.auth import TokenError, token
-from esiaf.runner import configure_logging, parse_set, settings_help
+from esiaf.runner import configure_logging, parse_set, refuse_start, settings_help
 from esiaf.settings import ComponentSettings, SettingsError, load_settings
 
 if TYPE_CHECKING:
@@ -173,21 +173,17 @@ def main(component_cls: type[Ros2], argv: Sequence[str] | None = None) -> int:
         domain = domain_id(settings, os.environ)
         token()
     except (SettingsError, TokenError) as exc:
-        print(f"{service}: {exc}", file=sys.stderr)
-        return 2
+        return refuse_start(service, exc)
     configure_logging(service, settings.log_level)
     signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(0))  # stopped as asked: say what was done
     try:
         bridge = component_cls(settings, domain)
     except ImportError as exc:
-        print(f"{service}: {exc.name or exc}: not installed (pip install 'esiaf[ros2]')", file=sys.stderr)
-        return 2
+        return refuse_start(service, f"{exc.name or exc}: not installed (pip install 'esiaf[ros2]')")
     try:
         return bridge.run()
     except (OSError, TimeoutError, WebSocketException) as exc:
-        print(f"{service}: the orchestrator's websocket {feed_url(settings)}: {exc or type(exc).__name__}",
-              file=sys.stderr)
-        return 2
+        return refuse_start(service, f"the orchestrator's websocket {feed_url(settings)}: {exc or type(exc).__name__}")
     except KeyboardInterrupt:
         return 130
     finally:
