@@ -31,13 +31,6 @@ ARCTIC = "speech/cmu_arctic/cmu_arctic_us_aew_a0001.wav"
 
 
 @pytest.fixture
-def running(tmp_path):
-    orchestrator = Orchestrator(tmp_path)
-    yield orchestrator
-    orchestrator.close()
-
-
-@pytest.fixture
 def zctx():
     ctx = zmq.Context()
     yield ctx
@@ -54,7 +47,8 @@ def enrol_wav(orchestrator: Orchestrator, name: str, data: bytes):
     return orchestrator.http.post(f"/voices/{quote(name, safe='')}", files={"audio": ("a.wav", data)}, timeout=60)
 
 
-def test_hostile_wavs_and_names_are_4xx_with_the_reason_and_cost_no_memory(running):
+def test_hostile_wavs_and_names_are_4xx_with_the_reason_and_cost_no_memory(orchestrator):
+    running = orchestrator  # the root conftest's: the real process, its SQLite file
     rate, speech = wavfile.read(shared_data(ARCTIC))
     assert enrol_wav(running, "Anna", wav(speech, rate)).status_code == 200
     rss_before = psutil.Process(running.process.pid).memory_info().rss
@@ -78,7 +72,8 @@ def test_hostile_wavs_and_names_are_4xx_with_the_reason_and_cost_no_memory(runni
     assert [v["name"] for v in voices] == ["Anna"]  # nothing of the refused ones stored
 
 
-def test_the_thousand_and_first_voice_is_a_409_and_the_others_still_enrol(running, zctx):
+def test_the_thousand_and_first_voice_is_a_409_and_the_others_still_enrol(orchestrator, zctx):
+    running = orchestrator
     """1,000 voices enrolled from one stored utterance's embedding (JSON enrolment: no encoding), then
     a new name is refused with the reason while a known one still takes more embeddings."""
     fake = FakeComponent(zctx, running.http, component_body("voiceid", kind="voice_id", inputs=["in"]))

@@ -17,10 +17,9 @@ AEW = "speech/cmu_arctic/cmu_arctic_us_aew_a000{}.wav"
 
 
 @pytest.fixture
-def running(tmp_path):
-    orchestrator = Orchestrator(tmp_path)
-    yield orchestrator
-    orchestrator.close()
+def running(orchestrator):
+    """The root conftest's orchestrator (a process with its SQLite file), under this module's name for it."""
+    return orchestrator
 
 
 def wav_bytes(samples: np.ndarray, rate_hz: int = 16000) -> bytes:
