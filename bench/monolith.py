@@ -146,7 +146,7 @@ def monolith(path: Path, grammar: str, *, fast: bool = False, vad: str = "energy
     labellers = {name: load_backend("onnx", model, models_dir=folders[name]) for name, model in MODELS.items()}
     encoder = None
     if voiceid:
-        from esiaf_services.voiceid.encoder import shared_encoder
+        from esiaf.speech.speaker.ge2e import shared_encoder
         encoder = shared_encoder()
     front = _FrontEnd(array, rate, beamformer) if array else None
     segmenter: Any

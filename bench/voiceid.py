@@ -2,7 +2,7 @@
 
 Every EmoDB utterance (10 speakers, 535, acted emotions) is cut to its speech span
 (``esiaf.scenes.speech_bounds``, as a VAD segment would be) and embedded by each encoder of
-``--models`` (ge2e, dvector, fused: esiaf_services/voiceid/encoders.py); every figure below is
+``--models`` (ge2e, dvector, fused: esiaf/speech/speaker/encoders.py); every figure below is
 given per encoder, side by side in a closing table.
 
 - thresholds: each encoder's is calibrated on voices that are not EmoDB's (CMU ARCTIC's two
@@ -61,9 +61,9 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path[0] = str(REPO)  # the repository first: esiaf from this checkout
 
 from esiaf.scenes import speech_bounds  # noqa: E402
+from esiaf.speech.speaker.encoders import MODELS  # noqa: E402
+from esiaf.speech.speaker.ge2e import RESEMBLYZER_PARTIALS_PER_S, VoiceEncoder  # noqa: E402
 from esiaf.tools.testing import SHARED_DATA  # noqa: E402
-from esiaf_services.voiceid.encoder import RESEMBLYZER_PARTIALS_PER_S, VoiceEncoder  # noqa: E402
-from esiaf_services.voiceid.encoders import MODELS  # noqa: E402
 from esiaf_services.voiceid.scoring import VoiceBook  # noqa: E402
 
 ENROL_UTTERANCES = 3
@@ -277,7 +277,7 @@ def embed_all(models: list[str], clips: list[np.ndarray], cache: Path | None = N
               key: str = "") -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """Each model's (n, size) embeddings of the clips and the CPU seconds they took (fused: both parts');
     with ``cache``, kept there as ``{key}-{model}.npz`` and read back by a later run."""
-    from esiaf_services.voiceid.encoders import fuse, shared_encoder
+    from esiaf.speech.speaker.encoders import fuse, shared_encoder
     out: dict[str, np.ndarray] = {}
     cpu: dict[str, float] = {}
     for model in ("ge2e", "dvector"):

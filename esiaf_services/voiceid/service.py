@@ -35,8 +35,7 @@ from pydantic import Field
 from esiaf import ClassifierSettings, SetupError, Utterance, UtteranceAnalyser
 from esiaf.api_client import VOICES_MAX_WAIT_S, OrchestratorHTTP
 from esiaf.per_stream import PerStream
-from esiaf_services.voiceid.encoder import EncoderError
-from esiaf_services.voiceid.encoders import (
+from esiaf.speech.speaker.encoders import (
     ANONYMOUS_THRESHOLDS,
     DEFAULT_MODEL,
     THRESHOLDS,
@@ -45,6 +44,7 @@ from esiaf_services.voiceid.encoders import (
     build,
     shared_encoder,
 )
+from esiaf.speech.speaker.ge2e import EncoderError
 from esiaf_services.voiceid.scoring import AnonymousVoices, LearningRule, VoiceBook, probability
 
 log = logging.getLogger(__name__)

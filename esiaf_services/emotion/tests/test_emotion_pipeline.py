@@ -48,7 +48,7 @@ def test_held_out_speakers_through_the_pipeline_agree_with_offline_accuracy(tmp_
         got = {name[path]: label for path, label in labels_by_utterance(fused, kind, placed, origin_ns).items()}
         assert len(got) >= 0.95 * len(relative), f"{kind}: only {len(got)} of {len(relative)} utterances labelled"
         truth = {p: card["predictions"][p]["truth"] for p in relative}
-        # offline (tools/train.py): the hold-out model on the longest segment this VAD cuts of each whole
+        # offline (training/emodb.py): the hold-out model on the longest segment this VAD cuts of each whole
         # file, the one the fused result overlapping the utterance most is about; and on all of its speech
         offline = {p: card["predictions"][p][f"predicted_longest_{vad}"] for p in relative}
         whole_key = "predicted" if card.get("vad", "silero") == vad else f"predicted_{vad}"

@@ -1,7 +1,7 @@
 """Enrolled voices: the ``/voices`` routes (the table is store/voices.py).
 
 A voice is a name and one or more speaker embeddings (unit length, each tagged with the encoder
-that made it: ``ge2e``, ``dvector`` or ``fused``, ``esiaf_services/voiceid/encoders.py``; a voiceid
+that made it: ``ge2e``, ``dvector`` or ``fused``, ``esiaf/speech/speaker/encoders.py``; a voiceid
 asks only for its own encoder's and never compares two encoders' embeddings). They live in the
 orchestrator's SQLite file, in a table of their own, and every voiceid instance asks
 ``GET /voices?embeddings=1&encoder=...&wait_s=30`` with the ETag it last saw: a long poll, answered
@@ -36,7 +36,7 @@ from pydantic import BaseModel, ConfigDict, Field, StrictInt, TypeAdapter, Valid
 from esiaf.api_client import VOICES_MAX_WAIT_S
 from esiaf.printable import name_problem, printable
 from esiaf.result_checks import MAX_TIME_NS
-from esiaf_services.voiceid.encoders import DEFAULT_MODEL, MODELS, SIZES, Model
+from esiaf.speech.speaker.encoders import DEFAULT_MODEL, MODELS, SIZES, Model
 
 from ..core import Orchestrator
 from ..store.voices import LEARNT, VoiceLimit, VoiceTable
@@ -46,7 +46,7 @@ from .wav import read_wav, resample
 
 router = APIRouter(tags=["voices"])
 ENCODER_RATE_HZ = 16000
-MIN_ENROL_SPEECH_S = 1.0  # from the first frame of speech to the last (esiaf_services/voiceid/quality.py)
+MIN_ENROL_SPEECH_S = 1.0  # from the first frame of speech to the last (esiaf/speech/speaker/quality.py)
 log = logging.getLogger(__name__)
 MAX_ENROL_S = 60.0  # of audio, at its own rate: what is converted and embedded is at most this long
 
@@ -234,9 +234,9 @@ def encoder_of(body: SpanEnrolment | AnonymousEnrolment, embeddings: list[np.nda
 
 def embed_wav(data: bytes) -> dict[str, list[np.ndarray]]:
     """The WAV's embedding by every encoder that loads here (fused when both do); 422 without enough speech."""
-    from esiaf_services.voiceid.encoder import EncoderError
-    from esiaf_services.voiceid.encoders import fuse, shared_encoder
-    from esiaf_services.voiceid.quality import problem as speech_problem
+    from esiaf.speech.speaker.encoders import fuse, shared_encoder
+    from esiaf.speech.speaker.ge2e import EncoderError
+    from esiaf.speech.speaker.quality import problem as speech_problem
     rate_hz, samples = read_wav(data, max_s=MAX_ENROL_S)  # rate, channels, length, finite: checked first
     samples = resample(samples, rate_hz, ENCODER_RATE_HZ)  # any rate is converted, not refused
     if samples.size < MIN_ENROL_SPEECH_S * ENCODER_RATE_HZ or float(np.max(np.abs(samples))) < 1e-3:

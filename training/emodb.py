@@ -1,6 +1,6 @@
 """Trains and evaluates the bundled emotion and gender models on Berlin EmoDB.
 
-    python -m esiaf_services.emotion.tools.train [--data ../shared/data/emodb] [--tasks emotion4,emotion7,gender]
+    python -m training.emodb [--data ../shared/data/emodb] [--tasks emotion4,emotion7,gender]
 
 For each task it extracts openSMILE ComParE 2016 functionals of every utterance's speech span,
 as each way the vad service cuts would cut it (``features.VADS``, ``features.speech_span``: Silero
@@ -35,12 +35,12 @@ from esiaf.speech.opensmile import (
 )
 from esiaf.tools.testing import SHARED_DATA
 from esiaf_services.emotion.service import MODELS
-from esiaf_services.emotion.tools.model_card import write_card
 from esiaf_services.gender.service import MODELS as GENDER_MODELS
+from training.model_card import write_card
 
 log = logging.getLogger("train")
 
-REPO = Path(__file__).resolve().parents[3]
+REPO = Path(__file__).resolve().parents[1]
 CACHE = REPO / ".cache" / "emotion"
 FEATURE_SET = "ComParE_2016"
 HOLDOUT_SPEAKERS = ("03", "08")  # one male, one female: the end-to-end test plays their utterances

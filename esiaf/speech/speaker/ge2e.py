@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from esiaf_services.voiceid import torch_legacy
+from esiaf.speech.speaker import torch_legacy
 
 SAMPLE_RATE_HZ = 16000
 WINDOW_SAMPLES = 400  # 25 ms
