@@ -7,7 +7,7 @@ from sample counts:
   gender [+ splitter, ssl with --array] → orchestrator fusing them → websocket client); a
   result's arrival is the moment its fused JSON line reaches this process;
 - pipeline ``asr``: the same with ``--without emotion,gender,voiceid`` (what a slow robot would run);
-- baseline: the same segmenter (Silero; per window unless ESIAF_VAD_WINDOWS=false), the same
+- baseline: the same segmenter (Silero; per window unless ESIAF_VAD_SILERO__WINDOWS=false), the same
   pocketsphinx recogniser and the same emotion and gender models in this one process, no
   transport, one after the other; ``baseline_asr`` is the moment
   the recogniser returns, ``baseline_full`` the moment the gender model (the last) returns.
@@ -65,10 +65,10 @@ def percentile(values: list[float], q: float) -> float:
 
 def baseline(path: Path, grammar: str) -> tuple[dict[str, list[float]], list[str], float]:
     """The monolith (bench/monolith.py: the Silero VAD deciding as the pipeline's does, per window, or
-    per chunk with ESIAF_VAD_WINDOWS=false; recogniser, emotion and gender models in one loop), paced
+    per chunk with ESIAF_VAD_SILERO__WINDOWS=false; recogniser, emotion and gender models in one loop), paced
     in real time, on the first channel. Returns latencies (ms) after the recogniser ("asr") and after
     all ("full"), texts, CPU s."""
-    windows = os.environ.get("ESIAF_VAD_WINDOWS", "true").lower() not in ("0", "false")  # as the pipeline's vad
+    windows = os.environ.get("ESIAF_VAD_SILERO__WINDOWS", "true").lower() not in ("0", "false")  # as the pipeline's vad
     run = monolith(path, grammar, vad="silero", windows=windows)
     latencies: dict[str, list[float]] = {"asr": [], "full": []}
     for utterance in run.utterances:

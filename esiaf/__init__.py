@@ -20,7 +20,8 @@ _EXPORTS = {
     "UtteranceComponent": "esiaf.utterance", "UtteranceSettings": "esiaf.utterance",
     "Utterance": "esiaf.utterance", "UtteranceAnalyser": "esiaf.utterance", "UtteranceClassifier": "esiaf.utterance",
     "ClassifierSettings": "esiaf.utterance",
-    "ComponentSettings": "esiaf.settings", "SettingsError": "esiaf.settings", "load_settings": "esiaf.settings",
+    "ComponentSettings": "esiaf.settings", "BackendSettings": "esiaf.settings", "SettingsError": "esiaf.settings",
+    "load_settings": "esiaf.settings",
 }
 __all__ = sorted(_EXPORTS)
 
@@ -36,6 +37,7 @@ if TYPE_CHECKING:  # `X as X`: re-exported names, for type checkers and linters
     from esiaf.results import hypothesis as hypothesis
     from esiaf.results import ssl_direction as ssl_direction
     from esiaf.runner import main as main
+    from esiaf.settings import BackendSettings as BackendSettings
     from esiaf.settings import ComponentSettings as ComponentSettings
     from esiaf.settings import SettingsError as SettingsError
     from esiaf.settings import load_settings as load_settings

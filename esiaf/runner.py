@@ -22,7 +22,15 @@ from esiaf.auth import TokenError, redact_logs, token
 from esiaf.control import RegistrationError
 from esiaf.hosting import hosting_node
 from esiaf.processor import Processor, SetupError
-from esiaf.settings import ComponentSettings, SettingsError, load_settings, parse_value, unknown_variables
+from esiaf.settings import (
+    ComponentSettings,
+    SettingsError,
+    load_settings,
+    nest,
+    parse_value,
+    sections,
+    unknown_variables,
+)
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s [{service}] %(message)s"
 
@@ -33,23 +41,33 @@ def configure_logging(service: str, level: str) -> None:
 
 
 def parse_set(values: Sequence[str]) -> dict[str, Any]:
-    overrides = {}
+    overrides: dict[str, Any] = {}
     for item in values:
         key, sep, value = item.partition("=")
         if not sep or not key:
             raise SettingsError(f"--set takes KEY=VALUE, not {item!r}")
-        overrides[key.strip().replace("-", "_")] = parse_value(value)  # as environment values: 3, [1, 2], ...
+        # as environment values: 3, [1, 2], ...; energy.db_min: a backend's own setting
+        nest(key.strip().replace("-", "_"), parse_value(value), overrides)
     return overrides
 
 
 def settings_help(model: type[ComponentSettings], service: str) -> str:
     """Every setting, common ones included, with its default and its environment variable."""
     common = set(ComponentSettings.model_fields)
+    nested = sections(model)
     lines = ["settings (defaults < --config YAML < environment < --set / flags):"]
     for name, field in model.model_fields.items():
+        if name in nested:
+            continue
         default = field.get_default(call_default_factory=True)
         env = f"ESIAF_{service.upper()}_{name.upper()}" + (f" or ESIAF_{name.upper()}" if name in common else "")
         lines.append(f"  {name} = {default!r}  ({env})")
+    for name, inner in nested.items():
+        what = f"the {name} backend (only with backend {name})" if name in getattr(model, "backends", ()) else name
+        lines.append(f"settings of {what}; --set {name}.KEY=VALUE:")
+        for key, field in inner.model_fields.items():
+            default = field.get_default(call_default_factory=True)
+            lines.append(f"  {name}.{key} = {default!r}  (ESIAF_{service.upper()}_{name.upper()}__{key.upper()})")
     return "\n".join(lines)
 
 

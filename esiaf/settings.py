@@ -6,11 +6,16 @@ environment. Unknown keys are an error, in the YAML file and in the
 environment alike, so a typo never silently falls back to a default.
 
 Environment variables are named ``ESIAF_<SERVICE>_<FIELD>`` (upper case), e.g.
-``ESIAF_VAD_DB_MIN=70``. Fields that every component has (those of
+``ESIAF_VAD_MAX_MS=6000``. Fields that every component has (those of
 :class:`ComponentSettings`) may also be given for all services at once as
 ``ESIAF_<FIELD>``, e.g. ``ESIAF_ORCHESTRATOR_URL``; the service-specific name
 wins. Values from the environment are parsed as YAML scalars or flow
 collections, so ``ESIAF_ASR_N_BEST=3`` and ``ESIAF_X_LIST=[a, b]`` work.
+
+A service with several backends keeps each backend's own settings in a nested model named as the
+backend (:class:`BackendSettings`): ``backend: energy`` reads ``energy: {db_min: 70}`` in YAML,
+``ESIAF_VAD_ENERGY__DB_MIN=70`` in the environment (two underscores between the levels) and
+``--set energy.db_min=70`` on a command line; settings of a backend that is not chosen are an error.
 """
 from __future__ import annotations
 
@@ -49,11 +54,19 @@ class StrictModel(BaseModel):
             return data
         data = dict(data)
         for old, new in cls.renamed.items():
-            if old in data:
-                value = data.pop(old)
-                log.warning("setting %s is deprecated and goes in the next release: it is now %s%s", old, new,
-                            f" (both given: {new}={data[new]!r} wins)" if new in data else "")
-                data.setdefault(new, value)
+            if old not in data:
+                continue
+            value = data.pop(old)
+            *parents, leaf = new.split(".")  # "energy.db_min": a backend's nested setting
+            where = data
+            for parent in parents:
+                inner = where.get(parent)
+                inner = inner.model_dump(exclude_unset=True) if isinstance(inner, BaseModel) else dict(inner or {})
+                where[parent] = inner
+                where = inner
+            log.warning("setting %s is deprecated and goes in the next release: it is now %s%s", old, new,
+                        f" (both given: {new}={where[leaf]!r} wins)" if leaf in where else "")
+            where.setdefault(leaf, value)
         return data
 
 
@@ -90,6 +103,51 @@ class ComponentSettings(StrictModel):
         return value.upper()
 
 
+class BackendSettings(ComponentSettings):
+    """A component with several backends: ``backend`` names one, and each backend's own settings are
+    a nested model in the field of the same name (``backends`` lists those fields). The settings of
+    a backend that is not the chosen one are refused (:meth:`unused_backend_settings`)."""
+
+    backends: ClassVar[tuple[str, ...]] = ()
+    backend: str
+
+    @field_validator("backend")
+    @classmethod
+    def _known_backend(cls, value: str) -> str:
+        if value not in cls.backends:
+            raise ValueError(f"unknown backend {value!r}; one of {', '.join(cls.backends)}")
+        return value
+
+    def unused_backend_settings(self) -> list[str]:
+        """``section.field`` of every setting given for a backend other than ``backend``."""
+        return [f"{name}.{field}" for name in self.backends if name != self.backend
+                for field in sorted(getattr(self, name).model_fields_set)]
+
+
+def sections(model: type[BaseModel]) -> dict[str, type[BaseModel]]:
+    """The fields of ``model`` that are settings models of their own (a backend's), by name."""
+    return {name: field.annotation for name, field in model.model_fields.items()
+            if isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel)}
+
+
+def nest(key: str, value: Any, into: dict[str, Any], separator: str = ".") -> None:
+    """``into[a][b] = value`` for the key ``a.b`` (``a__b`` with ``separator="__"``)."""
+    *parents, leaf = key.split(separator)
+    for parent in parents:
+        into = into.setdefault(parent, {}) if isinstance(into.get(parent, {}), dict) else into
+    into[leaf] = value
+
+
+def merged(base: dict[str, Any], more: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` updated with ``more``, nested mappings merged key by key (a backend's settings from a
+    file and one of them from the environment)."""
+    out = dict(base)
+    for key, value in more.items():
+        out[key] = merged(out[key], value) if isinstance(value, Mapping) and isinstance(out.get(key), dict) \
+            else value
+    return out
+
+
 def parse_value(raw: str) -> Any:
     """A value given as text (environment, --set): a YAML scalar or flow collection, else the text."""
     try:
@@ -116,7 +174,10 @@ def _common_from_env(model: type[BaseModel], env: Mapping[str, str]) -> dict[str
 
 def _service_from_env(model: type[BaseModel], service: str, env: Mapping[str, str]) -> dict[str, Any]:
     """``ESIAF_<SERVICE>_<FIELD>``; SettingsError for a field ``model`` does not have."""
-    fields = set(model.model_fields) | set(getattr(model, "renamed", {}))
+    nested = sections(model)
+    current = set(model.model_fields) - set(nested) | {
+        f"{name}__{field}" for name, inner in nested.items() for field in inner.model_fields}
+    fields = current | set(getattr(model, "renamed", {}))  # old spellings too, said to be deprecated
     service_prefix = f"{ENV_PREFIX}{service.upper()}_"
     values: dict[str, Any] = {}
     for key, raw in env.items():
@@ -128,8 +189,8 @@ def _service_from_env(model: type[BaseModel], service: str, env: Mapping[str, st
         if field not in fields:
             raise SettingsError(
                 f"unknown setting {key} for {service}; known: "
-                + ", ".join(sorted(service_prefix + f.upper() for f in fields)))
-        values[field] = parse_value(raw)
+                + ", ".join(sorted(service_prefix + f.upper() for f in current)))
+        nest(field, parse_value(raw), values, separator="__")
     return values
 
 
@@ -179,12 +240,20 @@ def load_settings(model: type[S], service: str, /, *, config: str | Path | None 
     values: dict[str, Any] = {}
     origin: dict[str, str] = {}  # where each value came from, the last source that gave it
     for source, given_values in given:
-        values.update(given_values)
-        origin.update(dict.fromkeys(given_values, source))
+        values = merged(values, given_values)
+        renamed: dict[str, str] = getattr(model, "renamed", {})  # an old spelling blames its source too
+        origin.update({key: source for given_key in given_values
+                       for key in (given_key, renamed.get(given_key, given_key).split(".")[0])})
     try:
         settings = model(**values)
     except ValidationError as exc:
         raise _settings_error(exc, service, origin, given) from None
+    if isinstance(settings, BackendSettings) and settings.unused_backend_settings():
+        unused = settings.unused_backend_settings()
+        blamed = sorted({origin.get(key.split(".")[0], "defaults") for key in unused})
+        raise SettingsError(f"bad {service} settings (from {' and '.join(blamed)}): {', '.join(unused)} "
+                            f"{'is' if len(unused) == 1 else 'are'} for another backend than {settings.backend!r} "
+                            f"(set backend, or leave {'it' if len(unused) == 1 else 'them'} out)")
     if isinstance(settings, ComponentSettings) and not settings.name:
         settings.name = service
     return settings

@@ -77,11 +77,11 @@ def test_a_bad_set_on_the_command_line_is_blamed_on_the_command_line():
     import sys
 
     from esiaf.tools.testing import REPO
-    result = subprocess.run([sys.executable, "-m", "esiaf_services.vad", "--set", "db_min=loud"], cwd=REPO,
+    result = subprocess.run([sys.executable, "-m", "esiaf_services.vad", "--set", "energy.db_min=loud"], cwd=REPO,
                             capture_output=True, text=True, timeout=60,
                             env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO), "ESIAF_STREAM_ID": "s"})
     assert result.returncode == 2
-    assert result.stderr.startswith("vad: bad vad settings (from command line): db_min:"), result.stderr
+    assert result.stderr.startswith("vad: bad vad settings (from command line): energy.db_min:"), result.stderr
 
 
 def test_a_component_without_a_docstring_still_starts_its_command_line(capsys):
@@ -160,3 +160,65 @@ def test_the_new_spelling_wins_and_each_backend_keeps_its_default(caplog):
     assert load_settings(AsrSettings, "asr", env={}, backend="whisper").hypotheses() == 10
     with pytest.raises(SettingsError, match="n_best"):
         load_settings(AsrSettings, "asr", env={"ESIAF_ASR_N_BEST": "0"})
+
+
+@pytest.mark.parametrize("source", ["yaml", "environment", "command line"])
+def test_a_backends_settings_are_nested_under_its_name(tmp_path, source):
+    from esiaf_services.vad.service import VadSettings
+    config = tmp_path / "vad.yaml"
+    config.write_text("backend: energy\n" + ("energy: {db_min: 71}\n" if source == "yaml" else ""))
+    settings = load_settings(VadSettings, "vad", config=config,
+                             env={"ESIAF_VAD_ENERGY__DB_MIN": "71"} if source == "environment" else {},
+                             **({"energy": {"db_min": 71}} if source == "command line" else {}))
+    assert settings.energy.db_min == 71 and settings.energy.keep_alive_ms == 400  # the rest: defaults
+    assert settings.silero.threshold == 0.5
+
+
+def test_nested_settings_from_several_sources_merge_key_by_key(tmp_path):
+    from esiaf_services.vad.service import VadSettings
+    config = tmp_path / "vad.yaml"
+    config.write_text("backend: energy\nenergy: {db_min: 71, keep_alive_ms: 300}\n")
+    settings = load_settings(VadSettings, "vad", config=config, env={"ESIAF_VAD_ENERGY__DB_MIN": "72"})
+    assert (settings.energy.db_min, settings.energy.keep_alive_ms) == (72, 300)
+
+
+def test_another_backends_settings_are_refused_with_where_they_came_from():
+    from esiaf_services.vad.service import VadSettings
+    with pytest.raises(SettingsError, match=r"^bad vad settings \(from environment\): energy.db_min is for another "
+                       r"backend than 'silero' \(set backend, or leave it out\)$"):
+        load_settings(VadSettings, "vad", env={"ESIAF_VAD_ENERGY__DB_MIN": "70"})
+    with pytest.raises(SettingsError, match=r"\(from command line\): whisper.beam_size, whisper.model_dir are for"):
+        from esiaf_services.asr.service import AsrSettings
+        load_settings(AsrSettings, "asr", env={}, whisper={"model_dir": "/m", "beam_size": 2})
+    with pytest.raises(SettingsError, match=r"backend: Value error, unknown backend 'webrtc'; one of silero, energy"):
+        load_settings(VadSettings, "vad", env={"ESIAF_VAD_BACKEND": "webrtc"})
+
+
+def test_an_unknown_nested_variable_lists_the_current_names_only():
+    from esiaf_services.vad.service import VadSettings
+    with pytest.raises(SettingsError, match="unknown setting ESIAF_VAD_ENERGY__DB_MAX") as error:
+        load_settings(VadSettings, "vad", env={"ESIAF_VAD_ENERGY__DB_MAX": "70"})
+    assert "ESIAF_VAD_ENERGY__DB_MIN" in str(error.value) and "ESIAF_VAD_DB_MIN" not in str(error.value)
+
+
+def test_a_flat_old_name_reaches_its_backend_with_one_deprecation_line(caplog):
+    from esiaf_services.vad.service import VadSettings
+    settings = load_settings(VadSettings, "vad", env={"ESIAF_VAD_DB_MIN": "70", "ESIAF_VAD_BACKEND": "energy"})
+    assert settings.energy.db_min == 70
+    [line] = [r.getMessage() for r in caplog.records if "deprecated" in r.getMessage()]
+    assert line == "setting db_min is deprecated and goes in the next release: it is now energy.db_min"
+    with pytest.raises(SettingsError, match=r"\(from environment\): energy.db_min is for another backend"):
+        load_settings(VadSettings, "vad", env={"ESIAF_VAD_DB_MIN": "70"})
+
+
+def test_help_lists_each_backends_settings_apart():
+    import subprocess
+    import sys
+
+    from esiaf.tools.testing import REPO
+    done = subprocess.run([sys.executable, "-m", "esiaf_services.asr", "--help"], cwd=REPO, capture_output=True,
+                          text=True, timeout=60)
+    head, _, backends = done.stdout.partition("settings of the pocketsphinx backend")
+    assert "  grammar = ''  (ESIAF_ASR_GRAMMAR)" in head and "beam_size" not in head
+    assert "whisper.beam_size = 5  (ESIAF_ASR_WHISPER__BEAM_SIZE)" in backends
+    assert "pocketsphinx.language_weight = 7.5  (ESIAF_ASR_POCKETSPHINX__LANGUAGE_WEIGHT)" in backends

@@ -120,7 +120,7 @@ def play(tmp_path: Path, path: Path, hosted: bool) -> tuple[list[tuple], list[tu
 @pytest.mark.parametrize("windows", [False, True], ids=["per_chunk", "per_window"])
 def test_the_hosted_vad_cuts_and_forwards_what_the_vad_in_its_own_process_does(tmp_path, monkeypatch, speech_48k,
                                                                                windows):
-    monkeypatch.setenv("ESIAF_VAD_WINDOWS", str(windows).lower())
+    monkeypatch.setenv("ESIAF_VAD_SILERO__WINDOWS", str(windows).lower())
     apart, apart_vad, alone = play(tmp_path, speech_48k, hosted=False)
     hosted, hosted_vad, together = play(tmp_path, speech_48k, hosted=True)
 

@@ -48,12 +48,17 @@ Every service reads its settings from its defaults, then a YAML file, then the e
 its command line (`--set KEY=VALUE` and its own flags); each later source wins. Unknown keys are
 an error at start-up, in the file and in the environment alike.
 
-- **Environment:** `ESIAF_<SERVICE>_<SETTING>`, upper case (`ESIAF_VAD_DB_MIN=70`). Values are
+- **Environment:** `ESIAF_<SERVICE>_<SETTING>`, upper case (`ESIAF_VAD_MAX_MS=6000`). Values are
   read as YAML scalars or flow collections (`ESIAF_EMOTION_GUESTS='["gender"]'`). The settings every
   component has may also be given for all services at once as `ESIAF_<SETTING>`
   (`ESIAF_ORCHESTRATOR_URL`); the service's own name wins. An `ESIAF_*` variable that names no
   service and no such setting is reported (by `esiaf run` on its terminal, by a service in its
   log) and otherwise ignored.
+- **A backend's settings** (the vad's `silero` and `energy`, the asr's `pocketsphinx` and `whisper`)
+  are nested under the backend's name and apply only when it is the `backend`; given for another
+  backend they are an error. YAML `energy: {db_min: 70}`, environment `ESIAF_VAD_ENERGY__DB_MIN=70`
+  (two underscores), command line `--set energy.db_min=70`. Their flat names of the last release
+  (`ESIAF_VAD_DB_MIN`) still work, with a deprecation line.
 - **YAML file:** `--config FILE` or `ESIAF_<SERVICE>_CONFIG`, a mapping of setting names to values.
 - **Command line:** `python -m esiaf_services.<service> --help` lists every setting with its
   default and its variable; `esiaf run` sets some of them from its own options
@@ -189,10 +194,11 @@ def table(model: type[BaseModel], names: list[str], env_prefix: str | None) -> l
     out = [head, "|---" * (5 if env_prefix else 4) + "|"]
     for name in names:
         field = model.model_fields[name]
-        row = [f"`{name}`", cell(type_name(field.annotation)), cell(default_text(field))]
+        backend = name in getattr(model, "backends", ())  # its own settings, in a table of their own
+        row = [f"`{name}`", cell(type_name(field.annotation)), "(below)" if backend else cell(default_text(field))]
         if env_prefix:
-            row.append(f"`{env_prefix}{name.upper()}`")
-        row.append(cell(describe(model, name, field)))
+            row.append(f"`{env_prefix}{name.upper()}__<SETTING>`" if backend else f"`{env_prefix}{name.upper()}`")
+        row.append(f"the {name} backend's settings (below)" if backend else cell(describe(model, name, field)))
         out.append("| " + " | ".join(row) + " |")
     return out
 
@@ -219,7 +225,8 @@ def section(title: str, service: str, model: type[BaseModel], names: list[str], 
             nested_doc = inspect.getdoc(nested)
             if nested_doc and "__doc__" in nested.__dict__:
                 out += [" ".join(nested_doc.split()), ""]
-            out += table(nested, list(nested.model_fields), None)
+            nested_env = f"ESIAF_{service.upper()}_{name.upper()}__" if name in getattr(model, "backends", ()) else None
+            out += table(nested, list(nested.model_fields), nested_env)
     return [*out, ""]
 
 

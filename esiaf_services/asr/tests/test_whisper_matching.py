@@ -106,7 +106,8 @@ def test_a_missing_or_corrupt_model_folder_is_one_line(tmp_path, files, complain
     for name, content in files.items():
         (tmp_path / name).write_bytes(content)
     result = subprocess.run([sys.executable, "-m", "esiaf_services.asr", "--backend", "whisper",
-                             "--set", f"model_dir={tmp_path}"], cwd=REPO, capture_output=True, text=True, timeout=120)
+                             "--set", f"whisper.model_dir={tmp_path}"],
+                            cwd=REPO, capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and complaint in result.stderr and "Traceback" not in result.stderr
 
 

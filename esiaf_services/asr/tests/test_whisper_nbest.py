@@ -62,7 +62,8 @@ def test_the_closed_set_choice_finds_a_sentence_only_a_lower_hypothesis_matches(
     first, second = recognisers[1].recognise(clip).hypotheses[:2]
     (tmp_path / "set.txt").write_text(f"{second.text}\ngo forward ten meters\n")
     asr = Asr(AsrSettings(backend="whisper", n_best=n_best, sentences=str(tmp_path / "set.txt"),
-                          match_threshold=1.0, char_threshold=1.0, prompt_vocabulary=False, scoring="text"))
+                          match_threshold=1.0, char_threshold=1.0,
+                          whisper={"prompt_vocabulary": False, "scoring": "text"}))
     asr.setup()
     emitted: list = []
     asr.emit = lambda kind, span, stream_id=None, **payload: None if kind == "partial" else emitted.append(payload)  # type: ignore[method-assign]

@@ -76,7 +76,7 @@ class EmotionPipeline:
                     self._start(service, ["--model", model])
             # vad_backend: how the vad cuts (features.VADS): silero per window, silero-chunks, energy
             self._start("vad", [], env={"ESIAF_VAD_BACKEND": "energy" if vad_backend == "energy" else "silero",
-                                        "ESIAF_VAD_WINDOWS": str(vad_backend == "silero").lower()})
+                                        "ESIAF_VAD_SILERO__WINDOWS": str(vad_backend == "silero").lower()})
             wait_until(lambda: topic_ready(self.client, "vad/speech", 1 if hosted else 2), self.supervisor,
                        "emotion and gender to subscribe to vad/speech", START_TIMEOUT_S)
         except BaseException:

@@ -2,6 +2,7 @@
 import numpy as np
 import pytest
 import soundfile
+from pydantic import ValidationError
 
 from esiaf import SetupError
 from esiaf.speech.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
@@ -74,14 +75,14 @@ def test_a_missing_or_corrupt_model_is_one_clear_error(tmp_path, content, messag
     path = tmp_path / "model.onnx"
     if content is not None:
         path.write_bytes(content)
-    vad = Vad(VadSettings(model_path=str(path)))
+    vad = Vad(VadSettings(silero={"model_path": str(path)}))
     with pytest.raises(SetupError, match=message) as error:
         vad.setup()
     assert "\n" not in str(error.value) and str(path) in str(error.value)
 
 
 def test_unknown_backend_and_rate_are_refused():
-    with pytest.raises(SetupError, match="unknown VAD backend"):
-        Vad(VadSettings(backend="webrtc"))
+    with pytest.raises(ValidationError, match="unknown backend 'webrtc'; one of silero, energy"):
+        VadSettings(backend="webrtc")
     with pytest.raises(SetupError, match="8000 or 16000"):
         Vad(VadSettings(sample_rate_hz=44100))

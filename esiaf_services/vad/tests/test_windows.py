@@ -95,7 +95,7 @@ def test_what_is_forwarded_is_the_streams_audio_contiguous_with_one_end_per_segm
     assert vad.sent[-1][3]["end_of_stream"]  # after the last segment: consumers hear that the stream ended
     # each segment was announced before any of its audio was forwarded, its start within the onset padding
     # of the segment's: speech_start_ms (150 ms) of speech heard, before the segment opens at min_speech_ms
-    pad_ns = int(VadSettings().onset_pad_ms * 1e6)
+    pad_ns = int(VadSettings().silero.onset_pad_ms * 1e6)
     for (start, decided, sent), (segment_start, segment_end), first in zip(vad.starts, vad.spans, opening(vad),
                                                                           strict=True):
         assert segment_start <= start <= segment_start + pad_ns and start < decided <= segment_end
