@@ -37,9 +37,6 @@ class Case:
     args: list[str]  # after `esiaf run` (or the service's command line)
     env: dict[str, str] = field(default_factory=dict)
     command: str = "run"  # "run": esiaf run; "wyoming": esiaf wyoming; else python -m esiaf_services.<command>
-    # a setting of one service only, which that service checks as it starts: esiaf run answers once the
-    # orchestrator and that service have started, not at once
-    at_start: bool = False
 
 
 def wav_header(rate_hz: int, channels: int = 1, bits: int = 16, samples: int = 444) -> bytes:
@@ -78,10 +75,12 @@ def token_cases() -> list[Case]:
 def setting_cases() -> list[Case]:
     values = {"ESIAF_MAX_STREAMS": ("0", "-1", "abc", "nan"), "ESIAF_VAD_MAX_STREAMS": ("0",),
               "ESIAF_AUDIO_QUEUE": ("0", "x"), "ESIAF_LOG_LEVEL": ("LOUD",), "ESIAF_REGISTER_TIMEOUT_S": ("nan",)}
-    own = {"ESIAF_VAD_BACKEND": "nope", "ESIAF_GRABBER_CHUNK_MS": "nan"}
+    # settings of one service only, checked by its settings model before anything starts
+    own = {"ESIAF_VAD_BACKEND": "nope", "ESIAF_GRABBER_CHUNK_MS": "nan", "ESIAF_VAD_SILERO__THRESHOLD": "high",
+           "ESIAF_ASR_WHISPER__BEAM_SIZE": "0.5"}
     return [*(Case(f"{name}={value}", ["--input", WAV], {name: value})
               for name, values_of in values.items() for value in values_of),
-            *(Case(f"{name}={value}", ["--input", WAV], {name: value}, at_start=True) for name, value in own.items())]
+            *(Case(f"{name}={value}", ["--input", WAV], {name: value}) for name, value in own.items())]
 
 
 def input_cases() -> list[Case]:
@@ -128,7 +127,7 @@ def service_cases() -> list[Case]:
 
 
 def wyoming_cases() -> list[Case]:
-    """esiaf wyoming's own options, and a setting its service checks as it starts."""
+    """esiaf wyoming's own options, and a setting of its service."""
     given = {"--port 0": ["--port", "0"], "--port abc": ["--port", "abc"],
              "--http-port 70000": ["--http-port", "70000"], "--listen 256.1.1.1": ["--listen", "256.1.1.1"],
              "--language e": ["--language", "e"],
@@ -136,8 +135,7 @@ def wyoming_cases() -> list[Case]:
              "--input (esiaf run's)": ["--input", WAV], "ESIAF_TOKEN_FILE missing": []}
     return [*(Case(f"wyoming {name}", args, {"ESIAF_TOKEN_FILE": "{tmp}/no-token"} if not args else {},
                    command="wyoming") for name, args in given.items()),
-            Case("wyoming ESIAF_WYOMING_MAX_SESSIONS=0", [], {"ESIAF_WYOMING_MAX_SESSIONS": "0"}, command="wyoming",
-                 at_start=True)]
+            Case("wyoming ESIAF_WYOMING_MAX_SESSIONS=0", [], {"ESIAF_WYOMING_MAX_SESSIONS": "0"}, command="wyoming")]
 
 
 CASES = [*port_cases(), *chunk_cases(), *workdir_cases(), *token_cases(), *setting_cases(), *input_cases(),

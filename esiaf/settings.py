@@ -226,11 +226,13 @@ def read_yaml_file(path: Path) -> dict[str, Any]:
 
 
 def load_settings(model: type[S], service: str, /, *, config: str | Path | None = None,
-                  env: Mapping[str, str] | None = None, **overrides: Any) -> S:
+                  env: Mapping[str, str] | None = None, check_backend: bool = True, **overrides: Any) -> S:
     """Builds ``model`` from defaults < YAML < environment < ``overrides``.
 
     ``config`` (or ``ESIAF_<SERVICE>_CONFIG``) names the YAML file. ``overrides``
-    are values given on a command line; ``None`` values are ignored.
+    are values given on a command line; ``None`` values are ignored. ``check_backend=False``: settings
+    of another backend than the chosen one are let through (whoever starts the service may still
+    choose its backend).
     """
     env = os.environ if env is None else env
     config = config or env.get(f"{ENV_PREFIX}{service.upper()}_CONFIG")
@@ -248,7 +250,7 @@ def load_settings(model: type[S], service: str, /, *, config: str | Path | None 
         settings = model(**values)
     except ValidationError as exc:
         raise _settings_error(exc, service, origin, given) from None
-    if isinstance(settings, BackendSettings) and settings.unused_backend_settings():
+    if check_backend and isinstance(settings, BackendSettings) and settings.unused_backend_settings():
         unused = settings.unused_backend_settings()
         blamed = sorted({origin.get(key.split(".")[0], "defaults") for key in unused})
         raise SettingsError(f"bad {service} settings (from {' and '.join(blamed)}): {', '.join(unused)} "

@@ -184,9 +184,11 @@ def check_token() -> None:
 
 def check_settings(env: Mapping[str, str], services: Iterable[str] = ()) -> None:
     """The settings every component has as the environment gives them, for all (``ESIAF_MAX_STREAMS``;
-    with no ``services``, these alone) or for one service (``ESIAF_VAD_MAX_STREAMS``), and with services
-    the orchestrator's, checked before anything starts; a service's own settings are checked by the
-    service as it starts."""
+    with no ``services``, these alone) or for one service (``ESIAF_VAD_MAX_STREAMS``), each service's
+    own settings the environment gives (``ESIAF_VAD_BACKEND``, ``ESIAF_VAD_CONFIG``: checked by its
+    settings model, loaded without starting it), and with services the orchestrator's: all checked
+    before anything starts, so a bad value is one line at once rather than once that service starts."""
+    from esiaf.runner import service_settings
     from esiaf.settings import ComponentSettings, SettingsError, load_settings
     common = {name.upper() for name in ComponentSettings.model_fields}
     try:
@@ -195,6 +197,11 @@ def check_settings(env: Mapping[str, str], services: Iterable[str] = ()) -> None
             given = {key: value for key, value in env.items() if key.startswith("ESIAF_")
                      and (key[len("ESIAF_"):] in common or (key.startswith(prefix) and key[len(prefix):] in common))}
             load_settings(ComponentSettings, service, env=given)
+            if any(key.startswith(prefix) and key[len(prefix):] not in common for key in env):
+                model = service_settings(service)
+                own = {key: value for key, value in env.items() if key.startswith(prefix)}
+                if model is not None:  # esiaf run may still choose the backend: only the values are checked
+                    load_settings(model, service, env={**given, **own}, check_backend=False)
         if services:
             from esiaf_services.orchestrator.settings import load as orchestrator_settings
             orchestrator_settings(env=env)

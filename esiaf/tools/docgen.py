@@ -30,6 +30,7 @@ from typing import Any
 from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 
+from esiaf.runner import entry_class
 from esiaf.settings import ComponentSettings
 
 REPO = Path(__file__).resolve().parents[2]
@@ -76,20 +77,7 @@ def service_models() -> Iterator[tuple[str, type[BaseModel]]]:
     for folder in sorted(p for p in SERVICES.iterdir() if (p / "__main__.py").is_file()):
         if folder.name == ORCHESTRATOR[0]:
             continue
-        yield folder.name, _entry_class(folder / "__main__.py").Settings
-
-
-def _entry_class(main: Path) -> Any:
-    """The class a service's ``__main__.py`` passes to ``main(...)``, imported."""
-    tree = ast.parse(main.read_text())
-    imported = {alias.asname or alias.name: node.module for node in ast.walk(tree)
-                if isinstance(node, ast.ImportFrom) and node.module for alias in node.names}
-    for node in ast.walk(tree):
-        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "main"
-                and node.args and isinstance(node.args[0], ast.Name) and node.args[0].id in imported):
-            name = node.args[0].id
-            return getattr(importlib.import_module(imported[name]), name)
-    raise LookupError(f"{main}: no main(SomeComponent) call to find the service's settings by")
+        yield folder.name, entry_class(folder / "__main__.py").Settings
 
 
 def comments(cls: type) -> dict[str, str]:
