@@ -11,7 +11,9 @@ the reason it has none), whether that is right, and under how many fused ids it 
 is a duplicate); then the totals, the launcher's exit code and its "N fused result(s)" line.
 ``stranger`` prints the wall time of each replay (the stream's start to its end) without and with a
 subscriber that never reads: one without the token (it is refused where the audio port takes the
-token) and one with the token under a name the orchestrator never registered. Each run uses the
+token) and one with the token under a name the orchestrator never registered. The stranger connects
+to the grabber's audio port (fixed for the run) before ``esiaf run`` starts, so it is there before
+the replay begins however quickly that ends. Each run uses the
 HTTP port ``--port`` (default 18700; ``stranger`` also the next two) and a workdir of its own. Run it
 from the repository root.
 """
@@ -20,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import secrets
 import signal
 import subprocess
 import sys
@@ -34,7 +37,7 @@ import psutil
 import soundfile
 import zmq
 
-from esiaf.tools.testing import REPO, normalise
+from esiaf.tools.testing import REPO, free_port, normalise
 
 WAV = REPO / "examples" / "robocup_questions.wav"
 TRUTH = json.loads((REPO / "examples" / "robocup_questions.json").read_text())["sentences"]
@@ -44,13 +47,14 @@ RUN_TIMEOUT_S = 240.0
 class Run:
     """``esiaf run --json`` on the example, as a child process; its stdout lines collected."""
 
-    def __init__(self, port: int, workdir: Path, *more: str, wav: Path = WAV):
+    def __init__(self, port: int, workdir: Path, *more: str, wav: Path = WAV, env: dict[str, str] | None = None):
         cmd = [sys.executable, "-m", "esiaf", "run", "--input", str(wav), "--grammar", "robocup", "--json",
                "--port", str(port), "--workdir", str(workdir), *more]
         self.workdir = workdir
         self.url = f"http://127.0.0.1:{port}"
         self.process = subprocess.Popen(["nice", "-n", "10", *cmd], cwd=REPO, text=True, stdout=subprocess.PIPE,
-                                        stderr=subprocess.PIPE, env={**os.environ, "PYTHONPATH": str(REPO)})
+                                        stderr=subprocess.PIPE,
+                                        env={**os.environ, **(env or {}), "PYTHONPATH": str(REPO)})
         self.lines: list[dict] = []
         self.stderr: list[str] = []
         self.started = threading.Event()  # the grabber plays: stream_start printed
@@ -190,11 +194,13 @@ def stranger(args: argparse.Namespace, workdir: Path) -> None:
     times: dict[str, list[float]] = {"none": [], "no_token": [], "token_unregistered": []}
     for repeat in range(args.repeats):
         for n, (kind, found) in enumerate(times.items()):
-            run = Run(args.port + n, workdir / f"{kind}-{repeat}", "--fast", "--without", "emotion,gender,voiceid",
-                      wav=wav)
+            audio_port, token = free_port(), secrets.token_hex(16)
             context = zmq.Context()
-            try:
-                kept = subscribe(run, context, kind == "token_unregistered") if kind != "none" else None
+            try:  # connected before the grabber binds: ZeroMQ retries until it does
+                kept = subscribe(context, audio_port, token if kind == "token_unregistered" else None) \
+                    if kind != "none" else None
+                run = Run(args.port + n, workdir / f"{kind}-{repeat}", "--fast", "--without", "emotion,gender,voiceid",
+                          wav=wav, env={"ESIAF_GRABBER_AUDIO_PORT": str(audio_port), "ESIAF_TOKEN": token})
                 code = run.wait()
                 del kept
                 took = run.ended_at - run.started_at if run.ended_at else float("nan")
@@ -206,28 +212,17 @@ def stranger(args: argparse.Namespace, workdir: Path) -> None:
         print(f"{kind}: replay_s median={sorted(found)[len(found) // 2]:.2f} all={[round(t, 2) for t in found]}")
 
 
-def subscribe(run: Run, context: zmq.Context, with_token: bool) -> zmq.Socket:
-    """Subscribes to everything on the grabber's audio port as soon as it has registered, and never reads
-    (a queue of one message and the smallest kernel buffer: it stalls as soon as it can)."""
-    deadline = time.monotonic() + 120
-    endpoint = None
-    while endpoint is None and time.monotonic() < deadline and run.process.poll() is None:
-        try:
-            items = httpx.get(f"{run.url}/components", headers=run.headers, timeout=10).json()["items"]
-            endpoint = next((c["audio_endpoint"] for c in items if c["name"] == "grabber"), None)
-        except (httpx.HTTPError, OSError, ValueError, KeyError):
-            pass
-        time.sleep(0.05)
-    if endpoint is None:
-        raise RuntimeError("the grabber never registered: " + "".join(run.stderr[-10:]))
+def subscribe(context: zmq.Context, audio_port: int, token: str | None) -> zmq.Socket:
+    """Subscribes to everything on the grabber's audio port (before it is bound), and never reads (a queue
+    of one message and the smallest kernel buffer: it stalls as soon as it can)."""
     sub = context.socket(zmq.SUB)
     sub.setsockopt(zmq.RCVHWM, 1)
     sub.setsockopt(zmq.RCVBUF, 4096)
-    if with_token:
+    if token is not None:
         sub.plain_username = b"stranger"
-        sub.plain_password = (run.workdir / "token").read_text().strip().encode()
+        sub.plain_password = token.encode()
     sub.setsockopt(zmq.SUBSCRIBE, b"")
-    sub.connect(endpoint)
+    sub.connect(f"tcp://127.0.0.1:{audio_port}")
     return sub  # kept by the caller: a socket garbage-collected is closed
 
 

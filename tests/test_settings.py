@@ -116,7 +116,7 @@ def test_a_bad_log_level_is_one_line_and_exit_2(capsys):
 
 
 def test_variables_that_name_no_service_are_found():
-    from esiaf.runner import known_services
+    from esiaf.services import known_services
     env = {"ESIAF_VDA_DB_MIN": "3", "ESIAF_VAD_DB_MIN": "3", "ESIAF_STREAM_ID": "s", "ESIAF_TOKEN": "t",
            "ESIAF_ORCHESTRATOR_URL": "u", "ESIAF_GRABBER_REPLICAS": "1", "ESIAF_RATE_WINDOW": "2", "HOME": "/"}
     services = known_services()

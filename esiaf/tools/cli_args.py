@@ -188,7 +188,7 @@ def check_settings(env: Mapping[str, str], services: Iterable[str] = ()) -> None
     own settings the environment gives (``ESIAF_VAD_BACKEND``, ``ESIAF_VAD_CONFIG``: checked by its
     settings model, loaded without starting it), and with services the orchestrator's: all checked
     before anything starts, so a bad value is one line at once rather than once that service starts."""
-    from esiaf.runner import service_settings
+    from esiaf.services import service_settings
     from esiaf.settings import ComponentSettings, SettingsError, load_settings
     common = {name.upper() for name in ComponentSettings.model_fields}
     try:

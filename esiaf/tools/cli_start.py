@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 from urllib.parse import urlencode
 
 from esiaf import auth
-from esiaf.runner import known_services
+from esiaf.services import known_services
 from esiaf.settings import unknown_variables
 from esiaf.tools.cli_args import (
     check_array,

@@ -10,7 +10,7 @@ import os
 import socket
 import time
 
-from esiaf.runner import known_services
+from esiaf.services import known_services
 from esiaf.tools.cli_args import check_port_free, check_settings, parse_without
 from esiaf.tools.cli_start import (
     prepare,

@@ -30,7 +30,7 @@ from typing import Any
 from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 
-from esiaf.runner import entry_class
+from esiaf.services import entry_class
 from esiaf.settings import ComponentSettings
 
 REPO = Path(__file__).resolve().parents[2]

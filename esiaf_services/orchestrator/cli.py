@@ -11,7 +11,8 @@ import sys
 
 from esiaf.argparsing import OneLineParser
 from esiaf.auth import TokenError, redact_logs
-from esiaf.runner import known_services, limit_native_threads
+from esiaf.runner import limit_native_threads
+from esiaf.services import known_services
 from esiaf.settings import SettingsError, unknown_variables
 
 from .connections import AcceptBackoffLoop
