@@ -37,7 +37,7 @@ import psutil
 import soundfile
 import zmq
 
-from esiaf.tools.testing import REPO, free_port, normalise
+from esiaf.tools.testing import REPO, free_port, is_spare, normalise
 
 WAV = REPO / "examples" / "robocup_questions.wav"
 TRUTH = json.loads((REPO / "examples" / "robocup_questions.json").read_text())["sentences"]
@@ -84,7 +84,7 @@ class Run:
         while time.monotonic() < deadline and self.process.poll() is None:
             for child in psutil.Process(self.process.pid).children(recursive=True):
                 try:
-                    if f"esiaf_services.{service}" in " ".join(child.cmdline()):
+                    if f"esiaf_services.{service}" in " ".join(child.cmdline()) and not is_spare(child):
                         return child.pid
                 except psutil.Error:
                     continue

@@ -50,6 +50,7 @@ sys.path.insert(0, str(REPO))
 
 from bench.monolith import monolith  # noqa: E402
 from esiaf.speech.segmenter import SegmenterParams  # noqa: E402
+from esiaf.tools.testing import is_spare  # noqa: E402
 
 HANGOVER_NS = int(SegmenterParams().keep_alive_ms * 1_000_000)
 
@@ -162,8 +163,9 @@ def services(pid: int) -> dict[str, psutil.Process]:
     found = {}
     for child in psutil.Process(pid).children():
         try:
-            found[next((a.split(".", 1)[1] for a in child.cmdline() if a.startswith("esiaf_services.")),
-                       str(child.pid))] = child
+            name = next((a.split(".", 1)[1] for a in child.cmdline() if a.startswith("esiaf_services.")),
+                        str(child.pid))
+            found[f"{name}-spare" if is_spare(child) else name] = child  # a spare's cost apart
         except psutil.NoSuchProcess:  # it exited meanwhile
             continue
     return found

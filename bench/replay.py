@@ -36,7 +36,7 @@ import numpy as np
 import psutil
 import soundfile
 
-from esiaf.tools.testing import REPO, free_port, normalise
+from esiaf.tools.testing import REPO, free_port, is_spare, normalise
 
 RATE_HZ = 16_000
 GAP_S = (1.5, 4.0)  # silence after each question, drawn uniformly
@@ -75,7 +75,8 @@ def service_of(process: psutil.Process) -> str | None:
     except psutil.Error:
         return None
     module = next((c for c in command if c.startswith("esiaf_services.")), None)
-    return None if module is None else env_instance or module.split(".")[1]
+    spare = "-spare" if is_spare(process) else ""  # a waiting spare of the service, counted apart
+    return None if module is None else (env_instance or module.split(".")[1]) + spare
 
 
 class Sampler(threading.Thread):

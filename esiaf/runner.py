@@ -8,10 +8,13 @@ exit code 2 and one line on stderr naming what is wrong; no traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import ctypes
 import logging
 import os
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from esiaf.argparsing import OneLineParser
@@ -21,6 +24,7 @@ from esiaf.hosting import hosting_node
 from esiaf.processor import Processor, SetupError
 from esiaf.services import known_services
 from esiaf.settings import (
+    STANDBY_ENV,
     ComponentSettings,
     SettingsError,
     load_settings,
@@ -30,6 +34,7 @@ from esiaf.settings import (
     unknown_variables,
 )
 
+_PR_SET_NAME = 15  # prctl(2)
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s [{service}] %(message)s"
 
 
@@ -85,6 +90,24 @@ def limit_native_threads() -> None:
     threadpool_limits(limits=1, user_api="blas")  # and those loaded already (numpy's)
 
 
+SPARE_NAME = b"esiaf-spare"  # a waiting spare's process name (ps, top, psutil's name())
+
+
+def standby() -> bool:
+    """A spare's wait (esiaf/tools/launcher.py): True once its launcher writes a line on stdin, False at
+    the end of stdin (the launcher ended). While it waits, its process name is SPARE_NAME."""
+    name = Path("/proc/self/comm").read_bytes().strip() if Path("/proc/self/comm").is_file() else b"python"
+    _set_process_name(SPARE_NAME)
+    released = bool(sys.stdin.readline())
+    _set_process_name(name)
+    return released
+
+
+def _set_process_name(name: bytes) -> None:
+    with contextlib.suppress(OSError, AttributeError):  # Linux only: elsewhere the name stays
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_NAME, ctypes.c_char_p(name[:15]), 0, 0, 0)
+
+
 def main(component_cls: type[Processor], argv: Sequence[str] | None = None) -> int:
     limit_native_threads()
     service = component_cls.service
@@ -117,6 +140,8 @@ def main(component_cls: type[Processor], argv: Sequence[str] | None = None) -> i
         logging.getLogger(service).warning(
             "%s names no service (%s) and no common setting: ignored; a typo? (a plug-in folder's own "
             "settings are not known here)", name, ", ".join(sorted(services)))
+    if os.environ.get(STANDBY_ENV) == "1" and not standby():
+        return 0  # a spare (esiaf/tools/launcher.py) whose launcher ended without needing it
     try:
         return hosting_node(component_cls(settings)).run()
     except (SetupError, RegistrationError) as exc:

@@ -194,8 +194,12 @@ def _service_from_env(model: type[BaseModel], service: str, env: Mapping[str, st
     return values
 
 
+# "1": this process is a spare (esiaf/tools/launcher.py): imported and its settings read, it waits for a
+# line on stdin before it registers and runs (esiaf/runner.py), or ends at its end
+STANDBY_ENV = "ESIAF_STANDBY"
 # ESIAF_* variables that name no service: read by the SDK, the tools or compose.yaml
-GLOBAL_VARIABLES = {auth.TOKEN_ENV, auth.TOKEN_FILE_ENV, auth.TLS_CA_ENV, keys.CURVE_DIR_ENV, keys.CURVE_KEY_ENV} | {
+GLOBAL_VARIABLES = {auth.TOKEN_ENV, auth.TOKEN_FILE_ENV, auth.TLS_CA_ENV, keys.CURVE_DIR_ENV, keys.CURVE_KEY_ENV,
+                    STANDBY_ENV} | {
     ENV_PREFIX + name for name in ("SHARED_DATA", "TAG", "BASE_TAG", "REBUILD_BASE", "HTTP_BIND", "HTTP_PORT",
                                    "INPUT_FILE", "INPUT_DIR", "SERVICE")}
 

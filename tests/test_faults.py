@@ -12,7 +12,7 @@ import httpx
 import psutil
 import pytest
 
-from esiaf.tools.testing import REPO, need_flite, normalise, poll, shared_data
+from esiaf.tools.testing import REPO, is_spare, need_flite, normalise, poll, shared_data
 
 pytestmark = pytest.mark.e2e
 sys.path.insert(0, str(REPO / "scripts"))
@@ -33,7 +33,7 @@ def questions(tmp_path):
 def service_pid(launcher, name: str) -> int | None:
     for child in psutil.Process(launcher.process.pid).children(recursive=True):
         try:
-            if f"esiaf_services.{name}" in child.cmdline():
+            if f"esiaf_services.{name}" in child.cmdline() and not is_spare(child):
                 return child.pid
         except psutil.Error:
             continue
@@ -82,3 +82,29 @@ def test_a_service_killed_mid_stream_comes_back_and_the_pipeline_goes_on(launch,
     assert heard[-1] == truth[-1]
     firsts = [line["id"] for line in run.lines if line.get("type") == "fused_result" and line["revision"] == 1]
     assert firsts == sorted(set(firsts))  # the resumed websocket neither repeated nor reordered one
+
+
+def test_a_killed_vad_is_replaced_by_its_waiting_spare(launch, questions):
+    """The launcher keeps a spare vad, imported and waiting; when the vad dies the spare takes over (a
+    registration instead of a whole start) and the launcher starts a new spare later."""
+    wav, truth = questions
+    run = launch("--input", str(wav), "--grammar", "robocup", "--json", "--without", "emotion,gender,voiceid",
+                 "--stream-id", "spare")
+    launcher = psutil.Process(run.process.pid)
+    spare = poll(lambda: next((c for c in launcher.children() if is_spare(c) is True and c.is_running()
+                               and "esiaf_services.vad" in c.cmdline()), None), timeout_s=90)
+    vad = service_pid(run, "vad")
+    assert vad is not None and vad != spare.pid
+    os.kill(vad, signal.SIGKILL)
+    registered = poll(lambda: next((c["pid"] for c in httpx.get(
+        f"{run.url}/components", headers=run.headers, timeout=10).json()["items"]
+        if c["name"] == "vad" and c.get("pid") not in (None, vad)), None), timeout_s=60)
+    assert registered == spare.pid, run.describe()  # the spare, not a new process
+    assert not is_spare(spare)  # it says it is the vad now
+    run.wait_for_line(lambda line: line.get("type") == "stream_end", timeout_s=180)
+    assert run.stop() in (0, 130)
+    assert "service vad killed by SIGKILL" in "".join(run.stderr)
+    assert "--- esiaf: restart 1 (its spare) ---" in (run.workdir / "logs" / "vad.log").read_text()
+    heard = fused_texts(run)
+    assert len(heard) >= len(truth) - 2, (heard, run.describe())  # what was in flight at most
+    assert heard == [t for t in truth if t in heard]

@@ -12,7 +12,7 @@ import httpx
 import psutil
 import pytest
 
-from esiaf.tools.testing import REPO, normalise, poll
+from esiaf.tools.testing import REPO, is_spare, normalise, poll
 
 pytestmark = pytest.mark.e2e
 EXAMPLE = REPO / "examples" / "robocup_questions.wav"
@@ -25,7 +25,7 @@ def service_pid(launcher, name: str) -> int:
     while time.monotonic() < deadline:
         for child in psutil.Process(launcher.process.pid).children(recursive=True):
             try:
-                if f"esiaf_services.{name}" in " ".join(child.cmdline()):
+                if f"esiaf_services.{name}" in " ".join(child.cmdline()) and not is_spare(child):
                     return child.pid
             except psutil.Error:
                 continue

@@ -151,6 +151,7 @@ def watch_children(state: Following, supervisor: Supervisor, client: Orchestrato
     not answered is fused without it); notes each grabber's end; a grabber that failed ends the run
     (with --serve: it is said once and the services stay up), another service is restarted."""
     grabbers = {id(stream.grabber): stream for stream in state.streams.values()}
+    supervisor.keep_spares()
     for child in supervisor.exited():
         if not child.reported:
             child.reported = True

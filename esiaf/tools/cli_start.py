@@ -283,16 +283,17 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
                             **vad_env})
         log.info("vad runs in the grabber's process")
     elif channels <= 1 and array is None:
-        services["vad"] = supervisor.start("vad", env={"ESIAF_VAD_INPUT_TOPIC": microphones, **vad_env})
+        services["vad"] = supervisor.start("vad", env={"ESIAF_VAD_INPUT_TOPIC": microphones, **vad_env}, spare=True)
     elif beamforming:  # grabber -> ssl -> beamformer -> vad: the analysers hear the array steered at the talker
-        services["vad"] = supervisor.start("vad", env={"ESIAF_VAD_INPUT_TOPIC": "beamformer/audio", **vad_env})
+        services["vad"] = supervisor.start("vad", env={"ESIAF_VAD_INPUT_TOPIC": "beamformer/audio", **vad_env},
+                                           spare=True)
         beam_env = array_env("BEAMFORMER", args, channels)
         if args.beamformer:
             beam_env["ESIAF_BEAMFORMER_METHOD"] = args.beamformer
         services["beamformer"] = supervisor.start("beamformer", env=beam_env)
         grabber_env["ESIAF_GRABBER_CHANNELS"] = str(channels)
     else:  # the recogniser hears the first channel (microphone); ssl hears them all
-        services["vad"] = supervisor.start("vad", env={"ESIAF_VAD_INPUT_TOPIC": "splitter/ch0", **vad_env})
+        services["vad"] = supervisor.start("vad", env={"ESIAF_VAD_INPUT_TOPIC": "splitter/ch0", **vad_env}, spare=True)
         services["splitter"] = supervisor.start("splitter", env={
             "ESIAF_SPLITTER_INPUT_CHANNELS": str(channels), "ESIAF_SPLITTER_CHANNELS": "[0]",
             "ESIAF_SPLITTER_INPUT_TOPIC": microphones})

@@ -74,6 +74,7 @@ def watch(supervisor: Supervisor, client: OrchestratorClient) -> None:
     """Until stopped: what the services refuse said on stderr, a service that died reported and restarted
     (a crash loop ends the run: LaunchError)."""
     while True:
+        supervisor.keep_spares()
         for child, line in supervisor.refusals():
             err(f"esiaf: {child.name} {line} (its log: {child.log_path})")
         for child in supervisor.exited():

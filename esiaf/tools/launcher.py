@@ -27,6 +27,7 @@ from urllib.parse import quote
 import httpx
 
 from esiaf.api_client import OrchestratorHTTP
+from esiaf.settings import STANDBY_ENV
 from esiaf.tools.errors import LaunchError
 from esiaf.tools.terminal import err
 
@@ -40,6 +41,9 @@ RESTART_BACKOFF_S = 0.5  # before the first restart; doubles with each, up to 10
 MAX_LOG_READ = 1 << 20  # a child's log read for refusals at most this much at a time
 REFUSAL = " refused "  # a service's log line that says it refused something (esiaf/receiving.py)
 START_TIMEOUT_S = 60.0  # esiaf run: how long a service may take to answer, register, subscribe or start playing
+# a service that keeps a spare (the vad: every analyser hears speech through it) gets one this long after
+# its current process started, so that the spare's start does not slow the pipeline's own
+SPARE_AFTER_S = 10.0
 
 
 def _die_with_parent() -> None:
@@ -59,6 +63,8 @@ class Child:
     started_at: float = field(default_factory=time.monotonic)  # of its current process
     reported: bool = False  # its death was reported to the orchestrator
     log_read: int = 0  # how far its log has been read for refusals
+    keeps_spare: bool = False  # a spare process waits, imported, to take over when it dies
+    spare: subprocess.Popen | None = None
 
     def new_refusals(self) -> list[str]:
         """The lines its log has gained since the last call that say it refused something (what it
@@ -104,9 +110,10 @@ class Supervisor:
     children: list[Child] = field(default_factory=list)
 
     def start(self, name: str, args: Sequence[str] = (), env: dict[str, str] | None = None,
-              target: list[str] | None = None, instance: str | None = None) -> Child:
+              target: list[str] | None = None, instance: str | None = None, spare: bool = False) -> Child:
         """Starts ``python -m esiaf_services.<name>`` (or ``python <target...>``, a plug-in) with ``args``;
-        ``instance``: one of several instances of the service, under this id (its child and log name)."""
+        ``instance``: one of several instances of the service, under this id (its child and log name);
+        ``spare``: keep a spare of it (:meth:`keep_spares`), which takes over when it dies."""
         logs = self.workdir / "logs"
         logs.mkdir(parents=True, exist_ok=True)
         logs.chmod(0o700)  # its logs are its owner's (open_log)
@@ -116,26 +123,51 @@ class Supervisor:
             child_env["ESIAF_INSTANCE"] = instance
         child_env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), child_env.get("PYTHONPATH")]))
         command = [sys.executable, *(target or ["-m", f"esiaf_services.{name}"]), *args]
-        child = Child(instance or name, self._spawn(command, child_env, log_path, "wb"), log_path, command, child_env)
+        child = Child(instance or name, self._spawn(command, child_env, log_path, "wb"), log_path, command, child_env,
+                      keeps_spare=spare)
         self.children.append(child)
         log.info("started service=%s pid=%d log=%s", child.name, child.process.pid, log_path)
         return child
 
     @staticmethod
-    def _spawn(command: list[str], env: dict[str, str], log_path: Path, mode: str) -> subprocess.Popen:
+    def _spawn(command: list[str], env: dict[str, str], log_path: Path, mode: str,
+               standby: bool = False) -> subprocess.Popen:
         with open_log(log_path, mode) as out:
-            return subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                    env=env, cwd=REPO_ROOT, start_new_session=True, preexec_fn=_die_with_parent)
+            return subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.PIPE if standby else subprocess.DEVNULL,
+                                    env={**env, STANDBY_ENV: "1"} if standby else env, cwd=REPO_ROOT,
+                                    start_new_session=True, preexec_fn=_die_with_parent)
+
+    def keep_spares(self) -> None:
+        """Starts a spare of each child that keeps one and has none, SPARE_AFTER_S after its current
+        process started: the same command, imported and waiting (esiaf/runner.py, ESIAF_STANDBY), so a
+        restart costs a registration instead of a whole start (the imports alone take seconds on a busy
+        robot). A spare that died is started again the same way."""
+        now = time.monotonic()
+        for child in self.children:
+            if child.spare is not None and child.spare.poll() is not None:
+                log.warning("the spare of service=%s ended with code %s", child.name, child.spare.returncode)
+                child.spare = None
+            if (child.keeps_spare and child.spare is None and child.process.poll() is None
+                    and now - child.started_at >= SPARE_AFTER_S):
+                child.spare = self._spawn(child.command, child.env, child.log_path, "ab", standby=True)
+                log.info("spare of service=%s started pid=%d", child.name, child.spare.pid)
 
     def restart(self, child: Child) -> None:
-        """Starts a dead child again with the same command and environment; its log goes on."""
+        """Starts a dead child again with the same command and environment, from its spare if it has one
+        ready; its log goes on."""
         child.restarts += 1
         child.died_at, child.reported = None, False
+        spare, child.spare = child.spare, None
         with open_log(child.log_path, "ab") as out:
-            out.write(f"\n--- esiaf: restart {child.restarts} ---\n".encode())
-        child.process = self._spawn(child.command, child.env, child.log_path, "ab")
+            out.write(f"\n--- esiaf: restart {child.restarts}{' (its spare)' if spare else ''} ---\n".encode())
+        if spare is not None and spare.poll() is None and _release(spare):
+            child.process = spare
+        else:
+            child.process = self._spawn(child.command, child.env, child.log_path, "ab")
         child.started_at = time.monotonic()
-        log.info("restarted service=%s pid=%d restarts=%d", child.name, child.process.pid, child.restarts)
+        log.info("restarted service=%s pid=%d restarts=%d from_spare=%s", child.name, child.process.pid,
+                 child.restarts, child.process is spare)
 
     def restart_when_due(self, child: Child) -> None:
         """A service died: say which and why, restart it after a back-off (doubling from
@@ -173,6 +205,11 @@ class Supervisor:
                 f"its log ({child.log_path}) ends:\n{child.tail()}")
 
     def stop(self, timeout_s: float = 5.0) -> None:
+        for child in self.children:
+            if child.spare is not None:  # never released: it has nothing to finish
+                child.spare.kill()
+                child.spare.wait()
+                child.spare = None
         for child in reversed(self.children):
             if child.process.poll() is None:
                 child.process.send_signal(signal.SIGTERM)
@@ -184,6 +221,17 @@ class Supervisor:
                 log.warning("service=%s did not stop in %g s: killing it", child.name, timeout_s)
                 child.process.kill()
                 child.process.wait()
+
+
+def _release(spare: subprocess.Popen) -> bool:
+    """Tells a waiting spare to run (a line on its stdin); False if it is gone."""
+    assert spare.stdin is not None  # started with stdin=PIPE
+    try:
+        spare.stdin.write(b"run\n")
+        spare.stdin.close()
+    except OSError:
+        return False
+    return True
 
 
 def open_log(path: Path, mode: str) -> IO[bytes]:

@@ -41,6 +41,15 @@ def need_flite() -> None:
         pytest.skip("Debian's flite is not installed (setup.sh installs it)")
 
 
+def is_spare(process: Any) -> bool:
+    """A psutil process that is a waiting spare of a service (esiaf/tools/launcher.py), not the service:
+    its process name says so while it waits (esiaf/runner.py SPARE_NAME)."""
+    try:
+        return bool(process.name() == "esiaf-spare")
+    except Exception:  # gone meanwhile: not one to take for the service either
+        return True
+
+
 def free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
