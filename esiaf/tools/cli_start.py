@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
         feed_url = f"ws://{args.host}:{args.port}/ws/fused" + (f"?{urlencode(query)}" if query else "")
         with FusedFeed(feed_url) as ws, recording(args, supervisor, pipeline, url):
             if args.ros2:
-                pipeline.services["ros2"] = start_ros2(supervisor, ids)
+                pipeline.services["ros2"] = start_ros2(supervisor, client, pipeline, ids)
             streams = start_grabbers(args, supervisor, pipeline, ids)
             err(f"esiaf: orchestrator at {url} (API docs: {url}/docs; token in {shown_path(workdir / 'token')}); "
                 f"logs in {shown_path(workdir / 'logs')}")
@@ -221,16 +221,21 @@ def start_grabbers(args: argparse.Namespace, supervisor: Supervisor, pipeline: P
     return streams
 
 
-def start_ros2(supervisor: Supervisor, ids: list[str]) -> Child:
+def start_ros2(supervisor: Supervisor, client: OrchestratorClient, pipeline: Pipeline, ids: list[str]) -> Child:
     """--ros2: the bridge to ROS 2 (esiaf_services/ros2), following this run's streams (one: its stream;
     several: each in a namespace of its own, /<stream id>/humans/...); the grabbers play once it follows
-    the fused results (its health file is touched), so it misses none."""
+    the fused results (its health file is touched) and, with a beamformer, once it hears the beamformer's
+    audio (each voice's audio topic), so it misses none."""
     health = supervisor.workdir / "ros2.health"
     health.unlink(missing_ok=True)
     env = {"ESIAF_ROS2_HEALTH_FILE": str(health)} | (
-        {"ESIAF_ROS2_STREAM": ids[0]} if len(ids) == 1 else {"ESIAF_ROS2_NAMESPACE_PER_STREAM": "true"})
+        {"ESIAF_ROS2_STREAM": ids[0]} if len(ids) == 1 else {"ESIAF_ROS2_NAMESPACE_PER_STREAM": "true"}) | (
+        {"ESIAF_ROS2_AUDIO_TOPIC": "beamformer/audio"} if pipeline.beamforming else {})
     child = supervisor.start("ros2", env=env)
     wait_until(health.exists, supervisor, "the ros2 bridge to follow the fused results", START_TIMEOUT_S, child)
+    if pipeline.beamforming:  # the vad and the bridge
+        wait_until(lambda: topic_ready(client, "beamformer/audio", 2), supervisor,
+                   "the ros2 bridge to subscribe to beamformer/audio", START_TIMEOUT_S, child)
     return child
 
 
