@@ -89,9 +89,9 @@ def diff(recorded: Sequence[Utterance], replayed: Sequence[Utterance]) -> list[s
     return lines
 
 
-def session_utterances(path: Path) -> list[Utterance]:
-    """A recording's utterances of the stream it replays, from that stream's start."""
-    info = check_session(path)
+def session_utterances(path: Path, stream_id: str | None = None) -> list[Utterance]:
+    """A recording's utterances of one recorded stream (None: its first), from that stream's start."""
+    info = check_session(path, stream_id)
     return [utterance(fused, info.start_ns) for fused in recorded_fused(path) if fused.stream_id == info.stream_id]
 
 
