@@ -1,9 +1,16 @@
-"""The voices' audio store: a span cut out by capture time, and its bounds against a peer that lies."""
+"""The voices' audio: the store (a span cut out by capture time, its bounds against a peer that lies),
+and the bridge waiting for an utterance's audio (bounded too)."""
 from __future__ import annotations
 
+import json
+import random
+from typing import Any
+
 import numpy as np
+import pytest
 
 from esiaf_services.ros2.audio import AudioBuffer
+from esiaf_services.ros2.service import Ros2, Ros2Settings
 
 RATE = 16000
 T0 = 1_700_000_000_000_000_000
@@ -49,3 +56,56 @@ def test_chunks_whose_spans_lie_are_bounded_by_bytes_and_going_back_starts_afres
     assert buffer.kept_bytes <= RATE * 2
     buffer.add("a", T0 - 10 * MS, T0 - 5 * MS, np.zeros(80, dtype="<i2").tobytes())
     assert buffer.restarted == 1 and buffer.reached_ns("a") == T0 - 5 * MS
+
+
+class Bridge(Ros2):
+    """The ros2 service with an audio topic (a real DDS participant on a domain of its own), what it
+    publishes kept to look at."""
+
+    def __init__(self, **settings: Any) -> None:
+        pytest.importorskip("cyclonedds", reason="the ros2 extra (pip install 'esiaf[ros2]')")
+        super().__init__(Ros2Settings(audio_topic="beamformer/audio", **settings), random.randint(100, 200))
+        self.sent: list[tuple[str, Any]] = []
+
+    def publish(self, publications: list[tuple[str, Any]]) -> None:
+        self.sent += publications
+        super().publish(publications)
+
+    def fused(self, n: int, now_s: float, seconds: float = 1.0) -> None:
+        start = T0 + n * 2000 * MS
+        self.handle(json.dumps({
+            "type": "fused_result", "id": n, "revision": 1, "stream_id": "s",
+            "anchor": {"type": "speech", "span": {"start_ns": start, "end_ns": start + int(seconds * 1e9)},
+                       "speech": {"hypotheses": [{"text": f"sentence {n}", "probability": 0.5, "words": []}]}},
+            "results": {}, "aggregates": {"voice_id": {"label": "voice-1"}}}), now_s)
+
+    def audio_frames(self) -> list[int]:
+        return [len(sample.data) // 2 for topic, sample in self.sent if topic.endswith("/audio")]
+
+
+def test_an_utterance_s_audio_waits_for_its_span_then_goes_at_its_deadline_with_what_came():
+    bridge = Bridge(audio_wait_s=0.5)
+    buffer = bridge.audio
+    assert buffer is not None
+    bridge.fused(0, now_s=0.0)  # its speech at once, its audio not yet heard
+    assert [topic for topic, _ in bridge.sent][-2:] == ["/humans/voices/voice_1/speech",
+                                                             "/humans/voices/voice_1/is_speaking"]
+    buffer.add("s", T0, T0 + 500 * MS, np.ones(8000, dtype="<i2").tobytes())
+    bridge.publish_audio(0.1)
+    assert bridge.audio_frames() == []  # half of the span: it waits
+    buffer.add("s", T0 + 500 * MS, T0 + 1500 * MS, np.ones(16000, dtype="<i2").tobytes())
+    bridge.publish_audio(0.2)
+    assert bridge.audio_frames() == [16000]  # the span, 1 s, to the sample
+    bridge.fused(1, now_s=1.0, seconds=1.0)  # 2..3 s: no audio comes
+    bridge.publish_audio(1.4)
+    assert bridge.audio_frames() == [16000]
+    bridge.publish_audio(1.6)  # its deadline passed: nothing to send, refused
+    assert bridge.audio_frames() == [16000] and bridge.refused["no_audio"] == 1 and not bridge.pending
+
+
+def test_past_max_pending_audio_the_oldest_waiting_utterance_is_refused():
+    bridge = Bridge(max_pending_audio=2)
+    for n in range(3):
+        bridge.fused(n, now_s=0.0)
+    assert bridge.refused["audio_pending_full"] == 1
+    assert [utterance.start_ns for utterance, _ in bridge.pending] == [T0 + 2000 * MS, T0 + 4000 * MS]
