@@ -92,11 +92,15 @@ def test_a_recording_of_two_streams_replays_both_each_as_a_stream_of_its_own(tmp
               for stream in {chunk.stream_id for chunk in recorded["grabber/audio"]}}
     assert len(spoken) == 2 and sorted(spoken.values())[1] == QUESTIONS and 0 < sorted(spoken.values())[0] < QUESTIONS
 
-    done = run(tmp_path / "second", "--input", str(recording), *lean, "--diff")
-    for stream, count in spoken.items():
-        header = next(n for n, line in enumerate(done.stdout.splitlines()) if line.startswith(f"stream {stream} "))
-        summary = next(line for line in done.stdout.splitlines()[header:] if line.startswith("diff:"))
-        assert summary == f"diff: {count} recorded utterances, {count} replayed, 0 differences", done.stdout
+    replayed = tmp_path / "replayed.mcap"
+    done = run(tmp_path / "second", "--input", str(recording), *lean, "--diff", "--record", str(replayed))
+    compared = esiaf("mcap", "diff", str(recording), str(replayed))
+    assert compared.returncode == 0, compared.stdout + compared.stderr
+    for output in (done.stdout, compared.stdout):
+        for stream, count in spoken.items():
+            header = next(n for n, line in enumerate(output.splitlines()) if line.startswith(f"stream {stream} "))
+            summary = next(line for line in output.splitlines()[header:] if line.startswith("diff:"))
+            assert summary == f"diff: {count} recorded utterances, {count} replayed, 0 differences", output
     assert done.stderr.count("esiaf: playing ") == 2, done.stderr
 
 

@@ -136,9 +136,8 @@ def replayed_streams(paths: Sequence[Path], channels: int) -> tuple[list[Path], 
 def source_name(path: Path, recorded_stream: str, streams_in_file: int) -> str:
     """What a stream played from ``path`` is named after: the file's stem; a recording's stream among
     several, its recorded id (without the time stamp esiaf run gave it)."""
-    if streams_in_file <= 1:
-        return path.stem
-    return re.sub(r"-\d{8}-\d{6}$", "", recorded_stream) or path.stem
+    from esiaf.tools.mcap_replay import stream_name
+    return path.stem if streams_in_file <= 1 else stream_name(recorded_stream)
 
 
 def stream_ids(sources: Sequence[str], given: str | None, now: datetime | None = None) -> list[str]:

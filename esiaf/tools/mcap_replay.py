@@ -9,6 +9,7 @@ were, stamped with today's capture times, in real time or as fast as the pipelin
 from __future__ import annotations
 
 import functools
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -98,6 +99,12 @@ def recorded_audio(path: Path, stream_id: str | None = None) -> Iterator[pb.Augm
         stream_id = chunk.stream_id if stream_id is None else stream_id
         if chunk.stream_id == stream_id and chunk.payload:
             yield chunk
+
+
+def stream_name(stream_id: str) -> str:
+    """A stream id without the time stamp ``esiaf run`` adds (``robot1-20261127-101500`` -> ``robot1``):
+    what a recorded stream and its replay share."""
+    return re.sub(r"-\d{8}-\d{6}$", "", stream_id) or stream_id
 
 
 def recorded_streams(path: Path) -> list[str]:
