@@ -133,11 +133,13 @@ def replayed_streams(paths: Sequence[Path], channels: int) -> tuple[list[Path], 
     return inputs, recorded
 
 
-def source_name(path: Path, recorded_stream: str, streams_in_file: int) -> str:
+def source_name(path: Path, recorded_stream: str) -> str:
     """What a stream played from ``path`` is named after: the file's stem; a recording's stream among
     several, its recorded id (without the time stamp esiaf run gave it)."""
-    from esiaf.tools.mcap_replay import stream_name
-    return path.stem if streams_in_file <= 1 else stream_name(recorded_stream)
+    from esiaf.tools.mcap_replay import recorded_streams, stream_name
+    if not recorded_stream or len(recorded_streams(path)) <= 1:
+        return path.stem
+    return stream_name(recorded_stream)
 
 
 def stream_ids(sources: Sequence[str], given: str | None, now: datetime | None = None) -> list[str]:

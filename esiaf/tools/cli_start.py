@@ -82,8 +82,8 @@ def run(args: argparse.Namespace) -> int:
         channels = check_inputs(args.input)
         args.input, args.recorded_streams = replayed_streams(args.input, channels)
     array, channels = check_array(args, channels)
-    names = [source_name(path, recorded, args.input.count(path)) for path, recorded
-             in zip(args.input, args.recorded_streams, strict=True)] if args.input else ["mic"]
+    names = [source_name(path, recorded) for path, recorded in zip(args.input, args.recorded_streams, strict=True)] \
+        if args.input else ["mic"]
     ids = stream_ids(names, args.stream_id)
     without = parse_without(args.without)
     wanted_plugins = [resolve_plugin(spec) for spec in args.plugins]  # a bad --with fails before anything starts
