@@ -30,6 +30,7 @@ SERVICES=(
     "aec          aec"
     "player       alsa"
     "ros2         ros2"
+    "wyoming      wyoming"
 )
 TAG=${ESIAF_TAG:-latest}
 BASE=${ESIAF_BASE_TAG:-esiaf/base:bookworm-offline}

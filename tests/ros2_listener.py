@@ -1,10 +1,12 @@
 """A ROS 2 subscriber without ROS, for tests/test_ros2.py: Cyclone DDS readers on ROS 2's names for
-REP-155's voice topics, the types declared here from the hri_msgs 2.0.0 and std_msgs .msg files (not
-taken from the bridge). Prints one JSON line per sample: {"topic", "type", "received_s", "data"}.
+REP-155's voice topics, the types declared here from the hri_msgs 2.0.0, std_msgs and audio_common_msgs
+.msg files (not taken from the bridge). Prints one JSON line per sample: {"topic", "type", "received_s",
+"data"}; an AudioData's bytes in base64.
 
     python tests/ros2_listener.py --seconds 60 [--namespace /robot1 ...] VOICE_ID ...
 """
 import argparse
+import base64
 import json
 import os
 import sys
@@ -14,7 +16,7 @@ from dataclasses import asdict, dataclass
 from cyclonedds.core import Policy, Qos
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import float32, float64, int8, int32, sequence, uint32
+from cyclonedds.idl.types import float32, float64, int8, int32, sequence, uint8, uint32
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
@@ -61,6 +63,18 @@ class IdsMatch(IdlStruct, typename="hri_msgs::msg::dds_::IdsMatch_"):
     confidence: float32
 
 
+@dataclass
+class AudioData(IdlStruct, typename="audio_common_msgs::msg::dds_::AudioData_"):  # ros-drivers/audio_common, ROS 2
+    data: sequence[uint8]  # uint8[] data
+
+
+def as_json(sample) -> dict:
+    data = asdict(sample)
+    if isinstance(sample, AudioData):
+        data["data"] = base64.b64encode(bytes(sample.data)).decode()
+    return data
+
+
 def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("--seconds", type=float, default=60.0)
@@ -75,7 +89,8 @@ def main() -> int:
         wanted += [(f"{ns}/humans/voices/tracked", IdsList), (f"{ns}/humans/candidate_matches", IdsMatch)]
         for voice in args.ids:
             wanted += [(f"{ns}/humans/voices/{voice}/speech", LiveSpeech),
-                       (f"{ns}/humans/voices/{voice}/is_speaking", Bool)]
+                       (f"{ns}/humans/voices/{voice}/is_speaking", Bool),
+                       (f"{ns}/humans/voices/{voice}/audio", AudioData)]
     readers = [(name, kind, DataReader(participant, Topic(participant, "rt" + name, kind, qos=qos), qos=qos))
                for name, kind in wanted]
     print(json.dumps({"ready": True}), flush=True)
@@ -86,7 +101,7 @@ def main() -> int:
                 if not isinstance(sample, kind):  # an instance's end (its writer gone), not data
                     continue
                 print(json.dumps({"topic": name, "type": kind.__name__, "received_s": time.time(),
-                                  "data": asdict(sample)}), flush=True)
+                                  "data": as_json(sample)}), flush=True)
         time.sleep(0.01)
     return 0
 

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+import soundfile
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from mcap_protobuf.writer import Writer
@@ -74,6 +75,33 @@ def test_a_recorded_demo_decodes_and_its_replay_gives_the_same_fused_results(tmp
     assert utterances(read(replayed)) == utterances(recorded)
     compared = esiaf("mcap", "diff", str(recording), str(replayed))
     assert compared.returncode == 0, compared.stdout + compared.stderr
+
+
+def test_a_recording_of_two_streams_replays_both_each_as_a_stream_of_its_own(tmp_path):
+    """Two inputs recorded (the demo, and its first 11 s: fewer questions), the recording replayed:
+    each recorded stream is played as a stream of its own and diffed against its own recording."""
+    samples, rate = soundfile.read(str(DEMO), dtype="int16")
+    shorter = tmp_path / "shorter.wav"
+    soundfile.write(str(shorter), samples[:11 * rate], rate)
+    recording = tmp_path / "two.mcap"
+    lean = ("--without", "emotion,gender,voiceid")
+    run(tmp_path / "first", "--input", str(DEMO), "--input", str(shorter), *lean, "--record", str(recording))
+    recorded = read(recording)
+    latest = {fused.id: fused for fused in recorded["fused"]}  # revisions of one id share its stream
+    spoken = {stream: sum(f.stream_id == stream for f in latest.values())
+              for stream in {chunk.stream_id for chunk in recorded["grabber/audio"]}}
+    assert len(spoken) == 2 and sorted(spoken.values())[1] == QUESTIONS and 0 < sorted(spoken.values())[0] < QUESTIONS
+
+    replayed = tmp_path / "replayed.mcap"
+    done = run(tmp_path / "second", "--input", str(recording), *lean, "--diff", "--record", str(replayed))
+    compared = esiaf("mcap", "diff", str(recording), str(replayed))
+    assert compared.returncode == 0, compared.stdout + compared.stderr
+    for output in (done.stdout, compared.stdout):
+        for stream, count in spoken.items():
+            header = next(n for n, line in enumerate(output.splitlines()) if line.startswith(f"stream {stream} "))
+            summary = next(line for line in output.splitlines()[header:] if line.startswith("diff:"))
+            assert summary == f"diff: {count} recorded utterances, {count} replayed, 0 differences", output
+    assert done.stderr.count("esiaf: playing ") == 2, done.stderr
 
 
 def test_a_recording_rotates_into_files_each_readable(tmp_path):

@@ -1,9 +1,11 @@
 """The ros2 service seen from ROS 2's side: a DDS subscriber in another process (tests/ros2_listener.py,
-its types declared from the hri_msgs .msg files) hears the demo's questions as LiveSpeech on the voice
-ids the fused results name, and the tracked voices about once a second; a websocket message the
-bridge cannot map is counted and logged, and the next one is still published."""
+its types declared from the hri_msgs and audio_common_msgs .msg files) hears the demo's questions as
+LiveSpeech on the voice ids the fused results name, the tracked voices about once a second, and each
+utterance's beamformed audio on its voice; a websocket message the bridge cannot map is counted and
+logged, and the next one is still published."""
 from __future__ import annotations
 
+import base64
 import contextlib
 import json
 import os
@@ -14,6 +16,7 @@ import sys
 import threading
 from itertools import pairwise
 
+import numpy as np
 import pytest
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.server import serve
@@ -112,6 +115,35 @@ def test_the_demo_questions_arrive_as_livespeech_on_their_voices(launch, listene
     gaps = [b["received_s"] - a["received_s"] for a, b in pairwise(tracked)]
     assert 0.8 <= statistics.median(gaps) <= 1.2, gaps
     assert {voice for voice, _ in wanted} <= {i for s in tracked for i in s["data"]["ids"]}
+
+
+def test_each_utterance_s_beamformed_audio_arrives_on_its_voice(launch, listener, domain):
+    """The 4-channel demo through the array (ssl, beamformer): each fused utterance's audio is on
+    /humans/voices/<id>/audio as AudioData, as long as its span, and speech (not silence)."""
+    tracks = [f"track_{n}" for n in range(1, 10)]
+    heard = listener(180, CANDIDATE_IDS + tracks)
+    run = launch("--input", str(REPO / "examples" / "robocup_scene.flac"), "--array", "respeaker4",
+                 "--grammar", "robocup", "--ros2", "--fast", "--json", env={"ROS_DOMAIN_ID": str(domain)})
+    assert run.process.wait(timeout=150) == 0, run.describe()
+    fused = [line for line in run.lines if line.get("type") == "fused_result" and line["anchor"].get("speech")
+             and line.get("revision", 1) == 1]
+    assert len(fused) == 5, run.describe()
+
+    def voice_of(result: dict) -> str:  # docs/ros2.md: the voice_id label, else the ssl track, else unknown
+        label = (result["aggregates"].get("voice_id") or {}).get("label")
+        track = (result["aggregates"].get("ssl") or {}).get("source_id")
+        return label.replace("-", "_") if label and label != "unknown" else f"track_{track}" if track else "unknown"
+
+    wanted = sorted((voice_of(f), f["anchor"]["span"]["end_ns"] - f["anchor"]["span"]["start_ns"]) for f in fused)
+    assert all(voice in CANDIDATE_IDS + tracks for voice, _ in wanted), wanted
+    assert poll(lambda: len(heard.on("/audio")) >= len(wanted), 10), f"{len(heard.on('/audio'))} audio samples"
+    got = sorted(((s["topic"].split("/")[3], np.frombuffer(base64.b64decode(s["data"]["data"]), dtype="<i2"))
+                  for s in heard.on("/audio")), key=lambda voice_samples: (voice_samples[0], len(voice_samples[1])))
+    assert [voice for voice, _ in got] == [voice for voice, _ in wanted]
+    for (voice, span_ns), (_, samples) in zip(wanted, got, strict=True):
+        assert abs(len(samples) - span_ns * 16000 / 1e9) <= 0.05 * 16000, (voice, len(samples), span_ns)
+        rms = float(np.sqrt(np.mean(samples.astype(float) ** 2)))
+        assert rms > 300, (voice, rms)  # speech at -3 dBFS peak; silence or a constant is not
 
 
 GOOD = {"type": "fused_result", "id": 1, "revision": 1, "fusion": "speech", "stream_id": "robot-1",

@@ -107,6 +107,41 @@ def check_inputs(paths: Sequence[Path]) -> int:
     return next(iter(channels.values()))
 
 
+def replayed_streams(paths: Sequence[Path], channels: int) -> tuple[list[Path], list[str]]:
+    """Each input once per stream it plays: a recording (.mcap) once per recorded stream, each a stream
+    of its own; any other file once. Returns the inputs and, beside each, the recorded stream it plays
+    ("" for a file that is no recording). Every recorded stream must have the inputs' ``channels``."""
+    from esiaf.tools.mcap_replay import SessionError, check_session, is_mcap, recorded_streams
+    inputs: list[Path] = []
+    recorded: list[str] = []
+    for path in paths:
+        if not is_mcap(path):
+            inputs.append(path)
+            recorded.append("")
+            continue
+        try:
+            streams = recorded_streams(path)
+            for stream_id in streams:
+                fmt = check_session(path, stream_id).format
+                if fmt.channels != channels:
+                    raise LaunchError(f"input file {path}: its stream {stream_id} has {fmt.channels} channel(s), "
+                                      f"the other inputs {channels}: the inputs are played through one pipeline")
+        except SessionError as exc:
+            raise LaunchError(str(exc)) from None
+        inputs.extend([path] * len(streams))
+        recorded.extend(streams)
+    return inputs, recorded
+
+
+def source_name(path: Path, recorded_stream: str) -> str:
+    """What a stream played from ``path`` is named after: the file's stem; a recording's stream among
+    several, its recorded id (without the time stamp esiaf run gave it)."""
+    from esiaf.tools.mcap_replay import recorded_streams, stream_name
+    if not recorded_stream or len(recorded_streams(path)) <= 1:
+        return path.stem
+    return stream_name(recorded_stream)
+
+
 def stream_ids(sources: Sequence[str], given: str | None, now: datetime | None = None) -> list[str]:
     """The stream id of each input (its file's stem, or 'mic', and the run's start time); ``given``
     (--stream-id) names the stream of a single input only."""

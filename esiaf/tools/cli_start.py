@@ -31,6 +31,8 @@ from esiaf.tools.cli_args import (
     expand_inputs,
     parse_replicas,
     parse_without,
+    replayed_streams,
+    source_name,
     stream_ids,
 )
 from esiaf.tools.cli_follow import Stream, follow, shows_partials
@@ -74,10 +76,15 @@ class Pipeline:
 
 
 def run(args: argparse.Namespace) -> int:
+    args.recorded_streams, channels = [], 0  # beside each input, the recorded stream it replays ("": no recording)
     if args.input:  # every file and folder checked before anything starts
         args.input = expand_inputs(args.input)
-    array, channels = check_array(args, check_inputs(args.input) if args.input else 0)
-    ids = stream_ids([path.stem for path in args.input] if args.input else ["mic"], args.stream_id)
+        channels = check_inputs(args.input)
+        args.input, args.recorded_streams = replayed_streams(args.input, channels)
+    array, channels = check_array(args, channels)
+    names = [source_name(path, recorded) for path, recorded in zip(args.input, args.recorded_streams, strict=True)] \
+        if args.input else ["mic"]
+    ids = stream_ids(names, args.stream_id)
     without = parse_without(args.without)
     wanted_plugins = [resolve_plugin(spec) for spec in args.plugins]  # a bad --with fails before anything starts
     replicas = parse_replicas(args.replicas, without, [plugin.name for plugin in wanted_plugins])
@@ -125,13 +132,13 @@ def run(args: argparse.Namespace) -> int:
         feed_url = f"ws://{args.host}:{args.port}/ws/fused" + (f"?{urlencode(query)}" if query else "")
         with FusedFeed(feed_url) as ws, recording(args, supervisor, pipeline, url):
             if args.ros2:
-                pipeline.services["ros2"] = start_ros2(supervisor, ids)
+                pipeline.services["ros2"] = start_ros2(supervisor, client, pipeline, ids)
             streams = start_grabbers(args, supervisor, pipeline, ids)
             err(f"esiaf: orchestrator at {url} (API docs: {url}/docs; token in {shown_path(workdir / 'token')}); "
                 f"logs in {shown_path(workdir / 'logs')}")
             err(f"esiaf: dashboard at {url}/?token={os.environ[auth.TOKEN_ENV]}")
             code = follow(ws, supervisor, client, streams, args)
-            return show_diff(args.input[0], client, streams[0], code) if args.diff else code
+            return show_diff(args.input[0], client, streams, args.recorded_streams, code) if args.diff else code
     finally:
         client.close()
         supervisor.stop()
@@ -194,13 +201,18 @@ def stop_recorder(recorder: Child, timeout_s: float = 3 * START_TIMEOUT_S) -> No
             err(line.strip())
 
 
-def show_diff(recording: Path, client: OrchestratorClient, stream: Stream, code: int) -> int:
-    """--diff: the replay's fused results against the recording's (esiaf/tools/mcap_diff.py); the run's exit code."""
+def show_diff(recording: Path, client: OrchestratorClient, streams: list[Stream], recorded: list[str],
+              code: int) -> int:
+    """--diff: each replayed stream's fused results against its recorded stream's (esiaf/tools/mcap_diff.py),
+    the recorded stream named first when there are several; the run's exit code."""
     from esiaf.tools.mcap_convert import fused_from_json
     from esiaf.tools.mcap_diff import diff, session_utterances, utterance
-    replayed = [utterance(fused_from_json(item), stream.origin_ns or 0) for item in client.fused(stream.stream_id)]
-    for line in diff(session_utterances(recording), sorted(replayed, key=lambda u: u.start_s)):
-        out(line)
+    for stream, recorded_stream in zip(streams, recorded, strict=True):
+        replayed = [utterance(fused_from_json(item), stream.origin_ns or 0) for item in client.fused(stream.stream_id)]
+        if len(streams) > 1:
+            out(f"stream {recorded_stream} (replayed as {stream.stream_id}):")
+        for line in diff(session_utterances(recording, recorded_stream), sorted(replayed, key=lambda u: u.start_s)):
+            out(line)
     return code
 
 
@@ -210,27 +222,35 @@ def start_grabbers(args: argparse.Namespace, supervisor: Supervisor, pipeline: P
     own (grabber-1, grabber-2, ...: logs/grabber-1.log, ...)."""
     sources: list[list[str]] = [["--input", str(path.resolve())] for path in args.input] if args.input \
         else [["--device", args.mic]]
+    recorded = args.recorded_streams or [""] * len(ids)
     streams = []
-    for n, (source, stream_id) in enumerate(zip(sources, ids, strict=True), start=1):
+    for n, (source, stream_id, replayed) in enumerate(zip(sources, ids, recorded, strict=True), start=1):
         grabber = supervisor.start("grabber", source + (["--fast"] if args.fast else []),
-                                   env={**pipeline.grabber_env, "ESIAF_STREAM_ID": stream_id},
+                                   env={**pipeline.grabber_env, "ESIAF_STREAM_ID": stream_id,
+                                        **({"ESIAF_GRABBER_INPUT_STREAM": replayed} if replayed else {})},
                                    instance=f"grabber-{n}" if len(ids) > 1 else None)
-        shown = str(args.input[n - 1]) if args.input else args.mic
+        shown = (str(args.input[n - 1]) + (f" (its stream {replayed})" if len(ids) > 1 and replayed else "")
+                 if args.input else args.mic)
         streams.append(Stream(stream_id, grabber, shown))
         err(f"esiaf: playing {shown} as stream {stream_id}" + (f" ({grabber.name})" if len(ids) > 1 else ""))
     return streams
 
 
-def start_ros2(supervisor: Supervisor, ids: list[str]) -> Child:
+def start_ros2(supervisor: Supervisor, client: OrchestratorClient, pipeline: Pipeline, ids: list[str]) -> Child:
     """--ros2: the bridge to ROS 2 (esiaf_services/ros2), following this run's streams (one: its stream;
     several: each in a namespace of its own, /<stream id>/humans/...); the grabbers play once it follows
-    the fused results (its health file is touched), so it misses none."""
+    the fused results (its health file is touched) and, with a beamformer, once it hears the beamformer's
+    audio (each voice's audio topic), so it misses none."""
     health = supervisor.workdir / "ros2.health"
     health.unlink(missing_ok=True)
     env = {"ESIAF_ROS2_HEALTH_FILE": str(health)} | (
-        {"ESIAF_ROS2_STREAM": ids[0]} if len(ids) == 1 else {"ESIAF_ROS2_NAMESPACE_PER_STREAM": "true"})
+        {"ESIAF_ROS2_STREAM": ids[0]} if len(ids) == 1 else {"ESIAF_ROS2_NAMESPACE_PER_STREAM": "true"}) | (
+        {"ESIAF_ROS2_AUDIO_TOPIC": "beamformer/audio"} if pipeline.beamforming else {})
     child = supervisor.start("ros2", env=env)
     wait_until(health.exists, supervisor, "the ros2 bridge to follow the fused results", START_TIMEOUT_S, child)
+    if pipeline.beamforming:  # the vad and the bridge
+        wait_until(lambda: topic_ready(client, "beamformer/audio", 2), supervisor,
+                   "the ros2 bridge to subscribe to beamformer/audio", START_TIMEOUT_S, child)
     return child
 
 

@@ -3,6 +3,11 @@ direction, voice), matched by their windows' times from each stream's start (doc
 
     esiaf mcap diff RECORDED.mcap REPLAYED.mcap     (exit 0: the same; 1: they differ; 2: a bad file)
 
+Recordings of several streams are compared stream by stream: each recorded stream with the replayed
+stream of the same name (its id without the time stamp ``esiaf run`` adds, as ``esiaf run --input
+RECORDED.mcap --record REPLAYED.mcap`` names the replayed streams), else in the order of their
+first chunks.
+
 ``esiaf run --input RECORDED.mcap --diff`` prints the same against the fused results of its replay.
 """
 from __future__ import annotations
@@ -15,7 +20,7 @@ from pathlib import Path
 
 from esiaf.argparsing import OneLineParser
 from esiaf.proto import esiaf_pb2 as pb
-from esiaf.tools.mcap_replay import SessionError, check_session, recorded_fused
+from esiaf.tools.mcap_replay import SessionError, check_session, recorded_fused, recorded_streams, stream_name
 from esiaf.tools.terminal import err, out
 
 DIRECTION_TOLERANCE_DEG = 10.0  # directions closer than this are the same
@@ -89,9 +94,9 @@ def diff(recorded: Sequence[Utterance], replayed: Sequence[Utterance]) -> list[s
     return lines
 
 
-def session_utterances(path: Path) -> list[Utterance]:
-    """A recording's utterances of the stream it replays, from that stream's start."""
-    info = check_session(path)
+def session_utterances(path: Path, stream_id: str | None = None) -> list[Utterance]:
+    """A recording's utterances of one recorded stream (None: its first), from that stream's start."""
+    info = check_session(path, stream_id)
     return [utterance(fused, info.start_ns) for fused in recorded_fused(path) if fused.stream_id == info.stream_id]
 
 
@@ -104,16 +109,37 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+def compare(recorded: Path, replayed: Path) -> tuple[list[str], bool]:
+    """The diff lines of each stream of ``recorded`` against the stream of ``replayed`` in the same
+    place (several: each under a line naming both), and whether they are the same."""
+    old_streams, new_streams = recorded_streams(recorded), recorded_streams(replayed)
+    if len(old_streams) != len(new_streams):
+        raise SessionError(f"{recorded} holds {len(old_streams)} streams, {replayed} {len(new_streams)}: "
+                           "not a replay of the same recording")
+    by_name = {stream_name(stream): stream for stream in new_streams}
+    if len(by_name) == len(new_streams) and {stream_name(stream) for stream in old_streams} == set(by_name):
+        new_streams = [by_name[stream_name(stream)] for stream in old_streams]
+    lines: list[str] = []
+    same = True
+    for old, new in zip(old_streams, new_streams, strict=True):
+        if len(old_streams) > 1:
+            lines.append(f"stream {old} (replayed as {new}):")
+        found = diff(session_utterances(recorded, old), session_utterances(replayed, new))
+        same = same and len(found) == 1
+        lines += found
+    return lines, same
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else argv)
     try:
-        lines = diff(session_utterances(args.recorded), session_utterances(args.replayed))
+        lines, same = compare(args.recorded, args.replayed)
     except SessionError as exc:
         err(f"esiaf mcap: {exc}")
         return 2
     for line in lines:
         out(line)
-    return 0 if len(lines) == 1 else 1
+    return 0 if same else 1
 
 
 if __name__ == "__main__":

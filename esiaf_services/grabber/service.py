@@ -25,6 +25,7 @@ log = logging.getLogger(__name__)
 
 class GrabberSettings(HostSettings):
     input: str = ""  # a sound file, .raw/.pcm file or .mcap recording; empty = live capture from `device`
+    input_stream: str = ""  # of an .mcap recording: the recorded stream played ("" the first recorded)
     device: str = ""  # ALSA device name for live capture
     topic: str = "grabber/audio"
     # the transport chunk, files and live capture (the ALSA period) alike, chosen by measurement (docs/
@@ -66,7 +67,8 @@ class Grabber(Component):
             raise SetupError(f"bad capture format: {exc}") from None
         self.source: FileSource | McapSource | AlsaSource | None = None
         if settings.input:  # open early: a bad file fails before registration
-            self.source = open_file(Path(settings.input), self.raw_format, settings.chunk_ms)
+            self.source = open_file(Path(settings.input), self.raw_format, settings.chunk_ms,
+                                    settings.input_stream or None)
             self.add_output(settings.topic, self.source.format)
         else:
             self.add_output(settings.topic, self.raw_format)

@@ -81,14 +81,15 @@ class FileSource:
                     yield block[offset:offset + self.chunk_frames]
 
 
-def open_file(path: Path, raw_format: AudioFormat, chunk_ms: float) -> FileSource | McapSource:
-    """The source of an input file: a recording's audio, chunk by chunk as recorded, if it is MCAP
-    (esiaf/tools/mcap_replay.py); else a sound or raw file."""
+def open_file(path: Path, raw_format: AudioFormat, chunk_ms: float,
+              recorded_stream: str | None = None) -> FileSource | McapSource:
+    """The source of an input file: a recording's audio (of ``recorded_stream``, None: its first stream),
+    chunk by chunk as recorded, if it is MCAP (esiaf/tools/mcap_replay.py); else a sound or raw file."""
     from esiaf.tools.mcap_replay import McapSource, SessionError, is_mcap
     if not is_mcap(path):
         return FileSource(path, raw_format, chunk_ms)
     try:
-        return McapSource(path)
+        return McapSource(path, recorded_stream)
     except SessionError as exc:
         raise SetupError(str(exc)) from None
 

@@ -6,6 +6,8 @@ Layouts are those of ``hri_msgs`` 2.0.0 (ros4hri/hri_msgs, tag 2.0.0, ROS 2 Humb
 ``pkg::msg::dds_::Msg_`` and the DDS topic of ``/a/b`` ``rt/a/b`` (rmw_cyclonedds_cpp and
 rmw_fastrtps_cpp alike); the data is plain CDR (XCDR1), which ROS 2's RMWs send and accept.
 
+``audio_common_msgs/AudioData`` is ros-drivers/audio_common's (its ROS 2 branch): ``uint8[] data``.
+
 ``LiveSpeech.language`` (2.0.0) is the IETF language code; newer hri_msgs call that field ``locale``.
 CDR carries no field names, so both read the same bytes.
 """
@@ -18,8 +20,10 @@ from cyclonedds.idl.types import float32, float64, int8, int32, sequence, uint8,
 
 if TYPE_CHECKING:  # a list to the type checker; a DDS sequence to cyclonedds, which reads the annotation
     Strings = list[str]
+    Bytes = bytes
 else:
     Strings = sequence[str]
+    Bytes = sequence[uint8]
 
 # hri_msgs/IdsMatch constants
 VOICE, PERSON = 4, 1
@@ -101,3 +105,12 @@ class SoftBiometrics(IdlStruct, typename="hri_msgs::msg::dds_::SoftBiometrics_")
     age_confidence: float32
     gender: uint8
     gender_confidence: float32
+
+
+@dataclass
+class AudioData(IdlStruct, typename="audio_common_msgs::msg::dds_::AudioData_"):
+    """audio_common_msgs/AudioData (ros-drivers/audio_common, ROS 2): ``uint8[] data``, the raw bytes;
+    here mono signed 16 bit little endian samples at the bridge's ``audio_sample_rate_hz``."""
+    # uint8[]: declared as a sequence of uint8 (a bytes field would be octets to a peer that matches types);
+    # cyclonedds takes bytes for it, and writes it a byte at a time (about 14 ms for 3 s of audio)
+    data: Bytes

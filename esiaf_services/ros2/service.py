@@ -9,8 +9,9 @@ import logging
 import os
 import signal
 import sys
+import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -21,11 +22,15 @@ from websockets.exceptions import WebSocketException
 
 from esiaf.argparsing import OneLineParser
 from esiaf.auth import TokenError, token
+from esiaf.control import RegistrationError
+from esiaf.processor import SetupError
 from esiaf.runner import configure_logging, parse_set, refuse_start, settings_help
 from esiaf.settings import ComponentSettings, SettingsError, load_settings
 
 if TYPE_CHECKING:
     from esiaf.tools.feed import FusedFeed
+    from esiaf_services.ros2.audio import AudioBuffer
+    from esiaf_services.ros2.voices import Utterance
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +38,7 @@ ROS_DOMAIN_ID = "ROS_DOMAIN_ID"
 MAX_DOMAIN_ID = 232  # DDS: the port of domain d is 7400 + 250 d, under 65536
 LOG_EVERY = 100  # a refusal reason is logged the first time and every 100th
 CONNECT_RETRY_S = 0.5  # at start-up, the orchestrator's websocket is tried again this often
+AUDIO_POLL_S = 0.01  # while an utterance waits for its audio, the websocket loop wakes this often
 
 
 class Ros2Settings(ComponentSettings):
@@ -49,6 +55,14 @@ class Ros2Settings(ComponentSettings):
     tracked_period_s: float = Field(default=1.0, gt=0)  # /humans/voices/tracked republished this often
     forget_after_s: float = Field(default=30.0, gt=0)  # a voice unheard this long leaves the tracked list
     max_voices: int = Field(default=64, ge=1)  # voices remembered at most (least recently heard forgotten)
+    # the audio cut per utterance for /humans/voices/<id>/audio (esiaf run --ros2: beamformer/audio when
+    # it beamforms); "": no audio topics, and the bridge needs only the websocket (no ZeroMQ, no registration)
+    audio_topic: str = ""
+    audio_sample_rate_hz: int = Field(default=16000, ge=8000, le=48000)  # of the audio published (mono int16)
+    audio_keep_s: float = Field(default=30.0, gt=0, le=600)  # capture seconds of audio kept per stream
+    # a fused result's audio waits at most this long for the audio of its whole span, then goes with what came
+    audio_wait_s: float = Field(default=2.0, ge=0)
+    max_pending_audio: int = Field(default=64, ge=1)  # utterances waiting for their audio at most (oldest go first)
 
 
 def domain_id(settings: Ros2Settings, env: dict[str, str] | os._Environ[str]) -> int:
@@ -85,6 +99,11 @@ class Ros2:
         self.writers = Writers(domain)
         self.refused: Counter[str] = Counter()
         self.published = 0
+        self.audio: AudioBuffer | None = None
+        if settings.audio_topic:
+            from esiaf_services.ros2.audio import AudioBuffer
+            self.audio = AudioBuffer(settings.audio_sample_rate_hz, settings.audio_keep_s, settings.max_streams)
+        self.pending: deque[tuple[Utterance, float]] = deque()  # (utterance, monotonic deadline), oldest first
 
     def handle(self, text: str | bytes, now_s: float) -> None:
         """One websocket message: published, or counted and logged (never raised)."""
@@ -94,8 +113,10 @@ class Ros2:
             if not isinstance(message, dict):
                 raise Unmappable("not_an_object", type(message).__name__)
             kind = message.get("type")
+            utterance = None
             if kind == "fused_result":
                 publications = self.voices.fused(message, now_s)
+                utterance = self.voices.utterance(message) if self.audio is not None else None
             elif kind == "partial":
                 publications = self.voices.partial(message, now_s)
             elif kind == "stream_end":
@@ -109,6 +130,7 @@ class Ros2:
             self.refuse(exc.reason, str(exc))
             return
         self.publish(publications)
+        self.want_audio(utterance, now_s)
 
     def publish(self, publications: list[tuple[str, Any]]) -> None:
         from cyclonedds.core import DDSException
@@ -119,6 +141,33 @@ class Ros2:
                 self.refuse("dds_refused", f"{topic}: {exc}")
                 continue
             self.published += 1
+
+    def want_audio(self, utterance: Utterance | None, now_s: float) -> None:
+        """An utterance's audio, published once the audio topic has reached its end (or ``audio_wait_s``
+        has passed); the oldest waiting goes unpublished past ``max_pending_audio``."""
+        if utterance is None:
+            return
+        if len(self.pending) >= self.settings.max_pending_audio:
+            dropped, _ = self.pending.popleft()
+            self.refuse("audio_pending_full", f"{dropped.topic}: more than {self.settings.max_pending_audio} waiting")
+        self.pending.append((utterance, now_s + self.settings.audio_wait_s))
+        self.publish_audio(now_s)
+
+    def publish_audio(self, now_s: float) -> None:
+        """The waiting utterances whose audio is all there, or whose wait is over, in the order they came."""
+        from esiaf_services.ros2.messages import AudioData
+        assert self.audio is not None
+        while self.pending:
+            utterance, deadline = self.pending[0]
+            if self.audio.reached_ns(utterance.stream_id) < utterance.end_ns and now_s < deadline:
+                return
+            self.pending.popleft()
+            pcm = self.audio.cut(utterance.stream_id, utterance.start_ns, utterance.end_ns)
+            if not pcm:
+                self.refuse("no_audio", f"{utterance.topic}: no audio of {utterance.stream_id} kept for "
+                            f"{utterance.start_ns}..{utterance.end_ns} on {self.settings.audio_topic}")
+                continue
+            self.publish([(utterance.topic, AudioData(data=pcm))])
 
     def refuse(self, reason: str, detail: str) -> None:
         self.refused[reason] += 1
@@ -144,16 +193,49 @@ class Ros2:
                 time.sleep(CONNECT_RETRY_S)
 
     def run(self) -> int:
+        """Follows the fused results; with an audio topic, in a thread beside the SDK consumer that
+        hears the audio (registered with the orchestrator as the ``ros2`` service, in this thread: it
+        owns the signals), until either stops."""
+        if self.audio is None:
+            self.follow(threading.Event())
+            return 0
+        from esiaf_services.ros2.audio import VoiceAudio
+        consumer = VoiceAudio(self.settings, self.settings.audio_topic, self.audio)
+        stopped = threading.Event()
+        failed: list[BaseException] = []
+
+        def follow() -> None:
+            try:
+                self.follow(stopped)
+            except (OSError, TimeoutError, WebSocketException) as exc:
+                failed.append(exc)
+                consumer.stop(2)
+
+        follower = threading.Thread(target=follow, name="ros2-fused", daemon=True)
+        follower.start()
+        try:
+            code = consumer.run()
+        finally:
+            stopped.set()
+            follower.join(timeout=5)
+        if failed:
+            raise failed[0]
+        return code
+
+    def follow(self, stopped: threading.Event) -> None:
         log.info("following %s, publishing on DDS domain %d", feed_url(self.settings), self.domain)
         with self.connect() as feed:
             next_tick = time.monotonic()
-            while True:
+            while not stopped.is_set():
                 now = time.monotonic()
                 if now >= next_tick:
                     self.tick()
                     next_tick = max(next_tick + self.settings.tracked_period_s, now)
+                if self.pending:
+                    self.publish_audio(now)
+                wait_s = next_tick - time.monotonic()
                 try:
-                    text = feed.recv(timeout=max(next_tick - time.monotonic(), 0.001))
+                    text = feed.recv(timeout=max(min(wait_s, AUDIO_POLL_S) if self.pending else wait_s, 0.001))
                 except TimeoutError:
                     continue
                 self.handle(text, time.monotonic())
@@ -182,6 +264,8 @@ def main(component_cls: type[Ros2], argv: Sequence[str] | None = None) -> int:
         return refuse_start(service, f"{exc.name or exc}: not installed (pip install 'esiaf[ros2]')")
     try:
         return bridge.run()
+    except (SetupError, RegistrationError) as exc:
+        return refuse_start(service, exc)
     except (OSError, TimeoutError, WebSocketException) as exc:
         return refuse_start(service, f"the orchestrator's websocket {feed_url(settings)}: {exc or type(exc).__name__}")
     except KeyboardInterrupt:

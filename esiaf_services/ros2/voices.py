@@ -64,6 +64,15 @@ class Heard:
     last_s: float  # monotonic time it was last heard
 
 
+@dataclass(frozen=True)
+class Utterance:
+    """A fused utterance's audio to publish: on ``topic``, the stream's samples within the span."""
+    topic: str
+    stream_id: str
+    start_ns: int
+    end_ns: int
+
+
 @dataclass
 class Voices:
     """Turns fused results into publications, and keeps which voices were heard lately, per namespace.
@@ -109,6 +118,21 @@ class Voices:
             raise Unmappable("bad_fused_result", f"{type(exc).__name__}: {exc}") from None
         self.hear(ns, voice, now_s)
         return out
+
+    def utterance(self, message: dict[str, Any]) -> Utterance | None:
+        """Where a fused result's audio goes: the first revision of a recognised utterance, its voice's
+        ``audio`` topic and its capture span (None for a later revision, or no speech). Called after
+        :meth:`fused` accepted the message."""
+        try:
+            anchor = message["anchor"]
+            if int(message.get("revision", 1)) != 1 or anchor.get("speech") is None:
+                return None
+            stream_id, span = message["stream_id"], anchor["span"]
+            voice = self.voice_of(message.get("aggregates", {}), message.get("results", {}))
+            return Utterance(f"{self.namespace_of(stream_id)}/humans/voices/{voice}/audio", stream_id,
+                             int(span["start_ns"]), int(span["end_ns"]))
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise Unmappable("bad_span", f"{type(exc).__name__}: {exc}") from None
 
     def partial(self, message: dict[str, Any], now_s: float) -> list[Publication]:
         """A partial result (``{"type": "partial", "stream_id", "span", "text", "closed", ...}``,
