@@ -39,7 +39,7 @@ given per encoder, side by side in a closing table.
   flite voices, none of them an EmoDB speaker;
 - with ``--room-enrolment``, the room's trials against a clean enrolment (as a WAV enrolment would
   be made), without and with reverberant noisy copies of each enrolment utterance in rooms unlike
-  the test room (``ROOM_COPIES``);
+  the test room (``ROOM_COPIES``, ``MORE_COPIES``), per encoder (ge2e, dvector);
 - ``latency_p50_ms``: with ``--pipeline``, a few utterances played in real time through
   grabber → vad → voiceid → orchestrator: arrival of the fused result minus (end of the segment's
   speech + the VAD's hang-over), as bench/emotion.py.
@@ -65,7 +65,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path[0] = str(REPO)  # the repository first: esiaf from this checkout
 
 from esiaf.scenes import speech_bounds  # noqa: E402
-from esiaf.speech.speaker.encoders import MODELS  # noqa: E402
+from esiaf.speech.speaker.encoders import MODELS, Encoder  # noqa: E402
 from esiaf.speech.speaker.ge2e import RESEMBLYZER_PARTIALS_PER_S, VoiceEncoder  # noqa: E402
 from esiaf.tools.testing import SHARED_DATA  # noqa: E402
 from esiaf_services.voiceid.scoring import VoiceBook  # noqa: E402
@@ -269,14 +269,18 @@ def main() -> None:
             compare_scorings(model, speakers, neutral, embedded["clean"][0][model],
                              (cal_speakers, cal_embedded["clean"][0][model]), args.learn_margin)
     print_table(rows, list(conditions), args.learning)
-    if args.room_enrolment or args.variants:
+    if args.room_enrolment:
+        from esiaf.speech.speaker.encoders import shared_encoder
+        for model in (m for m in models if m != "fused"):
+            print(f"[{model}] room trials, enrolment clean or in the room (mean_weight {weight:g})", flush=True)
+            clean_enrolment_in_room(shared_encoder(model), names, speakers, neutral, clips,
+                                    embedded["clean"][0][model], embedded["room"][0][model],
+                                    lambda voices: VoiceBook(voices, mean_weight=weight))
+    if args.variants:
         encoder = VoiceEncoder()
         clean, room = embedded["clean"][0]["ge2e"], embedded.get("room", embedded["clean"])[0]["ge2e"]
-        if args.room_enrolment:
-            clean_enrolment_in_room(encoder, names, speakers, neutral, clips, clean, room)
-        if args.variants:
-            compare_variants(encoder, names, speakers, neutral, {"clean": clips, "room": conditions["room"]},
-                             {("clean", "dense"): clean, ("room", "dense"): room})  # the default: VoiceEncoder.embed
+        compare_variants(encoder, names, speakers, neutral, {"clean": clips, "room": conditions["room"]},
+                         {("clean", "dense"): clean, ("room", "dense"): room})  # the default: VoiceEncoder.embed
     if args.pipeline:
         wavs = SHARED_DATA / "emodb" / "wav"
         show(pipeline_latency([wavs / n for n in names[::60]]))
@@ -666,26 +670,31 @@ def compare_variants(encoder: VoiceEncoder, names: list[str], speakers: list[str
 # reverberant noisy copies of clean enrolment utterances: rooms unlike the test room (RT60 0.4 s,
 # 6×5×3 m, 1.5 m, kitchen noise at 10 dB): (RT60 s, room m, distance m, pink noise SNR dB)
 ROOM_COPIES = ((0.3, (4.0, 5.0, 2.8), 1.0, 20.0), (0.6, (7.0, 6.0, 3.0), 2.0, 5.0))
+MORE_COPIES = (*ROOM_COPIES, (0.5, (5.0, 4.0, 2.7), 1.2, 10.0), (0.8, (8.0, 7.0, 3.2), 2.5, 0.0))
 
 
-def clean_enrolment_in_room(encoder: VoiceEncoder, names: list[str], speakers: list[str], neutral: list[bool],
-                            clips: list[np.ndarray], clean: np.ndarray, room: np.ndarray) -> None:
+def clean_enrolment_in_room(encoder: Encoder, names: list[str], speakers: list[str], neutral: list[bool],
+                            clips: list[np.ndarray], clean: np.ndarray, room: np.ndarray,
+                            book: Callable[[dict[str, np.ndarray]], VoiceBook] = VoiceBook) -> None:
     """Room trials against a clean enrolment (as a WAV enrolment would be), without and with
-    reverberant noisy copies of each enrolment utterance (esiaf_services/voiceid/augment.py)."""
+    reverberant noisy copies of each enrolment utterance (esiaf_services/voiceid/augment.py): the 2 of
+    ROOM_COPIES, the 4 of MORE_COPIES (multi-condition enrolment)."""
     from esiaf_services.voiceid.augment import reverberant
     enrolled = sorted(i for idx in enrolment(speakers, neutral).values() for i in idx)
-    copies = {i: np.stack([encoder.embed(reverberant(clips[i], *copy, seed=n)) for n, copy in enumerate(ROOM_COPIES)])
-              for i in enrolled}
+    more = {i: np.stack([encoder.embed(reverberant(clips[i], *copy, seed=n)) for n, copy in enumerate(MORE_COPIES)])
+            for i in enrolled}
+    copies = {i: e[:len(ROOM_COPIES)] for i, e in more.items()}
     calm = [i for i, n in enumerate(neutral) if n]
     position = {i: n for n, i in enumerate(calm)}
     print("| room trials | closed, all | EER, all (threshold) | closed, neutral | EER, neutral (threshold) |")
     print("|---|---|---|---|---|")
     for name, enrol_from, extra in (("room enrolment (the room rows above)", None, None),
                                     ("clean enrolment", clean, None),
-                                    ("clean enrolment + 2 reverberant noisy copies", clean, copies)):
+                                    ("clean enrolment + 2 reverberant noisy copies", clean, copies),
+                                    ("clean enrolment + 4 reverberant noisy copies (20, 10, 5, 0 dB)", clean, more)):
         cells = []
-        whole = evaluate(names, speakers, neutral, room, extra=extra, enrol_from=enrol_from)
-        only = evaluate([names[i] for i in calm], [speakers[i] for i in calm], [True] * len(calm), room[calm],
+        whole = evaluate(names, speakers, neutral, room, book, extra=extra, enrol_from=enrol_from)
+        only = evaluate([names[i] for i in calm], [speakers[i] for i in calm], [True] * len(calm), room[calm], book,
                         extra=extra and {position[i]: e for i, e in extra.items() if i in position},
                         enrol_from=None if enrol_from is None else enrol_from[calm])
         for figures in (whole, only):
