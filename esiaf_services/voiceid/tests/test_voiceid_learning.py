@@ -233,6 +233,9 @@ def test_an_utterance_overlapping_the_robots_playback_is_not_learnt(running):
         poll(lambda: voiceid.analysed == 2, timeout_s=30)
         assert voiceid.info.get("learning", 0) == 1
         poll(lambda: voice(running, "Anna")["encoders"]["dvector"]["learnt"] == 1, timeout_s=20)
+        # the voiceid hears of it and keeps it apart from the enrolled one (embedding_sources)
+        poll(lambda: len(voiceid.book.learnt.get("Anna", ())) == 1, timeout_s=20)
+        assert len(voiceid.book.voices["Anna"]) == 1
         results = poll(lambda: running.http.get("/results", params={"type": "voice_id"}).json()["items"][1:] and
                        running.http.get("/results", params={"type": "voice_id"}).json()["items"], timeout_s=10)
         assert [r["voice_id"]["label"] for r in results] == ["Anna", "Anna"]  # both identified, one learnt
