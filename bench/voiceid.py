@@ -9,6 +9,10 @@ given per encoder, side by side in a closing table.
   speakers, flite's four voices reading RoboCup questions: ``calibration_clips``), the open-set
   EER point there (the middle of the gap where they separate); the EmoDB false rejections and
   acceptances at it are reported, never a threshold fitted on EmoDB;
+- two strangers: two unenrolled speakers alternating (``two_strangers``), clean and in the room: they
+  must get two different anonymous ids and never an enrolled name;
+- ``--mean-weight W``: every figure under that scoring (``scoring.VoiceBook``; default the voiceid's),
+  its thresholds calibrated under it too;
 - ``--learning``: closed set, each speaker's utterances in file order after the 3-utterance
   neutral enrolment, learning as it goes (``scoring.LearningRule``, ``--learn-margin``): accuracy
   over the last half of each speaker's utterances, with and without learning;
@@ -35,12 +39,12 @@ given per encoder, side by side in a closing table.
   flite voices, none of them an EmoDB speaker;
 - with ``--room-enrolment``, the room's trials against a clean enrolment (as a WAV enrolment would
   be made), without and with reverberant noisy copies of each enrolment utterance in rooms unlike
-  the test room (``ROOM_COPIES``);
+  the test room (``ROOM_COPIES``, ``MORE_COPIES``), per encoder (ge2e, dvector);
 - ``latency_p50_ms``: with ``--pipeline``, a few utterances played in real time through
   grabber → vad → voiceid → orchestrator: arrival of the fused result minus (end of the segment's
   speech + the VAD's hang-over), as bench/emotion.py.
 
-    python bench/voiceid.py [--models ge2e,dvector,fused] [--every N] [--no-room] [--learning]
+    python bench/voiceid.py [--models ge2e,dvector,fused] [--every N] [--no-room] [--learning] [--mean-weight W]
                             [--cache DIR] [--pipeline] [--variants] [--room-enrolment]
 """
 from __future__ import annotations
@@ -61,7 +65,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path[0] = str(REPO)  # the repository first: esiaf from this checkout
 
 from esiaf.scenes import speech_bounds  # noqa: E402
-from esiaf.speech.speaker.encoders import MODELS  # noqa: E402
+from esiaf.speech.speaker.encoders import MODELS, Encoder  # noqa: E402
 from esiaf.speech.speaker.ge2e import RESEMBLYZER_PARTIALS_PER_S, VoiceEncoder  # noqa: E402
 from esiaf.tools.testing import SHARED_DATA  # noqa: E402
 from esiaf_services.voiceid.scoring import VoiceBook  # noqa: E402
@@ -211,6 +215,8 @@ def main() -> None:
     parser.add_argument("--no-room", action="store_true", help="leave out the room rows")
     parser.add_argument("--learning", action="store_true", help="also learning as it goes, in file order")
     parser.add_argument("--learn-margin", type=float, default=LEARN_MARGIN, help="the learning rule's margin")
+    parser.add_argument("--mean-weight", type=float, default=None,
+                        help="the scoring's mean_weight for every figure (default: the voiceid's, VoiceIdSettings)")
     parser.add_argument("--cache", help="a folder keeping the embeddings (and their CPU time) between runs")
     parser.add_argument("--pipeline", action="store_true", help="also measure latency through the pipeline")
     parser.add_argument("--variants", action="store_true", help="also evaluate the variants of VARIANTS (a table)")
@@ -242,35 +248,63 @@ def main() -> None:
                 for condition, audio in conditions.items()}
     cal_embedded = {condition: embed_all(models, audio, cache, f"calibration-{condition}")
                     for condition, audio in cal_conditions.items()}
-    calm = [i for i, n in enumerate(neutral) if n]
     rows: dict[str, dict[str, float]] = {}
+    from esiaf_services.voiceid.service import VoiceIdSettings
+    weight = VoiceIdSettings.model_fields["mean_weight"].default if args.mean_weight is None else args.mean_weight
+    print(f"scoring: mean_weight {weight:g}", flush=True)
+    cal_speakers = [s for s, _ in calibration]
     for model in models:
         row = rows[model] = {"cpu_s_per_speech_s": embedded["clean"][1][model] / speech_s}
         for condition in conditions:
-            everything = embedded[condition][0][model]
-            threshold, cal_eer = calibrate([s for s, _ in calibration], cal_embedded[condition][0][model])
-            row[f"{condition}_calibrated_threshold"], row[f"{condition}_calibration_eer"] = threshold, cal_eer
-            for subset, figures in (("all", evaluate(names, speakers, neutral, everything, threshold=threshold)),
-                                    ("neutral", evaluate([names[i] for i in calm], [speakers[i] for i in calm],
-                                                         [True] * len(calm), everything[calm], threshold=threshold))):
-                row.update({f"{condition}_{subset}_{k}": v for k, v in figures.items()})
+            row.update(condition_figures(condition, names, speakers, neutral, embedded[condition][0][model],
+                                         (cal_speakers, cal_embedded[condition][0][model]), weight))
         if args.learning:
             row.update(learning(speakers, neutral, embedded["clean"][0][model],
-                                row["clean_calibrated_threshold"], args.learn_margin))
+                                row["clean_calibrated_threshold"], args.learn_margin, weight))
+            row.update(learning_open(speakers, neutral, embedded["clean"][0][model],
+                                     row["clean_calibrated_threshold"], args.learn_margin, weight))
         print(f"[{model}]", flush=True)
         show(row)
+        if args.learning:
+            compare_scorings(model, speakers, neutral, embedded["clean"][0][model],
+                             (cal_speakers, cal_embedded["clean"][0][model]), args.learn_margin)
     print_table(rows, list(conditions), args.learning)
-    if args.room_enrolment or args.variants:
+    if args.room_enrolment:
+        from esiaf.speech.speaker.encoders import shared_encoder
+        for model in (m for m in models if m != "fused"):
+            print(f"[{model}] room trials, enrolment clean or in the room (mean_weight {weight:g})", flush=True)
+            clean_enrolment_in_room(shared_encoder(model), names, speakers, neutral, clips,
+                                    embedded["clean"][0][model], embedded["room"][0][model],
+                                    lambda voices: VoiceBook(voices, mean_weight=weight))
+    if args.variants:
         encoder = VoiceEncoder()
         clean, room = embedded["clean"][0]["ge2e"], embedded.get("room", embedded["clean"])[0]["ge2e"]
-        if args.room_enrolment:
-            clean_enrolment_in_room(encoder, names, speakers, neutral, clips, clean, room)
-        if args.variants:
-            compare_variants(encoder, names, speakers, neutral, {"clean": clips, "room": conditions["room"]},
-                             {("clean", "dense"): clean, ("room", "dense"): room})  # the default: VoiceEncoder.embed
+        compare_variants(encoder, names, speakers, neutral, {"clean": clips, "room": conditions["room"]},
+                         {("clean", "dense"): clean, ("room", "dense"): room})  # the default: VoiceEncoder.embed
     if args.pipeline:
         wavs = SHARED_DATA / "emodb" / "wav"
         show(pipeline_latency([wavs / n for n in names[::60]]))
+
+
+def condition_figures(condition: str, names: list[str], speakers: list[str], neutral: list[bool],
+                      everything: np.ndarray, calibration: tuple[list[str], np.ndarray],
+                      weight: float) -> dict[str, float]:
+    """One encoder's figures in one condition under the scoring ``weight`` (``VoiceBook``'s mean_weight):
+    its threshold calibrated on the calibration voices, closed and open set over all utterances and
+    the neutral ones, two strangers."""
+    def book(voices: dict[str, np.ndarray]) -> VoiceBook:
+        return VoiceBook(voices, mean_weight=weight)
+
+    calm = [i for i, n in enumerate(neutral) if n]
+    threshold, cal_eer = calibrate(*calibration, weight)
+    row = {f"{condition}_calibrated_threshold": threshold, f"{condition}_calibration_eer": cal_eer}
+    for subset, figures in (("all", evaluate(names, speakers, neutral, everything, book, threshold=threshold)),
+                            ("neutral", evaluate([names[i] for i in calm], [speakers[i] for i in calm],
+                                                 [True] * len(calm), everything[calm], book, threshold=threshold))):
+        row.update({f"{condition}_{subset}_{k}": v for k, v in figures.items()})
+    row.update({f"{condition}_{k}": v for k, v in two_strangers(speakers, neutral, everything, threshold,
+                                                                 weight).items()})
+    return row
 
 
 def embed_all(models: list[str], clips: list[np.ndarray], cache: Path | None = None,
@@ -317,7 +351,7 @@ def calibration_clips() -> list[tuple[str, np.ndarray]]:
     return out
 
 
-def calibrate(speakers: list[str], embeddings: np.ndarray) -> tuple[float, float]:
+def calibrate(speakers: list[str], embeddings: np.ndarray, mean_weight: float = 0.0) -> tuple[float, float]:
     """The open-set EER threshold (and EER) on the calibration voices: each speaker enrolled from its
     first ENROL_UTTERANCES clips; genuine trials its other clips against its voice, impostor trials
     each speaker's clips' best score over the others' voices (that speaker left out). Where genuine
@@ -330,7 +364,7 @@ def calibrate(speakers: list[str], embeddings: np.ndarray) -> tuple[float, float
     for i, speaker in enumerate(speakers):
         if i in enrolled:
             continue
-        scores = VoiceBook(voices).scores(embeddings[i])
+        scores = VoiceBook(voices, mean_weight=mean_weight).scores(embeddings[i])
         genuine.append(scores[speaker])
         impostor.append(max(v for s, v in scores.items() if s != speaker))
     rate, threshold = eer(np.array(genuine), np.array(impostor))
@@ -342,12 +376,16 @@ LEARNT_PER_VOICE = 50
 
 
 def learning(speakers: list[str], neutral: list[bool], embeddings: np.ndarray, threshold: float,
-             margin: float = 0.05) -> dict[str, float]:
+             margin: float = 0.05, mean_weight: float = 0.0, only: set[str] | None = None) -> dict[str, float]:
     """Closed set, each voice enrolled from 3 neutral utterances, then every other utterance in file order,
-    identified; one the voice wins by ``margin`` over the next and over the threshold is added to it
-    (scoring.LearningBook, at most LEARNT_PER_VOICE learnt). Accuracy over the last half of each speaker's
-    trials, with and without learning, and how many were learnt and how many of those wrongly."""
+    identified; one the voice wins by ``margin`` over the next and over the threshold is added to it as
+    learnt (at most LEARNT_PER_VOICE, the oldest dropped). Scoring: ``VoiceBook``'s with ``mean_weight``
+    (0: top-3 over every embedding). ``only``: a closed set of those speakers alone (their utterances,
+    their voices). Accuracy over the last half of each speaker's trials, with and without learning, and
+    how many were learnt and how many of those wrongly."""
     from esiaf_services.voiceid.scoring import LearningRule
+    keep = [i for i, s in enumerate(speakers) if only is None or s in only]
+    speakers, neutral, embeddings = [speakers[i] for i in keep], [neutral[i] for i in keep], embeddings[keep]
     enrol = enrolment(speakers, neutral)
     enrolled = {i for idx in enrol.values() for i in idx}
     trials = [i for i in range(len(speakers)) if i not in enrolled]
@@ -356,12 +394,12 @@ def learning(speakers: list[str], neutral: list[bool], embeddings: np.ndarray, t
         own = [i for i in trials if speakers[i] == speaker]
         last_half.update(own[len(own) // 2:])
     rule = LearningRule(threshold=threshold, margin=margin)
-    fixed = VoiceBook({s: embeddings[idx] for s, idx in enrol.items()})
-    voices = {s: list(embeddings[idx]) for s, idx in enrol.items()}
-    learnt = {s: 0 for s in enrol}
+    voices = {s: embeddings[idx] for s, idx in enrol.items()}
+    fixed = VoiceBook(voices, mean_weight=mean_weight)
+    learnt: dict[str, list[np.ndarray]] = {s: [] for s in enrol}
     right_fixed, right_learning, added, wrong_added = [], [], 0, 0
     for i in trials:
-        book = VoiceBook({s: np.stack(e) for s, e in voices.items()})
+        book = VoiceBook(voices, learnt={s: np.stack(e) for s, e in learnt.items() if e}, mean_weight=mean_weight)
         scores = book.scores(embeddings[i])
         best = max(scores, key=scores.__getitem__)
         if i in last_half:
@@ -369,15 +407,134 @@ def learning(speakers: list[str], neutral: list[bool], embeddings: np.ndarray, t
             fixed_scores = fixed.scores(embeddings[i])
             right_fixed.append(max(fixed_scores, key=fixed_scores.__getitem__) == speakers[i])
         if rule.learns(scores):
-            voices[best].append(embeddings[i])
-            learnt[best] += 1
-            if learnt[best] > LEARNT_PER_VOICE:  # the oldest learnt goes, never an enrolled one
-                del voices[best][ENROL_UTTERANCES]
+            learnt[best].append(embeddings[i])
+            if len(learnt[best]) > LEARNT_PER_VOICE:  # the oldest learnt goes, never an enrolled one
+                del learnt[best][0]
             added += 1
             wrong_added += best != speakers[i]
     return {"learning_last_half_accuracy": float(np.mean(right_learning)),
             "fixed_last_half_accuracy": float(np.mean(right_fixed)), "learning_trials": len(right_learning),
             "learnt": added, "learnt_wrongly": wrong_added}
+
+
+def learning_open(speakers: list[str], neutral: list[bool], embeddings: np.ndarray, threshold: float,
+                  margin: float = 0.05, mean_weight: float = 0.0) -> dict[str, float]:
+    """Learning with strangers about: the open set's 3 rotations (7 enrolled from 3 neutral utterances,
+    3 unknown), every other utterance in file order, learning as it goes. How many were learnt, how
+    many of them from a stranger or into the wrong voice, and the strangers' utterances accepted as an
+    enrolled voice (at ``threshold``) with and without learning."""
+    from esiaf_services.voiceid.scoring import LearningRule
+    ids = sorted(set(speakers))
+    enrol = enrolment(speakers, neutral)
+    enrolled = {i for idx in enrol.values() for i in idx}
+    rule = LearningRule(threshold=threshold, margin=margin)
+    added = wrong = accepted = accepted_fixed = strangers = 0
+    for rotation in range(3):
+        unknown = set(ids[rotation * UNKNOWN_SPEAKERS:(rotation + 1) * UNKNOWN_SPEAKERS])
+        voices = {s: embeddings[idx] for s, idx in enrol.items() if s not in unknown}
+        fixed = VoiceBook(voices, mean_weight=mean_weight)
+        learnt: dict[str, list[np.ndarray]] = {s: [] for s in voices}
+        for i in (i for i in range(len(speakers)) if i not in enrolled):
+            book = VoiceBook(voices, learnt={s: np.stack(e) for s, e in learnt.items() if e}, mean_weight=mean_weight)
+            scores = book.scores(embeddings[i])
+            best = max(scores, key=scores.__getitem__)
+            if speakers[i] in unknown:
+                strangers += 1
+                accepted += scores[best] >= threshold
+                accepted_fixed += max(fixed.scores(embeddings[i]).values()) >= threshold
+            if rule.learns(scores):
+                learnt[best].append(embeddings[i])
+                del learnt[best][:-LEARNT_PER_VOICE]
+                added += 1
+                wrong += best != speakers[i]
+    return {"open_learnt": added, "open_learnt_wrongly": wrong, "open_stranger_trials": strangers,
+            "open_strangers_accepted_learning": accepted / strangers,
+            "open_strangers_accepted_fixed": accepted_fixed / strangers}
+
+
+MEAN_WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)  # the scorings compared; 0: top-3 over every embedding
+
+
+def compare_scorings(model: str, speakers: list[str], neutral: list[bool], embeddings: np.ndarray,
+                     calibration: tuple[list[str], np.ndarray], margin: float) -> None:
+    """Learning as it goes under each scoring of MEAN_WEIGHTS, each with its threshold calibrated on the
+    calibration voices; chosen honestly: the weight best on one half of EmoDB's speakers (a closed set
+    of those 5) is reported on the other half (a closed set of the other 5), both ways."""
+    ids = sorted(set(speakers))
+    halves = (set(ids[:len(ids) // 2]), set(ids[len(ids) // 2:]))
+    print(f"[{model}] scorings, learning in file order (margin {margin}); halves "
+          f"A={','.join(sorted(halves[0]))} B={','.join(sorted(halves[1]))}")
+    print("| scoring | threshold | all 10: fixed | all 10: learning (learnt / wrong) | A: fixed | A: learning | "
+          "B: fixed | B: learning |")
+    print("|---|---|---|---|---|---|---|---|")
+    results: dict[float, list[dict[str, float]]] = {}
+    for weight in MEAN_WEIGHTS:
+        threshold, _ = calibrate(*calibration, mean_weight=weight)
+        results[weight] = [learning(speakers, neutral, embeddings, threshold, margin, weight, only)
+                           for only in (None, *halves)]
+        cells = [f"{weight:g}", f"{threshold:.3f}"]
+        for n, figures in enumerate(results[weight]):
+            cells.append(f"{100 * figures['fixed_last_half_accuracy']:.1f} %")
+            cells.append(f"{100 * figures['learning_last_half_accuracy']:.1f} %"
+                         + (f" ({figures['learnt']:.0f} / {figures['learnt_wrongly']:.0f})" if n == 0 else ""))
+        print("| " + " | ".join(cells) + " |", flush=True)
+    for chosen_on, reported_on in ((1, 2), (2, 1)):
+        best = max(MEAN_WEIGHTS, key=lambda w: results[w][chosen_on]["learning_last_half_accuracy"])
+        held_out = results[best][reported_on]
+        print(f"chosen on {'AB'[chosen_on - 1]}: mean_weight {best:g}; on {'AB'[reported_on - 1]}: learning "
+              f"{100 * held_out['learning_last_half_accuracy']:.1f} % against top-3 learning "
+              f"{100 * results[0.0][reported_on]['learning_last_half_accuracy']:.1f} % and top-3 fixed "
+              f"{100 * results[0.0][reported_on]['fixed_last_half_accuracy']:.1f} %", flush=True)
+
+
+STRANGER_UTTERANCES = 10  # each of the two strangers', alternating: 20 in all
+ANONYMOUS_BELOW = 0.03  # the anonymous threshold under the voice threshold, as encoders.ANONYMOUS_THRESHOLDS
+
+
+def two_strangers(speakers: list[str], neutral: list[bool], embeddings: np.ndarray, threshold: float,
+                  mean_weight: float = 0.0) -> dict[str, float]:
+    """Two unenrolled speakers alternating, STRANGER_UTTERANCES each (their first in file order, any
+    emotion), against the 7 enrolled voices of the open set's rotations: every pair of the 3 unknown
+    speakers of each rotation (9 pairs). Each utterance is identified at ``threshold``; unknown, it goes
+    to ``scoring.AnonymousVoices`` (``threshold - ANONYMOUS_BELOW``), as in the service. Per pair: how many
+    were named as an enrolled voice (never right), how many anonymous ids, how many utterances were
+    misassigned (named, or not their speaker's most frequent id, or that id shared with the other
+    speaker: the fewer of the two then count), and whether the pair got 2 stable ids (2 ids, ≤ 1
+    misassigned)."""
+    from itertools import combinations
+
+    from esiaf_services.voiceid.scoring import AnonymousVoices
+    ids = sorted(set(speakers))
+    enrol = enrolment(speakers, neutral)
+    enrolled = {i for idx in enrol.values() for i in idx}
+    pairs, named, id_counts, misassigned, stable = 0, 0, [], [], 0
+    for rotation in range(3):
+        unknown = ids[rotation * UNKNOWN_SPEAKERS:(rotation + 1) * UNKNOWN_SPEAKERS]
+        book = VoiceBook({s: embeddings[idx] for s, idx in enrol.items() if s not in unknown},
+                         mean_weight=mean_weight)
+        for a, b in combinations(unknown, 2):
+            own = {s: [i for i, sp in enumerate(speakers) if sp == s and i not in enrolled][:STRANGER_UTTERANCES]
+                   for s in (a, b)}
+            voices = AnonymousVoices(threshold - ANONYMOUS_BELOW)
+            given: dict[str, list[str]] = {a: [], b: []}
+            turns = min(len(own[a]), len(own[b]))  # a subset (--every) may have fewer
+            for i, j in zip(own[a][:turns], own[b][:turns], strict=True):
+                for speaker, index in ((a, i), (b, j)):
+                    match = book.identify(embeddings[index], threshold)
+                    given[speaker].append(match.label or voices.assign(embeddings[index])[0])
+            pairs += 1
+            named_here = sum(label in enrol for labels in given.values() for label in labels)
+            main = {s: max(set(labels), key=labels.count) for s, labels in given.items()}
+            wrong = sum(label != main[s] for s, labels in given.items() for label in labels)
+            if main[a] == main[b]:  # one id for both: the speaker with fewer of it is misassigned
+                wrong += min(given[a].count(main[a]), given[b].count(main[b]))
+            anonymous_ids = {label for labels in given.values() for label in labels if label not in enrol}
+            named += named_here
+            id_counts.append(len(anonymous_ids))
+            misassigned.append(wrong)
+            stable += len(anonymous_ids) == 2 and main[a] != main[b] and wrong <= 1
+    return {"strangers_pairs": pairs, "strangers_named": named, "strangers_ids_mean": float(np.mean(id_counts)),
+            "strangers_misassigned_mean": float(np.mean(misassigned)), "strangers_stable_pairs": stable}
 
 
 def print_table(rows: dict[str, dict[str, float]], conditions: list[str], learnt: bool) -> None:
@@ -392,9 +549,16 @@ def print_table(rows: dict[str, dict[str, float]], conditions: list[str], learnt
                       f"{condition}_calibrated_threshold", "t"),
                      (f"{condition}: at it, all: false rejections / false acceptances",
                       f"{condition}_all_calibrated", "fr")]
+    for condition in conditions:
+        measures.append((f"{condition}: two strangers alternating, 10 utterances each (9 pairs): stable pairs "
+                         "(2 ids, ≤ 1 misassigned) / ids per pair / misassigned per pair / named", condition, "s"))
     if learnt:
         measures += [("clean, closed, file order, last half: fixed enrolment", "fixed_last_half_accuracy", "%"),
-                     ("same, learning as it goes (learnt / of them wrong)", "learning_last_half_accuracy", "l")]
+                     ("same, learning as it goes (learnt / of them wrong)", "learning_last_half_accuracy", "l"),
+                     ("clean, open set in file order: strangers accepted, fixed enrolment",
+                      "open_strangers_accepted_fixed", "%"),
+                     ("same, learning as it goes (learnt / of them wrong or a stranger's)",
+                      "open_strangers_accepted_learning", "o")]
     measures.append(("CPU s per s of speech", "cpu_s_per_speech_s", "f"))
     print("| measure | " + " | ".join(rows) + " |")
     print("|---|" + "---|" * len(rows))
@@ -408,6 +572,11 @@ def print_table(rows: dict[str, dict[str, float]], conditions: list[str], learnt
                 cells.append(f"{row[key]:.3f} ({100 * rate:.1f} %)")
             elif kind == "fr":
                 cells.append(f"{100 * row[key + '_false_reject']:.1f} % / {100 * row[key + '_false_accept']:.1f} %")
+            elif kind == "s":
+                cells.append(f"{row[key + '_strangers_stable_pairs']:.0f} / {row[key + '_strangers_ids_mean']:.1f} / "
+                             f"{row[key + '_strangers_misassigned_mean']:.1f} / {row[key + '_strangers_named']:.0f}")
+            elif kind == "o":
+                cells.append(f"{100 * row[key]:.1f} % ({row['open_learnt']:.0f} / {row['open_learnt_wrongly']:.0f})")
             elif kind == "l":
                 cells.append(f"{100 * row[key]:.1f} % ({row['learnt']:.0f} / {row['learnt_wrongly']:.0f})")
             else:
@@ -501,26 +670,31 @@ def compare_variants(encoder: VoiceEncoder, names: list[str], speakers: list[str
 # reverberant noisy copies of clean enrolment utterances: rooms unlike the test room (RT60 0.4 s,
 # 6×5×3 m, 1.5 m, kitchen noise at 10 dB): (RT60 s, room m, distance m, pink noise SNR dB)
 ROOM_COPIES = ((0.3, (4.0, 5.0, 2.8), 1.0, 20.0), (0.6, (7.0, 6.0, 3.0), 2.0, 5.0))
+MORE_COPIES = (*ROOM_COPIES, (0.5, (5.0, 4.0, 2.7), 1.2, 10.0), (0.8, (8.0, 7.0, 3.2), 2.5, 0.0))
 
 
-def clean_enrolment_in_room(encoder: VoiceEncoder, names: list[str], speakers: list[str], neutral: list[bool],
-                            clips: list[np.ndarray], clean: np.ndarray, room: np.ndarray) -> None:
+def clean_enrolment_in_room(encoder: Encoder, names: list[str], speakers: list[str], neutral: list[bool],
+                            clips: list[np.ndarray], clean: np.ndarray, room: np.ndarray,
+                            book: Callable[[dict[str, np.ndarray]], VoiceBook] = VoiceBook) -> None:
     """Room trials against a clean enrolment (as a WAV enrolment would be), without and with
-    reverberant noisy copies of each enrolment utterance (esiaf_services/voiceid/augment.py)."""
+    reverberant noisy copies of each enrolment utterance (esiaf_services/voiceid/augment.py): the 2 of
+    ROOM_COPIES, the 4 of MORE_COPIES (multi-condition enrolment)."""
     from esiaf_services.voiceid.augment import reverberant
     enrolled = sorted(i for idx in enrolment(speakers, neutral).values() for i in idx)
-    copies = {i: np.stack([encoder.embed(reverberant(clips[i], *copy, seed=n)) for n, copy in enumerate(ROOM_COPIES)])
-              for i in enrolled}
+    more = {i: np.stack([encoder.embed(reverberant(clips[i], *copy, seed=n)) for n, copy in enumerate(MORE_COPIES)])
+            for i in enrolled}
+    copies = {i: e[:len(ROOM_COPIES)] for i, e in more.items()}
     calm = [i for i, n in enumerate(neutral) if n]
     position = {i: n for n, i in enumerate(calm)}
     print("| room trials | closed, all | EER, all (threshold) | closed, neutral | EER, neutral (threshold) |")
     print("|---|---|---|---|---|")
     for name, enrol_from, extra in (("room enrolment (the room rows above)", None, None),
                                     ("clean enrolment", clean, None),
-                                    ("clean enrolment + 2 reverberant noisy copies", clean, copies)):
+                                    ("clean enrolment + 2 reverberant noisy copies", clean, copies),
+                                    ("clean enrolment + 4 reverberant noisy copies (20, 10, 5, 0 dB)", clean, more)):
         cells = []
-        whole = evaluate(names, speakers, neutral, room, extra=extra, enrol_from=enrol_from)
-        only = evaluate([names[i] for i in calm], [speakers[i] for i in calm], [True] * len(calm), room[calm],
+        whole = evaluate(names, speakers, neutral, room, book, extra=extra, enrol_from=enrol_from)
+        only = evaluate([names[i] for i in calm], [speakers[i] for i in calm], [True] * len(calm), room[calm], book,
                         extra=extra and {position[i]: e for i, e in extra.items() if i in position},
                         enrol_from=None if enrol_from is None else enrol_from[calm])
         for figures in (whole, only):

@@ -67,9 +67,10 @@ def run_analyser(analyser: type[Processor] | Processor, audio: str | Path | tupl
     processor = analyser if isinstance(analyser, Processor) else \
         analyser(load_settings(analyser.Settings, analyser.service, env={}, **settings))
     samples, rate = _read(audio)
-    if len(processor.inputs) != 1:
-        raise ValueError(f"{type(processor).__name__} takes {len(processor.inputs)} inputs; run_analyser feeds one")
-    topic = next(iter(processor.inputs))
+    fed = processor.stream_inputs()  # a second input that never ends a stream (a player's) gets nothing
+    if len(fed) != 1:
+        raise ValueError(f"{type(processor).__name__} takes {len(fed)} inputs; run_analyser feeds one")
+    topic = next(iter(fed))
     if spans is not None:
         node = _LocalNode([_Source(samples, rate, topic, stream_id, spans), processor])
     else:

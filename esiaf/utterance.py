@@ -23,6 +23,12 @@ Analysers that need the same features of an utterance can run in one process: th
 setting names the processors this one hosts (``esiaf/hosting.py``), each still its own
 service to the orchestrator; features asked for through ``esiaf.features.shared`` are then
 computed once per utterance for all of them.
+
+An analyser that must know whether the robot was speaking (a voice identity that never learns the
+robot's own voice) calls :meth:`UtteranceAnalyser.listen_to_playback` in its ``__init__``: the
+player's topic becomes a second input, its chunks go to ``self.played`` (:class:`esiaf.playback.PlayedSpans`)
+instead of an utterance, its end never ends a stream, and ``self.played.overlaps(stream_id, start_ns,
+end_ns)`` says whether a capture span overlapped what was played.
 """
 from __future__ import annotations
 
@@ -42,6 +48,7 @@ from esiaf.features import feature_counts
 from esiaf.formats import AudioFormat
 from esiaf.hosting import HostSettings
 from esiaf.per_stream import PerStream
+from esiaf.playback import PlayedSpans
 from esiaf.processor import Processor, SetupError
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf.receiving import broken_off
@@ -109,6 +116,8 @@ class UtteranceAnalyser(Processor):
         self.utterance_stream_id = ""  # the stream of the utterance analyse() is given (for analyse(samples, rate))
         self.analysed = 0
         self.nothing = 0
+        self.playback_topic = ""  # listen_to_playback: the player's topic, a second input
+        self.played: PlayedSpans | None = None
         if self._two_argument_analyse:
             log.warning("%s.analyse(samples, rate) is deprecated and will stop working in the next release: "
                         "write analyse(self, utterance) and read utterance.samples, utterance.rate and "
@@ -118,7 +127,21 @@ class UtteranceAnalyser(Processor):
         """What this analyser says about one utterance (see the module's docstring)."""
         raise NotImplementedError(f"{type(self).__name__} must implement analyse(utterance)")
 
+    def listen_to_playback(self, topic: str, tail_ms: float = 300.0, keep: int = 256) -> None:
+        """Also subscribe to ``topic``, a player's (mono, at ``sample_rate_hz``): ``self.played`` keeps
+        the spans it played that sound, the newest ``keep`` per stream, each with ``tail_ms`` after it."""
+        self.playback_topic = topic
+        self.played = PlayedSpans(keep, tail_ms, max_streams=self.settings.max_streams, info=self.info)
+        self.add_input(topic, AudioFormat(self.settings.sample_rate_hz, "int16", channels=1))
+
+    def stream_inputs(self) -> set[str]:
+        """The speech's end ends a stream; the player's may never come (a robot talks on and off)."""
+        return set(self.inputs) - {self.playback_topic}
+
     def on_audio(self, audio: Audio) -> None:
+        if self.played is not None and audio.topic == self.playback_topic:
+            self.played.add(audio)
+            return
         if audio.stream_id in self.utterances:
             self._broken_off(audio)
         if not audio.payload:
@@ -157,6 +180,8 @@ class UtteranceAnalyser(Processor):
         log.info("segment stream_id=%s start_ns=%d nothing: %s", stream_id, span[0], why)
 
     def on_segment_end(self, audio: Audio) -> None:
+        if self.played is not None and audio.topic == self.playback_topic:
+            return  # the end of a played item: no utterance
         utterance = self.utterances.pop(audio.stream_id) or _Collecting(audio.start_ns)
         segment = audio.meta.segment
         span = (segment.start_ns, segment.end_ns) if segment.end_ns else (utterance.start_ns, audio.end_ns)

@@ -1,7 +1,11 @@
 """Open-set speaker identification by cosine scoring, and anonymous voices per stream.
 
 A voice's score is the mean of its ``top_k`` best cosine similarities between the segment's
-embedding and that voice's enrolled embeddings (``top_k=1`` is the maximum). The best voice
+embedding and that voice's embeddings (``top_k=1`` is the maximum). With ``mean_weight`` w > 0 and
+learnt embeddings told apart from enrolled ones, it is ``(1 - w)`` × the top-k score over the
+*enrolled* embeddings alone plus ``w`` × the cosine to the normalised mean of *all* its embeddings,
+enrolled and learnt: learning moves the mean but adds no chance of a high similarity, so a voice
+that learnt does not pull other speakers' utterances to itself as the top-k over all does. The best voice
 wins if its score reaches ``threshold`` (calibrated on EmoDB by ``bench/voiceid.py``: the
 equal-error-rate point of the open-set trial); otherwise the segment is unknown and goes to
 :class:`AnonymousVoices`. The reported probability maps the score through a logistic around
@@ -31,7 +35,8 @@ class Match:
 
 
 class VoiceBook:
-    """Enrolled voices: name → (n, 256) unit embeddings.
+    """Enrolled voices: name → (n, size) unit embeddings, and ``learnt``: name → the (m, size) learnt
+    ones (scored as enrolled ones with ``mean_weight`` 0, else through the mean only; see above).
 
     With a ``cohort`` (unit embeddings of other speakers, none of them enrolled) the scores are
     adaptive s-norm: the raw score ``s`` minus the mean, over the standard deviation, of the
@@ -41,23 +46,32 @@ class VoiceBook:
     """
 
     def __init__(self, voices: dict[str, np.ndarray] | None = None, top_k: int = 3,
-                 cohort: np.ndarray | None = None, cohort_top: int = 20):
+                 cohort: np.ndarray | None = None, cohort_top: int = 20,
+                 learnt: dict[str, np.ndarray] | None = None, mean_weight: float = 0.0):
         self.voices = {name: _unit(np.atleast_2d(np.asarray(e, np.float32))) for name, e in (voices or {}).items()}
-        self.top_k = top_k
+        self.learnt = {name: _unit(np.atleast_2d(np.asarray(e, np.float32))) for name, e in (learnt or {}).items()
+                       if np.size(e) and name in self.voices}
+        self.top_k, self.mean_weight = top_k, mean_weight
+        self.means = {name: _unit(np.mean(np.concatenate([enrolled] + ([self.learnt[name]] if name in self.learnt
+                                                                         else [])), axis=0))
+                      for name, enrolled in self.voices.items()}
         self.cohort = None if cohort is None else _unit(np.atleast_2d(np.asarray(cohort, np.float32)))
         self.cohort_top = cohort_top
         self.voice_stats = {} if self.cohort is None else {
-            name: _top_stats(self._voice_scores(enrolled, self.cohort.T), cohort_top)
-            for name, enrolled in self.voices.items()}
+            name: _top_stats(self._voice_scores(name, self.cohort.T), cohort_top) for name in self.voices}
 
-    def _voice_scores(self, enrolled: np.ndarray, probes: np.ndarray) -> np.ndarray:
-        """The voice's score (mean of its top_k similarities) against each column of ``probes``."""
-        similarities = -np.sort(-(enrolled @ probes), axis=0)
-        return np.mean(similarities[:self.top_k], axis=0)
+    def _voice_scores(self, name: str, probes: np.ndarray) -> np.ndarray:
+        """The voice's score against each column of ``probes``."""
+        enrolled = self.voices[name]
+        if self.mean_weight <= 0:  # top-k over every embedding, enrolled and learnt
+            if name in self.learnt:
+                enrolled = np.concatenate([enrolled, self.learnt[name]])
+            return _top_mean(enrolled @ probes, self.top_k)
+        return ((1 - self.mean_weight) * _top_mean(enrolled @ probes, self.top_k)
+                + self.mean_weight * (self.means[name] @ probes))
 
     def raw_scores(self, embedding: np.ndarray) -> dict[str, float]:
-        return {name: float(self._voice_scores(enrolled, embedding[:, None])[0])
-                for name, enrolled in self.voices.items()}
+        return {name: float(self._voice_scores(name, embedding[:, None])[0]) for name in self.voices}
 
     def scores(self, embedding: np.ndarray) -> dict[str, float]:
         raw = self.raw_scores(embedding)
@@ -121,6 +135,11 @@ class AnonymousVoices:
         while len(self.voices) > self.limit:
             self.voices.popitem(last=False)
         return voice_id, 1.0
+
+
+def _top_mean(similarities: np.ndarray, top: int) -> np.ndarray:
+    """Per column, the mean of its ``top`` highest rows."""
+    return np.mean(-np.sort(-similarities, axis=0)[:top], axis=0)
 
 
 def _top_stats(scores: np.ndarray, top: int) -> tuple[float, float]:

@@ -29,6 +29,16 @@ DEFAULT_MODEL: Model = "dvector"
 THRESHOLDS: dict[str, float] = {"ge2e": 0.77, "dvector": 0.62, "fused": 0.68}
 # an anonymous voice's: 0.03 under the threshold, as GE2E's has been (not measured for the other two)
 ANONYMOUS_THRESHOLDS: dict[str, float] = {"ge2e": 0.75, "dvector": 0.59, "fused": 0.65}
+# the same calibration for a voice's score as the cosine to its mean embedding alone (the voiceid's
+# mean_weight 1); between the two the calibrated thresholds lie on the straight line (within 0.002 at
+# 0.25, 0.5 and 0.75: bench/voiceid.py --learning), so a weight's threshold is interpolated
+MEAN_THRESHOLDS: dict[str, float] = {"ge2e": 0.80, "dvector": 0.66, "fused": 0.73}
+
+
+def threshold(model: str, mean_weight: float = 0.0) -> float:
+    """The model's default threshold for a scoring's mean_weight (0: top-k). An anonymous voice's
+    (ANONYMOUS_THRESHOLDS) does not depend on it: that is always the cosine to the voice's mean."""
+    return round(THRESHOLDS[model] + mean_weight * (MEAN_THRESHOLDS[model] - THRESHOLDS[model]), 4)
 
 
 class Encoder(Protocol):

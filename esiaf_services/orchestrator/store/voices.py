@@ -130,7 +130,8 @@ class VoiceTable:
         its enrolled and learnt counts (``encoders``: every encoder's, whatever ``encoder`` says); with
         ``encoder``, only that encoder's embeddings are counted (a voice with none of them is still
         listed, with count 0), without it the most any one encoder has (a WAV embedded by each encoder
-        counts once); with ``embeddings``, they too."""
+        counts once); with ``embeddings``, they too, and ``embedding_sources``: each one's source (wav, span,
+        anonymous, learnt), in the same order."""
         voices: dict[str, dict] = {}
         with self._lock:  # the sync routes run in a thread pool: one statement at a time
             rows = self._db.execute("SELECT name, embedding, source, encoder FROM voices ORDER BY id").fetchall()
@@ -141,6 +142,7 @@ class VoiceTable:
             per_encoder["learnt" if source == LEARNT else "enrolled"] += 1
             if embeddings:
                 voice.setdefault("embeddings", [])
+                voice.setdefault("embedding_sources", [])
             if encoder is not None and made_by != encoder:
                 continue
             voice["count"] += 1
@@ -149,6 +151,7 @@ class VoiceTable:
                 voice["sources"].append(source)
             if embeddings:
                 voice["embeddings"].append(np.frombuffer(blob, "<f4").tolist())
+                voice["embedding_sources"].append(source)
         if encoder is None:  # an utterance is embedded once per encoder: counted once, by its best-kept encoder
             for voice in voices.values():
                 voice["enrolled"] = max(e["enrolled"] for e in voice["encoders"].values())

@@ -3,15 +3,20 @@ SQLite file, real HTTP) and the voiceid's analyser with its real encoders."""
 from __future__ import annotations
 
 import io
+import queue
 import sqlite3
+import threading
+import time
 
 import numpy as np
 import pytest
 import soundfile
 from scipy.io import wavfile
 
+from esiaf import AudioFormat, Component, ComponentSettings
 from esiaf.tools.testing import Orchestrator, poll, shared_data
 from esiaf_services.orchestrator.store.voices import MAX_LEARNT_PER_VOICE
+from esiaf_services.voiceid.service import VoiceId, VoiceIdSettings
 
 AEW = "speech/cmu_arctic/cmu_arctic_us_aew_a000{}.wav"
 
@@ -131,7 +136,6 @@ def test_the_voiceid_learns_a_confident_utterance_but_not_a_quiet_or_overlapped_
 def identify_and_learn(running: Orchestrator) -> None:
     from esiaf.api_client import OrchestratorHTTP
     from esiaf.testing import run_analyser
-    from esiaf_services.voiceid.service import VoiceId, VoiceIdSettings
 
     assert enrol(running, "Anna", np.concatenate([speech(1), speech(3)])).status_code == 200
 
@@ -145,8 +149,9 @@ def identify_and_learn(running: Orchestrator) -> None:
                                    ("overlapping playback", {}, True), ("confident", {}, False)):
         service = VoiceId(VoiceIdSettings(name="voiceid", model="dvector", voices_wait_s=1.0, learn=True,
                                           orchestrator_url=running.url, **gate))
-        if overlapped:
-            service.overlaps_playback = lambda utterance: True  # type: ignore[method-assign]
+        if overlapped:  # the robot spoke during the utterance's last second (run_analyser's stream: "test")
+            assert service.played is not None
+            service.played.add_span("test", (clip.size // 16 - 1000) * 1_000_000, clip.size // 16 * 1_000_000)
         with OrchestratorHTTP(running.url) as client:
             service.refresh_voices(client)  # the enrolled voices before the first utterance
         emitted = run_analyser(service, (clip, 16000), spans=[(0.0, clip.size / 16000)])
@@ -155,3 +160,87 @@ def identify_and_learn(running: Orchestrator) -> None:
             poll(lambda: learnt() == 1, timeout_s=20)
         else:
             assert learnt() == 0, what
+
+
+RATE = 16000
+NS = 1_000_000_000
+CHUNK = 800  # 50 ms
+
+
+class Robot(Component):
+    """The VAD's segments (``vad/speech``) and the player's audio (``player/audio``) of stream s1, in 50 ms
+    chunks on the same capture clock, each batch when the test says so."""
+
+    service = "robot"
+
+    def __init__(self, settings):
+        super().__init__(settings)
+        self.add_output("vad/speech", AudioFormat(RATE, "int16"))
+        self.add_output("player/audio", AudioFormat(RATE, "int16"))
+        self.batches: queue.Queue[tuple[str, np.ndarray, float, bool]] = queue.Queue()
+
+    def produce(self):
+        while not self.stopping:
+            try:
+                topic, samples, start_s, segment = self.batches.get_nowait()
+            except queue.Empty:
+                self.sleep_until(time.monotonic() + 0.02)  # the node's own work (its state) meanwhile
+                continue
+            pcm = np.clip(np.rint(samples * 32767), -32768, 32767).astype(np.int16)
+            first_ns = round(start_s * NS)
+            last_ns = first_ns + len(pcm) * NS // RATE
+            for first in range(0, len(pcm), CHUNK):
+                piece = pcm[first:first + CHUNK]
+                start_ns = first_ns + first * NS // RATE
+                end_ns = start_ns + len(piece) * NS // RATE
+                ended = segment and first + CHUNK >= len(pcm)
+                self.publish(topic, piece[:, None], start_ns, end_ns, segmentation_ended=ended,
+                             segment=(first_ns, last_ns) if ended else None)
+
+
+class VoiceIdComponent(VoiceId, Component):
+    """The voiceid as its service runs it: a component on real sockets."""
+
+
+def test_an_utterance_overlapping_the_robots_playback_is_not_learnt(running):
+    """Over real sockets: the player's audio (the robot's voice, then silence) and two of Anna's confident
+    utterances; the one whose capture span overlaps the robot's voice is identified but not learnt, the
+    one heard while the player sends only silence is learnt."""
+    assert enrol(running, "Anna", np.concatenate([speech(1), speech(3)])).status_code == 200
+    robot = Robot(ComponentSettings(name="robot", orchestrator_url=running.url, stream_id="s1"))
+    voiceid = VoiceIdComponent(VoiceIdSettings(name="voiceid", model="dvector", voices_wait_s=1.0, learn=True,
+                                               orchestrator_url=running.url, stream_id="s1"))
+    threads = [threading.Thread(target=c.run, daemon=True) for c in (robot, voiceid)]
+    for thread in threads:
+        thread.start()
+    try:
+        poll(lambda: "Anna" in voiceid.book.voices, timeout_s=60)
+        poll(lambda: all(robot.output_stats[t].subscribers for t in ("vad/speech", "player/audio")), timeout_s=30)
+        robot_voice, _ = soundfile.read(shared_data("speech/cmu_arctic/cmu_arctic_us_axb_a0004.wav"), dtype="float32")
+        clip = speech(2)
+        robot.batches.put(("player/audio", 0.5 * robot_voice / np.max(np.abs(robot_voice)), 1.0, False))
+        played_until = 1.0 + robot_voice.size / RATE
+        robot.batches.put(("player/audio", np.zeros(12 * RATE, np.float32), played_until, False))  # silence
+        chunks = -(-robot_voice.size // CHUNK) + 12 * RATE // CHUNK
+        poll(lambda: voiceid.input_stats["player/audio"].received == chunks,  # the player publishes ahead of
+             timeout_s=20)  # what the microphones hear: all of it is in before the utterances
+        assert voiceid.played is not None and len(voiceid.played.spans["s1"]) >= 1
+        assert voiceid.played.spans["s1"][-1][1] <= played_until * NS  # its silence is not playing
+        robot.batches.put(("vad/speech", clip, 2.0, True))  # overlaps the robot's voice
+        poll(lambda: voiceid.analysed == 1, timeout_s=30)
+        assert voiceid.info.get("learning", 0) == 0
+        robot.batches.put(("vad/speech", clip, played_until + 5.0, True))  # only the player's silence then
+        poll(lambda: voiceid.analysed == 2, timeout_s=30)
+        assert voiceid.info.get("learning", 0) == 1
+        poll(lambda: voice(running, "Anna")["encoders"]["dvector"]["learnt"] == 1, timeout_s=20)
+        # the voiceid hears of it and keeps it apart from the enrolled one (embedding_sources)
+        poll(lambda: len(voiceid.book.learnt.get("Anna", ())) == 1, timeout_s=20)
+        assert len(voiceid.book.voices["Anna"]) == 1
+        results = poll(lambda: running.http.get("/results", params={"type": "voice_id"}).json()["items"][1:] and
+                       running.http.get("/results", params={"type": "voice_id"}).json()["items"], timeout_s=10)
+        assert [r["voice_id"]["label"] for r in results] == ["Anna", "Anna"]  # both identified, one learnt
+    finally:
+        for component in (robot, voiceid):
+            component.stop()
+        for thread in threads:
+            thread.join(timeout=10)

@@ -55,9 +55,9 @@ def voice_of(fused: dict) -> str:
 def test_enrolled_speakers_get_their_names_a_stranger_an_anonymous_id(launch, tmp_path):
     wavs = shared_data("emodb/wav")
     spans = build_input(wavs, tmp_path / "speakers.wav")
-    # GE2E, the encoder these utterances were chosen with: at the d-vector's calibrated threshold (0.62)
-    # speaker 03's 03a01Nc scores about 0.60 through the VAD and comes out anonymous, one of the 2 % of
-    # neutral genuine trials it rejects on EmoDB (docs/benchmarks.md, "Voice identity")
+    # GE2E, the encoder these utterances were chosen with: with the d-vector speaker 03's 03a01Nc (1.3 s)
+    # scores about 0.60 as the VAD cuts it, under its threshold, and comes out anonymous: a short
+    # utterance's score depends on its segment's edges (docs/benchmarks.md, "Voice identity")
     run = launch("--input", str(tmp_path / "speakers.wav"), "--json", "--serve", env={"ESIAF_VOICEID_MODEL": "ge2e"})
     deadline = time.monotonic() + 60
     while True:  # enrol while the other services start

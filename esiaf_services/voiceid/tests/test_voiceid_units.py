@@ -93,6 +93,39 @@ def test_scores_are_the_mean_of_the_top_k_and_the_threshold_gives_unknown():
     assert VoiceBook().identify(probe, 0.5).label == ""
 
 
+def test_with_a_mean_weight_learnt_embeddings_move_the_mean_and_add_no_top_k_chance():
+    anna, ben = [_unit([1, 0, 0]), _unit([1, 0.3, 0])], [_unit([0, 0, 1])]
+    learnt = np.stack([_unit([0.2, 1, 0])] * 20)  # many learnt embeddings near the probe
+    probe = _unit([0.25, 1, 0.05])
+    top_k_all = VoiceBook({"anna": anna, "ben": ben}, top_k=2, learnt={"anna": learnt})
+    assert top_k_all.scores(probe)["anna"] == pytest.approx(float(learnt[0] @ probe))  # two learnt ones win
+    blended = VoiceBook({"anna": anna, "ben": ben}, top_k=2, learnt={"anna": learnt}, mean_weight=0.5)
+    mean = _unit(np.mean(np.concatenate([np.stack(anna), learnt]), axis=0))
+    expected = 0.5 * np.mean([float(e @ probe) for e in anna]) + 0.5 * float(mean @ probe)
+    assert blended.scores(probe)["anna"] == pytest.approx(expected, rel=1e-5)
+    assert blended.scores(probe)["anna"] < top_k_all.scores(probe)["anna"]
+    # without learnt embeddings: the top-k over the enrolled and the cosine to their mean
+    alone = VoiceBook({"anna": anna}, top_k=2, mean_weight=1.0)
+    assert alone.scores(probe)["anna"] == pytest.approx(float(_unit(anna[0] + anna[1]) @ probe), rel=1e-5)
+    # learnt embeddings of a voice not enrolled are ignored
+    assert set(VoiceBook({"ben": ben}, learnt={"anna": learnt}, mean_weight=0.5).scores(probe)) == {"ben"}
+
+
+def test_played_spans_merge_keep_their_bound_and_count_the_tail():
+    from esiaf.playback import PlayedSpans
+    ms = 1_000_000
+    played = PlayedSpans(keep=2, tail_ms=300.0, max_streams=2)
+    played.add_span("s1", 1000 * ms, 1050 * ms)
+    played.add_span("s1", 1050 * ms, 1100 * ms)  # adjoining: one span
+    assert list(played.spans["s1"]) == [[1000 * ms, 1100 * ms]]
+    assert played.overlaps("s1", 900 * ms, 1001 * ms) and played.overlaps("s1", 1399 * ms, 2000 * ms)
+    assert not played.overlaps("s1", 1400 * ms, 2000 * ms) and not played.overlaps("s1", 0, 1000 * ms)
+    assert not played.overlaps("s2", 1000 * ms, 1100 * ms)  # another stream's
+    played.add_span("s1", 5000 * ms, 5100 * ms)
+    played.add_span("s1", 9000 * ms, 9100 * ms)  # the oldest goes
+    assert not played.overlaps("s1", 1000 * ms, 1100 * ms) and played.overlaps("s1", 5050 * ms, 5060 * ms)
+
+
 def test_anonymous_voices_keep_their_ids_and_are_bounded():
     voices = AnonymousVoices(threshold=0.9, limit=2)
     assert voices.assign(_unit([1, 0, 0]))[0] == "voice-1"
