@@ -330,8 +330,9 @@ def parse_args(argv: Sequence[str]) -> tuple[argparse.Namespace, list[str]]:
     parser = argparse.ArgumentParser(prog="esiaf eval", description="Evaluation harnesses (options after -- go to "
                                      "esiaf run, e.g. -- --asr whisper --no-beamformer)")
     parser.add_argument("task", choices=("robocup",), help="robocup: RoboCup@Home Speech & Person Recognition")
-    parser.add_argument("--task", choices=("questions", "gpsr"), default="questions", help="questions: the 50 "
-                        "questions, two games (default); gpsr: General Purpose Service Robot commands from its grammar")
+    parser.add_argument("--task", dest="scenario", choices=("questions", "gpsr"), default="questions",
+                        help="questions: the 50 questions, two games (default); gpsr: General Purpose Service Robot "
+                        "commands from its grammar")
     parser.add_argument("--category", type=int, default=1, help="with --task gpsr: the GPSR grammar's category, "
                         "1-3 (default 1)")
     parser.add_argument("--runs", type=int, default=6, help="runs per array (default 6)")
@@ -366,7 +367,7 @@ def check(args: argparse.Namespace) -> None:
         if not (DATA / needed).is_file():
             raise EvalError(f"{DATA / needed} is missing: the harness needs the shared test data "
                             f"(set ESIAF_SHARED_DATA to its folder)")
-    if args.task == "gpsr":
+    if args.scenario == "gpsr":
         from esiaf.tools.gpsr import GpsrError, load
         if args.robot_speaks:
             raise EvalError("--robot-speaks goes with the questions (the robot answers them), not --task gpsr")
@@ -389,7 +390,7 @@ def evaluate(args: argparse.Namespace, options: list[str]) -> list[RunScore]:
     questions = read_questions_and_answers(DATA)
     work = args.workdir or Path(tempfile.mkdtemp(prefix="esiaf-eval-"))
     work.mkdir(parents=True, exist_ok=True)
-    gpsr = args.task == "gpsr"
+    gpsr = args.scenario == "gpsr"
     language: tuple[Path, Path] | None = None
     grammar: str | None = "robocup"
     env: dict[str, str] = {}
@@ -400,7 +401,7 @@ def evaluate(args: argparse.Namespace, options: list[str]) -> list[RunScore]:
     recogniser = None
     if not args.no_oracle:
         recogniser = gpsr_recogniser(language) if gpsr else oracle_recogniser(pipeline)
-    print(f"eval: {args.task}, {args.runs} run(s) per array on {', '.join(args.array)}, SNR {args.snr} dB, "
+    print(f"eval: {args.scenario}, {args.runs} run(s) per array on {', '.join(args.array)}, SNR {args.snr} dB, "
           f"seed {args.seed}; "
           f"pipeline: esiaf run --fast {' '.join(pipeline)}; work in {work}", file=sys.stderr, flush=True)
     scores = []
@@ -423,7 +424,7 @@ def evaluate(args: argparse.Namespace, options: list[str]) -> list[RunScore]:
             asked = [Question(game, u["text"], u["azimuth_deg"], u["start_s"], u["end_s"])
                      for game, u in zip(games, truth["utterances"], strict=True)] if not gpsr else []
             said = [SpokenCommand(c.text, [(s.kind, s.value) for s in c.slots], u["start_s"], u["end_s"])
-                    for c, u in zip(commands, truth["utterances"], strict=True)]
+                    for c, u in zip(commands, truth["utterances"], strict=True)] if gpsr else []
             try:
                 fused, wall_s = run_pipeline(audio, array, options, run_dir, args.port, name, grammar, env)
             except EvalError as exc:  # scored as a run that answered nothing; the others go on
@@ -470,7 +471,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("eval: stopped", file=sys.stderr)
         return 130
-    gpsr = args.task == "gpsr"
+    gpsr = args.scenario == "gpsr"
     figures = (gpsr_summary if gpsr else summary)(scores, not args.no_oracle)
     print((gpsr_table if gpsr else table)(scores, figures, not args.no_oracle))
     for name, value in figures.items():
