@@ -28,11 +28,25 @@ its own line and scored as answering nothing; ``failed_runs`` counts them.
 The **oracle** row decodes each question's true segment of the first microphone with the same
 recogniser and grammar, without the pipeline: what a perfect segmenter would give with one
 microphone, so that a gain can be attributed to the front end.
+
+``--task gpsr``: the General Purpose Service Robot task's commands instead of the questions, in the
+same rooms (the same seed renders the same rooms, talkers, noise and SNR): ten commands a run drawn
+from the GPSR grammar (``--category``, default 1) by :mod:`esiaf.tools.gpsr`. Pocketsphinx
+recognises with that grammar as JSGF (``gpsr.gram`` in the work folder, and ``gpsr.dict``: the
+project dictionary and flite's pronunciation of the words the bundled one lacks); Whisper
+(``-- --asr whisper``) transcribes freely (the command language is too large for its closed set).
+Every fused result goes to the command it overlaps most, and a command hears their texts in order:
+
+- a command is **exact** when what it heard is its text (normalised words);
+- the **word error rate** is the edits (substitutions, insertions, deletions) over the commands' words;
+- a **slot** (a name, location, object, category or gesture filled in by the grammar) is **right**
+  when its words are in what the command heard.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -44,13 +58,29 @@ from typing import Any
 
 import numpy as np
 
-from esiaf.tools.robocup_scoring import Question, RunScore, direction_right, oracle, score, summary, table
+from esiaf.tools.robocup_scoring import (
+    Question,
+    RunScore,
+    SpokenCommand,
+    direction_right,
+    gpsr_summary,
+    gpsr_table,
+    normalise,
+    oracle,
+    oracle_commands,
+    score,
+    score_commands,
+    summary,
+    table,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = Path(os.environ.get("ESIAF_SHARED_DATA") or REPO.parent / "shared" / "data")
 VOICES = ("slt", "kal16", "awb", "rms")
 KITCHEN = "noise/speech_commands_bg/doing_the_dishes.wav"
 QUESTIONS = "robocup/questions.tsv"
+GPSR_FOLDER = "robocup"
+GPSR_COMMANDS_PER_RUN = 10
 RUN_TIMEOUT_S = 600.0
 DEFAULT_PIPELINE = ["--without", "emotion,gender,voiceid"]  # not scored: leave them out unless asked for
 
@@ -92,8 +122,9 @@ def babble_clip(rng: np.random.Generator, answers: list[str], out: Path, seconds
 
 
 def make_scene(index: int, seed: int, array: str, snr: tuple[float, float], data: Path, work: Path,
-               questions: list[tuple[str, str]]):
-    """The scene of run ``index``: (Scene, [(game, question)], snr_db)."""
+               questions: list[tuple[str, str]], texts: Sequence[str] | None = None):
+    """The scene of run ``index``: (Scene, [(game, question)], snr_db); ``texts``: what the ten talkers
+    say instead of questions (the room, talkers, noise and SNR stay those of the seed)."""
     from esiaf.scenes import NoiseSource, Scene, SpeechSource
     rng = np.random.default_rng([seed, index])
     room = (float(rng.uniform(6.5, 9.0)), float(rng.uniform(6.5, 9.0)), float(rng.uniform(2.7, 3.5)))
@@ -103,7 +134,7 @@ def make_scene(index: int, seed: int, array: str, snr: tuple[float, float], data
     people = list(rng.permutation(VOICES))  # who stands at 0, 90, 180 and 270°
     speech, games, onset = [], [], 1.0 + rng.uniform(0, 1)
     for number, row in enumerate(chosen):
-        text = questions[int(row)][0]
+        text = questions[int(row)][0] if texts is None else texts[number]
         if number < 5:
             game, voice, azimuth = "riddle", operator, rng.uniform(-10, 10)
         else:
@@ -162,17 +193,20 @@ def robot_speaks(scene, questions: list[tuple[str, str]], run_dir: Path) -> Path
     return reference
 
 
-def run_pipeline(audio: Path, array: str, options: list[str], work: Path, port: int, name: str) -> tuple[list, float]:
-    """Plays ``audio`` through ``esiaf run --fast --json``; the fused results (latest revision of
-    each, ordered by start) with times relative to the stream's start, and the pipeline's wall time."""
+def run_pipeline(audio: Path, array: str, options: list[str], work: Path, port: int, name: str,
+                 grammar: str | None = "robocup", env: dict[str, str] | None = None) -> tuple[list, float]:
+    """Plays ``audio`` through ``esiaf run --fast --json`` (with ``--grammar grammar`` unless None, and
+    ``env`` added to its environment); the fused results (latest revision of each, ordered by start)
+    with times relative to the stream's start, and the pipeline's wall time."""
     stream = f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"  # a workdir used again keeps its database: a new stream
     cmd = [sys.executable, "-m", "esiaf", "run", "--input", str(audio), "--array", array, "--fast", "--json",
-           "--grammar", "robocup", "--workdir", str(work), "--port", str(port), "--stream-id", stream, *options]
+           *(["--grammar", grammar] if grammar else []), "--workdir", str(work), "--port", str(port),
+           "--stream-id", stream, *options]
     started = time.monotonic()
     with open(work / "launcher.log", "w") as log:
         try:
             done = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=log, text=True, timeout=RUN_TIMEOUT_S,
-                                  cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+                                  cwd=REPO, env={**os.environ, **(env or {}), "PYTHONPATH": str(REPO)})
         except subprocess.TimeoutExpired:
             raise EvalError(f"{name}: the pipeline did not finish within {RUN_TIMEOUT_S:g} s "
                             f"(see {work / 'launcher.log'})") from None
@@ -225,11 +259,53 @@ class ClosedSetOracle:
         return [Hypothesis(matches[chosen_first(matches)[0]].sentence, 1.0, ())]
 
 
+class FreeWhisper:
+    """Whisper's free transcription behind the interface of ``PocketsphinxRecognizer.recognise``."""
+
+    def __init__(self) -> None:
+        from esiaf_services.asr.whisper import WhisperRecognizer
+        self.whisper = WhisperRecognizer()
+
+    def recognise(self, pcm: bytes) -> list:
+        samples = np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0
+        return self.whisper.recognise(samples, 16000).hypotheses
+
+
+def backend_of(pipeline: list[str]) -> str:
+    """The recogniser the pipeline runs: ``--asr``, else ``ESIAF_ASR_BACKEND``, else pocketsphinx."""
+    return pipeline[pipeline.index("--asr") + 1] if "--asr" in pipeline[:-1] else \
+        os.environ.get("ESIAF_ASR_BACKEND", "pocketsphinx")
+
+
+def gpsr_language(grammar, work: Path) -> tuple[Path, Path]:
+    """The GPSR command language for pocketsphinx: ``work/gpsr.gram`` (JSGF) and ``work/gpsr.dict`` (the
+    project dictionary and, for each word the bundled dictionary lacks, flite's pronunciation)."""
+    from esiaf_services.asr.lexicon import BUNDLED_DICT, PROJECT_DICT, format_dictionary, read_dictionary
+    from esiaf_services.asr.tools.make_robocup_grammar import PronunciationError, make_pronunciations
+    gram, dictionary = work / "gpsr.gram", work / "gpsr.dict"
+    gram.write_text(grammar.jsgf(), encoding="utf-8")
+    known = read_dictionary(PROJECT_DICT)
+    logging.getLogger(make_pronunciations.__module__).setLevel(logging.ERROR)  # its notes on the questions' words
+    try:
+        known.update(make_pronunciations(grammar.words() - known.keys(), read_dictionary(BUNDLED_DICT)))
+    except PronunciationError as exc:
+        raise EvalError(f"the GPSR words need pronunciations: {exc}") from None
+    dictionary.write_text(format_dictionary(known), encoding="utf-8")
+    return gram, dictionary
+
+
+def gpsr_recogniser(language: tuple[Path, Path] | None):
+    """The recogniser of the GPSR oracle row: pocketsphinx with the GPSR grammar, or Whisper free."""
+    if language is None:
+        return FreeWhisper()
+    from esiaf_services.asr.recognizer import PocketsphinxRecognizer
+    return PocketsphinxRecognizer(16000, grammar=language[0], extra_dictionary=language[1])
+
+
 def oracle_recogniser(pipeline: list[str]):
     """The recogniser of the oracle row: the pipeline's backend and scoring (``--asr``, and
     ``ESIAF_ASR_WHISPER__SCORING``), on the RoboCup questions."""
-    backend = pipeline[pipeline.index("--asr") + 1] if "--asr" in pipeline[:-1] else \
-        os.environ.get("ESIAF_ASR_BACKEND", "pocketsphinx")
+    backend = backend_of(pipeline)
     if backend == "whisper":
         return ClosedSetOracle(os.environ.get("ESIAF_ASR_WHISPER__SCORING", "acoustic"))
     from esiaf_services.asr.lexicon import ROBOCUP_GRAMMAR
@@ -254,6 +330,11 @@ def parse_args(argv: Sequence[str]) -> tuple[argparse.Namespace, list[str]]:
     parser = argparse.ArgumentParser(prog="esiaf eval", description="Evaluation harnesses (options after -- go to "
                                      "esiaf run, e.g. -- --asr whisper --no-beamformer)")
     parser.add_argument("task", choices=("robocup",), help="robocup: RoboCup@Home Speech & Person Recognition")
+    parser.add_argument("--task", dest="scenario", choices=("questions", "gpsr"), default="questions",
+                        help="questions: the 50 questions, two games (default); gpsr: General Purpose Service Robot "
+                        "commands from its grammar")
+    parser.add_argument("--category", type=int, default=1, help="with --task gpsr: the GPSR grammar's category, "
+                        "1-3 (default 1)")
     parser.add_argument("--runs", type=int, default=6, help="runs per array (default 6)")
     parser.add_argument("--seed", type=int, default=1, help="random seed of the rooms and games (default 1)")
     parser.add_argument("--snr", default="5:15", help="SNR range in dB, LOW:HIGH (default 5:15)")
@@ -286,6 +367,14 @@ def check(args: argparse.Namespace) -> None:
         if not (DATA / needed).is_file():
             raise EvalError(f"{DATA / needed} is missing: the harness needs the shared test data "
                             f"(set ESIAF_SHARED_DATA to its folder)")
+    if args.scenario == "gpsr":
+        from esiaf.tools.gpsr import GpsrError, load
+        if args.robot_speaks:
+            raise EvalError("--robot-speaks goes with the questions (the robot answers them), not --task gpsr")
+        try:
+            args.gpsr = load(DATA / GPSR_FOLDER, args.category)
+        except GpsrError as exc:
+            raise EvalError(str(exc)) from None
     from esiaf.scenes import SceneError, speak
     try:
         speak("test", "slt", 16000)
@@ -301,10 +390,19 @@ def evaluate(args: argparse.Namespace, options: list[str]) -> list[RunScore]:
     questions = read_questions_and_answers(DATA)
     work = args.workdir or Path(tempfile.mkdtemp(prefix="esiaf-eval-"))
     work.mkdir(parents=True, exist_ok=True)
+    gpsr = args.scenario == "gpsr"
+    language: tuple[Path, Path] | None = None
+    grammar: str | None = "robocup"
+    env: dict[str, str] = {}
+    if gpsr:  # pocketsphinx: the command language as JSGF; whisper: free transcription
+        language = gpsr_language(args.gpsr, work) if backend_of(pipeline) == "pocketsphinx" else None
+        grammar = str(language[0]) if language else None
+        env = {"ESIAF_ASR_POCKETSPHINX__EXTRA_DICTIONARY": str(language[1])} if language else {}
     recogniser = None
     if not args.no_oracle:
-        recogniser = oracle_recogniser(pipeline)
-    print(f"eval: {args.runs} run(s) per array on {', '.join(args.array)}, SNR {args.snr} dB, seed {args.seed}; "
+        recogniser = gpsr_recogniser(language) if gpsr else oracle_recogniser(pipeline)
+    print(f"eval: {args.scenario}, {args.runs} run(s) per array on {', '.join(args.array)}, SNR {args.snr} dB, "
+          f"seed {args.seed}; "
           f"pipeline: esiaf run --fast {' '.join(pipeline)}; work in {work}", file=sys.stderr, flush=True)
     scores = []
     total = args.runs * len(args.array)
@@ -313,7 +411,9 @@ def evaluate(args: argparse.Namespace, options: list[str]) -> list[RunScore]:
             name = f"{array}-run{index + 1}"
             run_dir = work / name
             run_dir.mkdir(exist_ok=True)
-            scene, games, snr_db = make_scene(index, args.seed, array, args.snr_range, DATA, work, questions)
+            commands = generate_commands(args.gpsr, args.seed, index) if gpsr else []
+            scene, games, snr_db = make_scene(index, args.seed, array, args.snr_range, DATA, work, questions,
+                                              [c.text for c in commands] if gpsr else None)
             options = pipeline
             if args.robot_speaks:
                 options = [*pipeline, "--playback", str(robot_speaks(scene, questions, run_dir))]
@@ -322,25 +422,42 @@ def evaluate(args: argparse.Namespace, options: list[str]) -> list[RunScore]:
             soundfile.write(str(audio), np.round(signals * 32767).astype(np.int16), scene.sample_rate_hz)
             (run_dir / "scene.json").write_text(json.dumps(truth, indent=2) + "\n")
             asked = [Question(game, u["text"], u["azimuth_deg"], u["start_s"], u["end_s"])
-                     for game, u in zip(games, truth["utterances"], strict=True)]
+                     for game, u in zip(games, truth["utterances"], strict=True)] if not gpsr else []
+            said = [SpokenCommand(c.text, [(s.kind, s.value) for s in c.slots], u["start_s"], u["end_s"])
+                    for c, u in zip(commands, truth["utterances"], strict=True)] if gpsr else []
             try:
-                fused, wall_s = run_pipeline(audio, array, options, run_dir, args.port, name)
+                fused, wall_s = run_pipeline(audio, array, options, run_dir, args.port, name, grammar, env)
             except EvalError as exc:  # scored as a run that answered nothing; the others go on
                 print(f"eval: {exc}", file=sys.stderr, flush=True)
                 fused, wall_s = [], 0.0
             run = RunScore(name, snr_db, scene.rt60_s, asked, audio_s=truth["duration_s"], pipeline_s=wall_s,
-                           fused=len(fused), failed=not wall_s)
-            run.spurious = score(asked, fused)
-            if recogniser is not None:
+                           fused=len(fused), failed=not wall_s, commands=said)
+            run.spurious = score_commands(said, fused) if gpsr else score(asked, fused)
+            if recogniser is not None and gpsr:
+                oracle_commands(signals, said, scene.sample_rate_hz, recogniser)
+            elif recogniser is not None:
                 run.oracle_recognised = oracle(signals, asked, scene.sample_rate_hz, recogniser)
             (run_dir / "fused.json").write_text(json.dumps(fused, indent=1) + "\n")
             scores.append(run)
+            if gpsr:
+                print(f"eval: [{len(scores)}/{total}] {name}: SNR {snr_db:.1f} dB, RT60 {scene.rt60_s:.2f} s: "
+                      f"{sum(c.exact for c in said)}/{len(said)} commands exact, {run.spurious} spurious"
+                      + (f"; oracle {sum(normalise(c.oracle) == normalise(c.text) for c in said)}/{len(said)}"
+                         if recogniser else ""),
+                      file=sys.stderr, flush=True)
+                continue
             print(f"eval: [{len(scores)}/{total}] {name}: SNR {snr_db:.1f} dB, RT60 {scene.rt60_s:.2f} s: "
                   f"{sum(q.recognised for q in asked)}/10 questions, "
                   f"{sum(direction_right(q) for q in asked)}/10 directions, {run.spurious} spurious, "
                   f"{run.points} points" + (f"; oracle {run.oracle_recognised}/10" if recogniser else ""),
                   file=sys.stderr, flush=True)
     return scores
+
+
+def generate_commands(grammar, seed: int, index: int) -> list:
+    """The GPSR commands of run ``index``: the same for the same seed and index, whatever the array."""
+    from esiaf.tools.gpsr import generate
+    return generate(grammar, GPSR_COMMANDS_PER_RUN, seed * 100_003 + index)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -354,13 +471,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("eval: stopped", file=sys.stderr)
         return 130
-    figures = summary(scores, not args.no_oracle)
-    print(table(scores, figures, not args.no_oracle))
+    gpsr = args.scenario == "gpsr"
+    figures = (gpsr_summary if gpsr else summary)(scores, not args.no_oracle)
+    print((gpsr_table if gpsr else table)(scores, figures, not args.no_oracle))
     for name, value in figures.items():
         print(f"{name}={value:.3f}" if isinstance(value, float) else f"{name}={value}")
     if args.json:
         args.json.write_text(json.dumps({"figures": figures, "runs": [
             {"name": r.name, "snr_db": r.snr_db, "rt60_s": r.rt60_s, "spurious": r.spurious, "points": r.points,
              "fused": r.fused, "oracle_recognised": r.oracle_recognised, "pipeline_s": r.pipeline_s,
-             "questions": [q.__dict__ for q in r.questions]} for r in scores]}, indent=1) + "\n")
+             "questions": [q.__dict__ for q in r.questions], "commands": [c.__dict__ for c in r.commands]}
+            for r in scores]}, indent=1) + "\n")
     return 0

@@ -4,7 +4,7 @@ printed at the end (the rules are in esiaf/tools/evaluation.py's docstring)."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -38,6 +38,7 @@ class RunScore:
     pipeline_s: float = 0.0  # from the first audio to the end of stream, wall clock
     oracle_recognised: int = 0
     failed: bool = False  # the pipeline did not finish: every question counts as missed
+    commands: list[SpokenCommand] = field(default_factory=list)  # --task gpsr: said instead of questions
 
     @property
     def points(self) -> int:
@@ -131,4 +132,119 @@ def table(scores: list[RunScore], figures: dict[str, float], oracle_too: bool) -
     if oracle_too:
         rows.append(f"{'oracle':<18} {'':>6} {'':>5} {100 * figures['oracle_questions_recognised']:>8.1f}%   "
                     f"(true segments, one microphone, the same recogniser, no pipeline)")
+    return "\n".join(rows)
+
+
+# the GPSR task (--task gpsr): commands, scored by their words and slots
+
+
+@dataclass
+class SpokenCommand:
+    text: str
+    slots: list[tuple[str, str]]  # (kind, value as spoken): name, location, object, category, gesture
+    start_s: float
+    end_s: float
+    heard: str = ""  # the fused results overlapping it most, in order, their texts joined
+    oracle: str = ""  # its true segment decoded without the pipeline
+
+    @property
+    def exact(self) -> bool:
+        return normalise(self.heard) == normalise(self.text)
+
+
+def word_errors(reference: str, hypothesis: str) -> int:
+    """Substitutions, insertions and deletions turning ``hypothesis`` into ``reference`` (normalised words)."""
+    ref, hyp = normalise(reference).split(), normalise(hypothesis).split()
+    row = list(range(len(hyp) + 1))
+    for i, word in enumerate(ref, 1):
+        previous, row[0] = row[0], i
+        for j, heard in enumerate(hyp, 1):
+            previous, row[j] = row[j], min(row[j] + 1, row[j - 1] + 1, previous + (word != heard))
+    return row[-1]
+
+
+def slots_right(slots: list[tuple[str, str]], heard: str) -> int:
+    """The slots whose words are in ``heard`` (as whole words, each occurrence counted once)."""
+    words = f" {normalise(heard)} "
+    right = 0
+    for _kind, value in slots:
+        phrase = f" {normalise(value)} "
+        if phrase.strip() and phrase in words:
+            right += 1
+            words = words.replace(phrase, "  ", 1)
+    return right
+
+
+def score_commands(commands: list[SpokenCommand], fused: list[dict[str, Any]]) -> int:
+    """Gives each fused result to the command it overlaps most; a command hears their texts, in order;
+    returns the spurious count (fused results overlapping no command)."""
+    spurious = 0
+    for message in fused:
+        overlaps = [(min(c.end_s, message["end_s"]) - max(c.start_s, message["start_s"]), i)
+                    for i, c in enumerate(commands)]
+        best = max((o for o in overlaps if o[0] > 0), default=None)
+        if best is None:
+            spurious += 1
+            continue
+        hypotheses = (message["anchor"].get("speech") or {}).get("hypotheses") or []
+        text = hypotheses[0]["text"] if hypotheses and not hypotheses[0].get("out_of_set") else ""
+        command = commands[best[1]]
+        command.heard = f"{command.heard} {text}".strip()
+    return spurious
+
+
+def oracle_commands(signals: np.ndarray, commands: list[SpokenCommand], rate: int, recogniser) -> None:
+    """Each command's true segment (± 0.2 s) of the first microphone decoded into its ``oracle``."""
+    for command in commands:
+        first, last = int(max(0.0, command.start_s - 0.2) * rate), int((command.end_s + 0.2) * rate)
+        pcm = (np.clip(signals[first:last, 0], -1, 1) * 32767).astype("<i2").tobytes()
+        hypotheses = recogniser.recognise(pcm)
+        command.oracle = hypotheses[0].text if hypotheses else ""
+
+
+def command_figures(commands: list[SpokenCommand], prefix: str = "", oracle_too: bool = False) -> dict[str, float]:
+    """Commands exact, word error rate and slots right, over ``commands``."""
+    figures: dict[str, float] = {}
+    for name, heard in (("", [c.heard for c in commands]), ("oracle_", [c.oracle for c in commands])):
+        if name and not oracle_too:
+            continue
+        words = sum(len(normalise(c.text).split()) for c in commands) or 1
+        slots = sum(len(c.slots) for c in commands) or 1
+        figures[f"{prefix}{name}commands_exact"] = sum(
+            normalise(h) == normalise(c.text) for c, h in zip(commands, heard, strict=True)) / max(len(commands), 1)
+        figures[f"{prefix}{name}word_error_rate"] = sum(
+            word_errors(c.text, h) for c, h in zip(commands, heard, strict=True)) / words
+        figures[f"{prefix}{name}slots_right"] = sum(
+            slots_right(c.slots, h) for c, h in zip(commands, heard, strict=True)) / slots
+    return figures
+
+
+def gpsr_summary(scores: list[RunScore], oracle_too: bool) -> dict[str, float]:
+    commands = [c for run in scores for c in run.commands]
+    return {"runs": len(scores), "commands": len(commands),
+            **command_figures(commands, oracle_too=oracle_too),
+            "spurious_per_run": sum(run.spurious for run in scores) / len(scores),
+            "real_time_factor": (sum(run.pipeline_s for run in scores if not run.failed)
+                                 / (sum(run.audio_s for run in scores if not run.failed) or math.nan)),
+            "failed_runs": sum(run.failed for run in scores)}
+
+
+def gpsr_table(scores: list[RunScore], figures: dict[str, float], oracle_too: bool) -> str:
+    rows = [f"{'run':<18} {'SNR dB':>6} {'RT60':>5} {'exact':>7} {'WER':>6} {'slots':>6} {'spurious':>8}"
+            + (f" {'oracle':>6} {'WER':>6} {'slots':>6}" if oracle_too else "")]
+    for run in scores:
+        one = command_figures(run.commands, oracle_too=oracle_too)
+        rows.append(f"{run.name:<18} {run.snr_db:>6.1f} {run.rt60_s:>5.2f} "
+                    f"{sum(c.exact for c in run.commands):>4}/{len(run.commands):<2} "
+                    f"{100 * one['word_error_rate']:>5.1f}% {100 * one['slots_right']:>5.1f}% {run.spurious:>8}"
+                    + (f" {round(one['oracle_commands_exact'] * len(run.commands)):>3}/{len(run.commands):<2} "
+                       f"{100 * one['oracle_word_error_rate']:>5.1f}% {100 * one['oracle_slots_right']:>5.1f}%"
+                       if oracle_too else ""))
+    rows.append(f"{'all':<18} {'':>6} {'':>5} {100 * figures['commands_exact']:>6.1f}% "
+                f"{100 * figures['word_error_rate']:>5.1f}% {100 * figures['slots_right']:>5.1f}% "
+                f"{figures['spurious_per_run']:>8.2f}"
+                + (f" {100 * figures['oracle_commands_exact']:>5.1f}% {100 * figures['oracle_word_error_rate']:>5.1f}% "
+                   f"{100 * figures['oracle_slots_right']:>5.1f}%" if oracle_too else ""))
+    if oracle_too:
+        rows.append("oracle: true segments, one microphone, the same recogniser, no pipeline")
     return "\n".join(rows)
