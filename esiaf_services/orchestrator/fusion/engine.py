@@ -375,7 +375,8 @@ class FusionEngine:
             if index is None:
                 index = memory.index[result.type] = SpanIndex()
             index.add(result)
-        memory.newest_end_ns = max(memory.newest_end_ns, result.end_ns)
+        if result.type != PLAYBACK:  # a player reports what it is to play: ahead of capture, far ahead in a replay
+            memory.newest_end_ns = max(memory.newest_end_ns, result.end_ns)
         memory.since_prune += 1
         if memory.since_prune >= PRUNE_EVERY:
             self._prune(memory)
