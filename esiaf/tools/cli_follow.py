@@ -232,6 +232,13 @@ def show_message(state: Following, message: dict[str, Any], args: argparse.Names
             err(f"esiaf: barge-in{' on ' + stream.stream_id if several else ''} at "
                 f"{(message['capture_ns'] - stream.origin_ns) / 1e9:.2f} s ({message.get('policy', '')})")
         return None
+    if message.get("type") == "fused_withdrawn":  # a later revision found it was the robot's own voice
+        if args.json:
+            out(json.dumps(message))
+        else:
+            err(f"esiaf: fused result {message['id']}{' on ' + stream.stream_id if several else ''} withdrawn: "
+                "it was the robot's own voice")
+        return None
     if message.get("type") == "fused_result":
         stream.printed += 1
         line = json.dumps(message) if args.json else format_line(message, stream.origin_ns)

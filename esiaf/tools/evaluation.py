@@ -219,6 +219,8 @@ def run_pipeline(audio: Path, array: str, options: list[str], work: Path, port: 
         message = json.loads(line)
         if message.get("type") == "stream_start":
             origin = message["start_ns"]
+        elif message.get("type") == "fused_withdrawn":  # the robot's own voice after all
+            fused.pop(message["id"], None)
         elif message.get("type") == "fused_result" and (
                 message["id"] not in fused or message["revision"] >= fused[message["id"]]["revision"]):
             fused[message["id"]] = message

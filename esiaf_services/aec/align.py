@@ -31,6 +31,7 @@ MIN_PEAK_RATIO = 4.0  # a GCC-PHAT peak this many times the median of the lags a
 LOUD_RMS = 1e-3  # a tenth of the window in which the reference is louder than this counts as played
 JUMP_MS = 20.0  # an estimate this far off the fitted line waits for a second one that agrees with it...
 AGREE_MS = 2.0  # ... within this
+EARLY_MS = 20.0  # the echo may come this much before the stamps say (a player's clock fast: drift)
 MAX_DRIFT = 500e-6  # a fitted slope beyond this is not a clock: the line falls back to the last delay
 
 
@@ -115,22 +116,30 @@ class ReferenceTrack:
         return out
 
 
-def gcc_phat_lag(reference: np.ndarray, mic: np.ndarray, max_lag: int) -> tuple[float, float]:
+def gcc_phat_lag(reference: np.ndarray, mic: np.ndarray, max_lag: int,
+                 expected: float | None = None, min_lag: int = 0) -> tuple[float, float, float]:
     """How much later than the stamps say ``mic`` holds ``reference``: ``reference`` starts ``max_lag`` samples
-    before ``mic`` on the stamp grid, so the lag is from 0 to ``max_lag`` (sub-sample); and the peak's
-    strength (its height over the median of the correlation at the searched lags)."""
+    before ``mic`` on the stamp grid (and ends ``min_lag`` after it), so the lag is from ``-min_lag`` to
+    ``max_lag`` (sub-sample); the peak's
+    strength (its height over the median of the correlation at the searched lags); and the strength of
+    the correlation within 2 samples of an ``expected`` lag (0 without one)."""
     n = 1 << math.ceil(math.log2(len(reference) + len(mic)))
     spectrum = np.fft.rfft(reference, n) * np.conj(np.fft.rfft(mic, n))
     spectrum /= np.abs(spectrum) + 1e-12
-    correlation = np.fft.irfft(spectrum, n)[:max_lag + 1]  # at j: mic[i] against reference[i + j]
+    searched = max_lag + min_lag
+    correlation = np.fft.irfft(spectrum, n)[:searched + 1]  # at j: mic[i] against reference[i + j]
     peak = int(np.argmax(correlation))
-    strength = float(correlation[peak] / (np.median(np.abs(correlation)) + 1e-12))
+    median = float(np.median(np.abs(correlation))) + 1e-12
+    strength = float(correlation[peak] / median)
+    there = 0.0
+    if expected is not None and 0 <= (index := round(max_lag - expected)) <= searched:
+        there = float(np.max(correlation[max(0, index - 2):index + 3]) / median)
     fraction = 0.0
-    if 0 < peak < max_lag:
+    if 0 < peak < searched:
         left, centre, right = correlation[peak - 1:peak + 2]
         denominator = left - 2 * centre + right
         fraction = 0.5 * (left - right) / denominator if denominator < 0 else 0.0
-    return max_lag - (peak + fraction), strength
+    return max_lag - (peak + fraction), strength, there
 
 
 @dataclass
@@ -144,9 +153,10 @@ class DelayTracker:
     """Delay (and from it drift) of the echo after the reference's stamps, from the signals."""
 
     def __init__(self, sample_rate_hz: int, max_delay_ms: float = 400.0, window_s: float = 0.5,
-                 estimate_every_s: float = 0.5, fit_s: float = 60.0):
+                 estimate_every_s: float = 0.5, fit_s: float = 60.0, min_delay_ms: float = -EARLY_MS):
         self.rate = sample_rate_hz
         self.max_lag = int(max_delay_ms * sample_rate_hz / 1000)
+        self.min_lag = int(-min_delay_ms * sample_rate_hz / 1000)  # how early the echo may come (drift)
         self.window = int(window_s * sample_rate_hz)
         self.every = int(estimate_every_s * sample_rate_hz)
         self.fit_s = fit_s
@@ -156,6 +166,7 @@ class DelayTracker:
         self._jump: DelayEstimate | None = None  # an estimate far off the line, waiting for a second one
         self._slope = 0.0
         self._intercept: float | None = None  # delay (samples) at time 0 of the fit
+        self.first_known_s: float | None = None  # when the first estimate was taken (capture seconds)
 
     @property
     def known(self) -> bool:
@@ -174,16 +185,25 @@ class DelayTracker:
 
     def offer(self, end_s: float, mic: np.ndarray, reference: np.ndarray, frames: int) -> DelayEstimate | None:
         """After ``frames`` more microphone frames: maybe estimate. ``mic`` is the last ``window`` frames of
-        the first microphone, ``reference`` the stamp-aligned reference for them and ``max_lag`` before."""
+        the first microphone, ``reference`` the stamp-aligned reference for them, ``max_lag`` before and
+        ``min_lag`` after."""
         self._since += frames
-        if self._since < self.every or len(mic) < self.window:
+        # twice as often until a second estimate is in (the first may be wrong: _add)
+        if self._since < (self.every if len(self.estimates) >= 2 else self.every // 2) or len(mic) < self.window:
             return None
         if not self._loud_enough(reference):
             return None
         self._since = 0
-        lag, strength = gcc_phat_lag(reference, mic, self.max_lag)
+        expected = float(self.delay_at(np.array(end_s))) if self.known else None
+        lag, strength, still = gcc_phat_lag(reference, mic, self.max_lag, expected, self.min_lag)
         if strength < MIN_PEAK_RATIO:
             self.rejected += 1
+            return None
+        if expected is not None and abs(lag - expected) > JUMP_MS * self.rate / 1000 and still >= MIN_PEAK_RATIO:
+            # a stronger peak elsewhere (the robot's speech alike to itself a moment before), but the echo is
+            # still where the line says: the path has not changed
+            self.rejected += 1
+            self._jump = None
             return None
         estimate = DelayEstimate(end_s, lag, strength)
         self._add(estimate)
@@ -192,11 +212,16 @@ class DelayTracker:
     def _loud_enough(self, reference: np.ndarray) -> bool:
         """The loudspeaker played in most of the window (a window that only catches the start or the end of
         its speech gives a weak or a wrong peak)."""
-        tenths = reference[len(reference) - self.window:].reshape(10, -1)
+        tenths = reference[self.max_lag:self.max_lag + self.window].reshape(10, -1)
         return int(np.sum(np.sqrt(np.mean(tenths ** 2, axis=1)) > LOUD_RMS)) >= 6
 
     def _add(self, estimate: DelayEstimate) -> None:
-        if self.estimates and abs(estimate.delay_samples - float(self.delay_at(np.array(estimate.at_s)))) > \
+        if len(self.estimates) == 1 and abs(estimate.delay_samples - self.estimates[0].delay_samples) > \
+                JUMP_MS * self.rate / 1000:
+            # the first was taken alone; a window in which the robot had just started holds only part of its
+            # echo, and its peak may be elsewhere: the second, far off it, replaces it
+            self.estimates.clear()
+        elif self.estimates and abs(estimate.delay_samples - float(self.delay_at(np.array(estimate.at_s)))) > \
                 JUMP_MS * self.rate / 1000:
             # far off the line: an outlier, or the path changed; the second such estimate in a row that
             # agrees with the first starts the fit again
@@ -209,6 +234,8 @@ class DelayTracker:
             self.estimates.append(candidate)
         self._jump = None
         self.estimates.append(estimate)
+        if self.first_known_s is None:
+            self.first_known_s = estimate.at_s
         while self.estimates and estimate.at_s - self.estimates[0].at_s > self.fit_s:
             self.estimates.popleft()
         times = np.array([e.at_s for e in self.estimates])

@@ -37,7 +37,7 @@ class StreamCanceller:
 
     def reference_needed_until(self, end_ns: int) -> int:
         """The stamp up to which the reference must be in to cancel microphone frames up to ``end_ns``."""
-        return end_ns + int(self.lead * NS / self.rate) - max(0, self.delay_ns(end_ns))
+        return end_ns + int(self.lead * NS / self.rate) - self.delay_ns(end_ns)  # later where the echo comes early
 
     def _seconds(self, time_ns: int) -> float:
         return 0.0 if self.track.origin_ns is None else (time_ns - self.track.origin_ns) / NS
@@ -58,7 +58,8 @@ class StreamCanceller:
             return
         end_ns = start_ns + len(mics) * NS // self.rate
         end_index = round(self.track.index_at(end_ns))
-        reference = self.track.slice(end_index - window - self.tracker.max_lag, window + self.tracker.max_lag)
+        reference = self.track.slice(end_index - window - self.tracker.max_lag,
+                                     window + self.tracker.max_lag + self.tracker.min_lag)
         self.tracker.offer(self._seconds(end_ns), self._mic_history, reference, len(mics))
 
     def process(self, start_ns: int, mics: np.ndarray) -> np.ndarray:

@@ -170,7 +170,7 @@ class Orchestrator:
                               metrics=self.metrics, stream_end_grace_s=self.settings.stream_end_grace_s,
                               stream_end_stall_grace_s=self.settings.stream_end_stall_grace_s,
                               on_assignments_changed=self._push_soon)
-        self._players = Players(self.registry, self.control, settings.barge_in_policy)
+        self._players = Players(self.registry, self.control, settings.barge_in_policy, self.store)
         self._ingest.on_barge_in = self._players.barge_in
         self._results = ResultsLoop(results_socket, self._ingest, bind_peer_key=self.guard.mechanism == "curve")
         try:

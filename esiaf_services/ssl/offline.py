@@ -37,12 +37,20 @@ class Frame:
 
 
 def localise(signals: np.ndarray, sample_rate_hz: int, chunk_ms: float = 20.0,
-             on_forward: Callable[..., Any] | None = None, **settings: Any) -> list[Frame]:
+             on_forward: Callable[..., Any] | None = None, reference: np.ndarray | None = None,
+             component: list[Ssl] | None = None, **settings: Any) -> list[Frame]:
     """SSL frames of float (samples, mics) audio, times in seconds from its start.
 
-    ``on_forward(topic, audio, **meta)`` sees every chunk the component forwards.
+    ``on_forward(topic, audio, **meta)`` sees every chunk the component forwards. ``reference``: what
+    the robot's loudspeaker played (float mono, stamped on the same timeline), given on
+    ``player/audio`` a chunk ahead of the microphones, as a player publishes it. ``component``: a list
+    the Ssl component is appended to (to look at it afterwards).
     """
+    if reference is not None:
+        settings.setdefault("reference_topic", "player/audio")
     ssl = Ssl(SslSettings(sample_rate_hz=sample_rate_hz, **settings))
+    if component is not None:
+        component.append(ssl)
     ssl.setup()
     frames: list[Frame] = []
 
@@ -60,7 +68,16 @@ def localise(signals: np.ndarray, sample_rate_hz: int, chunk_ms: float = 20.0,
     fmt = AudioFormat(sample_rate_hz, "int16", channels=signals.shape[1])
     ints = np.round(np.clip(signals, -1, 1 - 1 / 32768) * 32768).astype(np.int16)
     step = max(1, round(sample_rate_hz * chunk_ms / 1000))
+    mono = AudioFormat(sample_rate_hz, "int16", channels=1)
+    played = None if reference is None else np.round(np.clip(reference, -1, 1 - 1 / 32768) * 32768).astype(np.int16)
     for sequence, start in enumerate(range(0, len(ints), step), start=1):
+        ahead = start + step
+        if played is not None and (start == 0 or ahead < len(played)):
+            first, part = (0, played[:2 * step]) if start == 0 else (ahead, played[ahead:ahead + step])
+            ssl.on_audio(Audio(topic=ssl.settings.reference_topic, stream_id="offline", publisher="player",
+                               sequence=sequence, start_ns=first * NS // sample_rate_hz,
+                               end_ns=(first + len(part)) * NS // sample_rate_hz, format=mono,
+                               payload=encode(part[:, None], mono)))
         chunk = ints[start:start + step]
         end = start + len(chunk)
         audio = Audio(topic=ssl.settings.input_topic, stream_id="offline", publisher="offline", sequence=sequence,

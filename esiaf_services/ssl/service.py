@@ -9,10 +9,12 @@ The incoming chunks are cut into frames of ``frame_ms`` on the sample stream. Pe
   array can tell, confidence; a second or third peak only if at least ``min_relative`` as strong
   as the first), each with the id of the tracked source it belongs to, and marked ``background``
   where that track has stayed in one place for ``background_s`` (a loudspeaker, not a talker). With
-  ``self_azimuth_deg`` set (the robot's own loudspeaker, a setting: it is where the robot's head puts
-  it, not estimated), a direction within ``self_width_deg`` / 2 of it is the robot itself: its
-  ``source_id`` is ``self`` and it is ``background`` (fusion never takes it for the talker, the
-  beamformer never steers at it, and the robot's own voice heard back is told by it).
+  the robot's own loudspeaker direction known, a direction within ``self_width_deg`` / 2 of it is the
+  robot itself: its ``source_id`` is ``self`` and it is ``background`` (fusion never takes it for the
+  talker, the beamformer never steers at it, and the robot's own voice heard back is told by it). The
+  direction is learnt per stream from the player's reference (``reference_topic``, what the robot
+  plays: ``self_direction.py``) once enough frames were localised while it played; until then, and
+  without a reference, it is the ``self_azimuth_deg`` setting (None: not marked).
 
 Every chunk is forwarded unchanged on ``output_topic`` once its samples have been localised,
 carrying the directions of the frame it ends in as SSL meta. The end of a stream's last frame,
@@ -33,6 +35,7 @@ from esiaf.arrays import ARRAY_CHOICES, array_input
 from esiaf.per_stream import PerStream
 from esiaf.proto import esiaf_pb2 as pb
 from esiaf_services.ssl.doa import Localiser, LocaliserError, NoiseFloor
+from esiaf_services.ssl.self_direction import SelfDirection
 from esiaf_services.ssl.tracker import Tracker
 
 log = logging.getLogger(__name__)
@@ -65,16 +68,21 @@ class SslSettings(ComponentSettings):
     # the robot's own loudspeaker, counter-clockwise from the array's x axis (None: not marked), and how wide
     self_azimuth_deg: float | None = None
     self_width_deg: float = Field(default=40.0, gt=0, le=360)
+    # what the robot's loudspeaker plays (player/audio), to learn its direction from; "" = none (the setting)
+    reference_topic: str = ""
+    self_min_frames: int = Field(default=20, ge=1)  # localised frames while it plays before a direction is learnt
 
 
 @dataclass
 class StreamState:
     tracker: Tracker
     floor: NoiseFloor | None
+    self_direction: SelfDirection
     chunks: list[Audio] = field(default_factory=list)  # not yet fully localised
     samples: list[np.ndarray] = field(default_factory=list)
     buffered: int = 0  # frames of samples not yet localised
     offset: int = 0  # how many samples of chunks[0] were localised already
+    announced: float | None = None  # the learnt own direction last logged
 
 
 class Ssl(Component):
@@ -101,6 +109,9 @@ class Ssl(Component):
         self.frame_frames = round(settings.frame_ms * settings.sample_rate_hz / 1000)
         self.add_input(settings.input_topic, self.format)
         self.add_output(settings.output_topic, self.format)
+        if settings.reference_topic:
+            self.add_input(settings.reference_topic, AudioFormat(settings.sample_rate_hz, settings.sample_type,
+                                                                 channels=1))
         self.localiser: Localiser | None = None
         self.streams: PerStream[StreamState] = PerStream(lambda _: self._new_stream(), settings.max_streams, "tracker",
                                                          info=self.info)
@@ -124,7 +135,15 @@ class Ssl(Component):
         log.info("localising array=%s algorithm=%s nfft=%d frame_ms=%g band=%g-%g Hz", self.array.describe(),
                  self.localiser.algorithm, s.nfft, s.frame_ms, s.freq_min_hz, s.freq_max_hz)
 
+    def stream_inputs(self) -> set[str]:
+        return {self.settings.input_topic}  # the player's reference may never end
+
     def on_audio(self, audio: Audio) -> None:
+        if self.settings.reference_topic and audio.topic == self.settings.reference_topic:
+            if audio.frames:  # (a reference after its stream's end makes a state that max_streams bounds)
+                self.streams.get(audio.stream_id).self_direction.reference(audio.start_ns, audio.end_ns,
+                                                                           audio.as_float()[:, 0])
+            return
         state = self.streams.get(audio.stream_id)
         if audio.frames:
             state.chunks.append(audio)
@@ -138,7 +157,8 @@ class Ssl(Component):
     def _new_stream(self) -> StreamState:
         s = self.settings
         floor = NoiseFloor(s.frame_ms / 1000, s.bin_snr_db, s.floor_rise_db_per_s) if s.bin_snr_db > 0 else None
-        return StreamState(Tracker(s.gate_deg, s.hold_ms, background_s=s.background_s), floor)
+        return StreamState(Tracker(s.gate_deg, s.hold_ms, background_s=s.background_s), floor,
+                           SelfDirection(s.self_width_deg, min_frames=s.self_min_frames))
 
     def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
         self.streams.pop(stream_id)
@@ -190,12 +210,20 @@ class Ssl(Component):
         tracks = state.tracker.update(span[1], [d.azimuth_deg for d in found])
         directions = [ssl_direction(d.azimuth_deg, d.elevation_deg, d.confidence, source_id=t.source_id)
                       for d, t in zip(found, tracks, strict=True)]
+        learnt = state.self_direction
+        learnt.frame(span[0], span[1], [d.azimuth_deg for d in found])
+        self_azimuth = learnt.azimuth_deg if learnt.azimuth_deg is not None else s.self_azimuth_deg
+        if learnt.azimuth_deg is not None and (state.announced is None or abs(
+                (learnt.azimuth_deg - state.announced + 180.0) % 360.0 - 180.0) >= 5.0):
+            state.announced = learnt.azimuth_deg
+            self.info["self_azimuth_deg"] = round(learnt.azimuth_deg)  # the last stream's, in the heartbeat
+            log.info("stream_id=%s: the robot's own direction learnt: %.0f deg", stream_id, learnt.azimuth_deg)
         for direction, track in zip(directions, tracks, strict=True):
             direction.elevation_known = self.localiser.reports_elevation
             direction.track_azimuth_deg = track.azimuth_deg
             direction.background = track.background
-            if s.self_azimuth_deg is not None and \
-                    abs((direction.azimuth_deg - s.self_azimuth_deg + 180.0) % 360.0 - 180.0) <= s.self_width_deg / 2:
+            if self_azimuth is not None and \
+                    abs((direction.azimuth_deg - self_azimuth + 180.0) % 360.0 - 180.0) <= s.self_width_deg / 2:
                 direction.source_id, direction.background = SELF, True
         self.counts["located"] += 1
         self.info["frames"] = dict(self.counts)

@@ -81,6 +81,24 @@ def test_the_echo_is_cancelled_with_an_unknown_delay_of_120_ms_and_100_ppm_drift
     assert abs(stream.tracker.drift_ppm - 100) < 20
 
 
+def test_an_echo_that_comes_earlier_than_its_stamps_is_followed():
+    """No output latency and the player's clock 100 ppm fast: the echo drifts to 3 ms before the stamps."""
+    reference = speech(30.0)
+    mics = to_pcm(echo_path(reference, 2, delay_ms=0, ppm=100))
+    stream = StreamCanceller(BACKENDS["speex"](2, RATE), RATE)
+    stream.add_reference(0, reference[:CHUNK])
+    out = []
+    for first in range(0, len(mics), CHUNK):
+        ahead = first + CHUNK  # the player publishes a chunk before it is played
+        stream.add_reference(ahead * NS // RATE, reference[ahead:ahead + CHUNK])
+        out.append(stream.process(first * NS // RATE, mics[first:first + CHUNK]))
+    out.append(stream.flush())
+    cancelled = np.concatenate(out)
+    assert abs(stream.delay_ns(29 * NS) / 1e6 - (-29 * 0.1)) < 0.5, stream.delay_ns(29 * NS) / 1e6
+    late = slice(20 * RATE, None)
+    assert erle_db(mics[late], cancelled[late]) >= 20
+
+
 # -- the service over real sockets ------------------------------------------------------------------
 FOUR = AudioFormat(RATE, "int16", channels=4)
 MONO = AudioFormat(RATE, "int16")

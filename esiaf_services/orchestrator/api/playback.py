@@ -8,6 +8,7 @@ whose player has not connected its control channel yet a 409, both with the reas
 from __future__ import annotations
 
 import asyncio
+import sqlite3
 from typing import Any
 
 import numpy as np
@@ -138,7 +139,13 @@ async def get_barge_in(stream: str, core: Orchestrator = Depends(get_core)) -> B
 
 
 @router.put("/streams/{stream}/barge-in", response_model=BargeInSetting,
-            summary="what the stream's player does when a person starts speaking while it plays")
+            summary="what the stream's player does when a person starts speaking while it plays (kept across "
+                    "restarts)",
+            responses={503: {"model": Problem, "description": "the database cannot be written"}})
 async def put_barge_in(stream: str, body: BargeInSetting, core: Orchestrator = Depends(get_core)) -> BargeInSetting:
-    core.players.policies[stream] = body.policy
+    try:
+        core.players.set_policy(stream, body.policy)
+    except sqlite3.Error as exc:
+        raise HTTPException(503, f"the policy cannot be kept: database {core.store.path} cannot be written "
+                                 f"({exc})") from None
     return body

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 
 from fastapi import APIRouter, Query, WebSocket, WebSocketDisconnect
 
 from ..core import Orchestrator
-from ..planes.hub import CLOSE_TOO_SLOW, Subscriber
+from ..planes.hub import CLOSE_TOO_SLOW, Subscriber, withdrawal
 from .deps import MAX_ID
 
 log = logging.getLogger(__name__)
@@ -76,6 +77,8 @@ async def _send(websocket: WebSocket, core: Orchestrator, subscriber: Subscriber
         rows = core.store.publications(after_seq=last_seq, fusion=subscriber.fusion, stream=subscriber.stream,
                                        limit=BACKLOG_PAGE, include_robot=subscriber.include_robot)
         for seq, text in rows:
+            if not subscriber.include_robot and '"robot"' in text and (fused := json.loads(text))["source"] == "robot":
+                text = withdrawal(fused)  # the robot's revision of a person's: it withdraws that
             await websocket.send_text(text)
             last_seq = seq
         if len(rows) < BACKLOG_PAGE:
@@ -93,4 +96,4 @@ async def _send(websocket: WebSocket, core: Orchestrator, subscriber: Subscriber
         if message.fused_id is not None and (sent.get(message.fused_id, 0) >= message.revision
                                              or message.seq <= last_seq):
             continue  # already sent from the backlog
-        await websocket.send_text(message.text)
+        await websocket.send_text(message.text_for(subscriber.include_robot))

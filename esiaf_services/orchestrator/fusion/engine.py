@@ -52,6 +52,7 @@ class Publication:
     end_ns: int
     trigger_received_ns: int | None = None  # the result that completed it, if one did
     due_ns: int | None = None  # the deadline it was published at, if its timer published it
+    withdraws: bool = False  # the robot's voice, and its previous revision was sent as a person's
 
     @property
     def id(self) -> int:
@@ -92,6 +93,7 @@ class Fusion:
     # an orphan's (orphans.py): the service whose anchor it stands in for; that anchor, if it comes after
     # all, takes its place (_adopt) instead of opening a second fusion over the same utterance
     stand_in_for: str | None = None
+    person_shown: bool = False  # its latest revision was published as a person's (clients without the robot have it)
 
     @property
     def window(self) -> tuple[int, int]:
@@ -375,7 +377,8 @@ class FusionEngine:
             if index is None:
                 index = memory.index[result.type] = SpanIndex()
             index.add(result)
-        memory.newest_end_ns = max(memory.newest_end_ns, result.end_ns)
+        if result.type != PLAYBACK:  # a player reports what it is to play: ahead of capture, far ahead in a replay
+            memory.newest_end_ns = max(memory.newest_end_ns, result.end_ns)
         memory.since_prune += 1
         if memory.since_prune >= PRUNE_EVERY:
             self._prune(memory)
@@ -475,5 +478,6 @@ class FusionEngine:
             aggregates=summary, completion=cast(Completion, fusion.completion),
             missing_components=[m.component for m in missing], missing=missing, published_ns=published_ns,
             omitted=omitted, playback_overlap=share, source="robot" if robot else "person")
+        withdraws, fusion.person_shown = robot and fusion.person_shown, not robot
         return Publication(result=result, start_ns=window[0], end_ns=window[1],
-                           trigger_received_ns=trigger_received_ns, due_ns=due_ns)
+                           trigger_received_ns=trigger_received_ns, due_ns=due_ns, withdraws=withdraws)

@@ -8,6 +8,7 @@ client never holds up the others or the ingest.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 from dataclasses import dataclass
 
@@ -28,7 +29,21 @@ class Outgoing:
     revision: int = 0
     seq: int = 0  # publication number of a fused result (every revision has its own)
     partial: bool = False  # a partial result's event (partials.py): only to clients that asked for them
-    robot: bool = False  # a fused result of the robot's own voice: only to clients that include it
+    robot: bool = False  # a fused result of the robot's own voice: only to clients that include it...
+    withdrawal: str = ""  # ... and to the others this instead, where they had its previous revision (a person's)
+
+    def text_for(self, include_robot: bool) -> str:
+        return self.withdrawal if self.robot and not include_robot else self.text
+
+
+WITHDRAWAL_FIELDS = {"id", "revision", "seq", "fusion", "stream_id"}
+
+
+def withdrawal(fused: dict) -> str:
+    """The event that withdraws a fused result sent as a person's, from its revision that is the robot's
+    (its fields of WITHDRAWAL_FIELDS; docs/protocol.md)."""
+    return json.dumps({"type": "fused_withdrawn", **{k: fused[k] for k in sorted(WITHDRAWAL_FIELDS)},
+                       "source": "robot"})
 
 
 class Subscriber:
@@ -48,7 +63,7 @@ class Subscriber:
             return False
         if message.partial and not self.partials:
             return False
-        if message.robot and not self.include_robot:
+        if message.robot and not self.include_robot and not message.withdrawal:
             return False
         return message.fusion is None or self.fusion is None or message.fusion == self.fusion
 

@@ -26,7 +26,7 @@ from ..store.warmstart import restore
 from .binding import refusal
 from .clocks import StreamClocks
 from .codec import BadResult, parse_result, result_to_json, type_name
-from .hub import Hub, Outgoing
+from .hub import WITHDRAWAL_FIELDS, Hub, Outgoing, withdrawal
 from .metrics import Metrics
 from .partials import PARTIAL_KIND, Partials
 
@@ -328,7 +328,9 @@ class Ingest:
         self.counters[f"completion_{fused.result.completion}" if fused.revision == 1
                       else "revisions"] += 1
         message = Outgoing(text=text, stream_id=fused.stream_id, fusion=fused.fusion,
-                           fused_id=fused.id, revision=fused.revision, seq=seq, robot=fused.result.source == "robot")
+                           fused_id=fused.id, revision=fused.revision, seq=seq, robot=fused.result.source == "robot",
+                           withdrawal=withdrawal(fused.result.model_dump(include=WITHDRAWAL_FIELDS))
+                           if fused.withdraws else "")
         anchor_received_ns = fused.result.anchor.get("received_ns")
         if self.metrics is not None and fused.revision == 1 and isinstance(anchor_received_ns, int):
             labels = (fused.fusion, fused.stream_id, fused.result.completion)

@@ -12,12 +12,14 @@ from __future__ import annotations
 
 import json
 import logging
-from typing import Any
+import time
+from typing import Any, get_args
 
 from esiaf.control_messages import BargeIn, BargeInPolicy, Command, PlayerOrder
 
 from ..fusion.playback import PLAYBACK, Played
 from ..registry.components import Component, Registry
+from ..store.database import Store
 from .control import ControlPlane
 from .hub import Outgoing
 
@@ -34,12 +36,25 @@ class NoPlayer(Exception):
 
 
 class Players:
-    def __init__(self, registry: Registry, control: ControlPlane, default_policy: BargeInPolicy = "stop") -> None:
+    def __init__(self, registry: Registry, control: ControlPlane, default_policy: BargeInPolicy = "stop",
+                 store: Store | None = None) -> None:
         self.registry = registry
         self.control = control
         self.default_policy: BargeInPolicy = default_policy
-        self.policies: dict[str, BargeInPolicy] = {}  # streams whose policy was set (PUT /streams/{s}/barge-in)
+        self.store = store
+        # streams whose policy was set (PUT /streams/{s}/barge-in), kept in the store across restarts
+        self.policies: dict[str, BargeInPolicy] = {}
+        if store is not None:
+            known = get_args(BargeInPolicy)
+            self.policies = {stream: policy for stream, policy in store.policies().items()  # type: ignore[misc]
+                             if policy in known}
         self.barge_ins = 0
+
+    def set_policy(self, stream_id: str, policy: BargeInPolicy) -> None:
+        """Sets a stream's policy, stored first (sqlite3.Error if the database cannot be written: then unchanged)."""
+        if self.store is not None:
+            self.store.put_policy(stream_id, policy, time.time_ns())
+        self.policies[stream_id] = policy
 
     def player_of(self, stream_id: str) -> Component:
         """The live player of ``stream_id`` (the latest registered); NoPlayer if there is none."""

@@ -253,6 +253,18 @@ class Store:
             return self._db.execute(sql + " ORDER BY announced_ns").fetchall()
         return self._db.execute(sql + " WHERE stream_id = ?", (stream_id,)).fetchall()
 
+    def put_policy(self, stream_id: str, policy: str, set_ns: int) -> None:
+        """Records a stream's barge-in policy; autocommits, so call it outside begin()/commit()."""
+        self._db.execute(
+            "INSERT INTO barge_in_policies (stream_id, policy, set_ns) VALUES (?, ?, ?)"
+            " ON CONFLICT (stream_id) DO UPDATE SET policy = excluded.policy, set_ns = excluded.set_ns",
+            (stream_id, policy, set_ns))
+        self.on_written()
+
+    def policies(self) -> dict[str, str]:
+        """Every stream's barge-in policy that was set."""
+        return dict(self._db.execute("SELECT stream_id, policy FROM barge_in_policies").fetchall())
+
     # reads
     def latencies(self) -> list[tuple[str, int, float]]:
         """(component, count, mean_ns) of every component that ever sent a result."""
@@ -318,10 +330,11 @@ class Store:
 
     def publications(self, *, after_seq: int, fusion: str | None = None,
                      stream: str | None = None, limit: int = 100, include_robot: bool = True) -> list[tuple[int, str]]:
-        """(seq, JSON) of every publication (each revision) after ``after_seq``, in order."""
+        """(seq, JSON) of every publication (each revision) after ``after_seq``, in order (without the robot's
+        own voice unless ``include_robot``, but for its revisions that follow a person's: they withdraw it)."""
         where, args = _common_filters(stream, None, None, None)
-        if not include_robot:
-            where.append(NOT_ROBOT)
+        if not include_robot:  # the robot's revisions that withdraw a person's revision stay
+            where.append(f"({NOT_ROBOT} OR {WITHDRAWS})")
         where.append("seq > ?")
         args.append(after_seq)
         if fusion is not None:
@@ -340,6 +353,8 @@ class Store:
 
 # a fused result that is not the robot's own voice (fusion/playback.py); older ones have no source
 NOT_ROBOT = "json_extract(json, '$.source') IS NOT 'robot'"
+WITHDRAWS = ("EXISTS (SELECT 1 FROM fused AS before WHERE before.id = fused.id AND before.revision = fused.revision - 1"
+             " AND json_extract(before.json, '$.source') IS NOT 'robot')")
 
 
 class Checkpointer:

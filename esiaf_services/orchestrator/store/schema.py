@@ -73,4 +73,12 @@ MIGRATIONS: list[str] = [
         value BLOB NOT NULL
     );
     """,
+    # 5: per-stream barge-in policies (PUT /streams/{stream}/barge-in), kept across restarts
+    """
+    CREATE TABLE barge_in_policies (
+        stream_id TEXT PRIMARY KEY,
+        policy TEXT NOT NULL,
+        set_ns INTEGER NOT NULL
+    );
+    """,
 ]

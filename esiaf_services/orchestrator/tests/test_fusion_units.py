@@ -386,3 +386,15 @@ def test_an_utterance_broken_off_by_its_vads_death_is_fused_as_lost_once():
     nxt = result(2, "asr", "speech", 5 * S, 6 * S, speech={"hypotheses": [{"text": "go"}]})
     assert orphans.on_result(nxt, 7 * S) == [] and not orphans.segmenters_gone
     assert orphans.on_result(result(3, "asr", "speech", 1 * S, 2 * S, nothing={"reason": "x"}), 8 * S) == []
+
+
+def test_a_replays_player_far_ahead_of_the_microphones_does_not_make_fusion_forget_what_it_plays():
+    """A player replaying a long robot voice reports its parts minutes before the microphones reach them."""
+    engine, clock = engine_with(("asr", "speech"))
+    parts = [result(100 + n, "player", "playback", n * 10 * S, (n * 10 + 8) * S,
+                    playback={"text": "", "attributes": {"item": 1, "part": n}}) for n in range(100)]
+    for part in parts:  # 1000 s of parts, all reported at once, far more than memory_s (120 s) ahead
+        engine.on_result(part, 0)
+    clock.now = 73 * S
+    fused, = engine.on_result(result(1, "asr", "speech", 71 * S, 73 * S, speech={"hypotheses": []}), 73 * S)
+    assert fused.result.playback_overlap == 1.0 and fused.result.source == "robot"

@@ -70,6 +70,22 @@ def test_the_barge_in_policy_is_per_stream_and_checked(api):
         assert api.http.put("/streams/a/barge-in", json=bad).status_code == 422
 
 
+def test_barge_in_policies_survive_the_orchestrator_being_killed_and_started_again(tmp_path):
+    running = Orchestrator(tmp_path, config={"barge_in_policy": "duck"})
+    try:
+        assert running.http.put("/streams/robot-1/barge-in", json={"policy": "ignore"}).status_code == 200
+        assert running.http.put("/streams/robot-2/barge-in", json={"policy": "stop"}).status_code == 200
+        assert running.http.put("/streams/robot-2/barge-in", json={"policy": "duck"}).status_code == 200
+        assert running.http.put("/streams/robot-3/barge-in", json={"policy": "stop"}).status_code == 200
+        running.kill()  # no clean shutdown: each policy was written when it was set
+        running.start()
+        policies = {s: running.http.get(f"/streams/{s}/barge-in").json()["policy"]
+                    for s in ("robot-1", "robot-2", "robot-3", "robot-4")}
+        assert policies == {"robot-1": "ignore", "robot-2": "duck", "robot-3": "stop", "robot-4": "duck"}
+    finally:
+        running.close()
+
+
 def test_a_wav_longer_than_the_cap_at_the_players_rate_is_413(orchestrator, tmp_path):
     player = Player(Player.Settings(name="player", orchestrator_url=orchestrator.url, stream_id="robot",
                                     output=str(tmp_path / "out.raw")))
