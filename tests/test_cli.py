@@ -122,7 +122,7 @@ def _follow_a_played_file_that_never_ends(monkeypatch, serve):
 
     monkeypatch.setattr(cli_follow, "DRAIN_TIMEOUT_S", 0.0)  # where follow() reads it
     grabber = types.SimpleNamespace(process=types.SimpleNamespace(returncode=0, pid=1), reported=False)
-    supervisor = types.SimpleNamespace(exited=lambda: [grabber], refusals=list)
+    supervisor = types.SimpleNamespace(exited=lambda: [grabber], refusals=list, keep_spares=lambda: None)
     client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS, "source": "grabber-1"},
                                    report_dead=lambda pid: None)
     args = argparse.Namespace(stream_id="s", json=False, input="a.wav", serve=serve, mic=None)
@@ -199,7 +199,7 @@ def _follow_two_streams_of_which_one_ends(monkeypatch, serve, b_returncode=0):
     monkeypatch.setattr(cli_follow, "DRAIN_TIMEOUT_S", 0.3)
     grabbers = [types.SimpleNamespace(process=types.SimpleNamespace(returncode=code, pid=i), reported=False)
                 for i, code in enumerate((0, b_returncode))]
-    supervisor = types.SimpleNamespace(exited=lambda: grabbers, refusals=list,
+    supervisor = types.SimpleNamespace(exited=lambda: grabbers, refusals=list, keep_spares=lambda: None,
                                        failure=lambda child: "service grabber-2 failed")
     client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS, "source": "grabber-1"},
                                    report_dead=lambda pid: None)
