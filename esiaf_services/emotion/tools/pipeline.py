@@ -75,8 +75,9 @@ class EmotionPipeline:
                 for service, model in (("emotion", emotion_model), ("gender", gender_model)):
                     self._start(service, ["--model", model])
             # vad_backend: how the vad cuts (features.VADS): silero per window, silero-chunks, energy
-            self._start("vad", [], env={"ESIAF_VAD_BACKEND": "energy" if vad_backend == "energy" else "silero",
-                                        "ESIAF_VAD_SILERO__WINDOWS": str(vad_backend == "silero").lower()})
+            vad_env = {"ESIAF_VAD_BACKEND": "energy"} if vad_backend == "energy" else {
+                "ESIAF_VAD_BACKEND": "silero", "ESIAF_VAD_SILERO__WINDOWS": str(vad_backend == "silero").lower()}
+            self._start("vad", [], env=vad_env)
             wait_until(lambda: topic_ready(self.client, "vad/speech", 1 if hosted else 2), self.supervisor,
                        "emotion and gender to subscribe to vad/speech", START_TIMEOUT_S)
         except BaseException:
