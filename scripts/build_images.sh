@@ -23,6 +23,7 @@ SERVICES=(
     "asr          asr"
     "splitter     -"
     "beamformer   -"
+    "denoiser     denoiser"
     "ssl          ssl"
     "emotion      emotion"
     "gender       emotion"

@@ -1,0 +1,4 @@
+from esiaf import main
+from esiaf_services.denoiser.service import Denoiser
+
+raise SystemExit(main(Denoiser))

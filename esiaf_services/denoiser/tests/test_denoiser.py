@@ -1,0 +1,116 @@
+"""Denoiser: the real DeepFilterNet 3 model lowers noise and keeps speech in time, one utterance
+after another; the service publishes every chunk with its own times and meta, flushes at each
+utterance's end, and ends each stream; bad settings are one line."""
+import numpy as np
+import pytest
+import soundfile
+
+from esiaf import Audio, AudioFormat, SetupError
+from esiaf.formats import encode
+from esiaf.tools.testing import shared_data
+from esiaf_services.denoiser.filter import ChannelFilter
+from esiaf_services.denoiser.service import Denoiser, DenoiserSettings
+
+RATE = 16000
+NS = 1_000_000_000
+LEAD = RATE // 4  # noise alone before the speech
+
+
+@pytest.fixture(scope="module")
+def noisy():
+    """An ARCTIC sentence after 0.25 s of noise alone, white noise 5 dB below it: (clean, noise)."""
+    speech, rate = soundfile.read(str(shared_data("speech/cmu_arctic/cmu_arctic_us_aew_a0001.wav")), dtype="float32")
+    assert rate == RATE
+    speech = np.concatenate([np.zeros(LEAD, np.float32), speech])
+    noise = np.random.default_rng(3).standard_normal(len(speech)).astype(np.float32)
+    noise *= np.sqrt(np.mean(speech**2) / np.mean(noise**2)) / 10 ** (5 / 20)
+    return speech, noise
+
+
+def run(f: ChannelFilter, x: np.ndarray, hop: int = 320) -> np.ndarray:
+    return np.concatenate([f.process(x[i:i + hop]) for i in range(0, len(x), hop)] + [f.flush()])
+
+
+def lag(reference: np.ndarray, y: np.ndarray, most: int = 800) -> int:
+    """The shift (samples) at which ``y`` best matches ``reference``."""
+    return max(range(-most, most + 1), key=lambda k: float(np.dot(reference[most:-most], y[most + k:len(y) - most + k])))
+
+
+@pytest.mark.parametrize("hop", [160, 320, 333, 1024])
+def test_as_many_samples_come_out_as_went_in_and_in_time(noisy, hop):
+    speech, noise = noisy
+    y = run(ChannelFilter(RATE), speech + noise, hop)
+    assert len(y) == len(speech)
+    assert lag(speech, y) == 0  # the look-ahead is held back, not shifted
+
+
+def test_noise_is_lowered_and_speech_kept(noisy):
+    speech, noise = noisy
+    out = run(ChannelFilter(RATE), speech + noise)
+    quiet = slice(400, LEAD - 400)
+    assert 10 * np.log10(np.mean(out[quiet] ** 2) / np.mean(noise[quiet] ** 2)) < -15
+    assert np.corrcoef(out, speech)[0, 1] > 0.95 > np.corrcoef(speech + noise, speech)[0, 1]
+
+
+def test_after_a_flush_the_next_utterance_is_as_good_and_in_time(noisy):
+    """Flushed at each utterance's end (the vad's), the filter goes on: every utterance comes out whole,
+    in time, as clean as from a new filter."""
+    speech, noise = noisy
+    f = ChannelFilter(RATE)
+    for _ in range(3):
+        y = run(f, speech + noise)
+        assert len(y) == len(speech) and lag(speech, y) == 0
+        assert np.corrcoef(y, speech)[0, 1] > 0.95
+
+
+def chunk(fmt, samples, start, stream="s", segment=None, ended=False, end=False):
+    audio = Audio(topic="vad/speech", stream_id=stream, publisher="vad", sequence=1, start_ns=start * NS // RATE,
+                  end_ns=(start + len(samples)) * NS // RATE, format=fmt, payload=encode(samples, fmt))
+    if segment is not None:
+        audio.meta.segment.start_ns, audio.meta.segment.end_ns = segment
+    audio.meta.segmentation_ended = ended
+    audio.meta.end_of_stream = end
+    return audio
+
+
+@pytest.mark.parametrize("channels", [1, 2])
+def test_the_service_publishes_every_chunk_with_its_own_times_and_meta(channels):
+    denoiser = Denoiser(DenoiserSettings(channels=channels))
+    sent = []
+    denoiser.publish = lambda topic, pcm, start_ns, end_ns, **meta: sent.append((topic, start_ns, end_ns, pcm, meta))
+    fmt = AudioFormat(RATE, "int16", channels=channels)
+    rng = np.random.default_rng(1)
+    for i in range(20):  # two streams interleaved, each its own filters; an utterance ends at chunk 9
+        for stream in ("a", "b"):
+            samples = (rng.standard_normal((320, channels)) * 3000).astype(np.int16)
+            denoiser.on_audio(chunk(fmt, samples, 320 * i, stream, segment=(320 * (i // 10 * 10) * NS // RATE, 0),
+                                    ended=i in (9, 19), end=i == 19))
+        if i == 9:  # the utterance's end flushed what the look-ahead held: all of it is out at once
+            assert len([s for s in sent if s[4]["stream_id"] == "a"]) == 10
+    for stream in ("a", "b"):
+        out = [s for s in sent if s[4]["stream_id"] == stream]
+        assert [(s[1], s[2]) for s in out] == [(320 * i * NS // RATE, 320 * (i + 1) * NS // RATE) for i in range(20)]
+        assert all(s[3].shape == (320, channels) for s in out)
+        assert [s[4]["segmentation_ended"] for s in out] == [i in (9, 19) for i in range(20)]
+        assert [s[4]["segment"][0] for s in out] == [320 * (i // 10 * 10) * NS // RATE for i in range(20)]
+        assert [s[4]["end_of_stream"] for s in out] == [False] * 19 + [True]
+        assert {s[0] for s in out} == {"denoiser/speech"}
+    assert not denoiser.streams  # each stream's filters dropped at its end
+
+
+def test_an_empty_chunk_that_ends_an_utterance_goes_out_after_the_samples_it_follows():
+    denoiser = Denoiser(DenoiserSettings())
+    sent = []
+    denoiser.publish = lambda topic, pcm, start_ns, end_ns, **meta: sent.append((len(pcm), meta["segmentation_ended"]))
+    fmt = AudioFormat(RATE, "int16")
+    for i in range(5):
+        denoiser.on_audio(chunk(fmt, np.full(320, 1000, np.int16), 320 * i))
+    denoiser.on_audio(chunk(fmt, np.zeros(0, np.int16), 1600, ended=True))
+    assert sent == [(320, False)] * 5 + [(0, True)]
+
+
+@pytest.mark.parametrize("bad", [{"atten_lim_db": 0}, {"atten_lim_db": 101}, {"post_filter_beta": 0.5},
+                                 {"post_filter_beta": -1}])
+def test_bad_settings_are_one_line_at_start(bad):
+    with pytest.raises(SetupError, match="bad denoiser settings"):
+        Denoiser(DenoiserSettings(**bad))
