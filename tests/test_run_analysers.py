@@ -37,9 +37,14 @@ def test_without_leaves_the_analysers_out_and_nothing_waits_for_them(launch, tmp
     run = launch("--input", str(scene), "--array", "respeaker4", "--grammar", "robocup", "--without",
                  "emotion,gender,voiceid", "--fast", "--json", "--serve")
     run.wait_for_line(lambda line: line.get("type") == "stream_end", timeout_s=150)
-    components = {c["name"] for c in httpx.get(f"{run.url}/components", headers=run.headers).json()["items"]}
-    assert {"asr", "vad", "beamformer", "ssl"} <= components, components
+    items = httpx.get(f"{run.url}/components", headers=run.headers).json()["items"]
+    components = {c["name"] for c in items}
+    assert {"asr", "vad", "beamformer", "denoiser", "ssl"} <= components, components
     assert not components & {"emotion", "gender", "voiceid", "splitter"}, components
+    # grabber -> ssl -> beamformer -> vad -> denoiser -> asr
+    inputs = {c["name"]: c["inputs"][0]["topic"] for c in items if c["inputs"]}
+    assert [inputs[name] for name in ("vad", "denoiser", "asr")] == \
+        ["beamformer/audio", "vad/speech", "denoiser/speech"], inputs
     fusions = httpx.get(f"{run.url}/fusions", headers=run.headers).json()
     default = {"ssl", "emotion", "gender", "voice_id"}
     assert any(set(f["fuse"]) == default for f in fusions["items"]), fusions
@@ -75,18 +80,21 @@ def test_a_stereo_44_1_khz_float_file_is_converted_and_channel_0_heard(launch, t
         assert abs((f["anchor"]["span"]["start_ns"] - start_ns) / 1e9 - t["start_s"]) < 0.3
 
 
-def test_no_beamformer_and_the_energy_vad_give_the_old_wiring(launch, tmp_path):
+def test_no_beamformer_no_denoiser_and_the_energy_vad_give_the_old_wiring(launch, tmp_path):
     mics, rate = first_two_questions()
     scene = tmp_path / "two.flac"
     soundfile.write(str(scene), mics, rate, subtype="PCM_16")
     run = launch("--input", str(scene), "--array", "respeaker4", "--grammar", "robocup", "--without",
-                 "emotion,gender,voiceid", "--fast", "--json", "--serve", "--no-beamformer", "--vad", "energy")
+                 "emotion,gender,voiceid", "--fast", "--json", "--serve", "--no-beamformer", "--vad", "energy",
+                 "--no-denoiser")
     run.wait_for_line(lambda line: line.get("type") == "stream_end", timeout_s=150)
     components = httpx.get(f"{run.url}/components", headers=run.headers).json()["items"]
     names = {c["name"] for c in components}
-    assert {"asr", "vad", "splitter", "ssl"} <= names and "beamformer" not in names, names
+    assert {"asr", "vad", "splitter", "ssl"} <= names and not names & {"beamformer", "denoiser"}, names
     vad = next(c for c in components if c["name"] == "vad")
     assert vad["stats"]["info"]["backend"] == "energy" and vad["inputs"][0]["topic"] == "splitter/ch0", vad
+    asr = next(c for c in components if c["name"] == "asr")
+    assert asr["inputs"][0]["topic"] == "vad/speech", asr
     fused = fused_results(run)
     assert [normalise(f["anchor"]["speech"]["hypotheses"][0]["text"]) for f in fused] == \
         [normalise(t["text"]) for t in TRUTH]

@@ -10,10 +10,11 @@
     esiaf record --out FILE.mcap [--url URL]   (a running pipeline to MCAP: esiaf/tools/mcap_record.py)
     esiaf mcap diff RECORDED.mcap REPLAYED.mcap (esiaf/tools/mcap_diff.py)
 
-It starts the orchestrator, the recogniser, the VAD, the emotion, gender and voiceid services (on the VAD's
-output, like the recogniser) and the grabber (with a microphone array also the ssl service and the
-beamformer, the VAD hearing the array steered at the talker; with ``--no-beamformer`` the channel
-splitter instead, the VAD hearing the first microphone), prints each fused result as one line as
+It starts the orchestrator, the recogniser (hearing the VAD's utterances through the denoiser; not
+with ``--no-denoiser``), the VAD, the emotion, gender and voiceid services (on the VAD's output) and
+the grabber (with a microphone array also the ssl service and the beamformer, the VAD hearing the
+array steered at the talker; with ``--no-beamformer`` the channel splitter instead, the VAD hearing
+the first microphone), prints each fused result as one line as
 it arrives, and with ``--input`` exits once the file has been played and its last fused result
 printed. Several ``--input`` (or a folder) are played at once, each by a grabber of its own as a
 stream of its own; the run ends once every stream has ended. With ``--serve`` it never ends on its
