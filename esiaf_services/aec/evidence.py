@@ -11,11 +11,12 @@ once the delay is known; before, the robot's own echo passes nearly whole).
 
 A converged canceller takes the robot's voice 25-40 dB down; what is left in its output well above
 its floor is someone else: fusion's rule for the robot's voice (orchestrator ``fusion/playback.py``)
-takes an utterance with nothing recognised in it for a person's where these events say so. Measured
-on ``bench/robot_speaks.py``'s scenes (the person 10 dB below the echo, babble 10 dB below the
-person): people asking while the robot spoke stood 17-28 dB above the floor, the robot's converged
-residual that the vad took for speech 8-13 dB; a moment where the canceller lost the echo (its output
-32 dB above its floor, as loud as the microphones) is told by how little it took off. Pure: no I/O.
+takes an utterance in which the robot spoke for a person's where these events say so. Measured on
+``bench/robot_speaks.py``'s scenes (the person 10 dB below the echo, babble 10 dB below the person; the
+90th percentile of a segment's blocks): people asking while the robot spoke stood 16-28 dB above the
+floor with 11-19 dB taken off, the robot's converged residual that the vad took for speech 10 dB; a
+moment where the canceller lost the echo stood 32 dB above its floor, but with 2-5 dB taken off in its
+loudest blocks. Pure: no I/O.
 """
 from __future__ import annotations
 

@@ -46,7 +46,7 @@ __all__ = ["ECHO", "PLAYBACK", "SELF", "SPEECH_START", "Played", "is_robot", "ov
 ROBOT_OVERLAP = 0.5
 ROBOT_TEXT_SIMILARITY = 0.5
 # a person's evidence in the canceller's echo events (person_above_echo): blocks this far above the output's floor
-# (people measured 15-29 dB, the robot's converged residual up to 10), this many of them, with this much taken off
+# (people measured 16-28 dB, the robot's converged residual 10), this many of them, with this much taken off
 PERSON_ABOVE_FLOOR_DB = 15.0
 PERSON_MIN_BLOCKS = 2
 PERSON_CANCELLED_DB = 6.0
