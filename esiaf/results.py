@@ -47,6 +47,7 @@ def generic(label: str = "", probability: float = 0.0, class_probabilities: Mapp
 # orchestrator understands (docs/protocol.md, "Results"); they say nothing of the audio's coverage.
 SPEECH_START = "speech_start"  # a vad opened a segment: span = (speech start, the capture time it decided)
 PLAYBACK = "playback"  # a player plays an item: span = when it plays (revised by a later one if stopped early)
+ECHO = "echo"  # the echo canceller's output while it cancels: span = a block of it (esiaf_services/aec/evidence.py)
 
 
 def speech_start(probability: float) -> pb.GenericResult:
@@ -59,6 +60,16 @@ def playback(name: str, item: int, stopped: bool, part: int = 0) -> pb.GenericRe
     (a stretch that sounds), and whether this report is the part's real end after a stop (it then revises
     the part's first report)."""
     return generic(text=name[:200], attributes={"item": item, "part": part, "stopped": stopped})
+
+
+def echo(level_db: float, above_floor_db: float | None, cancelled_db: float, converged: bool) -> pb.GenericResult:
+    """The payload of an ``echo`` event: the canceller's output level in the block (dB, 96 = full scale), how
+    far it stands above the output's floor (absent until the floor is known), how much the canceller took off
+    (the microphones' level minus the output's), and whether the canceller had converged."""
+    attributes: dict[str, Any] = {"converged": converged, "cancelled_db": cancelled_db}
+    if above_floor_db is not None:
+        attributes["above_floor_db"] = above_floor_db
+    return generic(value=level_db, attributes=attributes)
 
 
 def hypothesis(text: str, probability: float, words: Sequence[Mapping[str, Any]] = ()) -> pb.Hypothesis:

@@ -35,6 +35,12 @@ class StreamCanceller:
         """The estimated delay of the echo after the reference's stamps at a capture time (0 until estimated)."""
         return int(float(self.tracker.delay_at(np.array(self._seconds(time_ns)))) * NS / self.rate)
 
+    def converged_at(self, time_ns: int, settle_s: float) -> bool:
+        """Whether ``settle_s`` of capture time have passed at ``time_ns`` since the delay was first estimated
+        (the filter adapts on the lined-up reference from then on)."""
+        first = self.tracker.first_known_s
+        return first is not None and self._seconds(time_ns) - first >= settle_s
+
     def reference_needed_until(self, end_ns: int) -> int:
         """The stamp up to which the reference must be in to cancel microphone frames up to ``end_ns``."""
         return end_ns + int(self.lead * NS / self.rate) - self.delay_ns(end_ns)  # later where the echo comes early

@@ -16,6 +16,9 @@ Per stream (each robot has its own player, publishing under the robot's stream i
   keeps on for the estimated delay plus ``tail_ms`` (the room's echo), then passes again;
 - **a replay** (``expect_reference``: ``esiaf run --playback``): every chunk waits for its reference,
   however fast the microphones come (``hold_ms`` is then long), until the reference ends;
+- **while it cancels**, ``echo`` events (esiaf.results.ECHO) measure its output per block
+  (esiaf_services/aec/evidence.py): fusion tells a person who speaks over the robot from the robot's
+  residual echo by them;
 - **a reference that stops arriving mid-utterance** (no chunk for ``reference_timeout_ms`` of capture
   time and its last chunk did not end the utterance): pass-through, said once in the log until the
   reference comes back.
@@ -35,8 +38,10 @@ import numpy as np
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
 from esiaf.api_client import declared_format
 from esiaf.per_stream import PerStream
+from esiaf.results import ECHO, echo
 from esiaf_services.aec.backends import BACKENDS, BackendError, Canceller
 from esiaf_services.aec.core import StreamCanceller
+from esiaf_services.aec.evidence import CONVERGE_S, EchoMeter
 
 log = logging.getLogger(__name__)
 MS = 1_000_000
@@ -67,6 +72,7 @@ class StreamState:
     fed: int = 0  # of the waiting chunks, how many the canceller has had
     ready: list[np.ndarray] = field(default_factory=list)  # cancelled frames not yet published
     ready_frames: int = 0
+    meter: EchoMeter | None = None  # the cancelled output's blocks (echo events), from the first one
 
 
 class EchoCanceller(Component):
@@ -229,10 +235,22 @@ class EchoCanceller(Component):
             frames = ready[used:used + audio.frames]
             used += audio.frames
             self.cancelled += 1
+            self._measure(state, audio, frames)
             self.publish(self.settings.output_topic, frames if audio.frames else b"", audio.start_ns, audio.end_ns,
                          stream_id=audio.stream_id, end_of_stream=end_of_stream and not state.waiting)
         rest = ready[used:]
         state.ready, state.ready_frames = ([rest] if len(rest) else []), len(rest)
+
+    def _measure(self, state: StreamState, audio: Audio, frames: np.ndarray) -> None:
+        """The ``echo`` events of the blocks of cancelled output that ``frames`` complete."""
+        if not audio.frames or state.canceller is None:
+            return
+        if state.meter is None:
+            state.meter = EchoMeter(self.settings.sample_rate_hz)
+        converged = state.canceller.converged_at(audio.start_ns, CONVERGE_S)
+        for block in state.meter.add(audio.start_ns, audio.samples, frames, converged):
+            self.emit(ECHO, (block.start_ns, block.end_ns), stream_id=audio.stream_id,
+                      generic=echo(block.level_db, block.above_floor_db, block.cancelled_db, block.converged))
 
     def stream_inputs(self) -> set[str]:
         """The microphones' end ends a stream; the player's may never come (a robot talks on and off)."""

@@ -27,11 +27,11 @@ from .aggregate import aggregates, overlaps, ssl_aggregate
 from .coverage import Coverage, SpanIndex, StoredResult
 from .latency import Latencies
 from .models import Completion, FusedResult, Missing, MissingReason, bounded_lists
-from .playback import PLAYBACK, SPEECH_START, Played, is_robot, overlap_share, played, playing_at
+from .playback import ECHO, PLAYBACK, SPEECH_START, Played, is_robot, overlap_share, played, playing_at
 
 __all__ = ["Fusion", "FusionEngine", "Publication", "StoredResult"]
 
-EVENTS = (PLAYBACK, SPEECH_START)  # kinds that report no coverage of the audio (fusion/playback.py)
+EVENTS = (PLAYBACK, SPEECH_START, ECHO)  # kinds that report no coverage of the audio (fusion/playback.py)
 PRUNE_EVERY = 64  # results per stream between two prunings of its memory
 MAX_REPLAYED_STREAMS = 10_000  # replayed streams remembered (whose latencies are not learnt)
 COMPLETE, TIMED_OUT, COMPONENTS_GONE = "complete", "timed_out", "components_gone"
@@ -469,7 +469,9 @@ class FusionEngine:
         index = memory.index.get(PLAYBACK)
         items = played(r.json for r in index.overlapping(*window)) if index is not None else []
         share = round(overlap_share(items, *window), 4)
-        robot = is_robot(share, items, fusion.anchor.json, results, summary.get("ssl"))
+        echoes = memory.index.get(ECHO)
+        robot = is_robot(share, items, fusion.anchor.json, results, summary.get("ssl"),
+                         [r.json for r in echoes.overlapping(*window)] if echoes is not None and share else [])
         results, omitted = bounded_lists(results)
         # model_construct: every value is the engine's own (results as the codec checked them on arrival)
         result = FusedResult.model_construct(

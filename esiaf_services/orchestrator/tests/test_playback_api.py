@@ -14,6 +14,7 @@ from esiaf_services.orchestrator.fusion.playback import is_robot, overlap_share,
 from esiaf_services.player.service import Player
 
 RATE = 16000
+SECOND = 1_000_000_000
 
 
 @pytest.fixture(scope="module")
@@ -166,3 +167,47 @@ def test_an_utterance_with_nothing_recognised_inside_the_robots_speech_is_the_ro
     out_of_set = {"speech": {"hypotheses": [{"text": "", "raw_text": "", "probability": 0.1, "words": []}]}}
     assert is_robot(0.9, said, out_of_set, {})
     assert not is_robot(0.4, said, out_of_set, {})
+
+
+def test_fusion_takes_an_utterance_with_nothing_recognised_for_a_persons_where_the_canceller_says_so():
+    import itertools
+
+    from esiaf_services.orchestrator.fusion.engine import FusionEngine, StoredResult
+    from esiaf_services.orchestrator.settings import FusionSettings
+    ids = itertools.count(1)
+    engine = FusionEngine([FusionSettings(name="u", anchor="speech")], allocate_id=lambda: next(ids))
+
+    def stored(type_: str, start_ns: int, end_ns: int, **payload) -> StoredResult:
+        result_id = next(ids)
+        json = {"id": result_id, "instance": f"{type_}-1", "sequence": result_id, "type": type_,
+                "span": {"start_ns": start_ns, "end_ns": end_ns}, **payload}
+        return StoredResult(id=result_id, component=type_, type=type_, stream_id="s", start_ns=start_ns,
+                            end_ns=end_ns, json=json)
+
+    def block(at_s: float, above_floor_db: float, cancelled_db: float, converged: bool = True) -> StoredResult:
+        attributes = {"converged": converged, "above_floor_db": above_floor_db, "cancelled_db": cancelled_db}
+        return stored("echo", int(at_s * SECOND), int((at_s + 0.256) * SECOND),
+                      echo={"value": 60.0, "attributes": attributes})
+
+    def utterance(start_s: float, end_s: float, text: str = ""):
+        heard = {"hypotheses": [{"text": text, "probability": 0.5 if text else 0.0, "words": []}]}
+        fused, = engine.on_result(stored("speech", int(start_s * SECOND), int(end_s * SECOND), speech=heard), 0)
+        return fused.result.source
+
+    said = {"text": "say: Hello.", "attributes": {"item": 1.0}}
+    engine.on_result(stored("playback", 0, 20 * SECOND, playback=said), 0)
+    for i in range(8):  # a person over the robot: the canceller took the echo off, what is left stands out
+        engine.on_result(block(2 + i * 0.256, 22.0, 11.0), 0)
+    for i in range(4):  # the robot's residual alone
+        engine.on_result(block(6 + i * 0.256, 9.0, 25.0), 0)
+    for i in range(4):  # a moment the canceller lost the echo: loud, nothing taken off
+        engine.on_result(block(9 + i * 0.256, 30.0, 1.0), 0)
+    for i in range(4):  # a canceller not converged yet
+        engine.on_result(block(12 + i * 0.256, 30.0, 10.0, converged=False), 0)
+    assert utterance(2.0, 4.0) == "person"
+    assert utterance(2.0, 4.0, "hello") == "person"  # the robot's words heard in it, but a person stands out
+    assert [utterance(6.0, 7.0), utterance(9.0, 10.0), utterance(12.0, 13.0), utterance(15.0, 16.0)] == ["robot"] * 4
+    assert utterance(6.0, 7.0, "hello") == "robot"  # its own words, and nothing else there
+    for i in range(4):  # loud blocks of which most the canceller barely changed: the robot's voice passed
+        engine.on_result(block(17 + i * 0.256, 25.0, 10.0 if i == 3 else 2.0), 0)
+    assert utterance(17.0, 18.0) == "robot"
