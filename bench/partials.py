@@ -1,6 +1,6 @@
 """How soon a robot knows something of what is being said: partial results against speech onsets.
 
-    python -m bench.partials [--asr pocketsphinx|whisper] [--runs 1]
+    python -m bench.partials [--asr pocketsphinx|whisper] [--runs 1] [--denoiser auto|on|off]
 
 Plays ``examples/robocup_questions.wav`` in real time through ``esiaf run --json --partials`` (the
 recogniser alone: ``--without emotion,gender,voiceid``) and measures, per question, on the capture
@@ -35,11 +35,12 @@ EXAMPLE = REPO / "examples" / "robocup_questions.wav"
 TRUTH = json.loads(EXAMPLE.with_suffix(".json").read_text())["sentences"]
 
 
-def run_once(asr: str) -> list[dict]:
+def run_once(asr: str, options: list[str]) -> list[dict]:
     """The JSON lines of one real-time run."""
     with tempfile.TemporaryDirectory(prefix="esiaf-partials-") as work:
         args = [sys.executable, "-m", "esiaf", "run", "--input", str(EXAMPLE), "--grammar", "robocup", "--json",
-                "--partials", "--without", "emotion,gender,voiceid", "--port", str(free_port()), "--workdir", work]
+                "--partials", "--without", "emotion,gender,voiceid", "--port", str(free_port()), "--workdir", work,
+                *options]
         if asr != "pocketsphinx":
             args += ["--asr", asr]
         done = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=300)
@@ -74,12 +75,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--asr", default="pocketsphinx", choices=["pocketsphinx", "whisper"])
     parser.add_argument("--runs", type=int, default=1)
+    parser.add_argument("--denoiser", default="auto", choices=["auto", "on", "off"], help="esiaf run's option")
     args = parser.parse_args()
     totals: dict[str, list[float]] = {}
     for _ in range(args.runs):
-        for name, values in measure(run_once(args.asr)).items():
+        for name, values in measure(run_once(args.asr, ["--denoiser", args.denoiser])).items():
             totals.setdefault(name, []).extend(values)
-    print(f"asr={args.asr} runs={args.runs} questions={len(TRUTH)} per run")
+    print(f"asr={args.asr} denoiser={args.denoiser} runs={args.runs} questions={len(TRUTH)} per run")
     for name, values in totals.items():
         if values:
             ordered = sorted(values)

@@ -86,7 +86,7 @@ def test_no_beamformer_no_denoiser_and_the_energy_vad_give_the_old_wiring(launch
     soundfile.write(str(scene), mics, rate, subtype="PCM_16")
     run = launch("--input", str(scene), "--array", "respeaker4", "--grammar", "robocup", "--without",
                  "emotion,gender,voiceid", "--fast", "--json", "--serve", "--no-beamformer", "--vad", "energy",
-                 "--no-denoiser")
+                 "--denoiser", "off")
     run.wait_for_line(lambda line: line.get("type") == "stream_end", timeout_s=150)
     components = httpx.get(f"{run.url}/components", headers=run.headers).json()["items"]
     names = {c["name"] for c in components}

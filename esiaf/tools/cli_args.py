@@ -416,6 +416,9 @@ def add_recogniser_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--vad", choices=("silero", "energy"), help="the voice activity detector: silero (default, "
                         "a neural VAD that babble does not fool) or energy (the original double threshold)")
     parser.add_argument("--asr", choices=("pocketsphinx", "whisper"), help="the recogniser (default pocketsphinx)")
+    parser.add_argument("--denoiser", choices=("auto", "on", "off"), default="auto", help="the recogniser hears the "
+                        "VAD's utterances through the denoiser (DeepFilterNet 3): auto (default) with pocketsphinx, "
+                        "which it helps in noise, not with Whisper, which it does not (docs/benchmarks.md)")
 
 
 def add_workdir_options(parser: argparse.ArgumentParser) -> None:
@@ -446,7 +449,7 @@ def add_wyoming_parser(sub: argparse._SubParsersAction) -> None:
     wyoming.add_argument("-v", "--verbose", action="store_true", help="log what the launcher does")
     # what esiaf run's pipeline code reads and esiaf wyoming does not offer: one mono source, no grabber
     wyoming.set_defaults(input=None, mic=None, array=None, mic_channels=None, channels=None, replicas=[],
-                         vad_in_grabber=False, plugins=[], no_beamformer=False, no_denoiser=False, beamformer=None,
+                         vad_in_grabber=False, plugins=[], no_beamformer=False, beamformer=None,
                          ssl_algorithm=None,
                          fast=False, player=None, playback=None, serve=True, stream_id=None, chunk_ms=None,
                          json=False, partials=False, include_robot=False, ros2=False, record=None,
@@ -487,8 +490,6 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                      "(entry point group esiaf.components) or a module; repeatable")
     run.add_argument("--no-beamformer", action="store_true", help="with --array: the analysers hear the first "
                      "microphone instead of the array steered at the talker")
-    run.add_argument("--no-denoiser", action="store_true", help="the analysers hear the audio as it is, without "
-                     "the denoiser (DeepFilterNet 3) taking the room's noise out first")
     run.add_argument("--beamformer", choices=("mvdr", "das"), help="with --array: the beamforming method "
                      "(default mvdr; das: delay and sum)")
     run.add_argument("--ssl-algorithm", help="DOA algorithm of the ssl service (default NormMUSIC)")
