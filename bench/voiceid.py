@@ -719,8 +719,13 @@ def clean_enrolment_in_room(encoder: Encoder, names: list[str], speakers: list[s
             cells.append(f"{100 * figures['closed_accuracy']:.1f} %")
             cells.append(f"{100 * figures['open_eer']:.1f} % ({figures['open_eer_threshold']:.2f})")
         print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
-    print("| clean trials | closed, all | EER, all (threshold) | closed, neutral | EER, neutral (threshold) |")
-    print("|---|---|---|---|---|")
+    from esiaf.speech.speaker.encoders import threshold
+    at = threshold(encoder.name, book({}).mean_weight)
+    print(f"| clean trials | closed, all | EER, all (threshold) | closed, neutral | EER, neutral (threshold) | "
+          f"names at the voiceid's threshold {at:g}, right / wrong: all | neutral |")
+    print("|---|---|---|---|---|---|---|")
+    enrol = enrolment(speakers, neutral)
+    trials = [i for i in range(len(names)) if i not in enrolled]
     for name, extra in (("clean enrolment", None), ("clean enrolment + 2 reverberant noisy copies", copies),
                         ("clean enrolment + 4 reverberant noisy copies", more)):
         cells = []
@@ -730,6 +735,13 @@ def clean_enrolment_in_room(encoder: Encoder, names: list[str], speakers: list[s
         for figures in (whole, only):
             cells.append(f"{100 * figures['closed_accuracy']:.1f} %")
             cells.append(f"{100 * figures['open_eer']:.1f} % ({figures['open_eer_threshold']:.2f})")
+        voices = book({s: np.concatenate([clean[idx]] + ([extra[i] for i in idx] if extra else []))
+                       for s, idx in enrol.items()})
+        for subset in (trials, [i for i in trials if neutral[i]]):
+            given = [voices.identify(clean[i], at).label for i in subset]
+            right = sum(g == speakers[i] for g, i in zip(given, subset, strict=True))
+            wrong = sum(bool(g) and g != speakers[i] for g, i in zip(given, subset, strict=True))
+            cells.append(f"{100 * right / len(subset):.1f} / {100 * wrong / len(subset):.1f} %")
         print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
 
 
