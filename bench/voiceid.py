@@ -40,12 +40,19 @@ given per encoder, side by side in a closing table.
 - with ``--room-enrolment``, the room's trials against a clean enrolment (as a WAV enrolment would
   be made), without and with reverberant noisy copies of each enrolment utterance in rooms unlike
   the test room (``ROOM_COPIES``, ``MORE_COPIES``), per encoder (ge2e, dvector);
+- with ``--quality``, the voiceid's quality gate (esiaf/speech/speaker/quality.py ``problem``: an
+  utterance whose estimated SNR is under ``quality_min_snr_db`` or whose speech span is under
+  ``quality_min_speech_s`` is ``unknown``, never a name): each voice enrolled from its 3 clean
+  utterances and their 2 room copies (as a WAV enrolment is), every other utterance identified
+  at the voiceid's default threshold, clean and in the room, without the gate and with it at several
+  SNRs: right names, wrong names, unknown; and the quality estimates of EmoDB and of the calibration
+  voices (ARCTIC, flite), clean and in the room;
 - ``latency_p50_ms``: with ``--pipeline``, a few utterances played in real time through
   grabber → vad → voiceid → orchestrator: arrival of the fused result minus (end of the segment's
   speech + the VAD's hang-over), as bench/emotion.py.
 
     python bench/voiceid.py [--models ge2e,dvector,fused] [--every N] [--no-room] [--learning] [--mean-weight W]
-                            [--cache DIR] [--pipeline] [--variants] [--room-enrolment]
+                            [--cache DIR] [--pipeline] [--variants] [--room-enrolment] [--quality]
 """
 from __future__ import annotations
 
@@ -88,7 +95,8 @@ def load_emodb() -> list[tuple[str, str, bool, np.ndarray]]:
     return out
 
 
-def through_room(utterances: list[np.ndarray]) -> list[np.ndarray]:
+def through_room(utterances: list[np.ndarray], snrs_db: tuple[float, ...] = (SNR_DB,)) -> list[np.ndarray]:
+    """Each utterance through the test room, the kitchen noise ``snrs_db[n % len(snrs_db)]`` under the n-th."""
     import pyroomacoustics as pra
     from scipy.signal import fftconvolve  # np.convolve's result to rounding, and 100× faster on the noise
     room_m = np.array([6.0, 5.0, 3.0])
@@ -105,11 +113,11 @@ def through_room(utterances: list[np.ndarray]) -> list[np.ndarray]:
     noise = fftconvolve(noise if noise.ndim == 1 else noise[:, 0], noise_rir)
     rng = np.random.default_rng(0)
     out = []
-    for samples in utterances:
+    for n, samples in enumerate(utterances):
         speech = fftconvolve(samples, speech_rir)[:samples.size + 1600]
         start = rng.integers(0, noise.size - speech.size)
         clip = noise[start:start + speech.size]
-        gain = np.sqrt(np.mean(speech ** 2) / np.mean(clip ** 2) / 10 ** (SNR_DB / 10))
+        gain = np.sqrt(np.mean(speech ** 2) / np.mean(clip ** 2) / 10 ** (snrs_db[n % len(snrs_db)] / 10))
         out.append((speech + gain * clip).astype(np.float32))
     return out
 
@@ -222,10 +230,12 @@ def main() -> None:
     parser.add_argument("--variants", action="store_true", help="also evaluate the variants of VARIANTS (a table)")
     parser.add_argument("--room-enrolment", action="store_true",
                         help="also room trials against clean enrolment, with and without reverberant copies")
+    parser.add_argument("--quality", action="store_true",
+                        help="also the voiceid's quality gate: names right and wrong with and without it")
     args = parser.parse_args()
     models = args.models.split(",")
-    if args.no_room and (args.variants or args.room_enrolment):
-        parser.error("--variants and --room-enrolment need the room (leave out --no-room)")
+    if args.no_room and (args.variants or args.room_enrolment or args.quality):
+        parser.error("--variants, --room-enrolment and --quality need the room (leave out --no-room)")
     if not set(models) <= set(MODELS):
         parser.error(f"--models: some of {', '.join(MODELS)}")
     data = load_emodb()
@@ -270,12 +280,9 @@ def main() -> None:
                              (cal_speakers, cal_embedded["clean"][0][model]), args.learn_margin)
     print_table(rows, list(conditions), args.learning)
     if args.room_enrolment:
-        from esiaf.speech.speaker.encoders import shared_encoder
-        for model in (m for m in models if m != "fused"):
-            print(f"[{model}] room trials, enrolment clean or in the room (mean_weight {weight:g})", flush=True)
-            clean_enrolment_in_room(shared_encoder(model), names, speakers, neutral, clips,
-                                    embedded["clean"][0][model], embedded["room"][0][model],
-                                    lambda voices: VoiceBook(voices, mean_weight=weight))
+        room_enrolments(models, names, speakers, neutral, clips, {c: e[0] for c, e in embedded.items()}, weight)
+    if args.quality:
+        quality_gates(models, speakers, neutral, clips, weight, calibration)
     if args.variants:
         encoder = VoiceEncoder()
         clean, room = embedded["clean"][0]["ge2e"], embedded.get("room", embedded["clean"])[0]["ge2e"]
@@ -612,7 +619,7 @@ def compare_variants(encoder: VoiceEncoder, names: list[str], speakers: list[str
     """One row per variant: closed-set accuracy and open-set EER (threshold), all emotions and
     neutral only, clean and in the room. The cohort (esiaf_services/voiceid/cohort.py: real non-EmoDB
     speech of the shared data + flite voices) goes through the same condition as the trials."""
-    from esiaf_services.voiceid.augment import speed_perturbed, tilted
+    from esiaf.speech.speaker.augment import speed_perturbed, tilted
     from esiaf_services.voiceid.cohort import flite_clips, real_clips, robocup_questions
     sentences = robocup_questions(SHARED_DATA, COHORT_SENTENCES)
     cohort_clips = [c for _, c in real_clips(SHARED_DATA) + flite_clips(sentences)]
@@ -667,23 +674,34 @@ def compare_variants(encoder: VoiceEncoder, names: list[str], speakers: list[str
         print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
 
 
-# reverberant noisy copies of clean enrolment utterances: rooms unlike the test room (RT60 0.4 s,
-# 6×5×3 m, 1.5 m, kitchen noise at 10 dB): (RT60 s, room m, distance m, pink noise SNR dB)
-ROOM_COPIES = ((0.3, (4.0, 5.0, 2.8), 1.0, 20.0), (0.6, (7.0, 6.0, 3.0), 2.0, 5.0))
-MORE_COPIES = (*ROOM_COPIES, (0.5, (5.0, 4.0, 2.7), 1.2, 10.0), (0.8, (8.0, 7.0, 3.2), 2.5, 0.0))
+# reverberant noisy copies of clean enrolment utterances (esiaf/speech/speaker/augment.py ROOMS): rooms
+# unlike the test room (RT60 0.4 s, 6×5×3 m, 1.5 m, kitchen noise at 10 dB), pink noise; the WAV
+# enrolment's default is the first 2
+ROOM_COPIES = 2
+MORE_COPIES = 4
+
+
+def room_enrolments(models: list[str], names: list[str], speakers: list[str], neutral: list[bool],
+                    clips: list[np.ndarray], embedded: dict[str, dict[str, np.ndarray]], weight: float) -> None:
+    """clean_enrolment_in_room for each model but fused (``embedded``: condition → model → embeddings)."""
+    from esiaf.speech.speaker.encoders import shared_encoder
+    for model in (m for m in models if m != "fused"):
+        print(f"[{model}] room trials, enrolment clean or in the room (mean_weight {weight:g})", flush=True)
+        clean_enrolment_in_room(shared_encoder(model), names, speakers, neutral, clips, embedded["clean"][model],
+                                embedded["room"][model], lambda voices: VoiceBook(voices, mean_weight=weight))
 
 
 def clean_enrolment_in_room(encoder: Encoder, names: list[str], speakers: list[str], neutral: list[bool],
                             clips: list[np.ndarray], clean: np.ndarray, room: np.ndarray,
                             book: Callable[[dict[str, np.ndarray]], VoiceBook] = VoiceBook) -> None:
     """Room trials against a clean enrolment (as a WAV enrolment would be), without and with
-    reverberant noisy copies of each enrolment utterance (esiaf_services/voiceid/augment.py): the 2 of
-    ROOM_COPIES, the 4 of MORE_COPIES (multi-condition enrolment)."""
-    from esiaf_services.voiceid.augment import reverberant
+    reverberant noisy copies of each enrolment utterance (esiaf/speech/speaker/augment.py room_copies, as
+    the orchestrator's WAV enrolment makes them): the first ROOM_COPIES, MORE_COPIES (multi-condition
+    enrolment)."""
+    from esiaf.speech.speaker.augment import room_copies
     enrolled = sorted(i for idx in enrolment(speakers, neutral).values() for i in idx)
-    more = {i: np.stack([encoder.embed(reverberant(clips[i], *copy, seed=n)) for n, copy in enumerate(MORE_COPIES)])
-            for i in enrolled}
-    copies = {i: e[:len(ROOM_COPIES)] for i, e in more.items()}
+    more = {i: np.stack([encoder.embed(copy) for copy in room_copies(clips[i], MORE_COPIES)]) for i in enrolled}
+    copies = {i: e[:ROOM_COPIES] for i, e in more.items()}
     calm = [i for i, n in enumerate(neutral) if n]
     position = {i: n for n, i in enumerate(calm)}
     print("| room trials | closed, all | EER, all (threshold) | closed, neutral | EER, neutral (threshold) |")
@@ -701,6 +719,126 @@ def clean_enrolment_in_room(encoder: Encoder, names: list[str], speakers: list[s
             cells.append(f"{100 * figures['closed_accuracy']:.1f} %")
             cells.append(f"{100 * figures['open_eer']:.1f} % ({figures['open_eer_threshold']:.2f})")
         print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
+    from esiaf.speech.speaker.encoders import threshold
+    at = threshold(encoder.name, book({}).mean_weight)
+    print(f"| clean trials | closed, all | EER, all (threshold) | closed, neutral | EER, neutral (threshold) | "
+          f"names at the voiceid's threshold {at:g}, right / wrong: all | neutral |")
+    print("|---|---|---|---|---|---|---|")
+    enrol = enrolment(speakers, neutral)
+    trials = [i for i in range(len(names)) if i not in enrolled]
+    for name, extra in (("clean enrolment", None), ("clean enrolment + 2 reverberant noisy copies", copies),
+                        ("clean enrolment + 4 reverberant noisy copies", more)):
+        cells = []
+        whole = evaluate(names, speakers, neutral, clean, book, extra=extra)
+        only = evaluate([names[i] for i in calm], [speakers[i] for i in calm], [True] * len(calm), clean[calm], book,
+                        extra=extra and {position[i]: e for i, e in extra.items() if i in position})
+        for figures in (whole, only):
+            cells.append(f"{100 * figures['closed_accuracy']:.1f} %")
+            cells.append(f"{100 * figures['open_eer']:.1f} % ({figures['open_eer_threshold']:.2f})")
+        voices = book({s: np.concatenate([clean[idx]] + ([extra[i] for i in idx] if extra else []))
+                       for s, idx in enrol.items()})
+        for subset in (trials, [i for i in trials if neutral[i]]):
+            given = [voices.identify(clean[i], at).label for i in subset]
+            right = sum(g == speakers[i] for g, i in zip(given, subset, strict=True))
+            wrong = sum(bool(g) and g != speakers[i] for g, i in zip(given, subset, strict=True))
+            cells.append(f"{100 * right / len(subset):.1f} / {100 * wrong / len(subset):.1f} %")
+        print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
+
+
+QUALITY_SNRS_DB = (-30.0, 0.0, 3.0, 5.0, 8.0, 10.0, 12.0, 15.0)  # the gate's SNRs compared (-30: the span alone)
+QUALITY_SPEECH_S = (0.0, 0.3, 0.5, 0.8)  # ... and its shortest speech spans
+MIXED_SNRS_DB = (0.0, 5.0, 10.0, 15.0, 20.0)
+# the gate is calibrated for the most right names less WRONG_NAME_COST × the wrong ones: a robot that greets the
+# wrong person by name is worse than one that greets nobody (issue 31); the table shows cost 1 too
+WRONG_NAME_COST = 2  # the room with the n-th utterance's noise at the (n % 5)-th of these
+
+
+def quality_gates(models: list[str], speakers: list[str], neutral: list[bool], clips: list[np.ndarray],
+                  weight: float, calibration: list[tuple[str, np.ndarray]]) -> None:
+    """quality_gate for each model but fused, at the voiceid's default threshold for ``weight``."""
+    from esiaf.speech.speaker.encoders import shared_encoder, threshold
+    for model in (m for m in models if m != "fused"):
+        quality_gate(shared_encoder(model), speakers, neutral, clips, threshold(model, weight), weight, calibration)
+
+
+def quality_gate(encoder: Encoder, speakers: list[str], neutral: list[bool], clips: list[np.ndarray],
+                 threshold: float, weight: float, calibration: list[tuple[str, np.ndarray]]) -> None:
+    """The voiceid's quality gate (quality.voice_problem) at each SNR of QUALITY_SNRS_DB and speech span of
+    QUALITY_SPEECH_S. Each voice is enrolled from its 3 clean utterances and their ROOM_COPIES room copies
+    (as a WAV enrolment is); every other utterance is identified, clean, in the room at 10 dB and in the
+    room at MIXED_SNRS_DB. Calibrated on the calibration voices (ARCTIC, flite: the same trials, each
+    speaker from its first 3 clips): the gate that gives most right names less WRONG_NAME_COST × the
+    wrong ones (and, shown beside it, 1 ×), the loosest of equals; the first gate (-30 dB, 0 s) is none.
+    On EmoDB: closed-set accuracy (a gated trial counts as wrong), and at the voiceid's threshold names
+    right / wrong / unknown (of them for quality)."""
+    from esiaf.speech.speaker.augment import room_copies
+    from esiaf.speech.speaker.quality import measure, voice_problem
+    from esiaf_services.voiceid.service import VoiceIdSettings
+    default_speech = VoiceIdSettings.model_fields["quality_min_speech_s"].default
+    default_snr = VoiceIdSettings.model_fields["quality_min_snr_db"].default
+    gates = [(snr, speech) for snr in QUALITY_SNRS_DB for speech in QUALITY_SPEECH_S]
+
+    Trials = tuple[list[int], list, list]  # trial indices, their matches, their qualities
+
+    def trials_of(who: list[str], audio: list[np.ndarray], enrol: dict[str, list[int]]) -> dict[str, Trials]:
+        """Per condition: (trial indices, matches, qualities)."""
+        enrolled = {i for idx in enrol.values() for i in idx}
+        copies = {i: [encoder.embed(c) for c in room_copies(audio[i], ROOM_COPIES)] for i in enrolled}
+        embedded = {i: encoder.embed(audio[i]) for i in enrolled}
+        book = VoiceBook({s: np.stack([embedded[i] for i in idx] + [e for i in idx for e in copies[i]])
+                          for s, idx in enrol.items()}, mean_weight=weight)
+        trials = [i for i in range(len(who)) if i not in enrolled]
+        out = {}
+        said = [audio[i] for i in trials]
+        for cond, heard in (("clean", said), ("room 10 dB", through_room(said)),
+                            ("room 0-20 dB", through_room(said, MIXED_SNRS_DB))):
+            out[cond] = (trials, [book.identify(encoder.embed(c), threshold) for c in heard],
+                         [measure(c) for c in heard])
+        return out
+
+    def tally(who: list[str], run: Trials, gate: tuple[float, float]) -> tuple[int, int, int, int, int]:
+        """Closed-set right, names right, names wrong, gated, trials."""
+        trials, matches, qualities = run
+        gated = [voice_problem(q, *gate) is not None for q in qualities]
+        best = [max(m.scores, key=m.scores.__getitem__) for m in matches]
+        closed = sum(not g and b == who[i] for g, b, i in zip(gated, best, trials, strict=True))
+        given = ["" if g else m.label for g, m in zip(gated, matches, strict=True)]
+        right = sum(g == who[i] for g, i in zip(given, trials, strict=True))
+        wrong = sum(bool(g) and g != who[i] for g, i in zip(given, trials, strict=True))
+        return closed, right, wrong, sum(gated), len(trials)
+
+    cal_who = [s for s, _ in calibration]
+    cal_enrol = {s: [i for i, w in enumerate(cal_who) if w == s][:ENROL_UTTERANCES] for s in sorted(set(cal_who))}
+    cal = trials_of(cal_who, [c for _, c in calibration], cal_enrol)
+    def names(gate: tuple[float, float]) -> tuple[int, int]:  # the calibration's right and wrong names
+        counts = [tally(cal_who, cal[c], gate)[1:3] for c in cal]
+        return sum(r for r, _ in counts), sum(w for _, w in counts)
+
+    chosen = {}
+    for cost in (1, WRONG_NAME_COST):
+        def worth(gate: tuple[float, float], cost: int = cost) -> tuple[float, float, float]:
+            right, wrong = names(gate)
+            return right - cost * wrong, -gate[0], -gate[1]  # equals: the loosest
+        chosen[cost] = max(gates, key=worth)
+        print(f"[{encoder.name}] quality gate calibrated on ARCTIC + flite ({sum(len(t[0]) for t in cal.values())} "
+              f"trials, clean, room 10 dB, room 0-20 dB), a wrong name costing {cost} right one(s): "
+              f"SNR ≥ {chosen[cost][0]:g} dB, speech ≥ {chosen[cost][1]:g} s (the voiceid's default: "
+              f"{default_snr:g} dB, {default_speech:g} s)", flush=True)
+    emodb = trials_of(speakers, clips, enrolment(speakers, neutral))
+    print("| gate: SNR, speech span | calibration: right / wrong names | " + " | ".join(
+        f"{c}: closed set | {c}: right / wrong / unknown (gated)" for c in emodb) + " |")
+    print("|---|---|" + "---|---|" * len(emodb))
+    for gate in gates:
+        cells = ["{} / {}".format(*names(gate))]
+        for cond in emodb:
+            closed, right, wrong, gated, n = tally(speakers, emodb[cond], gate)
+            cells.append(f"{100 * closed / n:.1f} %")
+            cells.append(f"{100 * right / n:.1f} % / {100 * wrong / n:.1f} % / {100 * (n - right - wrong) / n:.1f} % "
+                         f"({100 * gated / n:.1f} %)")
+        label = f"≥ {gate[0]:g} dB, ≥ {gate[1]:g} s" + (" (none)" if gate == gates[0] else "") + (
+            " (default)" if gate == (default_snr, default_speech) else "") + "".join(
+            f" (best at cost {cost})" for cost, best in chosen.items() if gate == best)
+        print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
 
 
 def _unit(x: np.ndarray) -> np.ndarray:

@@ -63,6 +63,8 @@ def test_hostile_wavs_and_names_are_4xx_with_the_reason_and_cost_no_memory(orche
         "a name of 10,001 characters": (enrol_wav(running, "x" * 10_001, wav(speech, rate)), 422, "at most 200"),
         "a name with a terminal escape": (
             enrol_wav(running, "Eve\x1b[2K\rAnna", wav(speech, rate)), 422, "control character"),
+        "the voiceid's label for a segment it cannot tell": (enrol_wav(running, "unknown", wav(speech, rate)), 422,
+                                                              "cannot tell"),
     }
     for what, (reply, status, reason) in cases.items():
         assert reply.status_code == status and reason in reply.json()["detail"], (what, reply.status_code, reply.text)

@@ -212,7 +212,7 @@ class SslResult(_message.Message):
     def __init__(self, directions: _Optional[_Iterable[_Union[SslDirection, _Mapping]]] = ..., algorithm: _Optional[str] = ..., level_db: _Optional[float] = ...) -> None: ...
 
 class LabelResult(_message.Message):
-    __slots__ = ("label", "probability", "class_probabilities", "embedding")
+    __slots__ = ("label", "probability", "class_probabilities", "embedding", "quality")
     class ClassProbabilitiesEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -224,11 +224,23 @@ class LabelResult(_message.Message):
     PROBABILITY_FIELD_NUMBER: _ClassVar[int]
     CLASS_PROBABILITIES_FIELD_NUMBER: _ClassVar[int]
     EMBEDDING_FIELD_NUMBER: _ClassVar[int]
+    QUALITY_FIELD_NUMBER: _ClassVar[int]
     label: str
     probability: float
     class_probabilities: _containers.ScalarMap[str, float]
     embedding: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, label: _Optional[str] = ..., probability: _Optional[float] = ..., class_probabilities: _Optional[_Mapping[str, float]] = ..., embedding: _Optional[_Iterable[float]] = ...) -> None: ...
+    quality: UtteranceQuality
+    def __init__(self, label: _Optional[str] = ..., probability: _Optional[float] = ..., class_probabilities: _Optional[_Mapping[str, float]] = ..., embedding: _Optional[_Iterable[float]] = ..., quality: _Optional[_Union[UtteranceQuality, _Mapping]] = ...) -> None: ...
+
+class UtteranceQuality(_message.Message):
+    __slots__ = ("snr_db", "speech_s", "reason")
+    SNR_DB_FIELD_NUMBER: _ClassVar[int]
+    SPEECH_S_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    snr_db: float
+    speech_s: float
+    reason: str
+    def __init__(self, snr_db: _Optional[float] = ..., speech_s: _Optional[float] = ..., reason: _Optional[str] = ...) -> None: ...
 
 class NoResult(_message.Message):
     __slots__ = ("reason",)

@@ -41,8 +41,8 @@ def format_line(fused: dict[str, Any], origin_ns: int) -> str:
     for kind in LABELS:  # how, and who: the top label of the fused distribution and its share
         if aggregates.get(kind):
             label, share = aggregates[kind]["label"], f" ({aggregates[kind]['probability']:.2f})"
-            if kind == "voice_id":  # "by Anna (0.91)"; an anonymous voice has no probability to show
-                what += f" by {label}" + ("" if label.startswith("voice-") else share)
+            if kind == "voice_id":  # "by Anna (0.91)"; an anonymous or unknown voice has no probability to show
+                what += f" by {label}" + ("" if label.startswith("voice-") or label == "unknown" else share)
             else:
                 what += f", {label}{share}"
             shown.add(kind)

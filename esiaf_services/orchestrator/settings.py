@@ -111,6 +111,11 @@ class OrchestratorSettings(StrictModel):
         default_factory=lambda: [FusionSettings(name="speech", anchor="speech",
                                                 fuse=["ssl", "emotion", "gender", "voice_id"])])
     timeouts: TimeoutSettings = Field(default_factory=TimeoutSettings)
+    # a WAV enrolment (POST /voices/{name}) also enrols this many reverberant noisy copies of the WAV
+    # (esiaf/speech/speaker/augment.py ROOMS, source "wav-room"), so a voice enrolled clean is known across a
+    # room (bench/voiceid.py --room-enrolment, d-vector: 35.4 % clean only, 43.8 % with 2, 42.0 % with 4);
+    # 0: the clean embedding alone
+    enrolment_room_copies: int = Field(default=2, ge=0, le=4)
     log_level: str = "INFO"
     max_body_bytes: int = Field(default=1024 * 1024, gt=0)  # HTTP request bodies larger than this get 413
     # an HTTP request (headers and body) must have come whole this long after its first byte, or its

@@ -19,6 +19,10 @@ loud enough (``learn_min_dbfs``) and not overlapping the robot's own playback (t
 ``playback_topic`` is a second input: :meth:`VoiceId.overlaps_playback`) is posted to the
 orchestrator (``POST /voices/{name}/learnt``, from a thread of its own: the data thread never waits
 for HTTP), which keeps it as a ``learnt`` embedding of that voice.
+
+**Quality**: each result carries the segment's ``quality`` (``quality.measure``: its power over its
+noise floor, its speech span); a segment under ``quality_min_snr_db`` (or ``quality_min_speech_s``)
+is labelled ``unknown`` with the reason, and is not embedded, named, given an anonymous voice or learnt.
 """
 from __future__ import annotations
 
@@ -45,9 +49,11 @@ from esiaf.speech.speaker.encoders import (
     threshold,
 )
 from esiaf.speech.speaker.ge2e import EncoderError
+from esiaf.speech.speaker.quality import measure, voice_problem
 from esiaf_services.voiceid.scoring import AnonymousVoices, LearningRule, VoiceBook, probability
 
 log = logging.getLogger(__name__)
+UNKNOWN = "unknown"  # the label of an utterance whose quality is under the gate: no voice told
 
 
 class VoiceIdSettings(ClassifierSettings):
@@ -73,6 +79,14 @@ class VoiceIdSettings(ClassifierSettings):
                                 "whose capture span overlaps what it played is never learnt; empty: not heard")
     playback_tail_ms: float = Field(300.0, ge=0, description="after each played chunk, this long still counts "
                                     "as playback (the echo's delay and the room's reverberation)")
+    quality_min_snr_db: float = Field(3.0, description="an utterance whose power is less than this over its "
+                                      "noise floor (quality.measure's overall_snr_db, from its samples) is "
+                                      "'unknown', with the reason, never a name nor an anonymous voice; calibrated "
+                                      "on ARCTIC and flite voices in noisy rooms (bench/voiceid.py --quality); -30: "
+                                      "never")
+    quality_min_speech_s: float = Field(0.0, ge=0, description="... and one with less speech than this, first to "
+                                        "last frame 15 dB over the floor; 0 (calibrated: any span cost more right "
+                                        "names than wrong ones): not checked")
     top_k: int = 3  # a voice's score: mean of its top_k best enrolled embeddings
     mean_weight: float = Field(0.5, ge=0, le=1, description="a voice's score: (1 - w) × its top_k score over its "
                                "enrolled embeddings + w × the cosine to the mean of all of them, enrolled and "
@@ -206,11 +220,25 @@ class VoiceId(UtteranceAnalyser):
         return (samples.size * 1000 / utterance.rate >= s.learn_min_speech_ms
                 and 20 * np.log10(max(rms, 1e-10)) >= s.learn_min_dbfs)
 
+    def judge_quality(self, utterance: Utterance) -> dict:
+        """The utterance's quality (quality.measure: estimated SNR, speech span) and, where it is under
+        ``quality_min_snr_db`` or ``quality_min_speech_s``, the reason (quality.voice_problem); else ''."""
+        s = self.settings
+        measured = measure(utterance.samples)
+        reason = voice_problem(measured, s.quality_min_snr_db, s.quality_min_speech_s) or ""
+        return {"snr_db": round(measured.overall_snr_db, 2), "speech_s": round(measured.speech_s, 3),
+                "reason": reason}
+
     def analyse(self, utterance: Utterance) -> dict:
         stream_id = utterance.stream_id
         assert self.encoder is not None  # setup() loads it
-        embedding = self.encoder.embed(utterance.samples)
         s = self.settings
+        quality = self.judge_quality(utterance)
+        if quality["reason"]:  # no name, no anonymous voice, nothing learnt, no embedding to enrol a span from
+            self.info["unknown_for_quality"] = self.info.get("unknown_for_quality", 0) + 1
+            log.info("segment stream_id=%s voice=unknown reason=%r", stream_id, quality["reason"])
+            return {"label": UNKNOWN, "probability": 1.0, "class_probabilities": {}, "quality": quality}
+        embedding = self.encoder.embed(utterance.samples)
         match = self.book.identify(embedding, self.threshold)
         label, p = match.label, match.probability
         if label and self.learnable(utterance, match.scores):
@@ -228,4 +256,4 @@ class VoiceId(UtteranceAnalyser):
         best = sorted(match.scores.items(), key=lambda item: -item[1])[:s.scores_reported]
         return {"label": label, "probability": p,
                 "class_probabilities": {name: min(1.0, max(0.0, score)) for name, score in best},
-                "embedding": embedding.tolist()}
+                "embedding": embedding.tolist(), "quality": quality}

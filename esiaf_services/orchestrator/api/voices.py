@@ -16,7 +16,12 @@ or not a voiceid runs), from a past utterance (JSON ``{"stream", "start_ns", "en
 embeddings of the stored ``voice_id`` results overlapping that span), or from an anonymous voice
 (JSON ``{"stream", "anonymous": "voice-2"}``: every stored result of that stream with that label);
 the JSON forms take ``"encoder"``, the voiceid's model that made those results (default
-``DEFAULT_MODEL``; a 512-float embedding is ``fused``'s).
+``DEFAULT_MODEL``; a 512-float embedding is ``fused``'s). A WAV is also enrolled as
+``enrolment_room_copies`` (default 2) reverberant noisy copies of itself, each in a simulated room
+(``esiaf/speech/speaker/augment.py`` room_copies; source ``wav-room``, beside the clean one's
+``wav``), so a voice enrolled from a clean recording is known across a room; the voiceid scores
+them as it scores every enrolled embedding. Without pyroomacoustics the clean one alone is enrolled
+(said once in the log, and ``room_copies`` 0 in the answer).
 
 ``POST /voices/{name}/learnt`` is the voiceid's: an embedding of an utterance it identified as that
 voice with a margin (``{"encoder", "embedding"}``), kept as ``learnt`` (bounded per voice; never
@@ -27,6 +32,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import time
 from typing import Annotated, Literal
 
 import numpy as np
@@ -104,7 +110,7 @@ def get_voices(request: Request, core: Orchestrator = Depends(get_core)) -> Voic
 
 def check_name(name: str) -> str:
     """A voice's name: the one rule for names ESIAF prints (esiaf/printable.py), no '/' or surrounding
-    spaces, not an anonymous voice's ``voice-N``."""
+    spaces, not an anonymous voice's ``voice-N`` nor ``unknown``."""
     problem = name_problem(name)
     if problem is not None:
         raise HTTPException(422, f"bad voice name {printable(name[:80])!r}: it {problem}")
@@ -112,6 +118,8 @@ def check_name(name: str) -> str:
         raise HTTPException(422, f"bad voice name {printable(name)!r}: it must be without '/' or surrounding spaces")
     if name.startswith("voice-"):
         raise HTTPException(422, f"bad voice name {printable(name)!r}: voice-N names are for anonymous voices")
+    if name == "unknown":
+        raise HTTPException(422, "bad voice name 'unknown': it is the voiceid's label for a segment it cannot tell")
     return name
 
 
@@ -194,7 +202,7 @@ async def enrol_voice(name: str, request: Request, core: Orchestrator = Depends(
         if upload is None or isinstance(upload, str):
             raise HTTPException(422, "no audio: send the WAV file as multipart field 'audio'")
         data = await upload.read()
-        by_encoder = await asyncio.to_thread(embed_wav, data)
+        by_encoder, copies = await asyncio.to_thread(embed_wav, data, core.settings.enrolment_room_copies)
         source = "wav"
     elif kind.startswith("application/json"):
         try:
@@ -204,13 +212,14 @@ async def enrol_voice(name: str, request: Request, core: Orchestrator = Depends(
                                      "start_ns <= end_ns) or {\"stream\", \"anonymous\"}: "
                                      + "; ".join(e["msg"] for e in exc.errors()[:3])) from None
         embeddings, source = stored_embeddings(core, body)
-        by_encoder = {encoder_of(body, embeddings): embeddings}
+        by_encoder, copies = {encoder_of(body, embeddings): embeddings}, {}
     else:
         raise HTTPException(415, "no audio: send multipart field 'audio' (a WAV) or JSON {stream, start_ns, end_ns}")
     dropped = 0
     try:
         for encoder, embeddings in by_encoder.items():
-            dropped = max(dropped, await asyncio.to_thread(table.add, name, embeddings, source, encoder))
+            dropped = max(dropped, await asyncio.to_thread(table.add, name, embeddings, source, encoder,
+                                                           False, copies.get(encoder, [])))
     except VoiceLimit as exc:
         raise HTTPException(409, str(exc)) from None
     except ValueError as exc:  # stored embeddings of an older orchestrator, taken unchecked
@@ -218,7 +227,8 @@ async def enrol_voice(name: str, request: Request, core: Orchestrator = Depends(
     finally:
         table.notify()
     return {"name": name, "added": len(next(iter(by_encoder.values()))), "source": source,
-            "encoders": list(by_encoder), "dropped_oldest": dropped}
+            "room_copies": len(next(iter(copies.values()), [])), "encoders": list(by_encoder),
+            "dropped_oldest": dropped}
 
 
 def encoder_of(body: SpanEnrolment | AnonymousEnrolment, embeddings: list[np.ndarray]) -> str:
@@ -232,8 +242,10 @@ def encoder_of(body: SpanEnrolment | AnonymousEnrolment, embeddings: list[np.nda
     return encoder
 
 
-def embed_wav(data: bytes) -> dict[str, list[np.ndarray]]:
-    """The WAV's embedding by every encoder that loads here (fused when both do); 422 without enough speech."""
+def embed_wav(data: bytes, room_copies: int = 0) -> tuple[dict[str, list[np.ndarray]], dict[str, list[np.ndarray]]]:
+    """The WAV's embedding by every encoder that loads here (fused when both do), and each encoder's
+    embeddings of ``room_copies`` reverberant noisy copies of it (augment.room_copies; none without
+    pyroomacoustics); 422 without enough speech. CPU work: run it off the event loop."""
     from esiaf.speech.speaker.encoders import fuse, shared_encoder
     from esiaf.speech.speaker.ge2e import EncoderError
     from esiaf.speech.speaker.quality import problem as speech_problem
@@ -245,10 +257,13 @@ def embed_wav(data: bytes) -> dict[str, list[np.ndarray]]:
     problem = speech_problem(samples, MIN_ENROL_SPEECH_S)
     if problem is not None:
         raise HTTPException(422, f"audio has no speech to enrol: {problem}")
+    started = time.process_time()
+    variants = [samples, *copies_of(samples, room_copies)]
     out: dict[str, list[np.ndarray]] = {}
     for model in ("ge2e", "dvector"):
         try:
-            out[model] = [shared_encoder(model).embed(samples)]
+            encoder = shared_encoder(model)
+            out[model] = [encoder.embed(variant) for variant in variants]
         except EncoderError as exc:
             if model not in _unloadable:
                 _unloadable.add(model)
@@ -256,11 +271,29 @@ def embed_wav(data: bytes) -> dict[str, list[np.ndarray]]:
     if not out:
         raise HTTPException(503, "no speaker encoder loads in the orchestrator: " + ", ".join(sorted(_unloadable)))
     if len(out) == 2:
-        out["fused"] = [fuse(out["ge2e"][0], out["dvector"][0])]
-    return out
+        out["fused"] = [fuse(a, b) for a, b in zip(out["ge2e"], out["dvector"], strict=True)]
+    log.info("enrolment embedded duration_s=%.2f room_copies=%d encoders=%s cpu_s=%.2f", samples.size /
+             ENCODER_RATE_HZ, len(variants) - 1, ",".join(out), time.process_time() - started)
+    return {model: e[:1] for model, e in out.items()}, {model: e[1:] for model, e in out.items()}
+
+
+def copies_of(samples: np.ndarray, count: int) -> list[np.ndarray]:
+    """``count`` room copies of the WAV's samples; none (said once in the log) without pyroomacoustics."""
+    if count == 0:
+        return []
+    try:
+        from esiaf.speech.speaker.augment import room_copies
+        return room_copies(samples, count)
+    except ImportError as exc:
+        if not _no_rooms:
+            _no_rooms.append(str(exc))
+            log.error("WAV enrolment without room copies (enrolment_room_copies %d): %s; pip install "
+                      "'esiaf[orchestrator]' installs pyroomacoustics", count, exc)
+        return []
 
 
 _unloadable: set[str] = set()  # encoders that failed to load here: said once in the log
+_no_rooms: list[str] = []  # why room copies cannot be made here, once said in the log
 
 
 def stored_embeddings(core: Orchestrator, body: SpanEnrolment | AnonymousEnrolment) -> tuple[list[np.ndarray], str]:

@@ -93,8 +93,9 @@ def label_aggregate(results: Iterable[dict[str, Any]], type_name: str,
             continue  # a generic result with a value but no label
         classes = payload.get("class_probabilities") or {payload["label"]: 1.0}
         if type_name == "voice_id":  # its class_probabilities are every enrolled voice's cosine score
-            classes = {payload["label"]: payload.get("probability", 1.0),
-                       "unknown": 1.0 - payload.get("probability", 1.0)}
+            p = payload.get("probability", 1.0)
+            classes = {payload["label"]: p}  # "unknown" itself for a segment under the voiceid's quality gate
+            classes["unknown"] = classes.get("unknown", 0.0) + 1.0 - p
         norm = sum(classes.values())
         if norm <= 0:
             continue

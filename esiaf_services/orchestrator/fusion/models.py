@@ -75,12 +75,22 @@ class SslPayload(BaseModel):
     level_db: float = Field(default=0.0, description="the frame's level, 96 dB = full-scale RMS")
 
 
+class UtteranceQuality(BaseModel):
+    """voice_id only: the voiceid's estimate of how fit the segment was to tell a voice by."""
+    snr_db: float = Field(description="mean level of its speech frames over its noise floor")
+    speech_s: float = Field(description="its first frame of speech to the last")
+    reason: str = Field(description="why it is under the voiceid's gate (the label is then 'unknown'); "
+                                    "empty: it is not")
+
+
 class LabelPayload(BaseModel):
     label: str
     probability: float
     class_probabilities: dict[str, float]
     embedding: list[float] = Field(default_factory=list, description="voice_id only: the segment's speaker "
                                    "embedding (unit length), from which a voice can be enrolled")
+    quality: UtteranceQuality | None = Field(None, description="voice_id only (all zero for other kinds): the "
+                                             "segment's quality; with a reason, the label is 'unknown'")
 
 
 class NoResultPayload(BaseModel):

@@ -4,10 +4,10 @@ the event long polls of ``GET /voices`` wait on for a change (api/voices.py).
 
 Each embedding row says which encoder made it (``encoder``: ge2e, dvector or fused; a file from
 before the column gets it with ``ALTER TABLE``, every older row ``ge2e``, the only encoder then)
-and where it came from (``source``: wav, span, anonymous, or ``learnt``: posted by a voiceid for
-an utterance it identified confidently). Per voice and encoder, the newest MAX_EMBEDDINGS_PER_VOICE
-enrolled and the newest MAX_LEARNT_PER_VOICE learnt are kept: learning never pushes out an
-enrolled embedding."""
+and where it came from (``source``: wav, ``wav-room``: a reverberant noisy copy of an enrolled WAV,
+span, anonymous, or ``learnt``: posted by a voiceid for an utterance it identified confidently).
+Per voice and encoder, the newest MAX_EMBEDDINGS_PER_VOICE enrolled and the newest
+MAX_LEARNT_PER_VOICE learnt are kept: learning never pushes out an enrolled embedding."""
 from __future__ import annotations
 
 import asyncio
@@ -22,6 +22,7 @@ MAX_VOICES = 1_000  # enrolled names: a voiceid's result names at most its best 
 MAX_EMBEDDINGS_PER_VOICE = 200  # the oldest of a voice's enrolled embeddings (per encoder) are dropped beyond this
 MAX_LEARNT_PER_VOICE = 50  # the oldest of a voice's learnt embeddings (per encoder) are dropped beyond this
 LEARNT = "learnt"
+ROOM_COPY = "wav-room"  # a WAV enrolment's copy through a simulated room (enrolled, as the WAV itself)
 LEGACY_ENCODER = "ge2e"  # every embedding stored before the encoder column was GE2E's
 
 
@@ -71,12 +72,14 @@ class VoiceTable:
         changed.set()
 
     def add(self, name: str, embeddings: list[np.ndarray], source: str, encoder: str = LEGACY_ENCODER,
-            existing_only: bool = False) -> int:
+            existing_only: bool = False, room_copies: list[np.ndarray] | None = None) -> int:
         """Adds ``embeddings`` of ``encoder`` (finite: a ValueError if not) to the voice ``name``, a new one
         only while there are fewer than MAX_VOICES (VoiceLimit) and not with ``existing_only`` (then
-        KeyError); keeps its newest MAX_EMBEDDINGS_PER_VOICE enrolled and MAX_LEARNT_PER_VOICE learnt
+        KeyError), and in the same transaction ``room_copies``, the embeddings of a WAV's copies (source
+        ROOM_COPY); keeps its newest MAX_EMBEDDINGS_PER_VOICE enrolled and MAX_LEARNT_PER_VOICE learnt
         embeddings of that encoder and returns how many older ones of that source were dropped."""
-        if any(not np.isfinite(e).all() for e in embeddings):
+        rows = [(e, source) for e in embeddings] + [(e, ROOM_COPY) for e in room_copies or []]
+        if any(not np.isfinite(e).all() for e, _ in rows):
             raise ValueError("an embedding holds NaN or infinity")
         learnt = source == LEARNT
         with self._lock, self._db:  # one transaction: the voices and their generation
@@ -91,7 +94,7 @@ class VoiceTable:
                                      f"delete one first")
             self._db.executemany(
                 "INSERT INTO voices (name, embedding, source, added_ns, encoder) VALUES (?, ?, ?, ?, ?)",
-                [(name, np.asarray(e, "<f4").tobytes(), source, time.time_ns(), encoder) for e in embeddings])
+                [(name, np.asarray(e, "<f4").tobytes(), made, time.time_ns(), encoder) for e, made in rows])
             kind = "source = ?" if learnt else "source != ?"
             dropped = self._db.execute(
                 f"DELETE FROM voices WHERE name = ? AND encoder = ? AND {kind} AND id NOT IN "
@@ -130,8 +133,8 @@ class VoiceTable:
         its enrolled and learnt counts (``encoders``: every encoder's, whatever ``encoder`` says); with
         ``encoder``, only that encoder's embeddings are counted (a voice with none of them is still
         listed, with count 0), without it the most any one encoder has (a WAV embedded by each encoder
-        counts once); with ``embeddings``, they too, and ``embedding_sources``: each one's source (wav, span,
-        anonymous, learnt), in the same order."""
+        counts once); with ``embeddings``, they too, and ``embedding_sources``: each one's source (wav,
+        wav-room, span, anonymous, learnt), in the same order."""
         voices: dict[str, dict] = {}
         with self._lock:  # the sync routes run in a thread pool: one statement at a time
             rows = self._db.execute("SELECT name, embedding, source, encoder FROM voices ORDER BY id").fetchall()

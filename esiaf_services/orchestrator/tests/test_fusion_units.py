@@ -93,6 +93,17 @@ def test_label_aggregate_is_an_overlap_weighted_distribution():
     assert aggregate["label"] == "happy" and list(aggregate["distribution"]) == ["happy", "sad"]
 
 
+def test_a_voice_id_counts_as_its_label_and_the_rest_unknown_and_an_unknown_one_as_unknown():
+    named = {"span": {"start_ns": 0, "end_ns": 1 * S},
+             "voice_id": {"label": "Anna", "probability": 0.8, "class_probabilities": {"Anna": 0.9, "Ben": 0.7}}}
+    gated = {"span": {"start_ns": 1 * S, "end_ns": 2 * S},  # under the voiceid's quality gate
+             "voice_id": {"label": "unknown", "probability": 1.0, "class_probabilities": {},
+                          "quality": {"snr_db": 3.0, "speech_s": 0.9, "reason": "speech 3 dB over the noise"}}}
+    aggregate = label_aggregate([named, gated], "voice_id", (0, 2 * S))
+    assert aggregate["distribution"] == {"unknown": pytest.approx(0.6), "Anna": pytest.approx(0.4)}
+    assert label_aggregate([gated], "voice_id", (0, 2 * S))["distribution"] == {"unknown": pytest.approx(1.0)}
+
+
 def test_timeouts_are_factor_times_running_mean_clamped_with_an_initial_value():
     latencies = Latencies(TimeoutSettings(factor=1.5, factors={"slow": 3.0}, initial_s=2.0,
                                           min_s=0.1, max_s=1.0, deviations=0))

@@ -20,6 +20,7 @@ PAIRS = {
     pb.SslDirection: "SslDirection",
     pb.SslResult: "SslPayload",
     pb.LabelResult: "LabelPayload",
+    pb.UtteranceQuality: "UtteranceQuality",
     pb.NoResult: "NoResultPayload",
 }
 # Result's own fields that the JSON gives under another name or shape (codec.result_to_json)
@@ -71,6 +72,7 @@ def test_what_the_codec_sends_is_what_is_documented(schemas, payload):
         label.label, label.probability = "x", 0.5
         label.class_probabilities["x"] = 0.5
         label.embedding.extend([0.1, 0.2])
+        label.quality.snr_db, label.quality.speech_s, label.quality.reason = 4.0, 0.5, "noise"
     sent = result_to_json(result, 1, 3)
 
     def check(value, schema_name: str, where: str) -> None:

@@ -15,10 +15,12 @@ from scipy.io import wavfile
 
 from esiaf import AudioFormat, Component, ComponentSettings
 from esiaf.tools.testing import Orchestrator, poll, shared_data
+from esiaf_services.orchestrator.settings import OrchestratorSettings
 from esiaf_services.orchestrator.store.voices import MAX_LEARNT_PER_VOICE
 from esiaf_services.voiceid.service import VoiceId, VoiceIdSettings
 
 AEW = "speech/cmu_arctic/cmu_arctic_us_aew_a000{}.wav"
+COPIES = OrchestratorSettings().enrolment_room_copies  # a WAV's room copies, enrolled beside it
 
 
 @pytest.fixture
@@ -47,16 +49,37 @@ def voice(orchestrator: Orchestrator, name: str) -> dict:
     return next(v for v in orchestrator.http.get("/voices").json()["voices"] if v["name"] == name)
 
 
-def test_a_wav_is_enrolled_for_every_encoder_and_each_voiceid_gets_only_its_own(running):
+def test_a_wav_is_enrolled_for_every_encoder_with_its_room_copies_and_each_voiceid_gets_only_its_own(running):
+    assert COPIES == 2
     reply = enrol(running, "Anna", speech(1))
     assert reply.status_code == 200 and sorted(reply.json()["encoders"]) == ["dvector", "fused", "ge2e"], reply.text
+    assert reply.json()["added"] == 1 and reply.json()["room_copies"] == COPIES
     listed = voice(running, "Anna")
-    assert listed["encoders"] == {m: {"enrolled": 1, "learnt": 0} for m in ("ge2e", "dvector", "fused")}
+    assert listed["encoders"] == {m: {"enrolled": 1 + COPIES, "learnt": 0} for m in ("ge2e", "dvector", "fused")}
+    assert listed["sources"] == ["wav", "wav-room"]
     for model, size in (("ge2e", 256), ("dvector", 256), ("fused", 512)):
         voices = running.http.get("/voices", params={"embeddings": 1, "encoder": model}).json()["voices"]
-        assert [len(e) for e in voices[0]["embeddings"]] == [size]
+        assert voices[0]["embedding_sources"] == ["wav"] + ["wav-room"] * COPIES
+        embeddings = np.array(voices[0]["embeddings"], np.float32)
+        assert embeddings.shape == (1 + COPIES, size)
+        cosines = embeddings[1:] @ embeddings[0]
+        assert np.all(cosines < 0.999) and np.all(cosines > 0.3), cosines  # other sounds of the same voice
     old_client = running.http.get("/voices", params={"embeddings": 1}).json()["voices"]  # asks for no encoder
-    assert [len(e) for e in old_client[0]["embeddings"]] == [256] and old_client[0]["count"] == 1  # GE2E's
+    assert [len(e) for e in old_client[0]["embeddings"]] == [256] * (1 + COPIES)  # GE2E's
+    assert enrol(running, "Anna", speech(1)).json()["room_copies"] == COPIES  # the same WAV: the same copies
+    again = running.http.get("/voices", params={"embeddings": 1, "encoder": "dvector"}).json()["voices"][0]
+    np.testing.assert_array_equal(again["embeddings"][1 + COPIES:], again["embeddings"][:1 + COPIES])
+
+
+def test_without_room_copies_a_wav_is_enrolled_clean_alone(tmp_path):
+    orchestrator = Orchestrator(tmp_path, env={"ESIAF_ORCHESTRATOR_ENROLMENT_ROOM_COPIES": "0"})
+    try:
+        reply = enrol(orchestrator, "Anna", speech(1))
+        assert reply.status_code == 200 and reply.json()["room_copies"] == 0, reply.text
+        listed = voice(orchestrator, "Anna")
+        assert listed["sources"] == ["wav"] and listed["encoders"]["dvector"] == {"enrolled": 1, "learnt": 0}
+    finally:
+        orchestrator.close()
 
 
 def test_noise_and_a_short_word_are_refused_with_the_reason(running):
@@ -82,8 +105,8 @@ def test_learnt_embeddings_are_bounded_forgotten_on_request_and_survive_a_restar
         assert reply.status_code == 200, reply.text
     assert reply.json()["dropped_oldest_learnt"] == 1  # the oldest learnt went, not the enrolled one
     anna = voice(running, "Anna")
-    assert anna["encoders"]["dvector"] == {"enrolled": 1, "learnt": MAX_LEARNT_PER_VOICE}
-    assert anna["encoders"]["ge2e"] == {"enrolled": 1, "learnt": 0}
+    assert anna["encoders"]["dvector"] == {"enrolled": 1 + COPIES, "learnt": MAX_LEARNT_PER_VOICE}
+    assert anna["encoders"]["ge2e"] == {"enrolled": 1 + COPIES, "learnt": 0}
     refused = running.http.post("/voices/Nobody/learnt", json={"encoder": "dvector", "embedding": learnt})
     assert refused.status_code == 404  # learning never creates a voice
     wrong = running.http.post("/voices/Anna/learnt", json={"encoder": "fused", "embedding": learnt})
@@ -91,11 +114,11 @@ def test_learnt_embeddings_are_bounded_forgotten_on_request_and_survive_a_restar
     running.process.terminate()  # as a service manager stops it
     running.process.wait(timeout=30)
     running.start()  # the same port and database file
-    assert voice(running, "Anna")["encoders"]["dvector"] == {"enrolled": 1, "learnt": MAX_LEARNT_PER_VOICE}
+    assert voice(running, "Anna")["encoders"]["dvector"] == {"enrolled": 1 + COPIES, "learnt": MAX_LEARNT_PER_VOICE}
     forgotten = running.http.post("/voices/Anna/forget-learnt")
     assert forgotten.status_code == 200 and forgotten.json()["forgotten"] == MAX_LEARNT_PER_VOICE
     anna = voice(running, "Anna")
-    assert anna["learnt"] == 0 and anna["enrolled"] == 1 and "learnt" not in anna["sources"]
+    assert anna["learnt"] == 0 and anna["enrolled"] == 1 + COPIES and "learnt" not in anna["sources"]
     assert running.http.post("/voices/Nobody/forget-learnt").status_code == 404
 
 
@@ -235,7 +258,7 @@ def test_an_utterance_overlapping_the_robots_playback_is_not_learnt(running):
         poll(lambda: voice(running, "Anna")["encoders"]["dvector"]["learnt"] == 1, timeout_s=20)
         # the voiceid hears of it and keeps it apart from the enrolled one (embedding_sources)
         poll(lambda: len(voiceid.book.learnt.get("Anna", ())) == 1, timeout_s=20)
-        assert len(voiceid.book.voices["Anna"]) == 1
+        assert len(voiceid.book.voices["Anna"]) == 1 + COPIES  # the WAV and its room copies
         results = poll(lambda: running.http.get("/results", params={"type": "voice_id"}).json()["items"][1:] and
                        running.http.get("/results", params={"type": "voice_id"}).json()["items"], timeout_s=10)
         assert [r["voice_id"]["label"] for r in results] == ["Anna", "Anna"]  # both identified, one learnt

@@ -167,7 +167,7 @@ def test_adaptive_snorm_normalises_by_the_best_cohort_scores_of_both_sides():
 
 
 def test_speed_perturbation_changes_tempo_and_pitch_together():
-    from esiaf_services.voiceid.augment import speed_perturbed
+    from esiaf.speech.speaker.augment import speed_perturbed
     t = np.arange(16000) / 16000
     tone = np.sin(2 * np.pi * 200 * t).astype(np.float32)
     faster = speed_perturbed(tone, 1.25)
@@ -180,7 +180,7 @@ def test_speed_perturbation_changes_tempo_and_pitch_together():
 
 
 def test_the_tilt_brightens_or_darkens_at_the_same_level():
-    from esiaf_services.voiceid.augment import tilted
+    from esiaf.speech.speaker.augment import tilted
     rng = np.random.default_rng(2)
     noise = rng.normal(size=32000).astype(np.float32) * 0.1
 
@@ -199,7 +199,7 @@ def test_the_tilt_brightens_or_darkens_at_the_same_level():
 
 def test_reverberant_copies_have_the_tail_the_noise_level_and_the_seed():
     pytest.importorskip("pyroomacoustics")
-    from esiaf_services.voiceid.augment import pink_noise, reverberant
+    from esiaf.speech.speaker.augment import pink_noise, reverberant
     rng = np.random.default_rng(3)
     noise = pink_noise(64000, rng)
     power = np.abs(np.fft.rfft(noise)) ** 2
