@@ -46,8 +46,8 @@ class ChannelFilter:
     def _restart(self) -> None:
         """New resamplers and counts; the model (loaded once: 0.4 s) goes on."""
         resampled = self.rate != MODEL_RATE
-        self._up = soxr.ResampleStream(self.rate, MODEL_RATE, 1, dtype="float32", quality=RESAMPLING) if resampled else None
-        self._down = soxr.ResampleStream(MODEL_RATE, self.rate, 1, dtype="float32", quality=RESAMPLING) if resampled else None
+        self._up = soxr.ResampleStream(self.rate, MODEL_RATE, 1, "float32", RESAMPLING) if resampled else None
+        self._down = soxr.ResampleStream(MODEL_RATE, self.rate, 1, "float32", RESAMPLING) if resampled else None
         self._pending = np.zeros(0, np.float32)  # at 48 kHz, less than one model frame
         # the model's input samples that are this piece's (not the silence fed to flush it): from, to
         self._real: tuple[int, int | None] = (self._model_in, None)

@@ -17,7 +17,7 @@ embeddings of the stored ``voice_id`` results overlapping that span), or from an
 (JSON ``{"stream", "anonymous": "voice-2"}``: every stored result of that stream with that label);
 the JSON forms take ``"encoder"``, the voiceid's model that made those results (default
 ``DEFAULT_MODEL``; a 512-float embedding is ``fused``'s). A WAV is also enrolled as
-``enrolment_room_copies`` (default 2) reverberant noisy copies of itself, each in a simulated room
+``enrolment_room_copies`` (default 0: off) reverberant noisy copies of itself, each in a simulated room
 (``esiaf/speech/speaker/augment.py`` room_copies; source ``wav-room``, beside the clean one's
 ``wav``), so a voice enrolled from a clean recording is known across a room; the voiceid scores
 them as it scores every enrolled embedding. Without pyroomacoustics the clean one alone is enrolled
@@ -288,7 +288,7 @@ def copies_of(samples: np.ndarray, count: int) -> list[np.ndarray]:
         if not _no_rooms:
             _no_rooms.append(str(exc))
             log.error("WAV enrolment without room copies (enrolment_room_copies %d): %s; pip install "
-                      "'esiaf[orchestrator]' installs pyroomacoustics", count, exc)
+                      "'esiaf[ssl]' installs pyroomacoustics", count, exc)
         return []
 
 

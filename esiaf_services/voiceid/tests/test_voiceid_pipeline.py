@@ -58,12 +58,10 @@ def test_enrolled_speakers_get_their_names_a_stranger_an_anonymous_id(launch, tm
     # GE2E, the encoder these utterances were chosen with: with the d-vector speaker 03's 03a01Nc (1.3 s)
     # scores about 0.60 as the VAD cuts it, under its threshold, and comes out anonymous: a short
     # utterance's score depends on its segment's edges (docs/benchmarks.md, "Voice identity").
-    # Without the WAVs' room copies: with them (the default, 2) GE2E's threshold, calibrated on clean
-    # enrolments, leaves 03a01Nc anonymous too (its top-3 takes copies' lower cosines); measured, not fixed
-    # (docs/benchmarks.md, "Multi-condition WAV enrolment, in the service"). The copies are tested in
-    # test_voiceid_learning.py.
-    run = launch("--input", str(tmp_path / "speakers.wav"), "--json", "--serve",
-                 env={"ESIAF_VOICEID_MODEL": "ge2e", "ESIAF_ORCHESTRATOR_ENROLMENT_ROOM_COPIES": "0"})
+    # Without the WAVs' room copies (the default): with 2, GE2E's threshold, calibrated on clean enrolments,
+    # leaves 03a01Nc anonymous (its top-3 takes copies' lower cosines; docs/benchmarks.md, "Multi-condition
+    # WAV enrolment, in the service"). The copies are tested in test_voiceid_learning.py.
+    run = launch("--input", str(tmp_path / "speakers.wav"), "--json", "--serve", env={"ESIAF_VOICEID_MODEL": "ge2e"})
     deadline = time.monotonic() + 60
     while True:  # enrol while the other services start
         try:
