@@ -57,6 +57,7 @@ SCORE_SHIFT_BITS = 10  # pocketsphinx's SENSCR_SHIFT
 LANGUAGE_MODEL_WEIGHT = 6.5
 FILLER_WORDS = frozenset({"<s>", "</s>", "<sil>"})
 GRAMMAR_SEARCH = "grammar"
+VOCABULARY_SEARCH = "vocabulary"  # the language model with the vocabulary's words (none added to the dictionary)
 
 
 class RecognizerError(Exception):
@@ -126,7 +127,9 @@ class PocketsphinxRecognizer:
         if vocabulary is not None:
             added += self._add_words(vocabulary.pronunciations, "the vocabulary")
         if weighed and not added:  # the search sees the language model's new words once it is made anew
-            self._decoder.add_lm(self._decoder.current_search(), self._decoder.get_lm(self._decoder.current_search()))
+            model = self._decoder.get_lm(self._decoder.current_search())
+            self._decoder.add_lm(VOCABULARY_SEARCH, model)  # a search of its own: replacing the one using it crashes
+            self._decoder.activate_search(VOCABULARY_SEARCH)
         if grammar_path is not None:
             self._load_grammar(grammar_path)
         self._frames_per_s = float(self._decoder.config["frate"])

@@ -139,3 +139,16 @@ def test_a_tail_whisper_invents_after_a_prompt_is_dropped():
     assert invented_tail([said, thanks]) == 1 and invented_tail([said, thanks, okay]) == 2
     assert invented_tail([said]) == 0 and invented_tail([thanks]) == 0  # the first segment always stays
     assert invented_tail([said, said]) == 0
+
+
+@pytest.mark.parametrize("name", ["agneta", "adelbert"])
+def test_a_name_the_language_model_lacks_is_added_to_it(name):
+    """The bundled dictionary has these names, its language model does not: pocketsphinx hears
+    something else without the vocabulary and the name with it (the model's search made anew)."""
+    from esiaf_services.asr.recognizer import PocketsphinxRecognizer
+    from esiaf_services.asr.vocabulary import VOCABULARY_WEIGHT, Vocabulary
+    pcm = (np.clip(flite(f"bring the coke to {name}"), -1, 1) * 32767).astype("<i2").tobytes()
+    without = PocketsphinxRecognizer(extra_dictionary=None).recognise(pcm)[0].text
+    with_it = PocketsphinxRecognizer(extra_dictionary=None, vocabulary=Vocabulary([name]),
+                                     vocabulary_weight=VOCABULARY_WEIGHT).recognise(pcm)[0].text
+    assert name not in without.split() and name in with_it.split(), (without, with_it)
