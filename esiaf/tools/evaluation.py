@@ -35,6 +35,9 @@ from the GPSR grammar (``--category``, default 1) by :mod:`esiaf.tools.gpsr`. Po
 recognises with that grammar as JSGF (``gpsr.gram`` in the work folder, and ``gpsr.dict``: the
 project dictionary and flite's pronunciation of the words the bundled one lacks); Whisper
 (``-- --asr whisper``) transcribes freely (the command language is too large for its closed set).
+``--free`` runs pocketsphinx with its language model instead; ``--vocabulary`` gives the asr the GPSR
+world's names, places, objects and categories as its ``vocabulary`` (``gpsr.vocabulary`` in the work
+folder), and the oracle row the same.
 Every fused result goes to the command it overlaps most, and a command hears their texts in order:
 
 - a command is **exact** when what it heard is its text (normalised words);
