@@ -83,6 +83,16 @@ def setting_cases() -> list[Case]:
             *(Case(f"{name}={value}", ["--input", WAV], {name: value}) for name, value in own.items())]
 
 
+def vocabulary_cases() -> list[Case]:
+    """The asr's vocabulary file (asr/vocabulary.py: at most 1,000 entries and 64 KiB)."""
+    files = {"missing": "{tmp}/no-vocabulary.txt", "a folder": "{tmp}", "empty": "{empty}",
+             "of 100,000 lines": "{hugevocab}", "not UTF-8": "{latin1}"}
+    return [*(Case(f"ESIAF_ASR_VOCABULARY {what}", ["--input", WAV], {"ESIAF_ASR_VOCABULARY": path})
+              for what, path in files.items()),
+            Case("asr ESIAF_ASR_VOCABULARY of 100,000 lines", [], {"ESIAF_ASR_VOCABULARY": "{hugevocab}"},
+                 command="asr")]
+
+
 def input_cases() -> list[Case]:
     return [Case("a 1 Hz WAV", ["--input", "{wav1hz}"]),
             Case("a 1,000,003 Hz WAV", ["--input", "{wav1mhz}"]),
@@ -138,8 +148,8 @@ def wyoming_cases() -> list[Case]:
             Case("wyoming ESIAF_WYOMING_MAX_SESSIONS=0", [], {"ESIAF_WYOMING_MAX_SESSIONS": "0"}, command="wyoming")]
 
 
-CASES = [*port_cases(), *chunk_cases(), *workdir_cases(), *token_cases(), *setting_cases(), *input_cases(),
-         *option_cases(), *service_cases(), *wyoming_cases()]
+CASES = [*port_cases(), *chunk_cases(), *workdir_cases(), *token_cases(), *setting_cases(), *vocabulary_cases(),
+         *input_cases(), *option_cases(), *service_cases(), *wyoming_cases()]
 
 
 def prepare(tmp: Path) -> dict[str, str]:
@@ -147,12 +157,15 @@ def prepare(tmp: Path) -> dict[str, str]:
     (tmp / "file").write_text("not a folder, not audio\n")
     (tmp / "empty").write_text("")
     (tmp / "emptydir").mkdir(exist_ok=True)
+    (tmp / "hugevocab").write_text("".join(f"name{i}\n" for i in range(100_000)))
+    (tmp / "latin1").write_bytes("Zo\xeb\n".encode("latin-1"))
     files = {"wav1hz": wav_header(1), "wav1mhz": wav_header(1_000_003), "wav4k": wav_header(4000, samples=8000),
              "wav0ch": wav_header(16000, channels=0), "wav0bit": wav_header(16000, bits=0),
              "wavcut": wav_header(16000)[:30]}
     for name, data in files.items():
         (tmp / f"{name}.wav").write_bytes(data)
     return {"tmp": str(tmp), "file": str(tmp / "file"), "empty": str(tmp / "empty"),
+            "hugevocab": str(tmp / "hugevocab"), "latin1": str(tmp / "latin1"),
             "emptydir": str(tmp / "emptydir"), **{name: str(tmp / f"{name}.wav") for name in files}}
 
 

@@ -38,6 +38,7 @@ def test_two_runs_at_10_db_recognise_most_questions_with_their_directions(tmp_pa
     (["--snr", "loud"], "--snr takes LOW:HIGH"),
     (["--array", "nowhere.yaml"], "nowhere.yaml"),
     (["--port", "70000"], "--port must be"),
+    (["--vocabulary"], "--vocabulary and --free go with --task gpsr"),
 ])
 def test_options_out_of_range_are_one_clear_line(args, message):
     done = run_eval(*args, timeout=60)

@@ -74,7 +74,7 @@ def test_the_jsgf_is_decoded_by_pocketsphinx(tmp_path):
     from esiaf.scenes import speak
     from esiaf.tools.evaluation import gpsr_language, gpsr_recogniser
     grammar = load(robocup(), 1)
-    recogniser = gpsr_recogniser(gpsr_language(grammar, tmp_path))
+    recogniser = gpsr_recogniser("pocketsphinx", gpsr_language(grammar, tmp_path), None)
     commands = generate(grammar, 4, seed=2)
     right = 0
     for command in commands:
@@ -83,6 +83,20 @@ def test_the_jsgf_is_decoded_by_pocketsphinx(tmp_path):
         assert hypotheses and grammar.matches(hypotheses[0].text)  # whatever it heard is a command
         right += hypotheses[0].text == command.words
     assert right >= 3, "clean flite speech, the grammar's own commands"
+
+
+def test_the_worlds_vocabulary_is_a_file_the_asr_takes(tmp_path):
+    """Every name, room, location, object and category of the XML files once, as the eval's
+    ``--vocabulary`` writes it for the asr."""
+    from esiaf.tools.evaluation import gpsr_vocabulary
+    from esiaf_services.asr.vocabulary import read_vocabulary
+    grammar = load(robocup(), 1)
+    world = grammar.world
+    entries = read_vocabulary(gpsr_vocabulary(grammar, tmp_path))
+    assert entries == world.vocabulary() and len(entries) == len({e.casefold() for e in entries})
+    expected = {n for n, _ in world.names} | set(world.rooms) | {n for n, *_ in world.locations} \
+        | {n for n, _, _ in world.objects} | {c for _, c, _ in world.objects}
+    assert set(entries) == expected and {"Skyler", "side table", "cascade pod", "cleaning stuff"} <= expected
 
 
 def broken(tmp_path: Path, grammar: str, **files: str) -> Path:

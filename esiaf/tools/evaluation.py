@@ -35,6 +35,9 @@ from the GPSR grammar (``--category``, default 1) by :mod:`esiaf.tools.gpsr`. Po
 recognises with that grammar as JSGF (``gpsr.gram`` in the work folder, and ``gpsr.dict``: the
 project dictionary and flite's pronunciation of the words the bundled one lacks); Whisper
 (``-- --asr whisper``) transcribes freely (the command language is too large for its closed set).
+``--free`` runs pocketsphinx with its language model instead; ``--vocabulary`` gives the asr the GPSR
+world's names, places, objects and categories as its ``vocabulary`` (``gpsr.vocabulary`` in the work
+folder), and the oracle row the same.
 Every fused result goes to the command it overlaps most, and a command hears their texts in order:
 
 - a command is **exact** when what it heard is its text (normalised words);
@@ -46,7 +49,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import os
 import subprocess
 import sys
@@ -262,15 +264,18 @@ class ClosedSetOracle:
 
 
 class FreeWhisper:
-    """Whisper's free transcription behind the interface of ``PocketsphinxRecognizer.recognise``."""
+    """Whisper's free transcription behind the interface of ``PocketsphinxRecognizer.recognise``,
+    prompted with the vocabulary's ``entries`` as the asr prompts it."""
 
-    def __init__(self) -> None:
+    def __init__(self, entries: list[str] | None = None) -> None:
+        from esiaf_services.asr.vocabulary import prompt
         from esiaf_services.asr.whisper import WhisperRecognizer
         self.whisper = WhisperRecognizer()
+        self.prompt = prompt(entries, self.whisper.model.hf_tokenizer)[0] if entries else None
 
     def recognise(self, pcm: bytes) -> list:
         samples = np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0
-        return self.whisper.recognise(samples, 16000).hypotheses
+        return self.whisper.recognise(samples, 16000, self.prompt).hypotheses
 
 
 def backend_of(pipeline: list[str]) -> str:
@@ -287,7 +292,6 @@ def gpsr_language(grammar, work: Path) -> tuple[Path, Path]:
     gram, dictionary = work / "gpsr.gram", work / "gpsr.dict"
     gram.write_text(grammar.jsgf(), encoding="utf-8")
     known = read_dictionary(PROJECT_DICT)
-    logging.getLogger(make_pronunciations.__module__).setLevel(logging.ERROR)  # its notes on the questions' words
     try:
         known.update(make_pronunciations(grammar.words() - known.keys(), read_dictionary(BUNDLED_DICT)))
     except PronunciationError as exc:
@@ -296,12 +300,27 @@ def gpsr_language(grammar, work: Path) -> tuple[Path, Path]:
     return gram, dictionary
 
 
-def gpsr_recogniser(language: tuple[Path, Path] | None):
-    """The recogniser of the GPSR oracle row: pocketsphinx with the GPSR grammar, or Whisper free."""
-    if language is None:
-        return FreeWhisper()
-    from esiaf_services.asr.recognizer import PocketsphinxRecognizer
-    return PocketsphinxRecognizer(16000, grammar=language[0], extra_dictionary=language[1])
+def gpsr_vocabulary(grammar, work: Path) -> Path:
+    """``work/gpsr.vocabulary``: the names, places, objects and categories of the GPSR world, one a line."""
+    path = work / "gpsr.vocabulary"
+    path.write_text("# the GPSR world's names, places, objects and categories (esiaf eval robocup --vocabulary)\n"
+                    + "\n".join(grammar.world.vocabulary()) + "\n", encoding="utf-8")
+    return path
+
+
+def gpsr_recogniser(backend: str, language: tuple[Path, Path] | None, vocabulary: Path | None):
+    """The recogniser of the GPSR oracle row: pocketsphinx with the GPSR grammar (``language``) or its
+    language model, or Whisper free; with the ``vocabulary`` as the asr takes it."""
+    from esiaf_services.asr.vocabulary import read_vocabulary
+    entries = read_vocabulary(vocabulary) if vocabulary else []
+    if backend == "whisper":
+        return FreeWhisper(entries)
+    from esiaf_services.asr.recognizer import DEFAULT_EXTRA_DICT, PocketsphinxRecognizer
+    from esiaf_services.asr.vocabulary import VOCABULARY_WEIGHT, for_pocketsphinx
+    extra = language[1] if language else DEFAULT_EXTRA_DICT
+    return PocketsphinxRecognizer(16000, grammar=language[0] if language else None, extra_dictionary=extra,
+                                  vocabulary=for_pocketsphinx(entries, extra, "vocabulary") if entries else None,
+                                  vocabulary_weight=VOCABULARY_WEIGHT)
 
 
 def oracle_recogniser(pipeline: list[str]):
@@ -337,6 +356,10 @@ def parse_args(argv: Sequence[str]) -> tuple[argparse.Namespace, list[str]]:
                         "commands from its grammar")
     parser.add_argument("--category", type=int, default=1, help="with --task gpsr: the GPSR grammar's category, "
                         "1-3 (default 1)")
+    parser.add_argument("--vocabulary", action="store_true", help="with --task gpsr: the asr gets the GPSR world's "
+                        "names, places, objects and categories as its vocabulary (gpsr.vocabulary in the work folder)")
+    parser.add_argument("--free", action="store_true", help="with --task gpsr: pocketsphinx recognises with its "
+                        "language model instead of the command grammar (Whisper always does)")
     parser.add_argument("--runs", type=int, default=6, help="runs per array (default 6)")
     parser.add_argument("--seed", type=int, default=1, help="random seed of the rooms and games (default 1)")
     parser.add_argument("--snr", default="5:15", help="SNR range in dB, LOW:HIGH (default 5:15)")
@@ -369,19 +392,27 @@ def check(args: argparse.Namespace) -> None:
         if not (DATA / needed).is_file():
             raise EvalError(f"{DATA / needed} is missing: the harness needs the shared test data "
                             f"(set ESIAF_SHARED_DATA to its folder)")
-    if args.scenario == "gpsr":
-        from esiaf.tools.gpsr import GpsrError, load
-        if args.robot_speaks:
-            raise EvalError("--robot-speaks goes with the questions (the robot answers them), not --task gpsr")
-        try:
-            args.gpsr = load(DATA / GPSR_FOLDER, args.category)
-        except GpsrError as exc:
-            raise EvalError(str(exc)) from None
+    check_task(args)
     from esiaf.scenes import SceneError, speak
     try:
         speak("test", "slt", 16000)
     except SceneError as exc:
         raise EvalError(f"the harness synthesises its talkers with flite: {exc}") from None
+
+
+def check_task(args: argparse.Namespace) -> None:
+    """The options of ``--task``; with gpsr, its grammar loaded (``args.gpsr``)."""
+    if args.scenario != "gpsr":
+        if args.vocabulary or args.free:
+            raise EvalError("--vocabulary and --free go with --task gpsr (the questions have their grammar)")
+        return
+    from esiaf.tools.gpsr import GpsrError, load
+    if args.robot_speaks:
+        raise EvalError("--robot-speaks goes with the questions (the robot answers them), not --task gpsr")
+    try:
+        args.gpsr = load(DATA / GPSR_FOLDER, args.category)
+    except GpsrError as exc:
+        raise EvalError(str(exc)) from None
 
 
 def evaluate(args: argparse.Namespace, options: list[str]) -> list[RunScore]:
@@ -396,13 +427,19 @@ def evaluate(args: argparse.Namespace, options: list[str]) -> list[RunScore]:
     language: tuple[Path, Path] | None = None
     grammar: str | None = "robocup"
     env: dict[str, str] = {}
-    if gpsr:  # pocketsphinx: the command language as JSGF; whisper: free transcription
-        language = gpsr_language(args.gpsr, work) if backend_of(pipeline) == "pocketsphinx" else None
+    vocabulary: Path | None = None
+    if gpsr:  # pocketsphinx: the command language as JSGF (unless --free); whisper: free transcription
+        language = gpsr_language(args.gpsr, work) if backend_of(pipeline) == "pocketsphinx" and not args.free \
+            else None
         grammar = str(language[0]) if language else None
         env = {"ESIAF_ASR_POCKETSPHINX__EXTRA_DICTIONARY": str(language[1])} if language else {}
+        if args.vocabulary:
+            vocabulary = gpsr_vocabulary(args.gpsr, work)
+            env["ESIAF_ASR_VOCABULARY"] = str(vocabulary)
     recogniser = None
     if not args.no_oracle:
-        recogniser = gpsr_recogniser(language) if gpsr else oracle_recogniser(pipeline)
+        recogniser = gpsr_recogniser(backend_of(pipeline), language, vocabulary) if gpsr \
+            else oracle_recogniser(pipeline)
     print(f"eval: {args.scenario}, {args.runs} run(s) per array on {', '.join(args.array)}, SNR {args.snr} dB, "
           f"seed {args.seed}; "
           f"pipeline: esiaf run --fast {' '.join(pipeline)}; work in {work}", file=sys.stderr, flush=True)

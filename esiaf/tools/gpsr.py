@@ -85,6 +85,13 @@ class World:
     objects: list[tuple[str, str, str]] = field(default_factory=list)  # (name, category, type)
     gestures: list[str] = field(default_factory=list)
 
+    def vocabulary(self) -> list[str]:
+        """The names, places (rooms and locations), objects and object categories, each once: what a
+        robot in this world should expect to hear (the asr's ``vocabulary`` file, one a line)."""
+        found = [n for n, _ in self.names] + self.rooms + [n for n, _, _, _ in self.locations]
+        found += [n for n, _, _ in self.objects] + [c for _, c, _ in self.objects]
+        return list(dict.fromkeys(found))
+
     def values(self, wildcard: Wildcard) -> list[tuple[str, str]]:
         """``wildcard``'s values as (value, extra): extra is a name's gender, an object's category, a
         location's room ("room" for a room), a category's obfuscation ("objects")."""

@@ -43,6 +43,7 @@ from esiaf_services.asr.lexicon import (
     read_dictionary,
 )
 from esiaf_services.asr.pocketsphinx_log import one_line, pocketsphinx_log
+from esiaf_services.asr.vocabulary import Vocabulary
 
 LOGGER = logging.getLogger(__name__)
 
@@ -56,6 +57,7 @@ SCORE_SHIFT_BITS = 10  # pocketsphinx's SENSCR_SHIFT
 LANGUAGE_MODEL_WEIGHT = 6.5
 FILLER_WORDS = frozenset({"<s>", "</s>", "<sil>"})
 GRAMMAR_SEARCH = "grammar"
+VOCABULARY_SEARCH = "vocabulary"  # the language model with the vocabulary's words (none added to the dictionary)
 
 
 class RecognizerError(Exception):
@@ -83,11 +85,14 @@ class PocketsphinxRecognizer:
     ``grammar``: None for the bundled en-us language model, else a JSGF file whose sentences are the only
     ones recognised, weighted with ``language_weight`` (the language model keeps its own weight, 6.5).
     ``extra_dictionary``: CMUdict-format words added to the bundled dictionary (None: none).
+    ``vocabulary``: a deployment's words (``vocabulary.py``) and pronunciations for those the dictionaries
+    lack; with the language model, each word it lacks is added to it with ``vocabulary_weight`` times
+    the probability pocketsphinx gives a word it adds (a word it has keeps its probability).
     """
 
     def __init__(self, sample_rate_hz: int = 16000, grammar: str | Path | None = None,
                  extra_dictionary: str | Path | None = DEFAULT_EXTRA_DICT, language_weight: float = 7.5,
-                 nbest: int = 5) -> None:
+                 nbest: int = 5, vocabulary: Vocabulary | None = None, vocabulary_weight: float = 1.0) -> None:
         if not MIN_SAMPLE_RATE_HZ <= sample_rate_hz <= MAX_SAMPLE_RATE_HZ:
             raise RecognizerError(
                 f"sample rate {sample_rate_hz} Hz not supported: the bundled en-us model needs "
@@ -114,8 +119,17 @@ class PocketsphinxRecognizer:
         except (RuntimeError, ValueError) as error:
             raise RecognizerError(f"cannot start pocketsphinx: {one_line(self._log.since(mark)) or error}") \
                 from error
+        # the vocabulary's words into the language model first: a pronunciation added would add its word with weight 1
+        weighed = self._weigh(vocabulary.words, vocabulary_weight) if vocabulary and grammar_path is None else 0
+        added = 0
         if extra_dictionary is not None:
-            self._add_words(Path(extra_dictionary))
+            added += self._add_words(self._read_dictionary(Path(extra_dictionary)), f"dictionary {extra_dictionary}")
+        if vocabulary is not None:
+            added += self._add_words(vocabulary.pronunciations, "the vocabulary")
+        if weighed and not added:  # the search sees the language model's new words once it is made anew
+            model = self._decoder.get_lm(self._decoder.current_search())
+            self._decoder.add_lm(VOCABULARY_SEARCH, model)  # a search of its own: replacing the one using it crashes
+            self._decoder.activate_search(VOCABULARY_SEARCH)
         if grammar_path is not None:
             self._load_grammar(grammar_path)
         self._frames_per_s = float(self._decoder.config["frate"])
@@ -133,15 +147,30 @@ class PocketsphinxRecognizer:
         LOGGER.info("pocketsphinx ready: %d Hz, %s", sample_rate_hz,
                     f"grammar {grammar_path}" if grammar_path is not None else "en-us language model")
 
-    def _add_words(self, dictionary_path: Path) -> None:
+    @staticmethod
+    def _read_dictionary(dictionary_path: Path) -> dict[str, list[tuple[str, ...]]]:
         try:
-            entries = read_dictionary(dictionary_path)
+            return read_dictionary(dictionary_path)
         except FileNotFoundError as error:
             raise RecognizerError(f"dictionary {dictionary_path} not found") from error
         except (OSError, UnicodeDecodeError) as error:
             raise RecognizerError(f"cannot read dictionary {dictionary_path}: {error}") from error
         except DictionaryFormatError as error:
             raise RecognizerError(f"bad word in dictionary {error}") from error
+
+    def _weigh(self, words: list[str], weight: float) -> int:
+        """The ``words`` the language model lacks added to it, ``weight`` times as probable as pocketsphinx
+        makes a word it adds; how many."""
+        model = self._decoder.get_lm(self._decoder.current_search())
+        unknown = model.prob(["</unknown-word/>"])
+        added = [word for word in words if model.prob([word]) == unknown]
+        for word in added:
+            model.add_word(word, weight)
+        LOGGER.debug("vocabulary: %d word(s) added to the language model", len(added))
+        return len(added)
+
+    def _add_words(self, entries: dict[str, list[tuple[str, ...]]], source: str) -> int:
+        """The pronunciations of ``entries`` pocketsphinx lacks added (the search made anew once); how many."""
         additions = []  # (entry name, phones) pocketsphinx does not have yet
         for word, pronunciations in entries.items():
             known: list[tuple[str, ...]] = []  # the word's pronunciations so far, by alternative number
@@ -156,9 +185,10 @@ class PocketsphinxRecognizer:
             try:  # rebuilding the search once, after the last word, is enough
                 self._decoder.add_word(name, phones, number == len(additions))
             except RuntimeError as error:
-                raise RecognizerError(f"bad word in dictionary {dictionary_path}: {name!r} "
+                raise RecognizerError(f"bad word in {source}: {name!r} "
                                       f"({one_line(self._log.since(mark)) or error})") from error
-        LOGGER.debug("added %d pronunciations from %s", len(additions), dictionary_path)
+        LOGGER.debug("added %d pronunciations from %s", len(additions), source)
+        return len(additions)
 
     def _load_grammar(self, grammar_path: Path) -> None:
         mark = self._log.mark()

@@ -11,14 +11,26 @@ from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from esiaf import Audio, AudioFormat, BackendSettings, Component, SetupError, hypothesis
 from esiaf.receiving import broken_off
 from esiaf.settings import StrictModel
 from esiaf_services.asr.closed_set import MIN_PER_TOKEN, ClosedSetDecoder, ClosedSetResult
+from esiaf_services.asr.lexicon import DictionaryFormatError
 from esiaf_services.asr.matching import GrammarError, Match, SentenceMatcher, chosen_first
 from esiaf_services.asr.recognizer import DEFAULT_EXTRA_DICT, UNRECOGNISED, PocketsphinxRecognizer, RecognizerError
+from esiaf_services.asr.vocabulary import (
+    MAX_BYTES,
+    MAX_ENTRIES,
+    MAX_PROMPT_TOKENS,
+    VOCABULARY_WEIGHT,
+    Vocabulary,
+    VocabularyError,
+    for_pocketsphinx,
+    prompt,
+    read_vocabulary,
+)
 from esiaf_services.asr.whisper import WhisperRecognizer
 
 log = logging.getLogger(__name__)
@@ -36,6 +48,9 @@ class PocketsphinxSettings(StrictModel):
 
     extra_dictionary: str = str(DEFAULT_EXTRA_DICT)  # project words on top of the bundled dictionary
     language_weight: float = 7.5  # with a grammar: its weight against the acoustic model
+    vocabulary_weight: float = Field(default=VOCABULARY_WEIGHT, gt=0, description=(
+        "with a vocabulary and the language model: a vocabulary word the model lacks is added to it this many "
+        "times as probable as pocketsphinx makes a word it adds (a word it has keeps its probability)"))
 
 
 class WhisperSettings(StrictModel):
@@ -66,6 +81,12 @@ class AsrSettings(BackendSettings):
     # whisper.py; 1: a single decode)
     n_best: int | None = Field(default=None, ge=1)
     sentences: str = ""  # closed set: a file of allowed sentences (one per line) or a JSGF grammar
+    vocabulary: str = Field(default="", description=(
+        f"a file of the names, places and objects to expect, one a line, # comments (at most {MAX_ENTRIES} "
+        f"entries, {MAX_BYTES // 1024} KiB): Whisper is prompted with them (as many as fit in "
+        f"{MAX_PROMPT_TOKENS} tokens); pocketsphinx gets flite's pronunciation of the words its dictionary "
+        "lacks (words it cannot say are named in the log and left out) and, with the language model, the "
+        "words the model lacks (asr/vocabulary.py)"))
     match_threshold: float = 0.6  # a transcript scoring less than this against every sentence is out of set
     char_threshold: float = 0.7  # ... unless its letters are this similar to the nearest (asr/matching.py)
     max_streams: int = 8  # decoders kept, one per stream; past it the least recently heard idle one is reused
@@ -84,8 +105,16 @@ class AsrSettings(BackendSettings):
         "with whisper (the utterance so far decoded again, beam 1)"))
     renamed: ClassVar[dict[str, str]] = {
         "nbest": "n_best",  # the flat names of the backends' settings, before they were nested:
-        **{name: f"pocketsphinx.{name}" for name in PocketsphinxSettings.model_fields},
+        **{name: f"pocketsphinx.{name}" for name in PocketsphinxSettings.model_fields
+           if name != "vocabulary_weight"},  # came after the nesting: no flat name
         **{name: f"whisper.{name}" for name in WhisperSettings.model_fields}}
+
+    @field_validator("vocabulary")
+    @classmethod
+    def _readable(cls, vocabulary: str) -> str:
+        if vocabulary:
+            read_vocabulary(vocabulary)  # its VocabularyError (a ValueError) says what is wrong
+        return vocabulary
 
     def hypotheses(self) -> int:
         """``n_best``, or the backend's default."""
@@ -154,9 +183,19 @@ class Asr(Component):
         self.closed_set: ClosedSetDecoder | None = None  # whisper with a closed set, scored by the model
         self.utterances = 0
         self.wants_partials = settings.wants_partials()
+        self.vocabulary: Vocabulary | None = None  # pocketsphinx: the vocabulary's words and pronunciations
 
     def setup(self) -> None:
         s, w = self.settings, self.settings.whisper
+        try:
+            entries = read_vocabulary(s.vocabulary) if s.vocabulary else []  # changed since the settings were read?
+            if s.backend != "whisper" and entries:
+                self.vocabulary = for_pocketsphinx(entries, s.pocketsphinx.extra_dictionary,
+                                                   f"vocabulary {s.vocabulary}")
+        except VocabularyError as exc:
+            raise SetupError(str(exc)) from None
+        except (OSError, DictionaryFormatError) as exc:
+            raise SetupError(f"cannot read the dictionaries for the vocabulary: {exc}") from None
         try:
             if s.backend == "whisper":
                 self.whisper = WhisperRecognizer(w.model_dir, w.beam_size, w.no_speech_threshold,
@@ -173,13 +212,27 @@ class Asr(Component):
                                                        w.beam_size, min_per_token=w.min_logprob_per_token)
                 elif self.whisper is not None and w.prompt_vocabulary:
                     self.prompt = ", ".join(self.matcher.vocabulary()) + "."
+            if self.whisper is not None and entries:
+                self._prompt_with(entries)
         except RecognizerError as exc:
             raise SetupError(str(exc)) from None
         except (OSError, GrammarError) as exc:
             raise SetupError(f"cannot read the allowed sentences {closed_set}: {exc}") from None
         self.info.update(backend=s.backend, grammar=s.grammar or "language model",
                          scoring=w.scoring if self.closed_set is not None else "text",
-                         sentences=len(self.matcher.sentences) if self.matcher else 0)
+                         sentences=len(self.matcher.sentences) if self.matcher else 0,
+                         vocabulary=len(entries))
+
+    def _prompt_with(self, entries: list[str]) -> None:
+        """Whisper's prompt: the closed set's rare words (if it has them), then the vocabulary's entries,
+        as many as fit."""
+        assert self.whisper is not None
+        first = (self.prompt or "").rstrip(".")
+        listed = [*(first.split(", ") if first else []), *entries]
+        self.prompt, kept = prompt(listed, self.whisper.model.hf_tokenizer)
+        kept -= len(listed) - len(entries)
+        log.info("vocabulary %s: %d entries, %d in Whisper's prompt%s", self.settings.vocabulary, len(entries),
+                 max(kept, 0), "" if kept >= len(entries) else f" (the rest past {MAX_PROMPT_TOKENS} tokens)")
 
     def _new_decoder(self) -> PocketsphinxRecognizer:
         s = self.settings
@@ -187,7 +240,8 @@ class Asr(Component):
             sample_rate_hz=s.sample_rate_hz,
             grammar=resolve_grammar(s.grammar) if s.backend == "pocketsphinx" else None,
             extra_dictionary=s.pocketsphinx.extra_dictionary or None,
-            language_weight=s.pocketsphinx.language_weight, nbest=s.hypotheses())
+            language_weight=s.pocketsphinx.language_weight, nbest=s.hypotheses(),
+            vocabulary=self.vocabulary, vocabulary_weight=s.pocketsphinx.vocabulary_weight)
 
     def _stream(self, stream_id: str) -> StreamState:
         state = self.streams.pop(stream_id, None)

@@ -17,6 +17,13 @@ steps) of the segment are dropped from the words and from the text; the rest kee
 clipped to the segment. (A hallucination that Whisper times inside the segment, over a trailing
 breath, is not caught by this.)
 
+No tail invented after a prompt: prompted (with a vocabulary, or a closed set's rare words), Whisper
+tiny.en often adds a segment of its own after the speech ("Thank you.", "All right.", "Okay."),
+timed inside the segment. With a prompt, trailing segments (after the first) that faster-whisper's
+own hallucination test calls anomalous are dropped (:func:`invented_tail`: its words mostly below
+15 % probability or shorter than 133 ms; faster-whisper applies the test only around silences, with
+``hallucination_silence_threshold``).
+
 N-best (``n_best`` > 1): faster-whisper returns the beam's best hypothesis only, so the segment
 (< 30 s: one Whisper window) is decoded a second time by CTranslate2 directly, as faster-whisper
 does it (same prompt and suppressed tokens, language "en", no timestamps), with
@@ -106,6 +113,8 @@ class WhisperRecognizer:
             condition_on_previous_text=False, vad_filter=False, no_speech_threshold=self.no_speech_threshold,
             initial_prompt=prompt or None)
         segments = list(segments)
+        if prompt:
+            segments = segments[:len(segments) - invented_tail(segments)]
         encoded, self._first.encoding = self._first.encoding, None
         no_speech = max((segment.no_speech_prob for segment in segments), default=0.0)
         logprobs = [segment.avg_logprob for segment in segments]
@@ -162,6 +171,24 @@ class WhisperRecognizer:
             scored.append(Hypothesis(text, clamp(math.exp(avg_logprob)), ()))
         scored.sort(key=lambda h: -h.probability)
         return scored[:self.n_best - 1]
+
+
+def invented_tail(segments: list) -> int:
+    """How many of the last ``segments`` (never the first) look invented: faster-whisper's
+    ``is_segment_anomaly`` (transcribe.py, 1.x), each word scoring 1 below 15 % probability and
+    15 per second it is shorter than 133 ms, a segment anomalous when its first 8 words score 3,
+    or about 1 each."""
+    def anomalous(segment) -> bool:
+        words = [w for w in segment.words or [] if any(c.isalnum() for c in w.word)][:8]  # not punctuation
+        if not words:
+            return False
+        score = sum((w.probability < 0.15) + max(0.0, 0.133 - (w.end - w.start)) * 15
+                    + max(0.0, w.end - w.start - 2.0) for w in words)
+        return score >= 3 or score + 0.01 >= len(words)
+    count = 0
+    while count < len(segments) - 1 and anomalous(segments[-1 - count]):
+        count += 1
+    return count
 
 
 def within_segment(segments: list, duration_s: float) -> tuple[str, list[Word]]:

@@ -113,21 +113,26 @@ def spelled_number_phones(number: str, bundled: dict[str, list[Pronunciation]]) 
     return tuple(phone for word in spelled_words for phone in bundled[word][0])
 
 
-def make_pronunciations(words: set[str], bundled: dict[str, list[Pronunciation]]
-                        ) -> dict[str, list[Pronunciation]]:
-    """Pronunciations for every word of ``words`` that is missing from the bundled dictionary."""
+def make_pronunciations(words: set[str], bundled: dict[str, list[Pronunciation]],
+                        failed: list[str] | None = None) -> dict[str, list[Pronunciation]]:
+    """Pronunciations for every word of ``words`` that is missing from the bundled dictionary. A word
+    flite cannot say raises ``PronunciationError``, or, given a ``failed`` list, is added to it."""
     entries: dict[str, list[Pronunciation]] = {}
     for word in sorted(words - bundled.keys()):
-        first = spelled_number_phones(word, bundled) if word.isdigit() else flite_phones(word)
+        try:
+            first = spelled_number_phones(word, bundled) if word.isdigit() else flite_phones(word)
+        except PronunciationError as error:
+            if failed is None:
+                raise
+            LOGGER.debug("no pronunciation for %r: %s", word, error)
+            failed.append(word)
+            continue
         variants = [first]
         for extra in EXTRA_PRONUNCIATIONS.get(word, []):
             if extra not in variants:
                 variants.append(extra)
         entries[word] = variants
-        LOGGER.info("%s: %s", word, " | ".join(" ".join(phones) for phones in variants))
-    unused = EXTRA_PRONUNCIATIONS.keys() - entries.keys()
-    if unused:
-        LOGGER.warning("hand corrections for words not needed by the grammar: %s", sorted(unused))
+        LOGGER.debug("%s: %s", word, " | ".join(" ".join(phones) for phones in variants))
     return entries
 
 
@@ -152,6 +157,11 @@ def generate(questions_tsv: Path, grammar_path: Path, dictionary_path: Path) -> 
     words = {word for sentence in sentences for word in sentence.split()}
     bundled = read_dictionary(BUNDLED_DICT)
     entries = make_pronunciations(words, bundled)
+    for word, variants in sorted(entries.items()):
+        LOGGER.info("%s: %s", word, " | ".join(" ".join(phones) for phones in variants))
+    unused = EXTRA_PRONUNCIATIONS.keys() - entries.keys()
+    if unused:
+        LOGGER.warning("hand corrections for words not needed by the grammar: %s", sorted(unused))
     still_missing = sorted(words - bundled.keys() - entries.keys())
     if still_missing:
         raise PronunciationError(f"no pronunciation for {still_missing}")
