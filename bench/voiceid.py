@@ -16,6 +16,8 @@ given per encoder, side by side in a closing table.
 - ``--learning``: closed set, each speaker's utterances in file order after the 3-utterance
   neutral enrolment, learning as it goes (``scoring.LearningRule``, ``--learn-margin``): accuracy
   over the last half of each speaker's utterances, with and without learning;
+- ``--denoise``: a third condition, the room's utterances (enrolment, trials and calibration alike)
+  through the denoiser service's filter (DeepFilterNet 3, esiaf_services/denoiser/filter.py);
 - ``--every N``: a subset (every Nth file, and every enrolment utterance); ``--no-room``;
   ``--cache DIR``: embeddings kept between runs;
 
@@ -120,6 +122,25 @@ def through_room(utterances: list[np.ndarray], snrs_db: tuple[float, ...] = (SNR
         gain = np.sqrt(np.mean(speech ** 2) / np.mean(clip ** 2) / 10 ** (snrs_db[n % len(snrs_db)] / 10))
         out.append((speech + gain * clip).astype(np.float32))
     return out
+
+
+def audio_conditions(clips: list[np.ndarray], no_room: bool, denoise: bool) -> dict[str, list[np.ndarray]]:
+    """The clips as tried: clean, through the room (unless ``no_room``), and the room's denoised."""
+    conditions = {"clean": clips}
+    if not no_room:
+        conditions["room"] = through_room(clips)
+        if denoise:
+            conditions["room-denoised"] = denoised(conditions["room"])
+    return conditions
+
+
+def denoised(utterances: list[np.ndarray]) -> list[np.ndarray]:
+    """Each utterance through the denoiser service's filter, flushed at its end, one after the other (as
+    the service denoises the vad's utterances of a stream)."""
+    from esiaf_services.denoiser.filter import ChannelFilter
+    f = ChannelFilter(16000)
+    return [np.concatenate([f.process(u[i:i + 320]) for i in range(0, u.size, 320)] + [f.flush()])
+            for u in utterances]
 
 
 def eer(genuine: np.ndarray, impostor: np.ndarray) -> tuple[float, float]:
@@ -230,6 +251,8 @@ def main() -> None:
     parser.add_argument("--variants", action="store_true", help="also evaluate the variants of VARIANTS (a table)")
     parser.add_argument("--room-enrolment", action="store_true",
                         help="also room trials against clean enrolment, with and without reverberant copies")
+    parser.add_argument("--denoise", action="store_true", help="also the room's utterances denoised by the "
+                        "denoiser service's filter (DeepFilterNet 3), enrolled and tried so: a condition of its own")
     parser.add_argument("--quality", action="store_true",
                         help="also the voiceid's quality gate: names right and wrong with and without it")
     args = parser.parse_args()
@@ -249,10 +272,8 @@ def main() -> None:
     calibration = calibration_clips()
     print(f"calibration: {len(calibration)} clips of {len(set(s for s, _ in calibration))} speakers "
           "(ARCTIC, flite), none of them EmoDB's", flush=True)
-    conditions = {"clean": clips} if args.no_room else {"clean": clips, "room": through_room(clips)}
-    cal_conditions = {"clean": [c for _, c in calibration]}
-    if not args.no_room:
-        cal_conditions["room"] = through_room(cal_conditions["clean"])
+    conditions = audio_conditions(clips, args.no_room, args.denoise)
+    cal_conditions = audio_conditions([c for _, c in calibration], args.no_room, args.denoise)
     cache = Path(args.cache) if args.cache else None
     embedded = {condition: embed_all(models, audio, cache, f"emodb-{args.every}-{condition}")
                 for condition, audio in conditions.items()}

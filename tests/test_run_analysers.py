@@ -59,6 +59,22 @@ def test_without_leaves_the_analysers_out_and_nothing_waits_for_them(launch, tmp
         assert not (f["aggregates"].get("emotion") or f["aggregates"].get("gender") or f["aggregates"].get("voice_id"))
 
 
+def test_pocketsphinx_and_voiceid_hear_the_denoiser_emotion_and_gender_the_vad(launch, tmp_path):
+    mics, rate = first_two_questions()
+    mono = tmp_path / "two.wav"
+    soundfile.write(str(mono), mics[:, 0], rate, subtype="PCM_16")
+    run = launch("--input", str(mono), "--grammar", "robocup", "--fast", "--json", "--serve")
+    run.wait_for_line(lambda line: line.get("type") == "stream_end", timeout_s=150)
+    items = httpx.get(f"{run.url}/components", headers=run.headers).json()["items"]
+    inputs = {c["name"]: c["inputs"][0]["topic"] for c in items if c["inputs"]}
+    assert inputs == {"vad": "grabber/audio", "denoiser": "vad/speech", "asr": "denoiser/speech",
+                      "voiceid": "denoiser/speech", "emotion": "vad/speech", "gender": "vad/speech"}, inputs
+    fused = fused_results(run)
+    assert [normalise(f["anchor"]["speech"]["hypotheses"][0]["text"]) for f in fused] == \
+        [normalise(t["text"]) for t in TRUTH]
+    assert all(f["completion"] == "complete" and f["aggregates"]["voice_id"] for f in fused), fused
+
+
 def test_a_stereo_44_1_khz_float_file_is_converted_and_channel_0_heard(launch, tmp_path):
     """The grabber sends the file as it is; the SDK converts it to the VAD's 16 kHz int16; without
     --array the splitter passes channel 0 on (and the launcher says so)."""

@@ -10,8 +10,8 @@
     esiaf record --out FILE.mcap [--url URL]   (a running pipeline to MCAP: esiaf/tools/mcap_record.py)
     esiaf mcap diff RECORDED.mcap REPLAYED.mcap (esiaf/tools/mcap_diff.py)
 
-It starts the orchestrator, the recogniser (pocketsphinx hearing the VAD's utterances through the
-denoiser, ``--denoiser``), the VAD, the emotion, gender and voiceid services (on the VAD's output) and
+It starts the orchestrator, the recogniser (pocketsphinx and voiceid hearing the VAD's utterances
+through the denoiser, ``--denoiser``), the VAD, the emotion, gender and voiceid services (on the VAD's output) and
 the grabber (with a microphone array also the ssl service and the beamformer, the VAD hearing the
 array steered at the talker; with ``--no-beamformer`` the channel splitter instead, the VAD hearing
 the first microphone), prints each fused result as one line as

@@ -416,9 +416,10 @@ def add_recogniser_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--vad", choices=("silero", "energy"), help="the voice activity detector: silero (default, "
                         "a neural VAD that babble does not fool) or energy (the original double threshold)")
     parser.add_argument("--asr", choices=("pocketsphinx", "whisper"), help="the recogniser (default pocketsphinx)")
-    parser.add_argument("--denoiser", choices=("auto", "on", "off"), default="auto", help="the recogniser hears the "
-                        "VAD's utterances through the denoiser (DeepFilterNet 3): auto (default) with pocketsphinx, "
-                        "which it helps in noise, not with Whisper, which it does not (docs/benchmarks.md)")
+    parser.add_argument("--denoiser", choices=("auto", "on", "off"), default="auto", help="the recogniser and voiceid "
+                        "hear the VAD's utterances through the denoiser (DeepFilterNet 3): auto (default) voiceid and "
+                        "pocketsphinx, which it helps in noise, not Whisper, which it does not; on: Whisper too; off: "
+                        "none (docs/benchmarks.md)")
 
 
 def add_workdir_options(parser: argparse.ArgumentParser) -> None:

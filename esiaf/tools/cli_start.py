@@ -3,10 +3,11 @@ process, connects them (which topic each hears, which analysers the fusion waits
 until each has registered and subscribed, then plays the input and follows the results
 (esiaf/tools/cli_follow.py).
 
-Pocketsphinx hears the vad's utterances through the denoiser (DeepFilterNet 3; ``--denoiser off``:
-straight from the vad; Whisper hears the vad unless ``--denoiser on``); the vad, and the other
-analysers, hear the audio as it is. Measured on the noisy-room harness (docs/benchmarks.md, "The
-denoiser"): pocketsphinx 66.7 -> 81.7 % of the questions, Whisper 80.0 -> 71.7 %; with the denoiser
+Pocketsphinx and voiceid hear the vad's utterances through the denoiser (DeepFilterNet 3;
+``--denoiser off``: straight from the vad; Whisper hears the vad unless ``--denoiser on``); the vad,
+emotion and gender hear the audio as it is. Measured on the noisy-room harness (docs/benchmarks.md, "The
+denoiser"): pocketsphinx 66.7 -> 81.7 % of the questions, Whisper 80.0 -> 71.7 %, the d-vector's
+wrong names in a room 31.1 -> 10.5 % (bench/voiceid.py --denoise); with the denoiser
 before the vad, the vad heard the background talkers, denoised, as speech (3.7 segments of nothing
 per run instead of 0.25).
 """
@@ -81,7 +82,8 @@ class Pipeline:
     vad_in_grabber: bool = False  # the vad is a guest in the grabber's process (--vad-in-grabber)
     microphones: str = "grabber/audio"  # what the first services hear: aec/audio with --player or --playback
     microphone_consumers: int = 1  # ... how many services subscribe to it
-    denoised: bool = False  # the recogniser hears the vad's utterances denoised (vad/speech -> denoiser -> asr)
+    # the topic each service on the vad's output hears: vad/speech, or denoiser/speech (vad -> denoiser -> them)
+    inputs: dict[str, str] = field(default_factory=dict)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -297,13 +299,13 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
     """Starts the recogniser, the VAD (on the array steered at the talker, on the first channel or on
     the mono input), the ssl service with an array, and the labellers on the VAD's output (those in
     ``replicas`` as that many instances: asr-1, asr-2, ...)."""
-    # the recogniser hears the vad's utterances denoised; the vad hears the audio as it is (see the module)
-    denoised = hears_denoiser(args)
+    # who hears the vad's utterances denoised; the vad hears the audio as it is (see the module)
+    inputs = speech_inputs(args, without)
     services = start_replicas(supervisor, "asr", replicas.get("asr", 1),
                               (["--grammar", args.grammar] if args.grammar else [])
                               + (["--backend", args.asr] if args.asr else []),
-                              env={"ESIAF_ASR_INPUT_TOPIC": "denoiser/speech"} if denoised else None)
-    if denoised:
+                              env={"ESIAF_ASR_INPUT_TOPIC": inputs["asr"]})
+    if "denoiser" in inputs:
         services["denoiser"] = supervisor.start("denoiser")
     grabber_env = {"ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS": "1",
                    **({"ESIAF_GRABBER_CHUNK_MS": str(args.chunk_ms)} if args.chunk_ms is not None else {})}
@@ -331,26 +333,34 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
         grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"] = "1"
     labellers = [name for name in ("emotion", "gender", "voiceid") if name not in without]
     hosts = hosted_labellers(labellers, replicas, args.apart)
-    for name in labellers:  # on the VAD's output, like the recogniser
+    for name in labellers:  # on the VAD's output (or the denoiser's), like the recogniser
+        topic = {f"ESIAF_{name.upper()}_INPUT_TOPIC": inputs[name]}
         if name in hosts:
-            env = {f"ESIAF_{name.upper()}_GUESTS": json.dumps(hosts[name])}
+            env = {f"ESIAF_{name.upper()}_GUESTS": json.dumps(hosts[name]), **topic}
             services[name] = supervisor.start(name, env=env)
             services.update({guest: services[name] for guest in hosts[name]})  # the same process
             log.info("%s runs in the %s service's process", ", ".join(hosts[name]), name)
         elif name not in services:
-            services.update(start_replicas(supervisor, name, replicas.get(name, 1)))
+            services.update(start_replicas(supervisor, name, replicas.get(name, 1), env=topic))
     guests = {guest for names in hosts.values() for guest in names}
     return Pipeline(services, grabber_env, beamforming, labellers, replicas, guests, vad_in_grabber, microphones,
-                    consumers, denoised)
+                    consumers, inputs)
 
 
-def hears_denoiser(args: argparse.Namespace) -> bool:
-    """Whether the recogniser hears the denoiser: ``--denoiser on|off``, or by default with pocketsphinx
-    (``--asr``, else ``ESIAF_ASR_BACKEND``), which it helps in noise, and not with Whisper, which it
-    does not (docs/benchmarks.md, "The denoiser")."""
-    if args.denoiser != "auto":
-        return bool(args.denoiser == "on")
-    return (args.asr or os.environ.get("ESIAF_ASR_BACKEND") or "pocketsphinx") == "pocketsphinx"
+def speech_inputs(args: argparse.Namespace, without: set[str]) -> dict[str, str]:
+    """The topic each service on the vad's output hears (the denoiser among them where it runs). With
+    ``--denoiser auto`` (the default) the denoiser runs for pocketsphinx (``--asr``, else
+    ``ESIAF_ASR_BACKEND``) and voiceid, which it helps in noise, and not for Whisper, which it does not;
+    emotion and gender hear the vad (not measured); ``on``: Whisper too; ``off``: no denoiser
+    (docs/benchmarks.md, "The denoiser")."""
+    backend = args.asr or os.environ.get("ESIAF_ASR_BACKEND") or "pocketsphinx"
+    denoised = {"asr": args.denoiser == "on" or (args.denoiser == "auto" and backend == "pocketsphinx"),
+                "voiceid": args.denoiser != "off" and "voiceid" not in without,
+                "emotion": False, "gender": False}
+    inputs = {name: "denoiser/speech" if heard else "vad/speech" for name, heard in denoised.items()}
+    if any(denoised.values()):
+        inputs["denoiser"] = "vad/speech"
+    return inputs
 
 
 def start_front(args: argparse.Namespace, supervisor: Supervisor, services: dict[str, Child], channels: int,
@@ -464,18 +474,27 @@ def wait_for_subscriptions(client: OrchestratorClient, supervisor: Supervisor, p
                    "the beamformer to subscribe to ssl/audio", START_TIMEOUT_S, services["beamformer"])
         wait_until(lambda: topic_ready(client, "beamformer/audio", 1), supervisor,
                    "vad to subscribe to beamformer/audio", START_TIMEOUT_S, services["vad"])
-    if pipeline.denoised and "asr" not in pipeline.replicas:  # the recogniser hears the denoiser
-        wait_until(lambda: topic_ready(client, "denoiser/speech", 1), supervisor,
-                   "asr to subscribe to denoiser/speech", START_TIMEOUT_S, services["denoiser"])
+    if "denoiser" in pipeline.inputs:  # those that hear the denoiser (not replicas: they take streams later)
+        hearing = subscribers_of(pipeline, "denoiser/speech")
+        if hearing:
+            wait_until(lambda: topic_ready(client, "denoiser/speech", len(hearing)), supervisor,
+                       f"{', '.join(hearing)} to subscribe to denoiser/speech", START_TIMEOUT_S,
+                       services["denoiser"])
     # replicas subscribe to a stream's audio once they are given the stream: here, only the others count
-    waited = [name for name in ("denoiser" if pipeline.denoised else "asr", *pipeline.labellers)
-              if name not in pipeline.replicas]
-    subscribers = len([name for name in waited if name not in pipeline.guests])  # a host subscribes for its guests
+    waited = subscribers_of(pipeline, "vad/speech")
+    subscribers = len(waited)
     if pipeline.vad_in_grabber:  # the vad registers with the grabber: the grabber waits for them before playing
         pipeline.grabber_env["ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS"] = str(subscribers + on_speech)
         return
     wait_until(lambda: topic_ready(client, "vad/speech", subscribers + on_speech), supervisor,
                f"{', '.join(waited) or 'the plug-ins'} to subscribe to vad/speech", START_TIMEOUT_S, services["vad"])
+
+
+def subscribers_of(pipeline: Pipeline, topic: str) -> list[str]:
+    """The services that subscribe to ``topic`` once each, as they start: neither replicas (they subscribe
+    once they take a stream) nor guests (their host subscribes for them)."""
+    return [name for name, heard in pipeline.inputs.items() if heard == topic and name in pipeline.services
+            and name not in pipeline.replicas and name not in pipeline.guests]
 
 
 def reserve_streams(client: OrchestratorClient, supervisor: Supervisor, pipeline: Pipeline, ids: list[str],
@@ -487,11 +506,15 @@ def reserve_streams(client: OrchestratorClient, supervisor: Supervisor, pipeline
         client.announce(stream_id, {"announced_by": "esiaf run", "before": "its grabber"})
     # a replicated service subscribes once per stream (each instance to its own streams); any other, once; a
     # guest not at all (its host subscribes for it)
-    hearing = Counter(["asr", *(name for name in pipeline.labellers if name not in pipeline.guests), *on_speech])
-    subscriptions = sum(len(ids) if name in pipeline.replicas else count for name, count in hearing.items())
-    wait_until(lambda: topic_ready(client, "vad/speech", subscriptions), supervisor,
-               f"the instances of {', '.join(pipeline.replicas)} to take the streams", START_TIMEOUT_S,
-               pipeline.services["vad"])
+    for topic, producer in (("vad/speech", "vad"), ("denoiser/speech", "denoiser")):
+        hearing = Counter([name for name, heard in pipeline.inputs.items() if heard == topic
+                           and (name in pipeline.services or name in pipeline.replicas)
+                           and name not in pipeline.guests] + (list(on_speech) if topic == "vad/speech" else []))
+        subscriptions = sum(len(ids) if name in pipeline.replicas else count for name, count in hearing.items())
+        if subscriptions and producer in pipeline.services:
+            wait_until(functools.partial(topic_ready, client, topic, subscriptions), supervisor,
+                       f"the instances of {', '.join(pipeline.replicas)} to take the streams", START_TIMEOUT_S,
+                       pipeline.services[producer])
 
 
 def array_env(service: str, args: argparse.Namespace, channels: int) -> dict[str, str]:
