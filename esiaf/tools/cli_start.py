@@ -130,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
         wait_for_subscriptions(client, supervisor, pipeline, sum(name not in replicas for name in on_speech))
         if replicas:
             reserve_streams(client, supervisor, pipeline, ids, on_speech)
+        supervisor.ready()  # the vad's spare starts now
         if plugins:
             with_kinds = ", ".join(f"{n} ({c['kind']})" for n, c in registered.items())
             err(f"esiaf: with {with_kinds}")

@@ -58,6 +58,7 @@ def serve(args: argparse.Namespace) -> int:
         pipeline = start_services(args, supervisor, None, 1, without, {})
         wait_for_registration(client, supervisor, pipeline.services, {})
         wait_for_subscriptions(client, supervisor, pipeline, 0)
+        supervisor.ready()  # the vad's spare starts now
         wyoming = supervisor.start("wyoming", env=wyoming_env(args))
         wait_until(lambda: listening(args.listen, args.wyoming_port), supervisor, "the Wyoming server to listen",
                    START_TIMEOUT_S, wyoming)

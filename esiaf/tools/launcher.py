@@ -41,8 +41,10 @@ RESTART_BACKOFF_S = 0.5  # before the first restart; doubles with each, up to 10
 MAX_LOG_READ = 1 << 20  # a child's log read for refusals at most this much at a time
 REFUSAL = " refused "  # a service's log line that says it refused something (esiaf/receiving.py)
 START_TIMEOUT_S = 60.0  # esiaf run: how long a service may take to answer, register, subscribe or start playing
-# a service that keeps a spare (the vad: every analyser hears speech through it) gets one this long after
-# its current process started, so that the spare's start does not slow the pipeline's own
+# a service that keeps a spare (the vad: every analyser hears speech through it) gets one once the pipeline
+# is up (Supervisor.ready: every service registered and subscribed, so the spare's start does not slow the
+# pipeline's own), or this long after its current process started (after a restart; or where nothing says
+# the pipeline is up)
 SPARE_AFTER_S = 10.0
 
 
@@ -108,6 +110,12 @@ class Supervisor:
     workdir: Path
     env: dict[str, str] = field(default_factory=dict)
     children: list[Child] = field(default_factory=list)
+    up: bool = False  # every service registered and subscribed (ready()): first spares need not wait
+
+    def ready(self) -> None:
+        """The pipeline is up: each service that keeps a spare gets its first one now (keep_spares)."""
+        self.up = True
+        self.keep_spares()
 
     def start(self, name: str, args: Sequence[str] = (), env: dict[str, str] | None = None,
               target: list[str] | None = None, instance: str | None = None, spare: bool = False) -> Child:
@@ -139,17 +147,18 @@ class Supervisor:
                                     start_new_session=True, preexec_fn=_die_with_parent)
 
     def keep_spares(self) -> None:
-        """Starts a spare of each child that keeps one and has none, SPARE_AFTER_S after its current
-        process started: the same command, imported and waiting (esiaf/runner.py, ESIAF_STANDBY), so a
-        restart costs a registration instead of a whole start (the imports alone take seconds on a busy
-        robot). A spare that died is started again the same way."""
+        """Starts a spare of each child that keeps one and has none, once the pipeline is up (a child
+        never restarted) or SPARE_AFTER_S after its current process started: the same command, imported
+        and waiting (esiaf/runner.py, ESIAF_STANDBY), so a restart costs a registration instead of a whole
+        start (the imports alone take seconds on a busy robot). A spare that died is started again the
+        same way."""
         now = time.monotonic()
         for child in self.children:
             if child.spare is not None and child.spare.poll() is not None:
                 log.warning("the spare of service=%s ended with code %s", child.name, child.spare.returncode)
                 child.spare = None
             if (child.keeps_spare and child.spare is None and child.process.poll() is None
-                    and now - child.started_at >= SPARE_AFTER_S):
+                    and ((self.up and not child.restarts) or now - child.started_at >= SPARE_AFTER_S)):
                 child.spare = self._spawn(child.command, child.env, child.log_path, "ab", standby=True)
                 log.info("spare of service=%s started pid=%d", child.name, child.spare.pid)
 
