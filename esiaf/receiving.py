@@ -49,12 +49,15 @@ def check_audio(audio: Audio) -> None:
 def broken_off(publisher: str, sequence: int, audio: Audio) -> str:
     """Why ``audio`` does not continue an utterance whose last chunk came from ``publisher`` with
     ``sequence`` ("" if it does): another publisher (its VAD was restarted, so the utterance's end will
-    never come), or messages lost in between. An analyser then closes the utterance with a ``nothing``
+    never come), messages lost in between, or a component in between (the denoiser) says its own input
+    broke off (``meta.broken_off``). An analyser then closes the utterance with a ``nothing``
     rather than take it on with what follows, which would put its words on the next one's span."""
     if audio.publisher != publisher:
         return f"its VAD went away mid-utterance ({publisher} gave way to {audio.publisher})"
     if audio.sequence > sequence + 1:
         return f"{audio.sequence - sequence - 1} messages of its audio were lost"
+    if audio.meta.broken_off:
+        return f"{audio.publisher} says its input broke off mid-utterance (its VAD went away, or audio was lost)"
     return ""
 
 

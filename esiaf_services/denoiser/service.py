@@ -7,7 +7,9 @@ times and meta (the vad's segment and utterance end, SSL directions, the stream'
 30 ms look-ahead and the resamplers' delay it in wall time, never in capture time; at an utterance's
 end (or the stream's) the held-back samples are flushed at once, so an utterance ends as soon as the
 vad ends it. Each stream has its own filters (one per channel), which go on from one utterance to
-the next.
+the next. An utterance whose vad went away mid-way (another publisher, or lost messages: what the
+recogniser itself would see without a denoiser in between) is flushed, and the next chunk carries
+``meta.broken_off``, so the recogniser closes it with a ``nothing`` instead of joining it to the next.
 
 It also denoises a continuous topic (``beamformer/audio``): nothing there ends an utterance, and the
 samples come out as the look-ahead allows. Where it stands in ``esiaf run`` and why (the vad keeps
@@ -24,6 +26,7 @@ from pydantic import Field
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
 from esiaf.per_stream import PerStream
+from esiaf.receiving import broken_off
 from esiaf_services.denoiser.filter import ChannelFilter, DenoiserError, check
 
 log = logging.getLogger(__name__)
@@ -44,6 +47,10 @@ class StreamState:
     filters: list[ChannelFilter]
     chunks: list[Audio] = field(default_factory=list)  # waiting for their denoised samples
     ready: list[np.ndarray] = field(default_factory=list)  # per channel: denoised, not yet published
+    publisher: str = ""  # of the open utterance's last chunk, and its sequence number (receiving.broken_off)
+    sequence: int = 0
+    open: bool = False  # an utterance has begun and not ended
+    broken: bool = False  # the next chunk published says the utterance before it broke off
 
 
 class Denoiser(Component):
@@ -80,6 +87,15 @@ class Denoiser(Component):
 
     def on_audio(self, audio: Audio) -> None:
         state = self.streams.get(audio.stream_id)
+        why = broken_off(state.publisher, state.sequence, audio) if state.open else ""
+        if why:  # the utterance will never end as it began: its rest out, and the next chunk says so
+            log.info("stream_id=%s: utterance broken off: %s", audio.stream_id, why)
+            state.ready = [np.concatenate([ready, f.flush()]) for ready, f in
+                           zip(state.ready, state.filters, strict=True)]
+            self._publish_ready(state)
+            state.broken = True
+        state.publisher, state.sequence = audio.publisher, audio.sequence
+        state.open = not (audio.segmentation_ended or audio.end_of_stream)
         if audio.frames:
             state.chunks.append(audio)
             samples = audio.as_float()
@@ -105,7 +121,9 @@ class Denoiser(Component):
             self.publish(self.settings.output_topic, pcm, chunk.start_ns, chunk.end_ns, stream_id=chunk.stream_id,
                          segmentation_ended=chunk.segmentation_ended,
                          segment=(segment.start_ns, segment.end_ns) if chunk.meta.HasField("segment") else None,
-                         ssl_directions=chunk.ssl_directions, end_of_stream=chunk.end_of_stream)
+                         ssl_directions=chunk.ssl_directions, end_of_stream=chunk.end_of_stream,
+                         broken_off=state.broken)
+            state.broken = False
             if chunk.end_of_stream:
                 self._ended_on_chunk.add(chunk.stream_id)
 

@@ -64,8 +64,9 @@ def test_after_a_flush_the_next_utterance_is_as_good_and_in_time(noisy):
         assert np.corrcoef(y, speech)[0, 1] > 0.95
 
 
-def chunk(fmt, samples, start, stream="s", segment=None, ended=False, end=False):
-    audio = Audio(topic="vad/speech", stream_id=stream, publisher="vad", sequence=1, start_ns=start * NS // RATE,
+def chunk(fmt, samples, start, stream="s", segment=None, ended=False, end=False, publisher="vad", sequence=1):
+    audio = Audio(topic="vad/speech", stream_id=stream, publisher=publisher, sequence=sequence,
+                  start_ns=start * NS // RATE,
                   end_ns=(start + len(samples)) * NS // RATE, format=fmt, payload=encode(samples, fmt))
     if segment is not None:
         audio.meta.segment.start_ns, audio.meta.segment.end_ns = segment
@@ -108,6 +109,38 @@ def test_an_empty_chunk_that_ends_an_utterance_goes_out_after_the_samples_it_fol
         denoiser.on_audio(chunk(fmt, np.full(320, 1000, np.int16), 320 * i))
     denoiser.on_audio(chunk(fmt, np.zeros(0, np.int16), 1600, ended=True))
     assert sent == [(320, False)] * 5 + [(0, True)]
+
+
+@pytest.mark.parametrize("second, sequence", [("vad-b", 1), ("vad-a", 9)], ids=["vad_restarted", "audio_lost"])
+def test_an_utterance_broken_off_is_flushed_and_the_next_chunk_says_so(second, sequence):
+    """The vad went away mid-utterance (another publisher) or messages were lost: what the recogniser
+    would see itself without a denoiser in between. The rest goes out, the next chunk is marked."""
+    from esiaf.receiving import broken_off
+    denoiser = Denoiser(DenoiserSettings())
+    sent = []
+    denoiser.publish = lambda topic, pcm, start_ns, end_ns, **meta: sent.append((start_ns, meta["broken_off"]))
+    fmt = AudioFormat(RATE, "int16")
+    for i in range(5):  # an utterance begun by vad-a, never ended
+        denoiser.on_audio(chunk(fmt, np.full(320, 1000, np.int16), 320 * i, publisher="vad-a", sequence=i + 1))
+    denoiser.on_audio(chunk(fmt, np.full(320, 1000, np.int16), 3200, publisher=second, sequence=sequence))
+    assert [start for start, _ in sent] == [320 * i * NS // RATE for i in range(5)]  # the broken one's rest
+    denoiser.on_audio(chunk(fmt, np.zeros(0, np.int16), 3520, ended=True, publisher=second, sequence=sequence + 1))
+    assert [b for _, b in sent] == [False] * 5 + [True, False]  # the next utterance's first chunk says so
+    marked = chunk(fmt, np.full(320, 1000, np.int16), 3200, publisher="denoiser", sequence=7)
+    marked.meta.broken_off = True
+    assert "broke off" in broken_off("denoiser", 6, marked)  # an analyser behind it closes with a nothing
+    assert broken_off("denoiser", 6, chunk(fmt, np.full(320, 1000, np.int16), 3200, publisher="denoiser",
+                                           sequence=7)) == ""
+
+
+def test_an_utterance_that_ended_is_not_broken_by_the_next_publisher():
+    denoiser = Denoiser(DenoiserSettings())
+    sent = []
+    denoiser.publish = lambda topic, pcm, start_ns, end_ns, **meta: sent.append(meta["broken_off"])
+    fmt = AudioFormat(RATE, "int16")
+    denoiser.on_audio(chunk(fmt, np.full(320, 1000, np.int16), 0, publisher="vad-a", ended=True))
+    denoiser.on_audio(chunk(fmt, np.full(320, 1000, np.int16), 320, publisher="vad-b", ended=True))
+    assert sent == [False, False]
 
 
 @pytest.mark.parametrize("bad", [{"atten_lim_db": 0}, {"atten_lim_db": 101}, {"post_filter_beta": 0.5},
