@@ -93,6 +93,7 @@ def test_a_killed_vad_is_replaced_by_its_waiting_spare(launch, questions):
     launcher = psutil.Process(run.process.pid)
     spare = poll(lambda: next((c for c in launcher.children() if is_spare(c) is True and c.is_running()
                                and "esiaf_services.vad" in c.cmdline()), None), timeout_s=90)
+    run.wait_for_line(lambda line: line.get("type") == "stream_start", timeout_s=60)  # the spare is there first
     vad = service_pid(run, "vad")
     assert vad is not None and vad != spare.pid
     os.kill(vad, signal.SIGKILL)
