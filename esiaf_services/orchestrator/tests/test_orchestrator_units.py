@@ -36,7 +36,9 @@ def test_result_json_keeps_int64_as_integers_and_has_one_payload_key():
                        "produced_ns": BIG_NS + 5, "received_ns": BIG_NS + 2_500_000,
                        "latency_ms": 2.5, "sequence": 7,
                        "emotion": {"label": "happy", "probability": 0.0,
-                                   "class_probabilities": {"happy": 0.75}, "embedding": []}}
+                                   "class_probabilities": {"happy": 0.75}, "embedding": [],
+                                   # voice_id's quality: every field is given, all zero for other kinds
+                                   "quality": {"snr_db": 0.0, "speech_s": 0.0, "reason": ""}}}
 
 
 def test_nothing_payload_fits_any_type():
