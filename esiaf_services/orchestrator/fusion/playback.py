@@ -33,6 +33,7 @@ result of a stream whose robot played during its span (docs/protocol.md, "Fused 
 """
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -146,12 +147,19 @@ def person_above_echo(echoes: Iterable[dict[str, Any]]) -> bool:
     loud = cancelled = 0
     for event in echoes:
         attributes = (event.get(ECHO) or {}).get("attributes") or {}
-        if not attributes.get("converged"):
+        if not isinstance(attributes, dict) or attributes.get("converged") is not True:
             return False  # the robot's echo passes a canceller that has not converged: no evidence
-        if float(attributes.get("above_floor_db", float("-inf"))) >= PERSON_ABOVE_FLOOR_DB:
+        if _decibels(attributes.get("above_floor_db")) >= PERSON_ABOVE_FLOOR_DB:
             loud += 1
-            cancelled += float(attributes.get("cancelled_db", 0.0)) >= PERSON_CANCELLED_DB
+            cancelled += _decibels(attributes.get("cancelled_db")) >= PERSON_CANCELLED_DB
     return cancelled >= PERSON_MIN_BLOCKS and 2 * cancelled > loud
+
+
+def _decibels(value: Any) -> float:
+    """An echo event's figure, or -inf (no evidence) where a peer sent none, or not a finite number."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+        return float(value)
+    return float("-inf")
 
 
 def is_robot(share: float, items: list[Played], anchor: dict[str, Any],

@@ -10,7 +10,7 @@ import pytest
 import soundfile
 
 from esiaf.tools.testing import Orchestrator, poll
-from esiaf_services.orchestrator.fusion.playback import is_robot, overlap_share, played, playing_at
+from esiaf_services.orchestrator.fusion.playback import is_robot, overlap_share, person_above_echo, played, playing_at
 from esiaf_services.player.service import Player
 
 RATE = 16000
@@ -211,3 +211,15 @@ def test_fusion_takes_an_utterance_with_nothing_recognised_for_a_persons_where_t
     for i in range(4):  # loud blocks of which most the canceller barely changed: the robot's voice passed
         engine.on_result(block(17 + i * 0.256, 25.0, 10.0 if i == 3 else 2.0), 0)
     assert utterance(17.0, 18.0) == "robot"
+
+
+def test_echo_events_a_peer_broke_are_no_evidence_and_end_nothing():
+    def event(**attributes):
+        return {"echo": {"attributes": attributes}}
+    person = [event(converged=True, above_floor_db=20.0, cancelled_db=12.0)] * 2
+    assert person_above_echo(person)
+    for broken in ({"above_floor_db": "loud"}, {"above_floor_db": None}, {"cancelled_db": [1]},
+                   {"cancelled_db": float("nan")}, {"converged": "yes"}, {"above_floor_db": True}):
+        attributes = {"converged": True, "above_floor_db": 20.0, "cancelled_db": 12.0, **broken}
+        assert not person_above_echo([event(**attributes)] * 2), broken
+    assert not person_above_echo([{"echo": {"attributes": "x"}}, {"echo": None}, {}])
