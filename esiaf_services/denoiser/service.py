@@ -73,15 +73,21 @@ class Denoiser(Component):
         self.streams: PerStream[StreamState] = PerStream(self._new_stream, settings.max_streams, "denoiser",
                                                          info=self.info)
         self._ended_on_chunk: set[str] = set()  # streams whose end went out with their last chunk
+        self._first_filters: list[ChannelFilter] = []  # made by setup(), taken by the first stream
         self.info.update(model="DeepFilterNet3", atten_lim_db=settings.atten_lim_db)
 
     def _new_stream(self, _stream_id: str) -> StreamState:
+        """A stream's filters: those made at start-up for the first stream, new ones (0.4 s to load the
+        model) for each stream after it."""
+        filters, self._first_filters = self._first_filters or self._filters(), []
+        return StreamState(filters, ready=[np.zeros(0, np.float32)] * self.settings.channels)
+
+    def _filters(self) -> list[ChannelFilter]:
         s = self.settings
-        return StreamState([ChannelFilter(s.sample_rate_hz, s.atten_lim_db, s.post_filter_beta)
-                            for _ in range(s.channels)], ready=[np.zeros(0, np.float32)] * s.channels)
+        return [ChannelFilter(s.sample_rate_hz, s.atten_lim_db, s.post_filter_beta) for _ in range(s.channels)]
 
     def setup(self) -> None:
-        ChannelFilter(self.settings.sample_rate_hz)  # the model loads here, not on the first chunk
+        self._first_filters = self._filters()  # the model loads here, not on the first stream's first chunk
         log.info("denoising model=DeepFilterNet3 channels=%d rate=%d atten_lim_db=%g", self.settings.channels,
                  self.settings.sample_rate_hz, self.settings.atten_lim_db)
 
