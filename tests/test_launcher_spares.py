@@ -8,16 +8,17 @@ import time
 from esiaf.tools.launcher import SPARE_AFTER_S, Supervisor
 
 
-def started(tmp_path, script):
+def started(tmp_path):
+    """A supervisor with one child that keeps a spare: a script that waits a minute."""
+    script = tmp_path / "waiter.py"
+    script.write_text("import time\ntime.sleep(60)\n")
     supervisor = Supervisor(tmp_path)
-    child = supervisor.start("waiter", target=[script], spare=True)
+    child = supervisor.start("waiter", target=[str(script)], spare=True)
     return supervisor, child
 
 
 def test_the_first_spare_starts_once_the_pipeline_is_up(tmp_path):
-    script = tmp_path / "waiter.py"
-    script.write_text("import time\ntime.sleep(60)\n")
-    supervisor, child = started(tmp_path, str(script))
+    supervisor, child = started(tmp_path)
     try:
         supervisor.keep_spares()
         assert child.spare is None  # not up yet, and not SPARE_AFTER_S old
@@ -30,9 +31,7 @@ def test_the_first_spare_starts_once_the_pipeline_is_up(tmp_path):
 
 
 def test_after_a_restart_the_next_spare_waits(tmp_path):
-    script = tmp_path / "waiter.py"
-    script.write_text("import time\ntime.sleep(60)\n")
-    supervisor, child = started(tmp_path, str(script))
+    supervisor, child = started(tmp_path)
     try:
         supervisor.ready()
         spare = child.spare
