@@ -768,10 +768,10 @@ def clean_enrolment_in_room(encoder: Encoder, names: list[str], speakers: list[s
 
 QUALITY_SNRS_DB = (-30.0, 0.0, 3.0, 5.0, 8.0, 10.0, 12.0, 15.0)  # the gate's SNRs compared (-30: the span alone)
 QUALITY_SPEECH_S = (0.0, 0.3, 0.5, 0.8)  # ... and its shortest speech spans
-MIXED_SNRS_DB = (0.0, 5.0, 10.0, 15.0, 20.0)
+MIXED_SNRS_DB = (0.0, 5.0, 10.0, 15.0, 20.0)  # the room with the n-th utterance's noise at the (n % 5)-th
 # the gate is calibrated for the most right names less WRONG_NAME_COST × the wrong ones: a robot that greets the
-# wrong person by name is worse than one that greets nobody (issue 31); the table shows cost 1 too
-WRONG_NAME_COST = 2  # the room with the n-th utterance's noise at the (n % 5)-th of these
+# wrong person by name is worse than one that greets nobody; the table shows cost 1 too
+WRONG_NAME_COST = 2
 
 
 def quality_gates(models: list[str], speakers: list[str], neutral: list[bool], clips: list[np.ndarray],
