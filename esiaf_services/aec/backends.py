@@ -34,10 +34,14 @@ class Canceller(ABC):
     def __init__(self, channels: int, sample_rate_hz: int):
         self.channels = channels
         self.sample_rate_hz = sample_rate_hz
+        # columns process() gives after the cancelled channels: the same channels as the echo events judge
+        # them (speex's ``judge``: its residual suppressor at its defaults), or none
+        self.extra_channels = 0
 
     @abstractmethod
     def process(self, mics: np.ndarray, reference: np.ndarray) -> np.ndarray:
-        """``mics`` (block_frames, channels) int16, ``reference`` (block_frames,) int16 -> like ``mics``."""
+        """``mics`` (block_frames, channels) int16, ``reference`` (block_frames,) int16 -> like ``mics``
+        (with ``extra_channels`` more columns after them)."""
 
     @abstractmethod
     def reset(self) -> None:
@@ -73,6 +77,11 @@ class WebRtcCanceller(Canceller):
 SPEEX_ECHO_SET_SAMPLING_RATE = 24
 SPEEX_PREPROCESS_SET_ECHO_STATE = 24
 SPEEX_PREPROCESS_SET_NOISE_SUPPRESS = 18
+SPEEX_PREPROCESS_SET_ECHO_SUPPRESS = 20
+SPEEX_PREPROCESS_SET_ECHO_SUPPRESS_ACTIVE = 22
+# the judge's suppressor: speex's own defaults, which fusion's rule on the echo events was calibrated with
+JUDGE_RESIDUAL_DB = -40
+JUDGE_RESIDUAL_ACTIVE_DB = -15
 
 
 def _speexdsp() -> ctypes.CDLL:
@@ -99,7 +108,8 @@ class SpeexCanceller(Canceller):
     """speexdsp's MDF filter (``tail_ms`` long) and residual echo suppression, per microphone."""
 
     def __init__(self, channels: int, sample_rate_hz: int, tail_ms: float = 128.0, block_ms: float = 8.0,
-                 suppress_residual: bool = True):
+                 suppress_residual: bool = True, residual_db: int = -40, residual_active_db: int = 0,
+                 judge: bool = False):
         super().__init__(channels, sample_rate_hz)
         self._lib = _speexdsp()
         self.block_frames = round(sample_rate_hz * block_ms / 1000)
@@ -107,24 +117,42 @@ class SpeexCanceller(Canceller):
         rate = ctypes.c_int(sample_rate_hz)
         self._echo: list[int] = []
         self._pre: list[int] = []
+        self._judges: list[int] = []
         for _ in range(channels):
             echo = self._lib.speex_echo_state_init(self.block_frames, tail)
             self._lib.speex_echo_ctl(echo, SPEEX_ECHO_SET_SAMPLING_RATE, ctypes.byref(rate))
             self._echo.append(echo)
             if suppress_residual:
-                pre = self._lib.speex_preprocess_state_init(self.block_frames, sample_rate_hz)
-                self._lib.speex_preprocess_ctl(pre, SPEEX_PREPROCESS_SET_ECHO_STATE, ctypes.c_void_p(echo))
-                noise_db = ctypes.c_int(-3)  # the preprocessor denoises too: barely, ssl and the vad follow
-                self._lib.speex_preprocess_ctl(pre, SPEEX_PREPROCESS_SET_NOISE_SUPPRESS, ctypes.byref(noise_db))
-                self._pre.append(pre)
+                self._pre.append(self._suppressor(echo, residual_db, residual_active_db))
+            if judge:
+                self._judges.append(self._suppressor(echo, JUDGE_RESIDUAL_DB, JUDGE_RESIDUAL_ACTIVE_DB))
+        self.extra_channels = len(self._judges)
         self._out = np.empty(self.block_frames, dtype=np.int16)
+        self._judged = np.empty(self.block_frames, dtype=np.int16)
+
+    def _suppressor(self, echo: int, residual_db: int, residual_active_db: int) -> int:
+        """A residual echo suppressor on ``echo``'s estimate: lowering what is left of the echo by
+        ``residual_db`` when it is alone, by ``residual_active_db`` while someone near speaks too."""
+        pre = self._lib.speex_preprocess_state_init(self.block_frames, self.sample_rate_hz)
+        self._lib.speex_preprocess_ctl(pre, SPEEX_PREPROCESS_SET_ECHO_STATE, ctypes.c_void_p(echo))
+        noise_db = ctypes.c_int(-3)  # the preprocessor denoises too: barely, ssl and the vad follow
+        self._lib.speex_preprocess_ctl(pre, SPEEX_PREPROCESS_SET_NOISE_SUPPRESS, ctypes.byref(noise_db))
+        for request, value in ((SPEEX_PREPROCESS_SET_ECHO_SUPPRESS, residual_db),
+                               (SPEEX_PREPROCESS_SET_ECHO_SUPPRESS_ACTIVE, residual_active_db)):
+            level = ctypes.c_int(value)
+            self._lib.speex_preprocess_ctl(pre, request, ctypes.byref(level))
+        return pre
 
     def process(self, mics: np.ndarray, reference: np.ndarray) -> np.ndarray:
-        out = np.empty_like(mics)
+        out = np.empty((len(mics), self.channels + self.extra_channels), dtype=np.int16)
         far = np.ascontiguousarray(reference, dtype=np.int16)
         for channel, echo in enumerate(self._echo):
             near = np.ascontiguousarray(mics[:, channel])
             self._lib.speex_echo_cancellation(echo, near.ctypes.data, far.ctypes.data, self._out.ctypes.data)
+            if self._judges:
+                self._judged[:] = self._out
+                self._lib.speex_preprocess_run(self._judges[channel], self._judged.ctypes.data)
+                out[:, self.channels + channel] = self._judged
             if self._pre:
                 self._lib.speex_preprocess_run(self._pre[channel], self._out.ctypes.data)
             out[:, channel] = self._out
@@ -137,7 +165,7 @@ class SpeexCanceller(Canceller):
     def __del__(self) -> None:
         lib = getattr(self, "_lib", None)
         if lib is not None:
-            for pre in self._pre:
+            for pre in self._pre + self._judges:
                 lib.speex_preprocess_state_destroy(pre)
             for echo in self._echo:
                 lib.speex_echo_state_destroy(echo)

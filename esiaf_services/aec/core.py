@@ -100,4 +100,5 @@ class StreamCanceller:
                                       self._pending_reference[i * size:(i + 1) * size]) for i in range(blocks)]
         self._pending_mics = self._pending_mics[blocks * size:]
         self._pending_reference = self._pending_reference[blocks * size:]
-        return np.concatenate(out) if out else np.zeros((0, self.canceller.channels), dtype=np.int16)
+        return np.concatenate(out) if out else np.zeros((0, self.canceller.channels + self.canceller.extra_channels),
+                                                        dtype=np.int16)

@@ -58,6 +58,11 @@ class AecSettings(ComponentSettings):
     hold_ms: float = 150.0  # the longest a chunk waits (in capture time) for the reference covering it
     tail_ms: float = 500.0  # cancel on this long after the reference's last sample (plus the delay)
     reference_timeout_ms: float = 500.0  # a reference silent this long without ending: pass-through
+    # speex's residual echo suppressor: on, and how many dB it lowers what is left of the echo alone and
+    # while someone near speaks too (double talk); esiaf_services/aec/README.md: how they were chosen
+    suppress_residual: bool = True
+    residual_db: int = -40
+    residual_active_db: int = 0
     expect_reference: bool = False  # a replay's: every stream has one from its start (esiaf run --playback)
 
 
@@ -119,7 +124,12 @@ class EchoCanceller(Component):
 
     def _new_canceller(self, channels: int) -> StreamCanceller:
         try:
-            backend: Canceller = BACKENDS[self.settings.backend](channels, self.settings.sample_rate_hz)
+            s = self.settings
+            # the echo events judge speex's output as fusion's rule was calibrated on (its suppressor's
+            # defaults) while the published one keeps more of a person speaking over the robot
+            options = ({"suppress_residual": s.suppress_residual, "residual_db": s.residual_db,
+                        "residual_active_db": s.residual_active_db, "judge": True} if s.backend == "speex" else {})
+            backend: Canceller = BACKENDS[s.backend](channels, s.sample_rate_hz, **options)
         except BackendError as exc:
             raise SetupError(str(exc)) from None
         return StreamCanceller(backend, self.settings.sample_rate_hz, max_delay_ms=self.settings.max_delay_ms)
@@ -235,7 +245,9 @@ class EchoCanceller(Component):
             frames = ready[used:used + audio.frames]
             used += audio.frames
             self.cancelled += 1
-            self._measure(state, audio, frames)
+            channels = audio.samples.shape[1]
+            self._measure(state, audio, frames[:, channels:] if frames.shape[1] > channels else frames)
+            frames = frames[:, :channels]
             self.publish(self.settings.output_topic, frames if audio.frames else b"", audio.start_ns, audio.end_ns,
                          stream_id=audio.stream_id, end_of_stream=end_of_stream and not state.waiting)
         rest = ready[used:]
