@@ -9,8 +9,9 @@ the signals themselves:
   in which the reference is loud, GCC-PHAT between the reference and the first microphone finds the lag
   of the direct path (sub-sample, by a parabola through the peak); a weak peak is not taken;
 - **the drift** between the player's clock and the grabber's (two sound cards: up to a few hundred
-  ppm): the delay estimates of the last ``fit_s`` seconds are fitted with a line, whose slope is the
-  drift, so the delay used at each instant moves smoothly between estimates.
+  ppm): the delay estimates of the last ``fit_s`` seconds are fitted with a line (once 3 of them span
+  ``fit_min_s``; before, their median), whose slope is the drift, so the delay used at each instant
+  moves smoothly between estimates.
 
 :class:`ReferenceTrack` keeps the reference samples by capture time until the microphones are past
 them (a replay's player may publish far ahead; at most ``max_held_s``), and reads them at any
@@ -33,6 +34,7 @@ JUMP_MS = 20.0  # an estimate this far off the fitted line waits for a second on
 AGREE_MS = 2.0  # ... within this
 EARLY_MS = 20.0  # the echo may come this much before the stamps say (a player's clock fast: drift)
 MAX_DRIFT = 500e-6  # a fitted slope beyond this is not a clock: the line falls back to the last delay
+FIT_MIN_S = 3.0  # a line (a drift) is fitted once 3 estimates span this long; before, their median delay
 
 
 class ReferenceTrack:
@@ -153,13 +155,15 @@ class DelayTracker:
     """Delay (and from it drift) of the echo after the reference's stamps, from the signals."""
 
     def __init__(self, sample_rate_hz: int, max_delay_ms: float = 400.0, window_s: float = 0.5,
-                 estimate_every_s: float = 0.5, fit_s: float = 60.0, min_delay_ms: float = -EARLY_MS):
+                 estimate_every_s: float = 0.5, fit_s: float = 60.0, min_delay_ms: float = -EARLY_MS,
+                 fit_min_s: float = FIT_MIN_S):
         self.rate = sample_rate_hz
         self.max_lag = int(max_delay_ms * sample_rate_hz / 1000)
         self.min_lag = int(-min_delay_ms * sample_rate_hz / 1000)  # how early the echo may come (drift)
         self.window = int(window_s * sample_rate_hz)
         self.every = int(estimate_every_s * sample_rate_hz)
         self.fit_s = fit_s
+        self.fit_min_s = fit_min_s
         self.estimates: deque[DelayEstimate] = deque()
         self.rejected = 0
         self._since = 0
@@ -240,7 +244,7 @@ class DelayTracker:
             self.estimates.popleft()
         times = np.array([e.at_s for e in self.estimates])
         delays = np.array([e.delay_samples for e in self.estimates])
-        if len(self.estimates) >= 3 and times[-1] - times[0] >= 3.0:
+        if len(self.estimates) >= 3 and times[-1] - times[0] >= self.fit_min_s:
             slope, intercept = np.polyfit(times, delays, 1)
             if abs(slope) <= MAX_DRIFT * self.rate:
                 self._slope, self._intercept = float(slope), float(intercept)

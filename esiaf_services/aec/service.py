@@ -64,6 +64,8 @@ class AecSettings(ComponentSettings):
     residual_db: int = -40
     residual_active_db: int = 0
     expect_reference: bool = False  # a replay's: every stream has one from its start (esiaf run --playback)
+    drift_fit_min_s: float = 3.0  # fit the drift once 3 delay estimates span this long (0.5: fast start, README)
+    retrain_passes: int = 0  # on a new alignment, adapt this often over the last second again (2: fast start)
 
 
 @dataclass
@@ -132,7 +134,8 @@ class EchoCanceller(Component):
             backend: Canceller = BACKENDS[s.backend](channels, s.sample_rate_hz, **options)
         except BackendError as exc:
             raise SetupError(str(exc)) from None
-        return StreamCanceller(backend, self.settings.sample_rate_hz, max_delay_ms=self.settings.max_delay_ms)
+        return StreamCanceller(backend, self.settings.sample_rate_hz, max_delay_ms=self.settings.max_delay_ms,
+                               fit_min_s=self.settings.drift_fit_min_s, retrain_passes=self.settings.retrain_passes)
 
     # -- the reference ------------------------------------------------------------------
     def on_audio(self, audio: Audio) -> None:

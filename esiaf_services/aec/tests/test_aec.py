@@ -99,6 +99,29 @@ def test_an_echo_that_comes_earlier_than_its_stamps_is_followed():
     assert erle_db(mics[late], cancelled[late]) >= 20
 
 
+def test_a_fast_start_cancels_more_of_the_first_seconds_at_300_ms_and_100_ppm():
+    """drift_fit_min_s 0.5 and retrain_passes 2: the drift is followed from the third estimate on, and the filter
+    adapts again over the last second at the delay's first estimate, instead of converging on the next ones."""
+    reference = speech(8.0)
+    mics = to_pcm(echo_path(reference, 2, delay_ms=300, ppm=100))
+    figures = {}
+    for name, options in {"default": {}, "fast": {"fit_min_s": 0.5, "retrain_passes": 2}}.items():
+        stream = StreamCanceller(BACKENDS["speex"](2, RATE), RATE, **options)
+        stream.add_reference(0, reference[:CHUNK])
+        out = []
+        for first in range(0, len(mics), CHUNK):
+            ahead = first + CHUNK
+            stream.add_reference(ahead * NS // RATE, reference[ahead:ahead + CHUNK])
+            out.append(stream.process(first * NS // RATE, mics[first:first + CHUNK]))
+        out.append(stream.flush())
+        early = slice(RATE, None)  # from 1 s after the robot starts (0.7 s after its echo does)
+        figures[name] = erle_db(mics[early], np.concatenate(out)[early])
+        if name == "fast":
+            assert 1 <= stream.retrained <= 2  # at the first estimate (and if the second replaces it), not for drift
+            assert abs(stream.tracker.drift_ppm - 100) < 30
+    assert figures["fast"] >= figures["default"] + 3, figures
+
+
 # -- the service over real sockets ------------------------------------------------------------------
 FOUR = AudioFormat(RATE, "int16", channels=4)
 MONO = AudioFormat(RATE, "int16")
