@@ -195,13 +195,20 @@ def render(array: str, seconds: float, delay_ms: float, ppm: float, seed: int) -
                  robot_spans, questions)
 
 
-def cancel(backend: str, mics: np.ndarray, reference: np.ndarray, align: bool) -> tuple[np.ndarray, float, object]:
-    """Runs the canceller over ``mics`` in 50 ms chunks as the service gets them; the output, CPU s, stream."""
+# the canceller with a fast start (the aec settings drift_fit_min_s 0.5, retrain_passes 2; off by default):
+# bench/robot_speaks.py --fast-start runs it beside the defaults
+FAST_START = {"retrain_passes": 2, "fit_min_s": 0.5}
+
+
+def cancel(backend: str, mics: np.ndarray, reference: np.ndarray, align: bool,
+           options: dict | None = None) -> tuple[np.ndarray, float, object]:
+    """Runs the canceller over ``mics`` in 50 ms chunks as the service gets them; the output, CPU s, stream.
+    ``options``: StreamCanceller's keyword arguments (FAST_START, or the defaults)."""
     from esiaf_services.aec.backends import BACKENDS
     from esiaf_services.aec.core import StreamCanceller
     pcm = np.clip(np.rint(mics * 32767), -32768, 32767).astype(np.int16)
     stream = StreamCanceller(BACKENDS[backend](mics.shape[1], FS), FS, estimate_delay=align,
-                             lead_ms=4.0 if align else 0.0)
+                             lead_ms=4.0 if align else 0.0, **(options or {}))
     chunk = FS // 20
     out = []
     started = time.process_time()
@@ -260,10 +267,10 @@ class Recogniser:
 
 
 def measure(scene: Scene, array: str, backend: str, delay_ms: float, ppm: float, recogniser: Recogniser,
-            align: bool = True) -> Figures:
+            align: bool = True, options: dict | None = None) -> Figures:
     figures = Figures(array, backend if align else f"{backend}-unaligned", delay_ms, ppm)
     echo_only = scene.echo + scene.noise
-    out, _, stream = cancel(backend, echo_only, scene.reference, align)
+    out, _, stream = cancel(backend, echo_only, scene.reference, align, options)
     (first_start, first_end), (second_start, _) = scene.robot_spans[0], scene.robot_spans[-1]
     figures.erle_db = erle_db(echo_only, out, first_start + 1.0, first_end)
     figures.erle_median_db = float(np.median([erle_db(echo_only, out, at, at + 1.0)
@@ -275,7 +282,7 @@ def measure(scene: Scene, array: str, backend: str, delay_ms: float, ppm: float,
         figures.delay_estimated_ms = float(tracker.delay_at(np.array(first_end))) / FS * 1000
         figures.drift_estimated_ppm = tracker.drift_ppm
     mix = scene.echo + scene.person + scene.babble + scene.noise
-    out, cpu, _ = cancel(backend, mix, scene.reference, align)
+    out, cpu, _ = cancel(backend, mix, scene.reference, align, options)
     figures.cpu_pct = 100 * cpu / (len(mix) / FS)
     clean = scene.person + scene.babble + scene.noise
     sdr_in, sdr_out = [], []

@@ -21,6 +21,7 @@ microphones, babble 10 dB below the person):
 
     nice -n 10 python -m bench.robot_speaks [--array respeaker4] [--conditions 0:100,150:-100,300:100,300:-100]
         [--runs 2] [--talk-s 300] [--port 23200] [--workdir DIR] [--json out.json] [--skip aec,eval,talk]
+        [--fast-start]
         [-- ESIAF RUN OPTIONS]
 
 Ends with a table of the targets and ``name=value`` lines.
@@ -47,29 +48,38 @@ BABBLE_BELOW_PERSON_DB = 10.0
 
 
 def canceller_part(array: str, conditions: list[tuple[float, float]], seconds: float, seed: int,
-                   backend: str) -> list[dict]:
+                   backend: str, fast_start: bool = False) -> list[dict]:
     from bench import aec
     recogniser = aec.Recogniser()
     rows = []
+    variants = [("", None), ("fast-start", aec.FAST_START)] if fast_start else [("", None)]
     for delay_ms, ppm in conditions:
         scene = aec.render(array, seconds, delay_ms, ppm, seed)
-        figures = aec.measure(scene, array, backend, delay_ms, ppm, recogniser)
-        row = asdict(figures)
-        row["erle_converged_db"] = converged_erle(scene, backend)
-        rows.append(row)
-        print(f"aec {array} {backend} delay {delay_ms:.0f} ms drift {ppm:+.0f} ppm: ERLE {row['erle_db']:.1f} dB "
-              f"(median {row['erle_median_db']:.1f}, 1 s after the delay is known {row['erle_converged_db']:.1f}, "
-              f"restart {row['erle_restart_db']:.1f}); double talk {row['recognised']}/{row['asked']} "
-              f"(no robot {row['recognised_clean']}); CPU {row['cpu_pct']:.2f} %; delay est "
-              f"{row['delay_estimated_ms']:.1f} ms, drift est {row['drift_estimated_ppm']:+.0f} ppm", flush=True)
+        for variant, options in variants:
+            figures = aec.measure(scene, array, backend, delay_ms, ppm, recogniser, options=options)
+            row = asdict(figures)
+            row["variant"] = variant
+            row["erle_converged_db"] = converged_erle(scene, backend, options)
+            rows.append(row)
+            print_row(array, backend, variant, row)
     return rows
 
 
-def converged_erle(scene, backend: str) -> float:
+def print_row(array: str, backend: str, variant: str, row: dict) -> None:
+    delay_ms, ppm = row["delay_ms"], row["ppm"]
+    name = f"{backend} {variant}" if variant else backend
+    print(f"aec {array} {name} delay {delay_ms:.0f} ms drift {ppm:+.0f} ppm: ERLE {row['erle_db']:.1f} dB "
+          f"(median {row['erle_median_db']:.1f}, 1 s after the delay is known {row['erle_converged_db']:.1f}, "
+          f"restart {row['erle_restart_db']:.1f}); double talk {row['recognised']}/{row['asked']} "
+          f"(no robot {row['recognised_clean']}); CPU {row['cpu_pct']:.2f} %; delay est "
+          f"{row['delay_estimated_ms']:.1f} ms, drift est {row['drift_estimated_ppm']:+.0f} ppm", flush=True)
+
+
+def converged_erle(scene, backend: str, options: dict | None = None) -> float:
     """ERLE over the robot's first stretch of speech from 1 s after the delay tracker's first estimate."""
     from bench import aec
     echo_only = scene.echo + scene.noise
-    out, _, stream = aec.cancel(backend, echo_only, scene.reference, True)
+    out, _, stream = aec.cancel(backend, echo_only, scene.reference, True, options)
     known = getattr(stream.tracker, "first_known_s", None)  # type: ignore[attr-defined]
     first_known = math.nan if known is None else known
     start, end = scene.robot_spans[0]
@@ -200,6 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workdir", type=Path)
     parser.add_argument("--skip", default="", help="parts to leave out: aec, eval, talk (comma-separated)")
     parser.add_argument("--json", type=Path)
+    parser.add_argument("--fast-start", action="store_true",
+                        help="also run the canceller with bench/aec.py's FAST_START options, side by side")
     args = parser.parse_args(argv)
     from esiaf.tools.evaluation import DEFAULT_PIPELINE
     pipeline = options if "--without" in options else DEFAULT_PIPELINE + options
@@ -210,7 +222,8 @@ def main(argv: list[str] | None = None) -> int:
     started = time.monotonic()
     report: dict = {"array": args.array, "backend": args.backend, "pipeline": pipeline}
     if "aec" not in skip:
-        report["aec"] = canceller_part(args.array, conditions, args.aec_seconds, args.seed, args.backend)
+        report["aec"] = canceller_part(args.array, conditions, args.aec_seconds, args.seed, args.backend,
+                                       args.fast_start)
     if "eval" not in skip:
         report["eval"] = eval_part(args.array, args.runs, args.seed, work / "eval", args.port, pipeline)
     if "talk" not in skip:
@@ -219,11 +232,12 @@ def main(argv: list[str] | None = None) -> int:
     lines: list[tuple[str, str, str]] = []
     values: dict[str, float] = {}
     for row in report.get("aec", []):
-        key = f"aec_d{row['delay_ms']:g}_p{row['ppm']:g}"
-        lines.append((f"ERLE from 1 s after the robot starts, {row['delay_ms']:g} ms, {row['ppm']:+g} ppm",
+        key = f"aec_d{row['delay_ms']:g}_p{row['ppm']:g}" + (f"_{row['variant']}" if row.get("variant") else "")
+        label = f"{row['delay_ms']:g} ms, {row['ppm']:+g} ppm" + (f" ({row['variant']})" if row.get("variant") else "")
+        lines.append((f"ERLE from 1 s after the robot starts, {label}",
                       f"{row['erle_db']:.1f} dB (median {row['erle_median_db']:.1f}; 1 s after the delay is known "
                       f"{row['erle_converged_db']:.1f})", ">= 25 dB"))
-        lines.append((f"canceller CPU, {row['delay_ms']:g} ms, {row['ppm']:+g} ppm",
+        lines.append((f"canceller CPU, {label}",
                       f"{row['cpu_pct']:.2f} % of a core", "<= 10 %"))
         for name in ("erle_db", "erle_median_db", "erle_converged_db", "erle_restart_db", "cpu_pct"):
             values[f"{key}_{name}"] = row[name]
