@@ -101,6 +101,8 @@ class PocketsphinxRecognizer:
     ``vocabulary``: a deployment's words (``vocabulary.py``) and pronunciations for those the dictionaries
     lack; with the language model, each word it lacks is added to it with ``vocabulary_weight`` times
     the probability pocketsphinx gives a word it adds (a word it has keeps its probability).
+    ``phone_loop``: a second decoder, a phone loop (``PhoneLoop``: its own copy of the acoustic model, about
+    as much CPU again), is fed the same audio; the best hypothesis then carries its ``confidence``.
     """
 
     def __init__(self, sample_rate_hz: int = 16000, grammar: str | Path | None = None,
