@@ -31,6 +31,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pocketsphinx
 
 from esiaf_services.asr.lexicon import (
@@ -42,7 +43,7 @@ from esiaf_services.asr.lexicon import (
     base_word,
     read_dictionary,
 )
-from esiaf_services.asr.pocketsphinx_log import one_line, pocketsphinx_log
+from esiaf_services.asr.pocketsphinx_log import PocketsphinxLog, one_line, pocketsphinx_log
 from esiaf_services.asr.vocabulary import Vocabulary
 
 LOGGER = logging.getLogger(__name__)
@@ -56,6 +57,10 @@ SCORE_SHIFT_BITS = 10  # pocketsphinx's SENSCR_SHIFT
 # pocketsphinx's default for its en-us model; 7.5 raised the word error on CMU ARCTIC from 42 to 48 %
 LANGUAGE_MODEL_WEIGHT = 6.5
 FILLER_WORDS = frozenset({"<s>", "</s>", "<sil>"})
+# with a grammar: a best sentence whose words are this far below the phone loop over the same frames
+# (log-likelihood per frame, nats) is out of set; chosen on rendered rooms of seeds 2 and 3
+# (bench/closed_set_pocketsphinx.py, asr/README.md)
+MIN_CONFIDENCE = -1.8
 GRAMMAR_SEARCH = "grammar"
 VOCABULARY_SEARCH = "vocabulary"  # the language model with the vocabulary's words (none added to the dictionary)
 
@@ -77,6 +82,14 @@ class Hypothesis:
     text: str
     probability: float
     words: tuple[Word, ...]  # only for the hypothesis pocketsphinx segmented (its best path), else ()
+    # only for the best hypothesis of a recogniser made with ``phone_loop``, else None: over the frames of
+    # its words (silences left out), their log-likelihood minus the phone loop's, per frame, in nats (about
+    # 0 when the sentence explains the speech as well as any phone sequence; lower is worse) ...
+    confidence: float | None = None
+    word_confidence: float | None = None  # ... and the same for its worst word (measured, not used: README)
+    # with a grammar: whether the text is one of its sentences. When no path reaches the grammar's end,
+    # pocketsphinx gives the best path so far, a sentence cut short ("where is canada's only"); None: no grammar
+    whole: bool | None = None
 
 
 class PocketsphinxRecognizer:
@@ -88,11 +101,14 @@ class PocketsphinxRecognizer:
     ``vocabulary``: a deployment's words (``vocabulary.py``) and pronunciations for those the dictionaries
     lack; with the language model, each word it lacks is added to it with ``vocabulary_weight`` times
     the probability pocketsphinx gives a word it adds (a word it has keeps its probability).
+    ``phone_loop``: a second decoder, a phone loop (``PhoneLoop``: its own copy of the acoustic model, about
+    as much CPU again), is fed the same audio; the best hypothesis then carries its ``confidence``.
     """
 
     def __init__(self, sample_rate_hz: int = 16000, grammar: str | Path | None = None,
                  extra_dictionary: str | Path | None = DEFAULT_EXTRA_DICT, language_weight: float = 7.5,
-                 nbest: int = 5, vocabulary: Vocabulary | None = None, vocabulary_weight: float = 1.0) -> None:
+                 nbest: int = 5, vocabulary: Vocabulary | None = None, vocabulary_weight: float = 1.0,
+                 phone_loop: bool = False) -> None:
         if not MIN_SAMPLE_RATE_HZ <= sample_rate_hz <= MAX_SAMPLE_RATE_HZ:
             raise RecognizerError(
                 f"sample rate {sample_rate_hz} Hz not supported: the bundled en-us model needs "
@@ -132,6 +148,9 @@ class PocketsphinxRecognizer:
             self._decoder.activate_search(VOCABULARY_SEARCH)
         if grammar_path is not None:
             self._load_grammar(grammar_path)
+        self._grammar = self._decoder.get_fsg(GRAMMAR_SEARCH) if grammar_path is not None else None
+        # a second decoder fed the same audio, whose score per frame the best path's is measured against
+        self._loop = PhoneLoop(sample_rate_hz, self._log) if phone_loop else None
         self._frames_per_s = float(self._decoder.config["frate"])
         # The Python API reports a path score s (log base 1.0001, shifted) as 1.0001**s, so ln(score) * 2**10
         # is the log-likelihood in nats; dividing by ascale gives pocketsphinx's posterior scaling.
@@ -211,6 +230,8 @@ class PocketsphinxRecognizer:
             raise RecognizerError("start() called twice without finish()")
         self._first_utterance = [] if buffer_it else None
         self._decoder.start_utt()
+        if self._loop is not None:
+            self._loop.start()
         self._in_utterance = True
         self._odd_byte = b""
 
@@ -238,30 +259,37 @@ class PocketsphinxRecognizer:
         self._in_utterance = False
         mark = self._log.mark()
         try:
+            loop_frames = self._loop.finish() if self._loop is not None else None
             self._decoder.end_utt()
         except RuntimeError as error:
             complaint = one_line(self._log.since(mark)) or str(error)
             raise RecognizerError(f"pocketsphinx failed to end the utterance: {complaint}") from error
         for line in self._log.since(mark).splitlines():  # errors pocketsphinx logged while decoding
             LOGGER.warning("pocketsphinx: %s", line)
-        return self._hypotheses()
+        return self._hypotheses(loop_frames)
 
     def _finish_first_utterance(self) -> list[Hypothesis]:
         assert self._first_utterance is not None  # called while it is buffered
         pcm, self._first_utterance = b"".join(self._first_utterance), None
         self._in_utterance = False
         self._decoder.end_utt()  # nothing was fed to it
+        if self._loop is not None:
+            self._loop.finish()
         return self.recognise(pcm) if len(pcm) >= 2 else []
 
     def recognise(self, pcm: bytes) -> list[Hypothesis]:
         """Decode one whole utterance, with cepstral mean normalisation computed over all of it."""
         if self._live_cmn:  # pocketsphinx switches to running CMN for good once audio was streamed
             self._decoder.reinit_feat()  # back to batch CMN (0.1 ms); the words and grammar stay
+            if self._loop is not None:
+                self._loop.reinit_feat()
             self._live_cmn = False
         self._start(buffer_it=False)
         self._process(pcm, whole_utterance=True)
         hypotheses = self.finish()
         self._decoder.set_cmn(self._decoder.get_cmn(False))  # seeds the running CMN of later streamed audio
+        if self._loop is not None:
+            self._loop.seed_cmn()
         self._cmn_seeded = True
         return hypotheses
 
@@ -276,11 +304,13 @@ class PocketsphinxRecognizer:
             mark = self._log.mark()
             try:
                 self._decoder.process_raw(data[:usable_bytes], False, whole_utterance)
+                if self._loop is not None:
+                    self._loop.process(data[:usable_bytes], whole_utterance)
             except RuntimeError as error:
                 complaint = one_line(self._log.since(mark)) or str(error)
                 raise RecognizerError(f"pocketsphinx failed to decode audio: {complaint}") from error
 
-    def _hypotheses(self) -> list[Hypothesis]:
+    def _hypotheses(self, loop_frames: np.ndarray | None = None) -> list[Hypothesis]:
         best = self._decoder.hyp()
         best_text = " ".join(best.hypstr.split()) if best is not None else ""
         if not best_text:
@@ -291,9 +321,15 @@ class PocketsphinxRecognizer:
         best_weight = max(log_weights.pop(best_text, top_weight), top_weight)
         alternatives = sorted(log_weights.items(), key=lambda item: item[1], reverse=True)[:self.nbest - 1]
         total = 1.0 + sum(math.exp(weight - best_weight) for _, weight in alternatives)
-        return [Hypothesis(text=best_text, probability=1.0 / total, words=self._words())] + [
-            Hypothesis(text=text, probability=math.exp(weight - best_weight) / total, words=())
-            for text, weight in alternatives]
+        confidence, word_confidence = self._confidences(loop_frames) if loop_frames is not None else (None, None)
+        return [Hypothesis(text=best_text, probability=1.0 / total, words=self._words(), confidence=confidence,
+                           word_confidence=word_confidence, whole=self._whole(best_text))] + [
+            Hypothesis(text=text, probability=math.exp(weight - best_weight) / total, words=(),
+                       whole=self._whole(text)) for text, weight in alternatives]
+
+    def _whole(self, text: str) -> bool | None:
+        """Whether ``text`` is a sentence of the grammar (None without one); 0.03 ms."""
+        return self._grammar.accept(text) if self._grammar is not None else None
 
     def _nbest_log_weights(self) -> dict[str, float]:
         """Distinct n-best texts -> log of their paths' summed likelihoods, scaled as described above."""
@@ -307,6 +343,29 @@ class PocketsphinxRecognizer:
             log_weights[text] = log_weight if previous is None else _log_add(previous, log_weight)
         return log_weights
 
+    def _confidences(self, loop_frames: np.ndarray) -> tuple[float, float]:
+        """The best path's words against the phone loop over the same frames (``Hypothesis.confidence``):
+        over all its words, and its worst word; per frame, in nats."""
+        gained, frames, worst = 0.0, 0, math.inf
+        for segment in self._decoder.seg() or ():
+            if base_word(segment.word) in FILLER_WORDS or segment.word.startswith(("[", "++")):
+                continue
+            length = segment.end_frame - segment.start_frame + 1
+            nats = math.log(segment.ascore) if segment.ascore > 0.0 else -math.inf  # unshifted, unlike allphone's
+            gain = nats - float(loop_frames[segment.start_frame:segment.end_frame + 1].sum())
+            gained, frames, worst = gained + gain, frames + length, min(worst, gain / length)
+        return (gained / frames, worst) if frames else (-math.inf, -math.inf)
+
+    def posterior(self) -> float:
+        """The lattice posterior of the last utterance's best path (0.0 if nothing was recognised): with a
+        grammar, how much of the search's probability mass that one sentence holds."""
+        best = self._decoder.hyp()
+        return min(1.0, max(0.0, best.prob)) if best is not None else 0.0
+
+    def path_score_per_frame(self) -> float:
+        """The last utterance's best path log-likelihood per frame, in nats (-inf if none)."""
+        return _per_frame(self._decoder)
+
     def _words(self) -> tuple[Word, ...]:
         words = []
         for segment in self._decoder.seg() or ():
@@ -317,6 +376,67 @@ class PocketsphinxRecognizer:
                               end_s=(segment.end_frame + 1) / self._frames_per_s,
                               probability=min(1.0, max(0.0, segment.prob))))
         return tuple(words)
+
+
+class PhoneLoop:
+    """A phone loop (pocketsphinx's allphone search, every phone after every other, uniform) on the same
+    acoustic model: how well the best phone sequence explains an utterance, the reference a grammar path's
+    score is measured against. Fed the same audio as the grammar's decoder, the same way."""
+
+    def __init__(self, sample_rate_hz: int = 16000, log: PocketsphinxLog | None = None) -> None:
+        self._log = log or pocketsphinx_log()
+        mark = self._log.mark()
+        try:
+            self._decoder = pocketsphinx.Decoder(hmm=str(BUNDLED_ACOUSTIC_MODEL), dict=str(BUNDLED_DICT), lm=None,
+                                                 samprate=sample_rate_hz, loglevel="ERROR",
+                                                 logfn=str(self._log.path))
+            self._decoder.add_allphone_file("allphone", None)
+        except (RuntimeError, ValueError) as error:
+            complaint = one_line(self._log.since(mark)) or error
+            raise RecognizerError(f"cannot start pocketsphinx's phone loop: {complaint}") from error
+        self._decoder.activate_search("allphone")
+
+    def reinit_feat(self) -> None:
+        """Back to batch CMN, as the grammar's decoder."""
+        self._decoder.reinit_feat()
+
+    def seed_cmn(self) -> None:
+        """The last utterance's CMN seeds the running CMN of later streamed audio, as the grammar's decoder."""
+        self._decoder.set_cmn(self._decoder.get_cmn(False))
+
+    def start(self) -> None:
+        self._decoder.start_utt()
+
+    def process(self, pcm: bytes, whole_utterance: bool) -> None:
+        self._decoder.process_raw(pcm, False, whole_utterance)
+
+    def finish(self) -> np.ndarray:
+        """End the utterance: the phone loop's log-likelihood of each frame, in nats (each phone's spread
+        evenly over its frames)."""
+        self._decoder.end_utt()
+        frames = np.zeros(self._decoder.n_frames())
+        for segment in self._decoder.seg() or ():
+            # the allphone search reports a phone's acoustic score shifted right by SCORE_SHIFT_BITS
+            nats = math.log(segment.ascore) * 2 ** SCORE_SHIFT_BITS if segment.ascore > 0.0 else -math.inf
+            frames[segment.start_frame:segment.end_frame + 1] = nats / (segment.end_frame - segment.start_frame + 1)
+        return frames
+
+    def frame_scores(self, pcm: bytes) -> np.ndarray:
+        """``finish()``'s figures for one whole utterance (batch CMN)."""
+        self.reinit_feat()
+        self.start()
+        self.process(pcm, whole_utterance=True)
+        return self.finish()
+
+
+def _per_frame(decoder: pocketsphinx.Decoder) -> float:
+    """The decoder's best path log-likelihood per frame, in nats (-inf if none). pocketsphinx scores each
+    frame relative to its best senone, so 0 is the best any path could do."""
+    best = decoder.hyp()
+    frames = decoder.n_frames()
+    if best is None or best.score <= 0.0 or not frames:
+        return -math.inf
+    return math.log(best.score) * 2 ** SCORE_SHIFT_BITS / frames
 
 
 def _check_grammar_file(grammar_path: Path) -> None:

@@ -19,7 +19,13 @@ from esiaf.settings import StrictModel
 from esiaf_services.asr.closed_set import MIN_PER_TOKEN, ClosedSetDecoder, ClosedSetResult
 from esiaf_services.asr.lexicon import DictionaryFormatError
 from esiaf_services.asr.matching import GrammarError, Match, SentenceMatcher, chosen_first
-from esiaf_services.asr.recognizer import DEFAULT_EXTRA_DICT, UNRECOGNISED, PocketsphinxRecognizer, RecognizerError
+from esiaf_services.asr.recognizer import (
+    DEFAULT_EXTRA_DICT,
+    MIN_CONFIDENCE,
+    UNRECOGNISED,
+    PocketsphinxRecognizer,
+    RecognizerError,
+)
 from esiaf_services.asr.vocabulary import (
     MAX_BYTES,
     MAX_ENTRIES,
@@ -51,6 +57,11 @@ class PocketsphinxSettings(StrictModel):
     vocabulary_weight: float = Field(default=VOCABULARY_WEIGHT, gt=0, description=(
         "with a vocabulary and the language model: a vocabulary word the model lacks is added to it this many "
         "times as probable as pocketsphinx makes a word it adds (a word it has keeps its probability)"))
+    min_confidence: float | None = Field(default=MIN_CONFIDENCE, description=(
+        "with a grammar: a sentence whose words' log-likelihood per frame is this far below a phone loop's over the "
+        "same frames (nats; the phone loop is a second decoder fed the same audio) is out of set; null: no phone "
+        "loop, every whole sentence the grammar search ends on is taken (asr/README.md, "
+        "bench/closed_set_pocketsphinx.py)"))
 
 
 class WhisperSettings(StrictModel):
@@ -105,8 +116,8 @@ class AsrSettings(BackendSettings):
         "with whisper (the utterance so far decoded again, beam 1)"))
     renamed: ClassVar[dict[str, str]] = {
         "nbest": "n_best",  # the flat names of the backends' settings, before they were nested:
-        **{name: f"pocketsphinx.{name}" for name in PocketsphinxSettings.model_fields
-           if name != "vocabulary_weight"},  # came after the nesting: no flat name
+        **{name: f"pocketsphinx.{name}" for name in PocketsphinxSettings.model_fields  # those after the
+           if name not in ("vocabulary_weight", "min_confidence")},  # nesting: no flat name
         **{name: f"whisper.{name}" for name in WhisperSettings.model_fields}}
 
     @field_validator("vocabulary")
@@ -241,7 +252,16 @@ class Asr(Component):
             grammar=resolve_grammar(s.grammar) if s.backend == "pocketsphinx" else None,
             extra_dictionary=s.pocketsphinx.extra_dictionary or None,
             language_weight=s.pocketsphinx.language_weight, nbest=s.hypotheses(),
-            vocabulary=self.vocabulary, vocabulary_weight=s.pocketsphinx.vocabulary_weight)
+            vocabulary=self.vocabulary, vocabulary_weight=s.pocketsphinx.vocabulary_weight,
+            phone_loop=self._rejects())
+
+    def _grammar_search(self) -> bool:
+        """pocketsphinx decodes with a grammar: a closed set of its own."""
+        return self.settings.backend == "pocketsphinx" and bool(self.settings.grammar)
+
+    def _rejects(self) -> bool:
+        """pocketsphinx with a grammar and a ``min_confidence``: the phone loop runs beside it."""
+        return self._grammar_search() and self.settings.pocketsphinx.min_confidence is not None
 
     def _stream(self, stream_id: str) -> StreamState:
         state = self.streams.pop(stream_id, None)
@@ -363,7 +383,7 @@ class Asr(Component):
         self.info["utterances"] = self.utterances
         if not hypotheses and nothing == UNRECOGNISED and self.settings.unrecognised:
             empty = hypothesis("", 0.0)
-            empty.out_of_set = self.matcher is not None
+            empty.out_of_set = self.matcher is not None or self._grammar_search()
             self.emit("speech", span, stream_id=audio.stream_id, speech={"hypotheses": [empty]})
             log.info("utterance stream_id=%s start_ns=%d not understood", audio.stream_id, span[0])
             return
@@ -371,12 +391,37 @@ class Asr(Component):
             self.emit("speech", span, stream_id=audio.stream_id, nothing=nothing)
             log.info("utterance stream_id=%s start_ns=%d recognised nothing: %s", audio.stream_id, span[0], nothing)
             return
+        if state.recognizer is not None and self._out_of_set(hypotheses[0]):
+            self._emit_rejected(hypotheses, span, audio.stream_id)
+            return
         matches = [self.matcher.match(h.text) for h in hypotheses] if self.matcher is not None else []
         order = chosen_first(matches) if matches else list(range(len(hypotheses)))
         self.emit("speech", span, stream_id=audio.stream_id, speech={"hypotheses": [
             self._hypothesis(hypotheses[i], origin_ns, matches[i] if matches else None) for i in order]})
         log.info("utterance stream_id=%s start_ns=%d text=%r p=%.2f", audio.stream_id, span[0],
                  hypotheses[order[0]].text, hypotheses[order[0]].probability)
+
+    def _out_of_set(self, best) -> bool:
+        """pocketsphinx's best path is no whole sentence of its grammar (no path reached the grammar's end),
+        or explains its speech far worse than the phone loop (with ``min_confidence``)."""
+        p = self.settings.pocketsphinx
+        if best.whole is False:
+            return True
+        if best.confidence is None or p.min_confidence is None:
+            return False
+        return best.confidence < p.min_confidence
+
+    def _emit_rejected(self, hypotheses, span: tuple[int, int], stream_id: str) -> None:
+        """The grammar's sentences, out of set (``_out_of_set``): each with its text empty and the sentence
+        as ``raw_text``."""
+        out = []
+        for h in hypotheses:
+            rejected = hypothesis("", h.probability)
+            rejected.raw_text, rejected.out_of_set = h.text, True
+            out.append(rejected)
+        self.emit("speech", span, stream_id=stream_id, speech={"hypotheses": out})
+        log.info("utterance stream_id=%s start_ns=%d out of set: sentence=%r whole=%s confidence=%s", stream_id,
+                 span[0], hypotheses[0].text, hypotheses[0].whole, hypotheses[0].confidence)
 
     def _emit_closed_set(self, result: ClosedSetResult | None, span: tuple[int, int], origin_ns: int,
                          stream_id: str) -> None:

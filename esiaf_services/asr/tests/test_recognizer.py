@@ -21,7 +21,11 @@ from esiaf_services.asr.lexicon import (
     read_dictionary,
     read_questions,
 )
-from esiaf_services.asr.recognizer import PocketsphinxRecognizer, RecognizerError
+from esiaf_services.asr.recognizer import (
+    MIN_CONFIDENCE,
+    PocketsphinxRecognizer,
+    RecognizerError,
+)
 
 REPO_ROOT = Path(__file__).resolve().parents[3]
 SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
@@ -143,6 +147,29 @@ def test_synthesised_question_decodes_exactly(question: str, grammar_recogniser:
     hypotheses = grammar_recogniser.recognise(pcm)
     assert hypotheses[0].text == normalise_sentence(question)
     assert " ".join(word.word for word in hypotheses[0].words) == hypotheses[0].text
+
+
+@needs_flite
+@pytest.mark.parametrize("voice", ["slt", "awb"])
+def test_the_phone_loop_keeps_a_question_and_rejects_speech_out_of_the_grammar(voice: str,
+                                                                             synthesiser: ModuleType) -> None:
+    """With the phone loop, the best sentence carries its confidence: a question's is well above the
+    default; a sentence out of the set, forced onto a question by the grammar search ("where is canada's
+    only desert"), falls below it."""
+    recogniser = PocketsphinxRecognizer(grammar=ROBOCUP_GRAMMAR, phone_loop=True)
+    (question, *_) = recogniser.recognise(synthesiser.synthesise_sentence("What does CAPTCHA stands for?",
+                                                                          voice).tobytes())
+    assert question.text == "what does captcha stands for"
+    assert question.whole and question.confidence is not None and question.confidence > MIN_CONFIDENCE + 1
+    (outside, *_) = recogniser.recognise(synthesiser.synthesise_sentence("Where is the nearest train station?",
+                                                                         voice).tobytes())
+    assert outside.text.startswith("where is canada's")  # the grammar's nearest
+    assert outside.confidence is not None and outside.confidence < MIN_CONFIDENCE
+
+
+def test_without_the_phone_loop_there_is_no_confidence(grammar_recogniser: PocketsphinxRecognizer) -> None:
+    pcm = GOFORWARD_RAW.read_bytes() if GOFORWARD_RAW.is_file() else b"\0\0" * 16000
+    assert all(h.confidence is None and h.word_confidence is None for h in grammar_recogniser.recognise(pcm))
 
 
 @needs_flite
