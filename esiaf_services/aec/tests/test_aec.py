@@ -101,12 +101,14 @@ def test_an_echo_that_comes_earlier_than_its_stamps_is_followed():
 
 def test_a_fast_start_cancels_more_of_the_first_seconds_at_300_ms_and_100_ppm():
     """drift_fit_min_s 0.5 and retrain_passes 2: the drift is followed from the third estimate on, and the filter
-    adapts again over the last second at the delay's first estimate, instead of converging on the next ones."""
+    adapts again over the last second at the delay's first estimate, instead of converging on the next ones.
+    Measured on the linear filter's output: the residual suppressor, which lets through what it takes for
+    double talk, would hide part of the difference."""
     reference = speech(8.0)
     mics = to_pcm(echo_path(reference, 2, delay_ms=300, ppm=100))
     figures = {}
     for name, options in {"default": {}, "fast": {"fit_min_s": 0.5, "retrain_passes": 2}}.items():
-        stream = StreamCanceller(BACKENDS["speex"](2, RATE), RATE, **options)
+        stream = StreamCanceller(BACKENDS["speex"](2, RATE, suppress_residual=False), RATE, **options)
         stream.add_reference(0, reference[:CHUNK])
         out = []
         for first in range(0, len(mics), CHUNK):
