@@ -97,20 +97,26 @@ def whisper_asr(vocabulary: Path, whisper) -> Asr:
     return asr
 
 
-@pytest.mark.parametrize("command, voice", [
-    ("Give the cascade pod to Skyler in the kitchen.", "kal16"),
-    ("Tell Patricia to take the sponge.", "rms"),
+@pytest.mark.parametrize("command, voice, slots", [
+    ("Give the cascade pod to Skyler in the kitchen.", "kal16", ("cascade pod", "skyler", "kitchen")),
+    ("Tell Patricia to take the sponge.", "rms", ("patricia", "sponge")),
 ])
-def test_whisper_writes_the_names_and_objects_right_with_the_vocabulary(tmp_path, whisper, command, voice):
-    """Whisper tiny.en mishears these flite commands ("Give the cascade part a skylare in the kitchen",
-    "tail patricher to take the sponge"); prompted with the vocabulary it writes them right."""
+def test_whisper_writes_the_names_and_objects_right_with_the_vocabulary(tmp_path, whisper, command, voice, slots):
+    """Whisper tiny.en mishears the names and objects of these flite commands ("Give the cascade part a
+    skylare in the kitchen", "tail patricher to take the sponge"); prompted with the vocabulary it writes
+    them right. Only the names and objects are asserted: its int8 decoding of the small words differs
+    between CPUs ("take this sponge" on one, "take the sponge" on another)."""
+    def heard_all(hypotheses) -> bool:
+        heard = f" {' '.join(normalise(hypotheses[0].text))} " if hypotheses else ""
+        return all(f" {slot} " in heard for slot in slots)
+
     speech = flite(command, voice)
     without = whisper.recognise(speech).hypotheses
-    assert not without or normalise(without[0].text) != normalise(command), without
+    assert not heard_all(without), without
     asr = whisper_asr(vocabulary_file(tmp_path, *GPSR_NAMES_AND_OBJECTS), whisper)
     assert asr.prompt is not None and asr.prompt.startswith("Skyler, Robin")
     with_it = whisper.recognise(speech, prompt=asr.prompt).hypotheses
-    assert with_it and normalise(with_it[0].text) == normalise(command), with_it
+    assert heard_all(with_it), with_it
 
 
 def test_whisper_is_prompted_with_as_many_entries_as_fit(tmp_path, whisper, caplog):
