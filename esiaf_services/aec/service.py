@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
+from pydantic import Field
 
 from esiaf import Audio, AudioFormat, Component, ComponentSettings, SetupError
 from esiaf.api_client import declared_format
@@ -58,11 +59,10 @@ class AecSettings(ComponentSettings):
     hold_ms: float = 150.0  # the longest a chunk waits (in capture time) for the reference covering it
     tail_ms: float = 500.0  # cancel on this long after the reference's last sample (plus the delay)
     reference_timeout_ms: float = 500.0  # a reference silent this long without ending: pass-through
-    # speex's residual echo suppressor: on, and how many dB it lowers what is left of the echo alone and
-    # while someone near speaks too (double talk); esiaf_services/aec/README.md: how they were chosen
-    suppress_residual: bool = True
-    residual_db: int = -40
-    residual_active_db: int = 0
+    suppress_residual: bool = True  # speex's residual echo suppressor on the output (the echo events always judge one)
+    residual_db: int = Field(default=-40, ge=-100, le=0)  # it lowers what is left of the echo alone by this much
+    # ... and while someone near speaks too: 0 keeps a person over the robot (aec README: how it was chosen)
+    residual_active_db: int = Field(default=0, ge=-100, le=0)
     expect_reference: bool = False  # a replay's: every stream has one from its start (esiaf run --playback)
     drift_fit_min_s: float = 3.0  # fit the drift once 3 delay estimates span this long (0.5: fast start, README)
     retrain_passes: int = 0  # on a new alignment, adapt this often over the last second again (2: fast start)
