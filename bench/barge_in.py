@@ -16,8 +16,9 @@ speex canceller run over it offline as bench/aec.py's ``cancel()`` does (the ser
 SpeexCanceller at the service's defaults: ``residual_active_db`` 0), its first channel as the microphone
 file. The player plays the scene's reference for the whole run (the pause included: a question there
 counts as a barge-in too). Onsets: the same rule on the person alone at the first microphone (the scene's
-truth). ``robot_s`` is the robot's speech in the run, ``spurious_per_robot_min`` the spurious events per
-minute of it.
+truth). ``quiet`` counts questions that start where the player reports the robot not playing (a pause
+of 0.5 s or more: no barge-in by design; neither found nor missed), ``robot_s`` the time it reports
+playing, ``spurious_per_robot_min`` the spurious events per minute of it.
 
 Per question: the onset is the first 10 ms frame of its clip whose level is within 30 dB of the clip's
 peak (on the stream's timeline); ``latency_ms`` is the event's arrival (this host's clock, the one the
@@ -49,7 +50,7 @@ from websockets.sync.client import connect
 
 from esiaf.tools.testing import Orchestrator, poll
 from esiaf_services.grabber.service import Grabber, GrabberSettings
-from esiaf_services.player.service import Player
+from esiaf_services.player.service import Player, sounding
 from esiaf_services.player.tts import say
 from esiaf_services.vad.service import Vad, VadSettings
 
@@ -86,7 +87,7 @@ def scene(folder: Path, questions: int, spacing_s: float) -> tuple[Path, Path, l
 def room_scene(folder: Path, array: str, seconds: float, delay_ms: float, ppm: float, seed: int,
                echo: bool = True) -> tuple[Path, Path, list[float], list[tuple[float, float]]]:
     """bench/aec.py's scene through the real canceller: its first channel, the reference (2 s longer: the
-    player plays for the whole run), the person's onsets and the robot's spans (its speech, in seconds).
+    player plays for the whole run), the person's onsets and the spans the player reports playing (s).
     ``echo`` False leaves the robot's echo out of the microphones (the canceller still gets the reference)."""
     from bench.aec import cancel, render
     room = render(array, seconds, delay_ms, ppm, seed)
@@ -99,7 +100,10 @@ def room_scene(folder: Path, array: str, seconds: float, delay_ms: float, ppm: f
     paths = folder / "mics.wav", folder / "robot.wav"
     soundfile.write(str(paths[0]), np.clip(out[:, 0], -1, 1), RATE, subtype="PCM_16")
     soundfile.write(str(paths[1]), np.concatenate([room.reference, np.zeros(2 * RATE)]), RATE, subtype="PCM_16")
-    return paths[0], paths[1], onsets, room.robot_spans
+    # where the player reports the robot playing (its pauses of 0.5 s or more are not): a person starting
+    # elsewhere is no barge-in, by design
+    pcm = soundfile.read(str(paths[1]), dtype="int16")[0]
+    return paths[0], paths[1], onsets, [(a / RATE, b / RATE) for a, b in sounding(pcm, RATE)]
 
 
 def run(questions: int, spacing_s: float, speech_start_ms: float, room: dict | None = None,
@@ -146,9 +150,14 @@ def run(questions: int, spacing_s: float, speech_start_ms: float, room: dict | N
                 component.stop()
             orchestrator.close()
     events = [(at, m) for at, m in arrivals if m["type"] == "barge_in"]
-    latencies, detected, missed, per_question = [], [], 0, []
+    latencies, detected, missed, quiet = [], [], 0, 0
+    per_question: list[int | str | None] = []  # ms to the event, None missed, "quiet" the robot in a pause
     for onset_s in onsets:
         onset_ns = start_ns + round(onset_s * 1e9)
+        if spans and not any(start <= onset_s < end for start, end in spans):
+            quiet += 1  # the robot in a pause: no barge-in to expect
+            per_question.append("quiet")
+            continue
         near = [(at, m) for at, m in events if -EARLY_NS <= m["capture_ns"] - onset_ns < 1e9]
         per_question.append(round((near[0][0] - onset_ns) / 1e6) if near else None)
         if not near:
@@ -161,7 +170,7 @@ def run(questions: int, spacing_s: float, speech_start_ms: float, room: dict | N
                   if not any(-EARLY_NS <= m["capture_ns"] - start_ns - round(o * 1e9) < 1e9 for o in onsets)]
     robot_s = sum(end - start for start, end in spans)
     return {"mode": "idealised" if room is None else "room", "room": room, "questions": len(onsets),
-            "onsets_s": onsets, "events": len(events),
+            "onsets_s": onsets, "events": len(events), "quiet": quiet,
             "events_at_s": [(m["capture_ns"] - start_ns) / 1e9 for _, m in events], "missed": missed,
             "spurious": len(spurious_s),
             "spurious_at_s": spurious_s, "speech_start_ms": speech_start_ms, "latencies_ms": latencies,
@@ -200,8 +209,8 @@ def main() -> None:
     print("per_question_ms=" + ",".join("-" if v is None else str(v) for v in figures["per_question_ms"]))
     print("detected_ms=" + ",".join(f"{v:.0f}" for v in figures["detected_ms"]))
     print("spurious_at_s=" + ",".join(f"{v:.2f}" for v in figures["spurious_at_s"]))
-    for name in ("barge_in_p50_ms", "barge_in_p95_ms", "missed", "spurious", "detected_p50_ms", "detected_p95_ms",
-                 "robot_s", "spurious_per_robot_min"):
+    for name in ("barge_in_p50_ms", "barge_in_p95_ms", "quiet", "missed", "spurious", "detected_p50_ms",
+                 "detected_p95_ms", "robot_s", "spurious_per_robot_min"):
         value = figures[name]
         print(f"{name}={value:.{1 if name == 'spurious_per_robot_min' else 0}f}" if isinstance(value, float)
               else f"{name}={value}")
