@@ -8,24 +8,41 @@ canceller leaves: ``--questions`` RoboCup@Home questions (flite voices slt, awb,
 ``--spacing`` s, the robot's echo cancelled entirely (the canceller's own figures are bench/aec.py's).
 The stream's policy is ``ignore``, so the robot plays on and every question is a barge-in.
 
+``--room ARRAY`` plays what the real canceller leaves instead: bench/aec.py's scene (``--seconds`` of the
+robot saying flite sentences with a 5 s pause two thirds in, a person at 60° asking a RoboCup@Home question
+every 8 s from 3 s, 10 dB below the robot's echo at the first microphone, babble 10 dB below the person,
+the echo ``--delay`` ms late and the player's clock ``--ppm`` fast, neither told to the canceller), the
+speex canceller run over it offline as bench/aec.py's ``cancel()`` does (the service's StreamCanceller and
+SpeexCanceller at the service's defaults: ``residual_active_db`` 0), its first channel as the microphone
+file. The player plays the scene's reference for the whole run (the pause included: a question there
+counts as a barge-in too). Onsets: the same rule on the person alone at the first microphone (the scene's
+truth). ``quiet`` counts questions that start where the player reports the robot not playing (a pause
+of 0.5 s or more: no barge-in by design; neither found nor missed), ``robot_s`` the time it reports
+playing, ``spurious_per_robot_min`` the spurious events per minute of it.
+
 Per question: the onset is the first 10 ms frame of its clip whose level is within 30 dB of the clip's
 peak (on the stream's timeline); ``latency_ms`` is the event's arrival (this host's clock, the one the
 grabber stamps with) minus that onset; ``detected_ms`` the event's ``capture_ns`` (the vad's speech start)
-minus the onset; ``spurious`` counts events more than 1 s from every onset.
+minus the onset. A question's event is the first from 200 ms before its onset to 1 s after (none: ``missed``);
+``spurious`` counts events in no question's such span (an event up to 1 s before an onset, babble just
+before the question, is spurious, not the question's).
 
     nice -n 10 python -m bench.barge_in [--questions 8] [--spacing 4.0] [--speech-start-ms 150] [--json out.json]
+    nice -n 10 python -m bench.barge_in --room respeaker4 [--seconds 60] [--delay 120] [--ppm 100] [--seed 1]
 
 Ends with ``name=value`` lines: ``barge_in_p50_ms``, ``barge_in_p95_ms``, ``missed``, ``spurious``,
-``detected_p50_ms``.
+``detected_p50_ms``, ``detected_p95_ms`` (and with ``--room``: ``robot_s``, ``spurious_per_robot_min``).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import tempfile
 import threading
 import time
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import soundfile
@@ -33,7 +50,7 @@ from websockets.sync.client import connect
 
 from esiaf.tools.testing import Orchestrator, poll
 from esiaf_services.grabber.service import Grabber, GrabberSettings
-from esiaf_services.player.service import Player
+from esiaf_services.player.service import Player, sounding
 from esiaf_services.player.tts import say
 from esiaf_services.vad.service import Vad, VadSettings
 
@@ -42,6 +59,7 @@ QUESTIONS = ["Where is the bathroom?", "What is the capital of Germany?", "How m
              "Bring me the red cup from the kitchen.", "Who invented the compact disc?",
              "What time is it?", "Follow me to the living room.", "Which is the biggest object in the kitchen?"]
 VOICES = ["slt", "awb", "rms"]
+EARLY_NS = 200_000_000  # a question's barge-in: an event from 200 ms before its onset to 1 s after
 
 
 def onset(clip: np.ndarray) -> int:
@@ -66,12 +84,43 @@ def scene(folder: Path, questions: int, spacing_s: float) -> tuple[Path, Path, l
     return paths[0], paths[1], onsets
 
 
-def run(questions: int, spacing_s: float, speech_start_ms: float) -> dict:
+def room_scene(folder: Path, array: str, seconds: float, delay_ms: float, ppm: float, seed: int,
+               echo: bool = True) -> tuple[Path, Path, list[float], list[tuple[float, float]]]:
+    """bench/aec.py's scene through the real canceller: its first channel, the reference (2 s longer: the
+    player plays for the whole run), the person's onsets and the spans the player reports playing (s).
+    ``echo`` False leaves the robot's echo out of the microphones (the canceller still gets the reference)."""
+    from bench.aec import cancel, render
+    room = render(array, seconds, delay_ms, ppm, seed)
+    mix = room.echo * echo + room.person + room.babble + room.noise
+    out, _, _ = cancel("speex", mix, room.reference, align=True)
+    onsets = []
+    for _, start_s, end_s in room.questions:
+        first = max(0, round((start_s - 0.3) * RATE))
+        onsets.append((first + onset(room.person[first:round(end_s * RATE), 0])) / RATE)
+    paths = folder / "mics.wav", folder / "robot.wav"
+    soundfile.write(str(paths[0]), np.clip(out[:, 0], -1, 1), RATE, subtype="PCM_16")
+    soundfile.write(str(paths[1]), np.concatenate([room.reference, np.zeros(2 * RATE)]), RATE, subtype="PCM_16")
+    # where the player reports the robot playing (its pauses of 0.5 s or more are not): a person starting
+    # elsewhere is no barge-in, by design
+    pcm = soundfile.read(str(paths[1]), dtype="int16")[0]
+    return paths[0], paths[1], onsets, [(a / RATE, b / RATE) for a, b in sounding(pcm, RATE)]
+
+
+def run(questions: int, spacing_s: float, speech_start_ms: float, room: dict | None = None,
+        port: int = 0) -> dict:
+    """One run: the idealised microphone file, or (``room``: room_scene's keyword arguments) the canceller's."""
     with tempfile.TemporaryDirectory(prefix="esiaf-barge-in-") as folder:
         work = Path(folder)
-        mics, robot, onsets = scene(work, questions, spacing_s)
-        orchestrator = Orchestrator(work, config={"fusions": [{"name": "utterances", "anchor": "vad"}],
-                                                  "barge_in_policy": "ignore"})
+        spans: list[tuple[float, float]] = []
+        if room is None:
+            mics, robot, onsets = scene(work, questions, spacing_s)
+            length_s = 1.0 + questions * spacing_s
+        else:
+            mics, robot, onsets, spans = room_scene(work, **room)
+            length_s = room["seconds"]
+        with mock.patch("esiaf.tools.testing.free_port", return_value=port) if port else contextlib.nullcontext():
+            orchestrator = Orchestrator(work, config={"fusions": [{"name": "utterances", "anchor": "vad"}],
+                                                      "barge_in_policy": "ignore"})
         components: list = []
         try:
             url = orchestrator.url
@@ -89,7 +138,7 @@ def run(questions: int, spacing_s: float, speech_start_ms: float) -> dict:
                                                   stream_id="bench", wait_for_subscribers=1))
                 components.append(grabber)
                 threading.Thread(target=grabber.run, daemon=True).start()
-                deadline = time.monotonic() + 1.0 + questions * spacing_s + 60
+                deadline = time.monotonic() + length_s + 60
                 while time.monotonic() < deadline:
                     message = json.loads(ws.recv(timeout=deadline - time.monotonic()))
                     arrivals.append((time.time_ns(), message))
@@ -101,22 +150,37 @@ def run(questions: int, spacing_s: float, speech_start_ms: float) -> dict:
                 component.stop()
             orchestrator.close()
     events = [(at, m) for at, m in arrivals if m["type"] == "barge_in"]
-    latencies, detected, missed = [], [], 0
+    latencies, detected, missed, quiet = [], [], 0, 0
+    per_question: list[int | str | None] = []  # ms to the event, None missed, "quiet" the robot in a pause
     for onset_s in onsets:
         onset_ns = start_ns + round(onset_s * 1e9)
-        near = [(at, m) for at, m in events if abs(m["capture_ns"] - onset_ns) < 1e9]
+        if spans and not any(start <= onset_s < end for start, end in spans):
+            quiet += 1  # the robot in a pause: no barge-in to expect
+            per_question.append("quiet")
+            continue
+        near = [(at, m) for at, m in events if -EARLY_NS <= m["capture_ns"] - onset_ns < 1e9]
+        per_question.append(round((near[0][0] - onset_ns) / 1e6) if near else None)
         if not near:
             missed += 1
             continue
         at, event = near[0]
         latencies.append((at - onset_ns) / 1e6)
         detected.append((event["capture_ns"] - onset_ns) / 1e6)
-    spurious = sum(all(abs(m["capture_ns"] - start_ns - round(o * 1e9)) >= 1e9 for o in onsets) for _, m in events)
-    return {"questions": questions, "events": len(events), "missed": missed, "spurious": spurious,
-            "speech_start_ms": speech_start_ms, "latencies_ms": latencies,
+    spurious_s = [(m["capture_ns"] - start_ns) / 1e9 for _, m in events
+                  if not any(-EARLY_NS <= m["capture_ns"] - start_ns - round(o * 1e9) < 1e9 for o in onsets)]
+    robot_s = sum(end - start for start, end in spans)
+    return {"mode": "idealised" if room is None else "room", "room": room, "questions": len(onsets),
+            "onsets_s": onsets, "events": len(events), "quiet": quiet,
+            "events_at_s": [(m["capture_ns"] - start_ns) / 1e9 for _, m in events], "missed": missed,
+            "spurious": len(spurious_s),
+            "spurious_at_s": spurious_s, "speech_start_ms": speech_start_ms, "latencies_ms": latencies,
+            "detected_ms": detected, "per_question_ms": per_question,
             "barge_in_p50_ms": float(np.percentile(latencies, 50)) if latencies else None,
             "barge_in_p95_ms": float(np.percentile(latencies, 95)) if latencies else None,
-            "detected_p50_ms": float(np.percentile(detected, 50)) if detected else None}
+            "detected_p50_ms": float(np.percentile(detected, 50)) if detected else None,
+            "detected_p95_ms": float(np.percentile(detected, 95)) if detected else None,
+            "robot_s": robot_s if room else None,
+            "spurious_per_robot_min": len(spurious_s) / (robot_s / 60) if room and robot_s else None}
 
 
 def main() -> None:
@@ -125,15 +189,31 @@ def main() -> None:
     parser.add_argument("--spacing", type=float, default=4.0, help="seconds between question starts")
     parser.add_argument("--speech-start-ms", type=float, default=VadSettings().speech_start_ms,
                         help="the vad's speech_start_ms (250: at the segment's opening, min_speech_ms)")
+    parser.add_argument("--room", metavar="ARRAY", help="play what the speex canceller leaves of bench/aec.py's "
+                        "scene on this array (respeaker4, pepper4) instead of the idealised file")
+    parser.add_argument("--seconds", type=float, default=60.0, help="--room: the scene's length")
+    parser.add_argument("--delay", type=float, default=120.0, help="--room: the echo's delay after the reference, ms")
+    parser.add_argument("--ppm", type=float, default=100.0, help="--room: how fast the player's clock runs")
+    parser.add_argument("--seed", type=int, default=1, help="--room: the scene's seed")
+    parser.add_argument("--no-echo", action="store_true", help="--room: without the robot's echo at the "
+                        "microphones (the person and babble through the canceller: a control)")
+    parser.add_argument("--port", type=int, default=0, help="the orchestrator's port (0: any free one)")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
-    figures = run(args.questions, args.spacing, args.speech_start_ms)
+    room = None if args.room is None else {"array": args.room, "seconds": args.seconds, "delay_ms": args.delay,
+                                           "ppm": args.ppm, "seed": args.seed, "echo": not args.no_echo}
+    figures = run(args.questions, args.spacing, args.speech_start_ms, room, args.port)
     if args.json:
         args.json.write_text(json.dumps(figures, indent=1))
     print("latencies_ms=" + ",".join(f"{v:.0f}" for v in figures["latencies_ms"]))
-    for name in ("barge_in_p50_ms", "barge_in_p95_ms", "missed", "spurious", "detected_p50_ms"):
+    print("per_question_ms=" + ",".join("-" if v is None else str(v) for v in figures["per_question_ms"]))
+    print("detected_ms=" + ",".join(f"{v:.0f}" for v in figures["detected_ms"]))
+    print("spurious_at_s=" + ",".join(f"{v:.2f}" for v in figures["spurious_at_s"]))
+    for name in ("barge_in_p50_ms", "barge_in_p95_ms", "quiet", "missed", "spurious", "detected_p50_ms",
+                 "detected_p95_ms", "robot_s", "spurious_per_robot_min"):
         value = figures[name]
-        print(f"{name}={value:.0f}" if isinstance(value, float) else f"{name}={value}")
+        print(f"{name}={value:.{1 if name == 'spurious_per_robot_min' else 0}f}" if isinstance(value, float)
+              else f"{name}={value}")
 
 
 if __name__ == "__main__":
