@@ -248,7 +248,7 @@ class EchoCanceller(Component):
             frames = ready[used:used + audio.frames]
             used += audio.frames
             self.cancelled += 1
-            channels = audio.samples.shape[1]
+            channels = audio.format.channels
             self._measure(state, audio, frames[:, channels:] if frames.shape[1] > channels else frames)
             frames = frames[:, :channels]
             self.publish(self.settings.output_topic, frames if audio.frames else b"", audio.start_ns, audio.end_ns,
