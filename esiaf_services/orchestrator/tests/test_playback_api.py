@@ -213,6 +213,21 @@ def test_fusion_takes_an_utterance_with_nothing_recognised_for_a_persons_where_t
     assert utterance(17.0, 18.0) == "robot"
 
 
+def test_the_robots_residual_standing_out_of_a_low_floor_is_no_person():
+    """A canceller that converges fast leaves a lower floor, out of which the robot's residual stands as far as a
+    person does; but the canceller took 20 dB or more off it, and a person 10 dB below the echo is not that far
+    down (the blocks of aec/tests/test_evidence.py's scene with the fast start)."""
+    def event(above_floor_db: float, cancelled_db: float) -> dict:
+        return {"echo": {"attributes": {"converged": True, "above_floor_db": above_floor_db,
+                                        "cancelled_db": cancelled_db}}}
+    residual = [event(8.1, 40.3), event(23.2, 22.5), event(15.6, 24.2), event(10.7, 33.8)]
+    assert not person_above_echo(residual)
+    person = [event(29.0, 12.4), event(26.8, 15.3), event(35.7, 6.7), event(35.0, 0.5), event(26.1, 19.6)]
+    assert person_above_echo(person + residual)  # the residual's blocks neither make nor unmake a person
+    assert not person_above_echo([event(20.0, 20.0)] * 3) and person_above_echo([event(20.0, 19.9)] * 3)
+    assert not person_above_echo([event(30.0, 2.0)] * 3 + [event(30.0, 12.0)] * 2)  # most loud blocks barely changed
+
+
 def test_echo_events_a_peer_broke_are_no_evidence_and_end_nothing():
     def event(**attributes):
         return {"echo": {"attributes": attributes}}
