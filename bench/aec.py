@@ -195,20 +195,22 @@ def render(array: str, seconds: float, delay_ms: float, ppm: float, seed: int) -
                  robot_spans, questions)
 
 
-# the canceller with a fast start (the aec settings drift_fit_min_s 0.5, retrain_passes 2; off by default):
-# bench/robot_speaks.py --fast-start runs it beside the defaults
+# the canceller with a fast start (the aec settings drift_fit_min_s 0.5, retrain_passes 2): the service's default
+# and this bench's; SLOW_START is the default before it (StreamCanceller's own), which bench/robot_speaks.py
+# --slow-start runs beside it
 FAST_START = {"retrain_passes": 2, "fit_min_s": 0.5}
+SLOW_START = {"retrain_passes": 0, "fit_min_s": 3.0}
 
 
 def cancel(backend: str, mics: np.ndarray, reference: np.ndarray, align: bool,
            options: dict | None = None) -> tuple[np.ndarray, float, object]:
     """Runs the canceller over ``mics`` in 50 ms chunks as the service gets them; the output, CPU s, stream.
-    ``options``: StreamCanceller's keyword arguments (FAST_START, or the defaults)."""
+    ``options``: StreamCanceller's keyword arguments (None: the service's default, FAST_START)."""
     from esiaf_services.aec.backends import BACKENDS
     from esiaf_services.aec.core import StreamCanceller
     pcm = np.clip(np.rint(mics * 32767), -32768, 32767).astype(np.int16)
     stream = StreamCanceller(BACKENDS[backend](mics.shape[1], FS), FS, estimate_delay=align,
-                             lead_ms=4.0 if align else 0.0, **(options or {}))
+                             lead_ms=4.0 if align else 0.0, **(FAST_START if options is None else options))
     chunk = FS // 20
     out = []
     started = time.process_time()

@@ -3,7 +3,8 @@
 Three parts, each at the issue's conditions (the person 10 dB below the robot's echo at the
 microphones, babble 10 dB below the person):
 
-- **the canceller alone** (``bench/aec.py``'s scene and figures, one array, ``--conditions``
+- **the canceller alone** (``bench/aec.py``'s scene and figures, its default start, with ``--slow-start`` the
+  one before beside it; one array, ``--conditions``
   DELAY_MS:PPM pairs spanning 0-300 ms and ±100 ppm, neither told to the canceller): ``erle_db`` from
   1 s after the robot first speaks (energy-weighted over its speech to the pause), ``erle_median_db``
   (the median of its per-second values there), ``erle_converged_db`` from 1 s after the delay tracker's
@@ -21,7 +22,7 @@ microphones, babble 10 dB below the person):
 
     nice -n 10 python -m bench.robot_speaks [--array respeaker4] [--conditions 0:100,150:-100,300:100,300:-100]
         [--runs 2] [--talk-s 300] [--port 23200] [--workdir DIR] [--json out.json] [--skip aec,eval,talk]
-        [--fast-start]
+        [--slow-start]
         [-- ESIAF RUN OPTIONS]
 
 Ends with a table of the targets and ``name=value`` lines.
@@ -48,11 +49,11 @@ BABBLE_BELOW_PERSON_DB = 10.0
 
 
 def canceller_part(array: str, conditions: list[tuple[float, float]], seconds: float, seed: int,
-                   backend: str, fast_start: bool = False) -> list[dict]:
+                   backend: str, slow_start: bool = False) -> list[dict]:
     from bench import aec
     recogniser = aec.Recogniser()
     rows = []
-    variants = [("", None), ("fast-start", aec.FAST_START)] if fast_start else [("", None)]
+    variants = [("", aec.FAST_START), *([("slow-start", aec.SLOW_START)] if slow_start else [])]
     for delay_ms, ppm in conditions:
         scene = aec.render(array, seconds, delay_ms, ppm, seed)
         for variant, options in variants:
@@ -210,8 +211,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workdir", type=Path)
     parser.add_argument("--skip", default="", help="parts to leave out: aec, eval, talk (comma-separated)")
     parser.add_argument("--json", type=Path)
-    parser.add_argument("--fast-start", action="store_true",
-                        help="also run the canceller with bench/aec.py's FAST_START options, side by side")
+    parser.add_argument("--slow-start", "--fast-start", action="store_true", dest="slow_start",
+                        help="also run the canceller as it started before the fast start became its default "
+                             "(bench/aec.py's SLOW_START), side by side")
     args = parser.parse_args(argv)
     from esiaf.tools.evaluation import DEFAULT_PIPELINE
     pipeline = options if "--without" in options else DEFAULT_PIPELINE + options
@@ -223,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     report: dict = {"array": args.array, "backend": args.backend, "pipeline": pipeline}
     if "aec" not in skip:
         report["aec"] = canceller_part(args.array, conditions, args.aec_seconds, args.seed, args.backend,
-                                       args.fast_start)
+                                       args.slow_start)
     if "eval" not in skip:
         report["eval"] = eval_part(args.array, args.runs, args.seed, work / "eval", args.port, pipeline)
     if "talk" not in skip:

@@ -16,7 +16,10 @@ takes an utterance in which the robot spoke for a person's where these events sa
 90th percentile of a segment's blocks): people asking while the robot spoke stood 16-28 dB above the
 floor with 11-19 dB taken off, the robot's converged residual that the vad took for speech 10 dB; a
 moment where the canceller lost the echo stood 32 dB above its floor, but with 2-5 dB taken off in its
-loudest blocks. Pure: no I/O.
+loudest blocks. With the fast start (the default: the filter converged sooner, the floor lower) the
+robot's residual can stand 16-23 dB above the floor too, but with 22-24 dB taken off, more than a person
+10 dB below the echo leaves: fusion counts such blocks neither way (its ``PERSON_MAX_CANCELLED_DB``).
+Pure: no I/O.
 """
 from __future__ import annotations
 

@@ -64,8 +64,10 @@ class AecSettings(ComponentSettings):
     # ... and while someone near speaks too: 0 keeps a person over the robot (aec README: how it was chosen)
     residual_active_db: int = Field(default=0, ge=-100, le=0)
     expect_reference: bool = False  # a replay's: every stream has one from its start (esiaf run --playback)
-    drift_fit_min_s: float = 3.0  # fit the drift once 3 delay estimates span this long (0.5: fast start, README)
-    retrain_passes: int = 0  # on a new alignment, adapt this often over the last second again (2: fast start)
+    # fit the drift once 3 delay estimates span this long (0.5: the fast start, README; 3.0 before it)
+    drift_fit_min_s: float = Field(default=0.5, ge=0.0, le=60.0)
+    # on a new alignment, adapt this often over the last second again (2: the fast start; 0: off, before it)
+    retrain_passes: int = Field(default=2, ge=0, le=10)
 
 
 @dataclass
