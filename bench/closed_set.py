@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import pickle
+import subprocess
 import time
 from pathlib import Path
 
@@ -67,41 +68,68 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=2, help="rooms' seed (default 2; the harness's rooms are seed 1)")
     parser.add_argument("--array", action="append", help="array preset (default: pepper4 and respeaker4)")
     parser.add_argument("--shortlist", type=int, default=6)
-    parser.add_argument("--beam-size", type=int, default=3)
-    parser.add_argument("--n-best", type=int, default=3)
+    parser.add_argument("--beam-size", type=int, default=1, help="the free decode's beam (default 1, the asr's)")
+    parser.add_argument("--n-best", type=int, default=1, help="its hypotheses the shortlist is drawn from")
+    parser.add_argument("--before", action="store_true",
+                        help="also decode each utterance, in turn with the above, as before 2026-11-28 (beam 3, "
+                             "3 hypotheses, 2 s of pad) and print both summaries")
+    parser.add_argument("--threads", type=int, default=1, help="CTranslate2's threads (default 1)")
+    parser.add_argument("--grammar", action="store_true",
+                        help="the sentences of the robocup grammar (lower case, as the asr scores them with --grammar "
+                             "robocup) rather than questions.tsv's")
     parser.add_argument("--cache", type=Path, help="keep the rendered utterances in this file (and reuse them)")
     args = parser.parse_args()
     from esiaf.tools.evaluation import DATA, read_questions_and_answers
     questions = [q for q, _ in read_questions_and_answers(DATA)]
     matcher = SentenceMatcher(questions)
+    if args.grammar:
+        from esiaf_services.asr.lexicon import ROBOCUP_GRAMMAR
+        matcher = SentenceMatcher.from_file(ROBOCUP_GRAMMAR, 0.6)
     items = segments(args.seed, args.runs, args.array or ["pepper4", "respeaker4"], args.cache)
-    whisper = WhisperRecognizer(threads=1)
-    decoder = ClosedSetDecoder(whisper.model, matcher, args.shortlist, args.beam_size, args.n_best)
-    decoder.decode(items[0]["audio"])  # warm up
-    rows = []
+    whisper = WhisperRecognizer(threads=args.threads)
+    decoders = {"": ClosedSetDecoder(whisper.model, matcher, args.shortlist, args.beam_size, args.n_best)}
+    if args.before:
+        decoders["before"] = ClosedSetDecoder(whisper.model, matcher, args.shortlist, 3, 3, pad_s=2.0)
+    rows: dict[str, list[dict]] = {name: [] for name in decoders}
+    for decoder in decoders.values():
+        decoder.decode(items[0]["audio"])  # warm up
     for item in items:
-        started = time.process_time()
-        result = decoder.decode(item["audio"])
-        cpu_s = time.process_time() - started
-        if result is None:
-            continue
-        best = result.ranked[0]
-        near = matcher.match(result.raw_text)
-        row = {"kind": item["kind"], "cpu_s": cpu_s, "per_token": result.per_token, "below": result.below_raw,
-               "same": normalise(result.raw_text) == normalise(best.sentence),
-               "right": normalise(best.sentence) == normalise(item["text"]),
-               "listed": any(normalise(s.sentence) == normalise(item["text"]) for s in result.ranked),
-               "nearest": near.in_set and normalise(near.sentence) == normalise(item["text"]), "near_in": near.in_set}
-        rows.append(row)
-        print(f"{item['kind']:>3} {item['snr_db']:5.1f} dB {'right' if row['right'] else 'wrong':>5} "
-              f"{'listed' if row['listed'] else '':>6} per token {row['per_token']:6.2f} "
-              f"below free {row['below']:5.2f} "
-              f"cpu {cpu_s:.2f} s | {result.raw_text!r} | {best.sentence!r}", flush=True)
+        for name, decoder in decoders.items():
+            row = decode(decoder, matcher, item)
+            if row is not None:
+                rows[name].append(row)
+    print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
+    for name, kept in rows.items():
+        summarise(kept, name or f"beam {args.beam_size}, {args.n_best} hypotheses, pad {decoders[''].pad_s:g} s")
+
+
+def decode(decoder: ClosedSetDecoder, matcher: SentenceMatcher, item: dict) -> dict | None:
+    started, wall = time.process_time(), time.perf_counter()
+    result = decoder.decode(item["audio"])
+    cpu_s, wall_s = time.process_time() - started, time.perf_counter() - wall
+    if result is None:
+        return None
+    best = result.ranked[0]
+    near = matcher.match(result.raw_text)
+    row = {"kind": item["kind"], "cpu_s": cpu_s, "wall_s": wall_s, "per_token": result.per_token,
+           "below": result.below_raw, "same": normalise(result.raw_text) == normalise(best.sentence),
+           "right": normalise(best.sentence) == normalise(item["text"]),
+           "listed": any(normalise(s.sentence) == normalise(item["text"]) for s in result.ranked),
+           "nearest": near.in_set and normalise(near.sentence) == normalise(item["text"]), "near_in": near.in_set}
+    print(f"{item['kind']:>3} {item['snr_db']:5.1f} dB {'right' if row['right'] else 'wrong':>5} "
+          f"{'listed' if row['listed'] else '':>6} per token {row['per_token']:6.2f} "
+          f"below free {row['below']:5.2f} "
+          f"cpu {cpu_s:.2f} s | {result.raw_text!r} | {best.sentence!r}", flush=True)
+    return row
+
+
+def summarise(rows: list[dict], label: str) -> None:
     inside = [r for r in rows if r["kind"] == "in"]
     outside = [r for r in rows if r["kind"] == "out"]
     cpu = np.array([r["cpu_s"] for r in rows])
-    print(f"\n{len(inside)} in-set, {len(outside)} out-of-set utterances; "
-          f"CPU per utterance p50 {np.median(cpu):.2f} s, mean {cpu.mean():.2f} s")
+    wall = np.array([r["wall_s"] for r in rows])
+    print(f"\n== {label}: {len(inside)} in-set, {len(outside)} out-of-set utterances; "
+          f"CPU per utterance p50 {np.median(cpu):.3f} s, mean {cpu.mean():.3f} s; wall p50 {np.median(wall):.3f} s")
     print(f"nearest text: {np.mean([r['nearest'] for r in inside]):.1%} recognised, "
           f"{np.mean([r['near_in'] for r in outside]):.1%} out-of-set accepted")
     print(f"acoustic, no rejection: {np.mean([r['right'] for r in inside]):.1%} recognised "
@@ -113,7 +141,6 @@ def main() -> None:
                 return r["same"] or (r["per_token"] >= floor and r["below"] <= ceiling)
             print(f"{floor:14.1f} {ceiling:15.1f} {np.mean([r['right'] and accepted(r) for r in inside]):11.1%} "
                   f"{np.mean([accepted(r) for r in outside]):20.1%}")
-
 
 if __name__ == "__main__":
     main()

@@ -9,7 +9,9 @@ clock (real time: capture time is the wall clock the orchestrator stamps ``recei
 - speech start → first partial with words: the truth file's start of speech to the first ``partial``
   event received with a text;
 - speech start → first stable word: ... to the first partial with a ``stable`` prefix;
-- speech end → fused result: the truth file's end of speech to the fused result's ``published_ns``.
+- speech end → fused result: the truth file's end of speech to the fused result's ``published_ns``;
+- segment end → fused result: the end of the asr result's span (the vad's segment, closed after its
+  hang-over) to the same.
 
 The stream's first question has no partials with pocketsphinx (decoded whole, for its cepstral
 mean), so it is left out of the first two; its row says so.
@@ -25,6 +27,7 @@ if __name__ == "__main__":
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+import os  # noqa: E402
 import statistics  # noqa: E402
 import subprocess  # noqa: E402
 import tempfile  # noqa: E402
@@ -35,15 +38,17 @@ EXAMPLE = REPO / "examples" / "robocup_questions.wav"
 TRUTH = json.loads(EXAMPLE.with_suffix(".json").read_text())["sentences"]
 
 
-def run_once(asr: str, options: list[str]) -> list[dict]:
-    """The JSON lines of one real-time run."""
+def run_once(asr: str, options: list[str], port: int = 0, env: list[str] | None = None) -> list[dict]:
+    """The JSON lines of one real-time run (``port``: the orchestrator's; 0: a free one)."""
     with tempfile.TemporaryDirectory(prefix="esiaf-partials-") as work:
         args = [sys.executable, "-m", "esiaf", "run", "--input", str(EXAMPLE), "--grammar", "robocup", "--json",
-                "--partials", "--without", "emotion,gender,voiceid", "--port", str(free_port()), "--workdir", work,
-                *options]
+                "--partials", "--without", "emotion,gender,voiceid", "--port", str(port or free_port()),
+                "--workdir", work, *options]
         if asr != "pocketsphinx":
             args += ["--asr", asr]
-        done = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=300)
+        extra = dict(item.split("=", 1) for item in env or [])
+        done = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=300,
+                              env={**os.environ, **extra})
         if done.returncode != 0:
             raise SystemExit(f"esiaf run failed ({done.returncode}): {done.stderr[-2000:]}")
         return [json.loads(line) for line in done.stdout.splitlines() if line.startswith("{")]
@@ -53,7 +58,8 @@ def measure(lines: list[dict]) -> dict[str, list[float]]:
     start = next(line["start_ns"] for line in lines if line["type"] == "stream_start")
     onsets = [start + round(s["start_s"] * 1e9) for s in TRUTH]
     ends = [start + round(s["end_s"] * 1e9) for s in TRUTH]
-    figures: dict[str, list[float]] = {"first_words_ms": [], "first_stable_ms": [], "end_to_fused_ms": []}
+    figures: dict[str, list[float]] = {"first_words_ms": [], "first_stable_ms": [], "end_to_fused_ms": [],
+                                       "segment_to_fused_ms": []}
     for i, (onset, end) in enumerate(zip(onsets, ends, strict=True)):
         following = onsets[i + 1] if i + 1 < len(onsets) else float("inf")
         partials = [p for p in lines if p["type"] == "partial" and not p["closed"]
@@ -68,6 +74,8 @@ def measure(lines: list[dict]) -> dict[str, list[float]]:
                  and onset - 1e9 <= f["anchor"]["span"]["start_ns"] < following]
         if fused:
             figures["end_to_fused_ms"].append((fused[0]["published_ns"] - end) / 1e6)
+            segment_end = fused[0]["anchor"]["span"]["end_ns"]
+            figures["segment_to_fused_ms"].append((fused[0]["published_ns"] - segment_end) / 1e6)
     return figures
 
 
@@ -76,10 +84,13 @@ def main() -> None:
     parser.add_argument("--asr", default="pocketsphinx", choices=["pocketsphinx", "whisper"])
     parser.add_argument("--runs", type=int, default=1)
     parser.add_argument("--denoiser", default="auto", choices=["auto", "on", "off"], help="esiaf run's option")
+    parser.add_argument("--port", type=int, default=0, help="the orchestrator's port (default: a free one)")
+    parser.add_argument("--env", action="append", default=[], metavar="NAME=VALUE",
+                        help="an environment variable for esiaf run (e.g. ESIAF_ASR_WHISPER__BEAM_SIZE=3); repeatable")
     args = parser.parse_args()
     totals: dict[str, list[float]] = {}
     for _ in range(args.runs):
-        for name, values in measure(run_once(args.asr, ["--denoiser", args.denoiser])).items():
+        for name, values in measure(run_once(args.asr, ["--denoiser", args.denoiser], args.port, args.env)).items():
             totals.setdefault(name, []).extend(values)
     print(f"asr={args.asr} denoiser={args.denoiser} runs={args.runs} questions={len(TRUTH)} per run")
     for name, values in totals.items():

@@ -3,11 +3,14 @@
 Transcribe-then-match (``matching.py``) picks the sentence nearest the transcript's *text*; this
 picks the sentence the *audio* supports best, by the model's own probability of its tokens:
 
-1. The segment is encoded once, over its own length plus ``PAD_S`` of silence (Whisper's 30 s
-   window costs ~0.9 CPU-s to encode on this machine, a 3 s question plus the pad ~0.06; the pad
-   lets the decoder see the speech end, without it greedy decoding repeats the sentence).
-2. A free decode of that encoding (beam ``beam_size``, ``n_best`` hypotheses, no timestamps, the
-   set's rare words as prompt) gives the raw transcript and its n-best.
+1. The segment is encoded once, over its own length plus ``PAD_S`` (1 s) of silence (Whisper's 30 s
+   window costs ~0.9 CPU-s to encode on this machine, a 3 s question plus the pad ~0.04; the pad
+   lets the decoder see the speech end, without it greedy decoding repeats the sentence; 2 s before
+   2026-11-28, the same accuracy for ~10 % more CPU).
+2. A free decode of that encoding (beam ``beam_size``, ``n_best`` hypotheses, no timestamps) gives
+   the raw transcript and its n-best. By default greedy (beam 1, one hypothesis): the shortlist
+   it gives recognised as many questions as the three of beam 3 (or of the asr's former beam 5),
+   for 17-28 % less of the utterance's CPU (bench/closed_set.py ``--before``; docs/benchmarks.md).
 3. Shortlist: the ``shortlist`` sentences nearest those hypotheses by text (letters, as
    ``matching.py`` compares them), taken in turn from each hypothesis's ranking, best hypothesis
    first. Text distance costs microseconds per sentence; scoring one costs ~25 ms (one batch item
@@ -31,7 +34,7 @@ from esiaf_services.asr.matching import SentenceMatcher, normalise
 from esiaf_services.asr.recognizer import Word
 
 MIN_SAMPLES = 1600  # 0.1 s at 16 kHz: shorter is not decoded, as whisper.py
-PAD_S = 2.0  # silence after the segment in the encoder's input (docstring, step 1)
+PAD_S = 1.0  # silence after the segment in the encoder's input (docstring, step 1)
 MAX_TOKENS_PER_S = 6  # a free decode longer than this many tokens per second of audio is a loop
 LOGPROB_FLOOR = 1e-30
 MIN_PER_TOKEN = -4.0  # rejection: the best sentence's log-probability per token below this: out of set ...
@@ -84,14 +87,14 @@ class ClosedSetDecoder:
     faster-whisper ``WhisperModel``."""
 
     def __init__(self, model, matcher: SentenceMatcher, shortlist: int = 6,
-                 beam_size: int = 3, n_best: int = 3, min_per_token: float = MIN_PER_TOKEN,
-                 max_below_raw: float = MAX_BELOW_RAW) -> None:
+                 beam_size: int = 1, n_best: int = 1, min_per_token: float = MIN_PER_TOKEN,
+                 max_below_raw: float = MAX_BELOW_RAW, pad_s: float = PAD_S) -> None:
         from faster_whisper.tokenizer import Tokenizer
         from faster_whisper.transcribe import get_suppressed_tokens
 
         self.model, self.matcher = model, matcher
         self.shortlist, self.beam_size, self.n_best = max(1, shortlist), beam_size, max(1, n_best)
-        self.min_per_token, self.max_below_raw = min_per_token, max_below_raw
+        self.min_per_token, self.max_below_raw, self.pad_s = min_per_token, max_below_raw, pad_s
         self.tokenizer = Tokenizer(model.hf_tokenizer, model.model.is_multilingual, task="transcribe", language="en")
         self.start = model.get_prompt(self.tokenizer, [], without_timestamps=True)
         self.suppress = list(get_suppressed_tokens(self.tokenizer, [-1]))
@@ -102,7 +105,7 @@ class ClosedSetDecoder:
         import ctranslate2
         features = self.model.feature_extractor(samples.astype(np.float32, copy=False))[:, :-1]
         frames = features.shape[-1]
-        wanted = min(3000, frames + round(PAD_S * 100))
+        wanted = min(3000, frames + round(self.pad_s * 100))
         wanted += wanted % 2  # the encoder halves it
         features = np.pad(features, ((0, 0), (0, max(0, wanted - frames))))[:, :wanted]
         encoded = self.model.model.encode(ctranslate2.StorageView.from_array(

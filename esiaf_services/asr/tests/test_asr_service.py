@@ -210,3 +210,13 @@ def test_an_utterance_broken_off_by_a_restarted_vad_is_nothing_and_never_the_nex
     assert "utterance broken off: its VAD went away" in broken[2]["nothing"]
     assert answer[1] == (round(second["start_s"] * NS), round(second["end_s"] * NS))
     assert normalise(answer[2]["speech"]["hypotheses"][0].text) == normalise(second["text"])
+
+
+@pytest.mark.parametrize("value", ["0", "17", "wide"])
+def test_a_bad_scoring_beam_is_one_clear_line(value):
+    from esiaf.settings import SettingsError, load_settings
+    whisper = {"ESIAF_ASR_BACKEND": "whisper"}
+    with pytest.raises(SettingsError, match=r"^bad asr settings \(from environment\): whisper.scoring_beam_size: "):
+        load_settings(AsrSettings, "asr", env={**whisper, "ESIAF_ASR_WHISPER__SCORING_BEAM_SIZE": value})
+    assert load_settings(AsrSettings, "asr", env={**whisper, "ESIAF_ASR_WHISPER__SCORING_BEAM_SIZE": "3"}
+                         ).whisper.scoring_beam_size == 3
