@@ -85,16 +85,18 @@ def scene(folder: Path, questions: int, spacing_s: float) -> tuple[Path, Path, l
 
 
 def room_scene(folder: Path, array: str, seconds: float, delay_ms: float, ppm: float, seed: int,
-               echo: bool = True) -> tuple[Path, Path, list[float], list[tuple[float, float]]]:
+               echo: bool = True, person: bool = True,
+               babble: bool = True) -> tuple[Path, Path, list[float], list[tuple[float, float]]]:
     """bench/aec.py's scene through the real canceller: its first channel, the reference (2 s longer: the
-    player plays for the whole run), the person's onsets and the spans the player reports playing (s).
-    ``echo`` False leaves the robot's echo out of the microphones (the canceller still gets the reference)."""
+    player plays for the whole run), the person's onsets (none without the person) and the spans the
+    player reports playing (s). ``echo`` False leaves the robot's echo out of the microphones (the canceller
+    still gets the reference), ``person`` and ``babble`` False the person or the babble."""
     from bench.aec import cancel, render
     room = render(array, seconds, delay_ms, ppm, seed)
-    mix = room.echo * echo + room.person + room.babble + room.noise
+    mix = room.echo * echo + room.person * person + room.babble * babble + room.noise
     out, _, _ = cancel("speex", mix, room.reference, align=True)
     onsets = []
-    for _, start_s, end_s in room.questions:
+    for _, start_s, end_s in room.questions if person else []:
         first = max(0, round((start_s - 0.3) * RATE))
         onsets.append((first + onset(room.person[first:round(end_s * RATE), 0])) / RATE)
     paths = folder / "mics.wav", folder / "robot.wav"
@@ -107,7 +109,7 @@ def room_scene(folder: Path, array: str, seconds: float, delay_ms: float, ppm: f
 
 
 def run(questions: int, spacing_s: float, speech_start_ms: float, room: dict | None = None,
-        port: int = 0) -> dict:
+        port: int = 0, rise_to: float | None = None) -> dict:
     """One run: the idealised microphone file, or (``room``: room_scene's keyword arguments) the canceller's."""
     with tempfile.TemporaryDirectory(prefix="esiaf-barge-in-") as folder:
         work = Path(folder)
@@ -126,7 +128,8 @@ def run(questions: int, spacing_s: float, speech_start_ms: float, room: dict | N
             url = orchestrator.url
             player = Player(Player.Settings(name="player", orchestrator_url=url, output=str(work / "out.raw"),
                                             stream_id="bench", input=str(robot), follow_stream=True))
-            vad = Vad(VadSettings(name="vad", orchestrator_url=url, speech_start_ms=speech_start_ms))
+            silero = {} if rise_to is None else {"rise_to": rise_to}
+            vad = Vad(VadSettings(name="vad", orchestrator_url=url, speech_start_ms=speech_start_ms, silero=silero))
             components += [player, vad]
             for component in components:
                 threading.Thread(target=component.run, daemon=True).start()
@@ -172,7 +175,7 @@ def run(questions: int, spacing_s: float, speech_start_ms: float, room: dict | N
     return {"mode": "idealised" if room is None else "room", "room": room, "questions": len(onsets),
             "onsets_s": onsets, "events": len(events), "quiet": quiet,
             "events_at_s": [(m["capture_ns"] - start_ns) / 1e9 for _, m in events], "missed": missed,
-            "spurious": len(spurious_s),
+            "spurious": len(spurious_s), "rise_to": rise_to,
             "spurious_at_s": spurious_s, "speech_start_ms": speech_start_ms, "latencies_ms": latencies,
             "detected_ms": detected, "per_question_ms": per_question,
             "barge_in_p50_ms": float(np.percentile(latencies, 50)) if latencies else None,
@@ -189,6 +192,8 @@ def main() -> None:
     parser.add_argument("--spacing", type=float, default=4.0, help="seconds between question starts")
     parser.add_argument("--speech-start-ms", type=float, default=VadSettings().speech_start_ms,
                         help="the vad's speech_start_ms (250: at the segment's opening, min_speech_ms)")
+    parser.add_argument("--rise-to", type=float, help="the vad's silero.rise_to (0: one speech_start per "
+                        "stretch of speech, as before it; default: the vad's)")
     parser.add_argument("--room", metavar="ARRAY", help="play what the speex canceller leaves of bench/aec.py's "
                         "scene on this array (respeaker4, pepper4) instead of the idealised file")
     parser.add_argument("--seconds", type=float, default=60.0, help="--room: the scene's length")
@@ -197,12 +202,16 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1, help="--room: the scene's seed")
     parser.add_argument("--no-echo", action="store_true", help="--room: without the robot's echo at the "
                         "microphones (the person and babble through the canceller: a control)")
+    parser.add_argument("--no-person", action="store_true", help="--room: without the person (every "
+                        "barge-in is a false one: the robot's residual and babble alone)")
+    parser.add_argument("--no-babble", action="store_true", help="--room: without the babble")
     parser.add_argument("--port", type=int, default=0, help="the orchestrator's port (0: any free one)")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     room = None if args.room is None else {"array": args.room, "seconds": args.seconds, "delay_ms": args.delay,
-                                           "ppm": args.ppm, "seed": args.seed, "echo": not args.no_echo}
-    figures = run(args.questions, args.spacing, args.speech_start_ms, room, args.port)
+                                           "ppm": args.ppm, "seed": args.seed, "echo": not args.no_echo,
+                                           "person": not args.no_person, "babble": not args.no_babble}
+    figures = run(args.questions, args.spacing, args.speech_start_ms, room, args.port, args.rise_to)
     if args.json:
         args.json.write_text(json.dumps(figures, indent=1))
     print("latencies_ms=" + ",".join(f"{v:.0f}" for v in figures["latencies_ms"]))
