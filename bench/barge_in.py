@@ -18,7 +18,10 @@ file. The player plays the scene's reference for the whole run (the pause includ
 counts as a barge-in too). Onsets: the same rule on the person alone at the first microphone (the scene's
 truth). ``quiet`` counts questions that start where the player reports the robot not playing (a pause
 of 0.5 s or more: no barge-in by design; neither found nor missed), ``robot_s`` the time it reports
-playing, ``spurious_per_robot_min`` the spurious events per minute of it.
+playing, ``spurious_per_robot_min`` the spurious events per minute of it. ``--no-person`` leaves the
+person out (no questions: every barge-in is a false one, the robot's residual and babble), ``--no-babble``
+the babble; ``--rise-to 0`` runs the vad with one ``speech_start`` per stretch of speech (as before
+``silero.rise_to``).
 
 Per question: the onset is the first 10 ms frame of its clip whose level is within 30 dB of the clip's
 peak (on the stream's timeline); ``latency_ms`` is the event's arrival (this host's clock, the one the
@@ -29,6 +32,7 @@ before the question, is spurious, not the question's).
 
     nice -n 10 python -m bench.barge_in [--questions 8] [--spacing 4.0] [--speech-start-ms 150] [--json out.json]
     nice -n 10 python -m bench.barge_in --room respeaker4 [--seconds 60] [--delay 120] [--ppm 100] [--seed 1]
+        [--no-echo] [--no-person] [--no-babble] [--rise-to 0]
 
 Ends with ``name=value`` lines: ``barge_in_p50_ms``, ``barge_in_p95_ms``, ``missed``, ``spurious``,
 ``detected_p50_ms``, ``detected_p95_ms`` (and with ``--room``: ``robot_s``, ``spurious_per_robot_min``).
