@@ -18,7 +18,10 @@ file. The player plays the scene's reference for the whole run (the pause includ
 counts as a barge-in too). Onsets: the same rule on the person alone at the first microphone (the scene's
 truth). ``quiet`` counts questions that start where the player reports the robot not playing (a pause
 of 0.5 s or more: no barge-in by design; neither found nor missed), ``robot_s`` the time it reports
-playing, ``spurious_per_robot_min`` the spurious events per minute of it.
+playing, ``spurious_per_robot_min`` the spurious events per minute of it. ``--no-person`` leaves the
+person out (no questions: every barge-in is a false one, the robot's residual and babble), ``--no-babble``
+the babble; ``--rise-to 0`` runs the vad with one ``speech_start`` per stretch of speech (as before
+``silero.rise_to``).
 
 Per question: the onset is the first 10 ms frame of its clip whose level is within 30 dB of the clip's
 peak (on the stream's timeline); ``latency_ms`` is the event's arrival (this host's clock, the one the
@@ -29,6 +32,7 @@ before the question, is spurious, not the question's).
 
     nice -n 10 python -m bench.barge_in [--questions 8] [--spacing 4.0] [--speech-start-ms 150] [--json out.json]
     nice -n 10 python -m bench.barge_in --room respeaker4 [--seconds 60] [--delay 120] [--ppm 100] [--seed 1]
+        [--no-echo] [--no-person] [--no-babble] [--rise-to 0]
 
 Ends with ``name=value`` lines: ``barge_in_p50_ms``, ``barge_in_p95_ms``, ``missed``, ``spurious``,
 ``detected_p50_ms``, ``detected_p95_ms`` (and with ``--room``: ``robot_s``, ``spurious_per_robot_min``).
@@ -85,16 +89,18 @@ def scene(folder: Path, questions: int, spacing_s: float) -> tuple[Path, Path, l
 
 
 def room_scene(folder: Path, array: str, seconds: float, delay_ms: float, ppm: float, seed: int,
-               echo: bool = True) -> tuple[Path, Path, list[float], list[tuple[float, float]]]:
+               echo: bool = True, person: bool = True,
+               babble: bool = True) -> tuple[Path, Path, list[float], list[tuple[float, float]]]:
     """bench/aec.py's scene through the real canceller: its first channel, the reference (2 s longer: the
-    player plays for the whole run), the person's onsets and the spans the player reports playing (s).
-    ``echo`` False leaves the robot's echo out of the microphones (the canceller still gets the reference)."""
+    player plays for the whole run), the person's onsets (none without the person) and the spans the
+    player reports playing (s). ``echo`` False leaves the robot's echo out of the microphones (the canceller
+    still gets the reference), ``person`` and ``babble`` False the person or the babble."""
     from bench.aec import cancel, render
     room = render(array, seconds, delay_ms, ppm, seed)
-    mix = room.echo * echo + room.person + room.babble + room.noise
+    mix = room.echo * echo + room.person * person + room.babble * babble + room.noise
     out, _, _ = cancel("speex", mix, room.reference, align=True)
     onsets = []
-    for _, start_s, end_s in room.questions:
+    for _, start_s, end_s in room.questions if person else []:
         first = max(0, round((start_s - 0.3) * RATE))
         onsets.append((first + onset(room.person[first:round(end_s * RATE), 0])) / RATE)
     paths = folder / "mics.wav", folder / "robot.wav"
@@ -107,7 +113,7 @@ def room_scene(folder: Path, array: str, seconds: float, delay_ms: float, ppm: f
 
 
 def run(questions: int, spacing_s: float, speech_start_ms: float, room: dict | None = None,
-        port: int = 0) -> dict:
+        port: int = 0, rise_to: float | None = None) -> dict:
     """One run: the idealised microphone file, or (``room``: room_scene's keyword arguments) the canceller's."""
     with tempfile.TemporaryDirectory(prefix="esiaf-barge-in-") as folder:
         work = Path(folder)
@@ -126,7 +132,8 @@ def run(questions: int, spacing_s: float, speech_start_ms: float, room: dict | N
             url = orchestrator.url
             player = Player(Player.Settings(name="player", orchestrator_url=url, output=str(work / "out.raw"),
                                             stream_id="bench", input=str(robot), follow_stream=True))
-            vad = Vad(VadSettings(name="vad", orchestrator_url=url, speech_start_ms=speech_start_ms))
+            silero = {} if rise_to is None else {"rise_to": rise_to}
+            vad = Vad(VadSettings(name="vad", orchestrator_url=url, speech_start_ms=speech_start_ms, silero=silero))
             components += [player, vad]
             for component in components:
                 threading.Thread(target=component.run, daemon=True).start()
@@ -172,7 +179,7 @@ def run(questions: int, spacing_s: float, speech_start_ms: float, room: dict | N
     return {"mode": "idealised" if room is None else "room", "room": room, "questions": len(onsets),
             "onsets_s": onsets, "events": len(events), "quiet": quiet,
             "events_at_s": [(m["capture_ns"] - start_ns) / 1e9 for _, m in events], "missed": missed,
-            "spurious": len(spurious_s),
+            "spurious": len(spurious_s), "rise_to": rise_to,
             "spurious_at_s": spurious_s, "speech_start_ms": speech_start_ms, "latencies_ms": latencies,
             "detected_ms": detected, "per_question_ms": per_question,
             "barge_in_p50_ms": float(np.percentile(latencies, 50)) if latencies else None,
@@ -189,6 +196,8 @@ def main() -> None:
     parser.add_argument("--spacing", type=float, default=4.0, help="seconds between question starts")
     parser.add_argument("--speech-start-ms", type=float, default=VadSettings().speech_start_ms,
                         help="the vad's speech_start_ms (250: at the segment's opening, min_speech_ms)")
+    parser.add_argument("--rise-to", type=float, help="the vad's silero.rise_to (0: one speech_start per "
+                        "stretch of speech, as before it; default: the vad's)")
     parser.add_argument("--room", metavar="ARRAY", help="play what the speex canceller leaves of bench/aec.py's "
                         "scene on this array (respeaker4, pepper4) instead of the idealised file")
     parser.add_argument("--seconds", type=float, default=60.0, help="--room: the scene's length")
@@ -197,12 +206,16 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1, help="--room: the scene's seed")
     parser.add_argument("--no-echo", action="store_true", help="--room: without the robot's echo at the "
                         "microphones (the person and babble through the canceller: a control)")
+    parser.add_argument("--no-person", action="store_true", help="--room: without the person (every "
+                        "barge-in is a false one: the robot's residual and babble alone)")
+    parser.add_argument("--no-babble", action="store_true", help="--room: without the babble")
     parser.add_argument("--port", type=int, default=0, help="the orchestrator's port (0: any free one)")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     room = None if args.room is None else {"array": args.room, "seconds": args.seconds, "delay_ms": args.delay,
-                                           "ppm": args.ppm, "seed": args.seed, "echo": not args.no_echo}
-    figures = run(args.questions, args.spacing, args.speech_start_ms, room, args.port)
+                                           "ppm": args.ppm, "seed": args.seed, "echo": not args.no_echo,
+                                           "person": not args.no_person, "babble": not args.no_babble}
+    figures = run(args.questions, args.spacing, args.speech_start_ms, room, args.port, args.rise_to)
     if args.json:
         args.json.write_text(json.dumps(figures, indent=1))
     print("latencies_ms=" + ",".join(f"{v:.0f}" for v in figures["latencies_ms"]))

@@ -16,10 +16,13 @@ The VAD result of a segment carries its mean speech probability (1 with ``energy
 the segment ends. Earlier, once ``speech_start_ms`` of speech has been heard (Silero: from its first
 window above ``silero.threshold``; less than ``silero.min_speech_ms``, which opens a segment), with
 ``speech_start_events`` a ``speech_start`` result says so (esiaf.results.speech_start: its span runs
-from the speech's start to the capture time the vad decided), once per stretch of speech: the
-orchestrator's barge-in (a person speaking while the robot plays) waits neither for the utterance's
-end nor for its segment to open. Speech shorter than ``silero.min_speech_ms`` is announced too and never
-segmented (a cough): a barge-in on it is the price of the shorter wait.
+from the speech's start to the capture time the vad decided), once per stretch of speech, and again within
+it where Silero's probability rises sharply from a plateau (``silero.rise_to``, esiaf/speech/rise.py: a
+person who starts over babble or residual echo that already opened the stretch; at most one per
+``silero.rise_every_ms``): the orchestrator's barge-in (a person speaking while the robot plays) waits
+neither for the utterance's end nor for its segment to open. Speech shorter than
+``silero.min_speech_ms`` is announced too and never segmented (a cough): a barge-in on it is the price
+of the shorter wait.
 
 A vad that joins a stream after its start (its first message of the stream is not the publisher's first:
 it was started, or restarted after a crash, while the stream went on) may join in the middle of an
@@ -39,6 +42,7 @@ from esiaf import Audio, AudioFormat, BackendSettings, Component, SetupError
 from esiaf.per_stream import PerStream
 from esiaf.results import SPEECH_START, speech_start
 from esiaf.settings import StrictModel
+from esiaf.speech.rise import Rise, RiseParams
 from esiaf.speech.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
 from esiaf.speech.silero import RATES_HZ, SileroError, SileroModel, SileroStream
 from esiaf.speech.windows import ChunkCutter, WindowCutter, messages
@@ -60,6 +64,13 @@ class SileroSettings(StrictModel):
     min_silence_ms: float = 400.0  # silence this long closes it
     cut_search_ms: float = 2000.0  # a segment at max_ms is cut at its least speech-like point this far back
     onset_pad_ms: float = 100.0  # audio kept before the first speech-like window
+    # a new speech_start within a stretch already announced (a person starting over babble or residual echo,
+    # whose onset would otherwise get no barge-in; esiaf/speech/rise.py) on a sharp rise of the probability:
+    rise_to: float = Field(default=0.75, ge=0, le=1)  # a window this speech-like (0: one speech_start per stretch)
+    rise_from: float = Field(default=0.55, ge=0, le=1)  # ... after a plateau whose mean is at most this
+    rise_by: float = Field(default=0.25, gt=0, le=1)  # ... and this much below the window
+    rise_plateau_ms: float = Field(default=256.0, ge=32, le=5000)  # the plateau (before the rise's 64 ms)
+    rise_every_ms: float = Field(default=1000.0, ge=0, le=60000)  # at most one per this after the last speech_start
 
 
 class EnergySettings(StrictModel):
@@ -86,7 +97,7 @@ class VadSettings(BackendSettings):
     pre_roll_ms: float = 250.0
     # the flat names of the backends' settings, before they were nested
     renamed: ClassVar[dict[str, str]] = {
-        **{name: f"silero.{name}" for name in SileroSettings.model_fields},
+        **{name: f"silero.{name}" for name in SileroSettings.model_fields if not name.startswith("rise_")},
         **{name: f"energy.{name}" for name in EnergySettings.model_fields}}
 
 
@@ -100,6 +111,8 @@ class VadStream:
     mid_speech: bool | None = None  # None: not known before its first message
     silence_ns: int = 0  # ... while it waits: how long it has been silent
     announced: bool = False  # the speech going on was announced (speech_start)
+    rise: Rise | None = None  # silero with rise_to: a new talker's sharp rise within an announced stretch
+    announced_ns: int = 0  # when the speech going on was last announced
 
 
 class Vad(Component):
@@ -114,6 +127,7 @@ class Vad(Component):
 
     def __init__(self, settings: VadSettings):
         super().__init__(settings)
+        self.rise_params: RiseParams | None = None
         if settings.backend == "silero" and settings.sample_rate_hz not in RATES_HZ:
             raise SetupError(f"the silero backend takes 8000 or 16000 Hz, not sample_rate_hz "
                              f"{settings.sample_rate_hz}")
@@ -127,6 +141,8 @@ class Vad(Component):
                 self.params = ProbabilityParams(silero.threshold, silero.threshold_off, silero.min_speech_ms,
                                                 silero.min_silence_ms, settings.max_ms, settings.pre_roll_ms,
                                                 silero.cut_search_ms, silero.onset_pad_ms)
+                self.rise_params = RiseParams(silero.rise_to, silero.rise_from, silero.rise_by,
+                                              silero.rise_plateau_ms) if silero.rise_to else None
         except ValueError as exc:
             raise SetupError(f"bad VAD settings: {exc}") from None
         self.add_input(settings.input_topic, fmt)
@@ -150,12 +166,14 @@ class Vad(Component):
     def _new_stream(self, stream_id: str) -> VadStream:
         if self.model is None:
             return VadStream(Segmenter(self.params), ChunkCutter(), None)
+        rise = Rise(self.rise_params) if self.rise_params is not None else None
         if self.settings.silero.windows:  # cuts the payloads, which arrive in the declared input format
             frame_bytes = self.inputs[self.settings.input_topic].bytes_per_frame
             return VadStream(ProbabilitySegmenter(self.params),
-                             WindowCutter(self.model.stream(self.settings.sample_rate_hz), frame_bytes), None)
+                             WindowCutter(self.model.stream(self.settings.sample_rate_hz), frame_bytes), None,
+                             rise=rise)
         return VadStream(ProbabilitySegmenter(self.params), ChunkCutter(),
-                         self.model.stream(self.settings.sample_rate_hz))
+                         self.model.stream(self.settings.sample_rate_hz), rise=rise)
 
     def on_audio(self, audio: Audio) -> None:
         stream = self.segmenters.get(audio.stream_id)
@@ -184,7 +202,7 @@ class Vad(Component):
                          audio.stream_id, audio.sequence, piece.start_ns)
             forwards += segmenter.process(piece, piece.start_ns, piece.end_ns, score, force_end=piece.end_of_stream)
             if self.settings.speech_start_events:
-                self._announce(stream, audio.stream_id, piece.end_ns, score)
+                self._announce(stream, audio.stream_id, piece.start_ns, piece.end_ns, score)
         for message in messages(forwards, audio.format.sample_rate_hz):
             piece, forward = message.piece, message.forward
             end_of_stream = forward.ended and piece.end_of_stream
@@ -199,9 +217,11 @@ class Vad(Component):
                 self.emit("vad", forward.segment, stream_id=audio.stream_id, vad={"probability": forward.probability})
                 log.info("segment stream_id=%s start_ns=%d end_ns=%d", audio.stream_id, *forward.segment)
 
-    def _announce(self, stream: VadStream, stream_id: str, now_ns: int, score: float) -> None:
+    def _announce(self, stream: VadStream, stream_id: str, start_ns: int, now_ns: int, score: float) -> None:
         """A speech_start result once speech has gone on for speech_start_ms (or opened a segment), once
-        per stretch of speech."""
+        per stretch of speech; and again within it on a sharp rise of the probability (a new talker), at
+        most once per rise_every_ms."""
+        rise_onset_ns = stream.rise.window(start_ns, now_ns, score) if stream.rise is not None else None
         heard = stream.segmenter.speech_heard
         if heard is None:
             stream.announced = False
@@ -209,9 +229,17 @@ class Vad(Component):
         onset_ns, length_ns = heard
         if not stream.announced and (length_ns >= self.settings.speech_start_ms * 1e6 or stream.segmenter.active):
             stream.announced = True
-            probability = score if self.settings.backend == "silero" else 1.0
-            self.emit(SPEECH_START, (onset_ns, max(onset_ns, now_ns)), stream_id=stream_id,
-                      generic=speech_start(probability))
+        elif not (stream.announced and rise_onset_ns is not None
+                  and now_ns - stream.announced_ns >= self.settings.silero.rise_every_ms * 1e6):
+            return
+        else:  # a new talker within the stretch announced
+            onset_ns = rise_onset_ns
+            log.info("stream_id=%s speech_start on a rise within a stretch: onset_ns=%d probability=%.2f",
+                     stream_id, onset_ns, score)
+        stream.announced_ns = now_ns
+        probability = score if self.settings.backend == "silero" else 1.0
+        self.emit(SPEECH_START, (onset_ns, max(onset_ns, now_ns)), stream_id=stream_id,
+                  generic=speech_start(probability))
 
     def _silent(self, score: float) -> bool:
         """A window or chunk that is no speech (below the threshold that keeps a segment going)."""

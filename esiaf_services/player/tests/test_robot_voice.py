@@ -112,12 +112,13 @@ class Scene:
         self.seconds = len(mics) / RATE
 
 
-def run_scene(orchestrator: Orchestrator, scene: Scene, stream: str) -> tuple[Player, list[tuple[float, dict]]]:
+def run_scene(orchestrator: Orchestrator, scene: Scene, stream: str,
+              **vad_settings) -> tuple[Player, list[tuple[float, dict]]]:
     """Starts the player (following the stream), the vad and the grabber (real time); the websocket's messages
     with their arrival times until the stream ends."""
     robot = player(orchestrator, scene.folder / "loudspeaker.raw", stream, input=str(scene.played),
                    follow_stream=True)
-    vad = start(Vad(VadSettings(name="vad", orchestrator_url=orchestrator.url)))
+    vad = start(Vad(VadSettings(name="vad", orchestrator_url=orchestrator.url, **vad_settings)))
     poll(lambda: vad.control is not None and vad.control.registration is not None, timeout_s=30)
     received: list[tuple[float, dict]] = []
     with connect(f"{orchestrator.ws_url}/ws/fused?stream={stream}") as ws:
@@ -171,6 +172,62 @@ def test_a_person_speaking_over_the_robot_is_a_barge_in_and_stops_it(tmp_path):
         assert orchestrator.http.get("/streams/s2/playing").json()["playing"] is None
         person = [m for _, m in received if m["type"] == "fused_result"]
         assert [m["source"] for m in person] == ["person"]
+        robot.stop()
+    finally:
+        orchestrator.close()
+
+
+class BabbleScene(Scene):
+    """The robot plays a long tone (cancelled entirely) while four flite voices babble in a reverberant room
+    from the start (a stretch of speech the vad opens and announces at once), and a person asks over the
+    babble from 4 s, 15 dB above it."""
+
+    def __init__(self, folder: Path):
+        from scipy.signal import fftconvolve
+
+        from bench.barge_in import onset
+        from esiaf.tools.evaluation import babble_clip
+        self.folder = folder
+        answers = ["The kitchen is to your left, next to the big window.", "I can bring you a drink from the fridge.",
+                   "The capital of Germany is Berlin.", "There are five people in this room."]
+        babble = soundfile.read(str(babble_clip(np.random.default_rng(1), answers, folder / "babble.wav", 8.0)))[0]
+        rng = np.random.default_rng(0)
+        t = np.arange(round(0.6 * RATE)) / RATE
+        rir = rng.normal(0, 1, len(t)) * np.exp(-6.9 * t / 0.6)  # a room's tail, RT60 0.6 s
+        rir[0] = 3
+        babble = fftconvolve(babble, rir)[:len(babble)]
+        babble /= np.abs(babble).max()
+        babble += rng.normal(0, 1, len(babble)) * np.sqrt(np.mean(babble ** 2)) / np.sqrt(10)
+        person = say("Where is the bathroom?", "slt", RATE)
+        loud = person[np.abs(person) > 0.02 * np.abs(person).max()]
+        person *= np.sqrt(np.mean(babble ** 2) / np.mean(loud ** 2)) * 10 ** (15 / 20)
+        mics = babble.copy()
+        mics[4 * RATE:4 * RATE + len(person)] += person[:len(mics) - 4 * RATE]
+        mics *= 0.3 / np.abs(mics).max()
+        self.person_onset_s = 4.0 + onset(person) / RATE
+        self.played, self.mics = folder / "robot.wav", folder / "mics.wav"
+        soundfile.write(str(self.played), tone(12.0, 0.05), RATE, subtype="PCM_16")
+        soundfile.write(str(self.mics), mics, RATE, subtype="PCM_16")
+        self.seconds = len(mics) / RATE
+
+
+@pytest.mark.e2e
+def test_a_person_starting_over_babble_the_vad_already_announced_is_a_barge_in(tmp_path):
+    """The babble opens the vad's stretch of speech (its barge-in at the start); the person starting 4 s in
+    gets a barge-in of their own, from the sharp rise of the speech probability (silero.rise_to), not
+    none (one speech_start per stretch, before)."""
+    need_flite()
+    orchestrator = Orchestrator(tmp_path, config={**UTTERANCES, "barge_in_policy": "ignore"})
+    try:
+        scene = BabbleScene(tmp_path)
+        robot, received = run_scene(orchestrator, scene, "s3")
+        start_ns = orchestrator.http.get("/streams/s3").json()["start_ns"]
+        onset_ns = start_ns + round(scene.person_onset_s * 1e9)
+        barge_ins = [m["capture_ns"] for _, m in received if m["type"] == "barge_in"]
+        assert barge_ins and barge_ins[0] < onset_ns - 2 * 10**9  # the babble's, at its start
+        assert [c for c in barge_ins if abs(c - onset_ns) < 300_000_000], \
+            f"no barge-in at the person's onset {scene.person_onset_s:.2f} s: " \
+            f"{[(c - start_ns) / 1e9 for c in barge_ins]}"
         robot.stop()
     finally:
         orchestrator.close()
