@@ -62,11 +62,16 @@ def segments(seed: int, runs: int, arrays: list[str], cache: Path | None) -> lis
     return items
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def room_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of the rooms the closed-set benches render (``segments``)."""
     parser.add_argument("--runs", type=int, default=4, help="rooms per array (each: 10 in-set, 10 out-of-set)")
     parser.add_argument("--seed", type=int, default=2, help="rooms' seed (default 2; the harness's rooms are seed 1)")
     parser.add_argument("--array", action="append", help="array preset (default: pepper4 and respeaker4)")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    room_arguments(parser)
     parser.add_argument("--shortlist", type=int, default=6)
     parser.add_argument("--beam-size", type=int, default=1, help="the free decode's beam (default 1, the asr's)")
     parser.add_argument("--n-best", type=int, default=1, help="its hypotheses the shortlist is drawn from")

@@ -38,7 +38,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from bench.closed_set import segments  # noqa: E402
+from bench.closed_set import room_arguments, segments  # noqa: E402
 from esiaf_services.asr.lexicon import ROBOCUP_GRAMMAR  # noqa: E402
 from esiaf_services.asr.matching import normalise  # noqa: E402
 from esiaf_services.asr.recognizer import PocketsphinxRecognizer  # noqa: E402
@@ -119,9 +119,7 @@ def table(rows: list[dict], name: str) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--runs", type=int, default=4, help="rooms per array (each: 10 in-set, 10 out-of-set)")
-    parser.add_argument("--seed", type=int, default=2, help="rooms' seed (default 2; the harness's rooms are seed 1)")
-    parser.add_argument("--array", action="append", help="array preset (default: pepper4 and respeaker4)")
+    room_arguments(parser)
     parser.add_argument("--cache", type=Path, help="keep the rendered utterances in this file (and reuse them); "
                         "the denoised ones go beside it")
     parser.add_argument("--conditions", default="raw,denoised", help="raw, denoised or both (default)")
