@@ -8,7 +8,7 @@ import logging
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field, field_validator
@@ -115,6 +115,11 @@ class AsrSettings(BackendSettings):
         "free), off with whisper (each partial decodes the utterance so far again, on the thread that makes "
         "the final result: segment end to fused result 0.76 s without, 3.2 s with, p50 on a loaded 2-core "
         "machine, bench/partials.py)"))
+    second_opinion: Literal["", "whisper"] = Field(default="", description=(
+        "with pocketsphinx and a grammar: where pocketsphinx says out of set (or hears no sentence), Whisper "
+        "scores the grammar's sentences on the same audio (whisper.* settings, acoustic scoring) and its answer "
+        "is taken; '': none. Costs Whisper's model (~150 MB) and its decode on each rejected utterance "
+        "(bench/cascade.py, docs/benchmarks.md)"))
     partial_interval_ms: float | None = Field(default=None, gt=0, description=(
         "audio between two partial results; unset: 300 ms with pocketsphinx (its running search), 1000 ms "
         "with whisper (the utterance so far decoded again, beam 1)"))
@@ -196,6 +201,8 @@ class Asr(Component):
         self.matcher: SentenceMatcher | None = None
         self.prompt: str | None = None  # whisper's initial prompt: the closed set's rare words
         self.closed_set: ClosedSetDecoder | None = None  # whisper with a closed set, scored by the model
+        # pocketsphinx's second opinion (second_opinion: whisper): the grammar's sentences scored by Whisper
+        self.second_opinion: ClosedSetDecoder | None = None
         self.utterances = 0
         self.wants_partials = settings.wants_partials()
         self.vocabulary: Vocabulary | None = None  # pocketsphinx: the vocabulary's words and pronunciations
@@ -230,11 +237,13 @@ class Asr(Component):
                     self.prompt = ", ".join(self.matcher.vocabulary()) + "."
             if self.whisper is not None and entries:
                 self._prompt_with(entries)
+            if s.second_opinion:
+                self.second_opinion = self._second_opinion()
         except RecognizerError as exc:
             raise SetupError(str(exc)) from None
         except (OSError, GrammarError) as exc:
             raise SetupError(f"cannot read the allowed sentences {closed_set}: {exc}") from None
-        self.info.update(backend=s.backend, grammar=s.grammar or "language model",
+        self.info.update(backend=s.backend, second_opinion=s.second_opinion, grammar=s.grammar or "language model",
                          scoring=w.scoring if self.closed_set is not None else "text",
                          sentences=len(self.matcher.sentences) if self.matcher else 0,
                          vocabulary=len(entries))
@@ -259,6 +268,20 @@ class Asr(Component):
             language_weight=s.pocketsphinx.language_weight, nbest=s.hypotheses(),
             vocabulary=self.vocabulary, vocabulary_weight=s.pocketsphinx.vocabulary_weight,
             phone_loop=self._rejects())
+
+    def _second_opinion(self) -> ClosedSetDecoder:
+        """Whisper's acoustic scoring over the grammar's sentences, for what pocketsphinx rejects."""
+        s, w = self.settings, self.settings.whisper
+        if not self._grammar_search():
+            raise SetupError(f"second_opinion: {s.second_opinion} needs backend pocketsphinx and a grammar "
+                             f"(backend is {s.backend}, grammar {s.grammar or 'none'})")
+        grammar = resolve_grammar(s.grammar)
+        assert grammar is not None
+        whisper = WhisperRecognizer(w.model_dir, w.beam_size, w.no_speech_threshold, n_best=1)
+        matcher = SentenceMatcher.from_file(grammar, s.match_threshold, s.char_threshold)
+        self.info["second_opinion_model"] = str(whisper.path)
+        return ClosedSetDecoder(whisper.model, matcher, w.shortlist, w.scoring_beam_size, min(3, w.scoring_beam_size),
+                                min_per_token=w.min_logprob_per_token)
 
     def _grammar_search(self) -> bool:
         """pocketsphinx decodes with a grammar: a closed set of its own."""
@@ -310,7 +333,7 @@ class Asr(Component):
                 state.recognizer.start()
         if state.recognizer is not None:
             state.recognizer.feed(audio.payload)
-        else:
+        if state.recognizer is None or self.second_opinion is not None:
             state.chunks.append(audio.payload)
         if self.wants_partials and audio.end_ns - state.partial_at_ns >= self.settings.partial_interval_ns():
             self._partial(state, audio)
@@ -375,6 +398,11 @@ class Asr(Component):
             # loaded machine), so the heartbeat says beforehand that it may be late
             with self._quiet_for(1.0 + (audio.end_ns - origin_ns) / 1e9):
                 hypotheses = state.recognizer.finish()
+            pcm, state.chunks = b"".join(state.chunks), []
+            rejected = not hypotheses or self._out_of_set(hypotheses[0])
+            if self.second_opinion is not None and rejected and self._asked_whisper(pcm, span, origin_ns,
+                                                                                      audio.stream_id):
+                return
         else:
             pcm, state.chunks = b"".join(state.chunks), []
             samples = np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0
@@ -406,6 +434,20 @@ class Asr(Component):
         log.info("utterance stream_id=%s start_ns=%d text=%r p=%.2f", audio.stream_id, span[0],
                  hypotheses[order[0]].text, hypotheses[order[0]].probability)
 
+    def _asked_whisper(self, pcm: bytes, span: tuple[int, int], origin_ns: int, stream_id: str) -> bool:
+        """pocketsphinx rejected the utterance: Whisper's scoring of the grammar's sentences on the same audio
+        (``second_opinion``). Its answer is published if it takes a sentence (True); else pocketsphinx's
+        rejection stands (False)."""
+        assert self.second_opinion is not None
+        samples = np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0
+        with self._quiet_for(1.0 + samples.size / self.settings.sample_rate_hz):
+            result = self.second_opinion.decode(samples)
+        if result is None or not result.in_set:
+            log.info("utterance stream_id=%s start_ns=%d second opinion: out of set too", stream_id, span[0])
+            return False
+        self._emit_closed_set(result, span, origin_ns, stream_id, self.second_opinion.matcher)
+        return True
+
     def _out_of_set(self, best) -> bool:
         """pocketsphinx's best path is no whole sentence of its grammar (no path reached the grammar's end),
         or explains its speech far worse than the phone loop (with ``min_confidence``)."""
@@ -429,10 +471,11 @@ class Asr(Component):
                  span[0], hypotheses[0].text, hypotheses[0].whole, hypotheses[0].confidence)
 
     def _emit_closed_set(self, result: ClosedSetResult | None, span: tuple[int, int], origin_ns: int,
-                         stream_id: str) -> None:
+                         stream_id: str, matcher: SentenceMatcher | None = None) -> None:
         """The shortlist scored by the model, best first: each hypothesis a sentence with its
         log-probability, the first with its words, the raw transcript and its lead over the
-        runner-up; empty and out of set when rejected."""
+        runner-up; empty and out of set when rejected. ``matcher``: the set's (default: the service's)."""
+        matcher = matcher or self.matcher
         self.utterances += 1
         self.info["utterances"] = self.utterances
         if result is None:  # too short to decode
@@ -458,7 +501,7 @@ class Asr(Component):
                 {"word": w.word, "start_ns": origin_ns + round(w.start_s * 1e9),
                  "end_ns": origin_ns + round(w.end_s * 1e9), "probability": w.probability} for w in words])
             h.raw_text, h.raw_logprob, h.logprob = result.raw_text, result.raw_logprob, scored.logprob
-            h.match_score = self.matcher.match(result.raw_text).score if self.matcher and result.raw_text else 0.0
+            h.match_score = matcher.match(result.raw_text).score if matcher and result.raw_text else 0.0
             following = result.ranked[rank + 1].logprob if rank + 1 < len(result.ranked) else scored.logprob
             h.margin = scored.logprob - following
             h.out_of_set = not result.in_set

@@ -220,3 +220,42 @@ def test_a_bad_scoring_beam_is_one_clear_line(value):
         load_settings(AsrSettings, "asr", env={**whisper, "ESIAF_ASR_WHISPER__SCORING_BEAM_SIZE": value})
     assert load_settings(AsrSettings, "asr", env={**whisper, "ESIAF_ASR_WHISPER__SCORING_BEAM_SIZE": "3"}
                          ).whisper.scoring_beam_size == 3
+
+
+@pytest.mark.skipif(shutil.which("flite") is None, reason="Debian's flite is not installed")
+def test_what_pocketsphinx_rejects_whisper_answers_as_second_opinion():
+    """``second_opinion: whisper``: where pocketsphinx says out of set, Whisper's scoring of the grammar's
+    sentences on the same audio answers. Here a ``min_confidence`` no sentence reaches makes pocketsphinx
+    reject everything: without the second opinion the question is lost, with it Whisper's sentence is
+    published (its score and transcript beside it), and speech outside the set stays out of set."""
+    pytest.importorskip("faster_whisper", reason="the asr-whisper extra is not installed (setup.sh installs it)")
+    synthesise = synthesiser().synthesise_sentence
+    question, outside = synthesise("What does CAPTCHA stands for?", "slt"), synthesise(
+        "Where is the nearest train station?", "slt")
+    alone = Asr(AsrSettings(grammar="robocup", pocketsphinx={"min_confidence": 5.0}))
+    alone.setup()
+    (lost,) = feed(alone, question, "robot")
+    assert lost[2]["speech"]["hypotheses"][0].out_of_set
+    component = Asr(AsrSettings(grammar="robocup", pocketsphinx={"min_confidence": 5.0}, second_opinion="whisper"))
+    component.setup()
+    (answered,) = feed(component, question, "robot")
+    best = answered[2]["speech"]["hypotheses"][0]
+    assert (best.text, best.out_of_set) == ("what does captcha stands for", False)
+    assert best.raw_text and best.logprob < 0 and best.match_score > 0
+    (rejected,) = feed(component, outside, "robot")
+    assert all(h.text == "" and h.out_of_set for h in rejected[2]["speech"]["hypotheses"])
+
+
+@pytest.mark.parametrize(("settings", "complaint"), [
+    ({"second_opinion": "whisper"}, "second_opinion: whisper needs backend pocketsphinx and a grammar"),
+    ({"second_opinion": "whisper", "grammar": "robocup", "backend": "whisper"}, "needs backend pocketsphinx"),
+])
+def test_a_second_opinion_without_a_grammar_search_is_one_clear_line(settings, complaint):
+    from esiaf import SetupError
+    with pytest.raises(SetupError, match=complaint):
+        Asr(AsrSettings(**settings)).setup()
+
+
+def test_an_unknown_second_opinion_is_refused_when_the_settings_are_read():
+    with pytest.raises(ValueError, match="second_opinion"):
+        AsrSettings(second_opinion="vosk")
