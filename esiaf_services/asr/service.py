@@ -149,6 +149,11 @@ class AsrSettings(BackendSettings):
         return round((self.partial_interval_ms or PARTIAL_INTERVAL_MS.get(self.backend, 1000.0)) * 1e6)
 
 
+def _float32(pcm: bytes) -> np.ndarray:
+    """16-bit PCM (the asr's input) as float samples in [-1, 1), as Whisper takes them."""
+    return np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0
+
+
 def resolve_grammar(grammar: str) -> Path | None:
     if not grammar:
         return None
@@ -230,9 +235,7 @@ class Asr(Component):
             if closed_set:
                 self.matcher = SentenceMatcher.from_file(Path(closed_set), s.match_threshold, s.char_threshold)
                 if self.whisper is not None and w.scoring == "acoustic":
-                    self.closed_set = ClosedSetDecoder(self.whisper.model, self.matcher, w.shortlist,
-                                                       w.scoring_beam_size, min(3, w.scoring_beam_size),
-                                                       min_per_token=w.min_logprob_per_token)
+                    self.closed_set = self._acoustic_scoring(self.whisper.model, self.matcher)
                 elif self.whisper is not None and w.prompt_vocabulary:
                     self.prompt = ", ".join(self.matcher.vocabulary()) + "."
             if self.whisper is not None and entries:
@@ -280,7 +283,12 @@ class Asr(Component):
         whisper = WhisperRecognizer(w.model_dir, w.beam_size, w.no_speech_threshold, n_best=1)
         matcher = SentenceMatcher.from_file(grammar, s.match_threshold, s.char_threshold)
         self.info["second_opinion_model"] = str(whisper.path)
-        return ClosedSetDecoder(whisper.model, matcher, w.shortlist, w.scoring_beam_size, min(3, w.scoring_beam_size),
+        return self._acoustic_scoring(whisper.model, matcher)
+
+    def _acoustic_scoring(self, model, matcher: SentenceMatcher) -> ClosedSetDecoder:
+        """Whisper's ``model`` scoring ``matcher``'s sentences, as the ``whisper.*`` settings say."""
+        w = self.settings.whisper
+        return ClosedSetDecoder(model, matcher, w.shortlist, w.scoring_beam_size, min(3, w.scoring_beam_size),
                                 min_per_token=w.min_logprob_per_token)
 
     def _grammar_search(self) -> bool:
@@ -347,7 +355,7 @@ class Asr(Component):
             text = state.recognizer.partial()
         else:
             assert self.whisper is not None  # a stream without a recogniser is a whisper segment buffer
-            samples = np.frombuffer(b"".join(state.chunks), "<i2").astype(np.float32) / 32768.0
+            samples = _float32(b"".join(state.chunks))
             long_enough = samples.size >= 0.3 * self.settings.sample_rate_hz  # less: Whisper makes words up
             text = self.whisper.quick_text(samples, self.prompt) if long_enough else ""
         words = text.split()
@@ -398,14 +406,12 @@ class Asr(Component):
             # loaded machine), so the heartbeat says beforehand that it may be late
             with self._quiet_for(1.0 + (audio.end_ns - origin_ns) / 1e9):
                 hypotheses = state.recognizer.finish()
-            pcm, state.chunks = b"".join(state.chunks), []
-            rejected = not hypotheses or self._out_of_set(hypotheses[0])
-            if self.second_opinion is not None and rejected and self._asked_whisper(pcm, span, origin_ns,
-                                                                                      audio.stream_id):
+            if self.second_opinion is not None and self._asked_whisper(hypotheses, state, span, origin_ns,
+                                                                         audio.stream_id):
                 return
         else:
             pcm, state.chunks = b"".join(state.chunks), []
-            samples = np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0
+            samples = _float32(pcm)
             if self.closed_set is not None:
                 self._emit_closed_set(self.closed_set.decode(samples), span, origin_ns, audio.stream_id)
                 return
@@ -434,12 +440,16 @@ class Asr(Component):
         log.info("utterance stream_id=%s start_ns=%d text=%r p=%.2f", audio.stream_id, span[0],
                  hypotheses[order[0]].text, hypotheses[order[0]].probability)
 
-    def _asked_whisper(self, pcm: bytes, span: tuple[int, int], origin_ns: int, stream_id: str) -> bool:
-        """pocketsphinx rejected the utterance: Whisper's scoring of the grammar's sentences on the same audio
-        (``second_opinion``). Its answer is published if it takes a sentence (True); else pocketsphinx's
-        rejection stands (False)."""
+    def _asked_whisper(self, hypotheses, state: StreamState, span: tuple[int, int], origin_ns: int,
+                       stream_id: str) -> bool:
+        """Where pocketsphinx rejected the utterance (no sentence, or out of set), Whisper's scoring of the
+        grammar's sentences on the same audio (``second_opinion``, the stream's kept chunks): its answer is
+        published if it takes a sentence (True); else pocketsphinx's answer or rejection stands (False)."""
         assert self.second_opinion is not None
-        samples = np.frombuffer(pcm, "<i2").astype(np.float32) / 32768.0
+        pcm, state.chunks = b"".join(state.chunks), []
+        if hypotheses and not self._out_of_set(hypotheses[0]):
+            return False
+        samples = _float32(pcm)
         with self._quiet_for(1.0 + samples.size / self.settings.sample_rate_hz):
             result = self.second_opinion.decode(samples)
         if result is None or not result.in_set:
