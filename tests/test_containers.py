@@ -67,10 +67,11 @@ def test_compose_up_plays_the_example_and_down_leaves_nothing(project):
         first = poll(lambda: p.fused(), timeout_s=120)
         print(f"compose up to first fused result: {time.monotonic() - started:.1f} s")
         fused = poll(lambda: at_least(len(TRUTH), p.fused()), timeout_s=90)
+        fused = settled(p.fused, len(fused))
         assert first[0]["id"] == fused[0]["id"]
         assert [normalise(best_text(f)) for f in fused] == [normalise(t) for t in TRUTH], p.logs()
         for f in fused:  # the default fusion: speech with the emotion and gender containers' labels
-            assert f["completion"] == "complete", (f["completion"], f["missing"], f["anchor"]["span"])
+            assert whole(f), (f["completion"], f["revision"], f["missing"], f["anchor"]["span"])
             for kind in ("emotion", "gender"):
                 assert f["aggregates"][kind]["label"] and 0 < f["aggregates"][kind]["probability"] <= 1, f
         ws_fused = poll(lambda: [m for m in from_ws if m["type"] == "fused_result"] if any(
@@ -95,6 +96,24 @@ def test_compose_up_plays_the_example_and_down_leaves_nothing(project):
     assert p.leftovers() == {}
 
 
+def whole(fused: dict) -> bool:
+    """Every analyser's answer is in the fused result: it was complete when first published, or an
+    answer that came after its deadline (ten containers on a loaded 2-core machine) was brought in
+    by a revision, which names nothing missing any more. A result still missing one is not whole."""
+    return not fused["missing"] and (fused["completion"] == "complete" or fused["revision"] > 1)
+
+
+def settled(fused_now, count: int, timeout_s: float = 20.0) -> list[dict]:
+    """The first ``count`` fused results once every one is whole (a late answer's revision comes
+    within the fusion's longest timeout), or as they stand after ``timeout_s`` for the assertion."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        fused = fused_now()[:count]
+        if all(whole(f) for f in fused) or time.monotonic() > deadline:
+            return fused
+        time.sleep(0.2)
+
+
 @pytest.mark.parametrize("recipe", [
     dict(ESIAF_SPLITTER_REPLICAS="1", ESIAF_VAD_INPUT_TOPIC="splitter/ch0"),
     dict(ESIAF_BEAMFORMER_REPLICAS="1", ESIAF_VAD_INPUT_TOPIC="beamformer/audio"),
@@ -106,10 +125,10 @@ def test_compose_with_a_microphone_array_fuses_text_direction_emotion_and_gender
     p = project(REPO / "examples" / "robocup_scene.flac")
     p.env.update(ESIAF_SSL_REPLICAS="1", ESIAF_SSL_ARRAY="respeaker4", **recipe)
     p("up", "-d", timeout=600)
-    fused = poll(lambda: at_least(len(truth), p.fused()), timeout_s=150)
+    fused = settled(p.fused, len(poll(lambda: at_least(len(truth), p.fused()), timeout_s=150)))
     assert [normalise(best_text(f)) for f in fused] == [normalise(u["text"]) for u in truth], p.logs()
     for f, utterance in zip(fused, truth, strict=True):
-        assert f["completion"] == "complete", (f["completion"], f["missing"], f["anchor"]["span"])
+        assert whole(f), (f["completion"], f["revision"], f["missing"], f["anchor"]["span"])
         error = abs((f["aggregates"]["ssl"]["azimuth_deg"] - utterance["azimuth_deg"] + 180) % 360 - 180)
         assert error <= 15, (utterance, f["aggregates"]["ssl"])
         assert f["aggregates"]["emotion"]["label"] and f["aggregates"]["gender"]["label"], f
