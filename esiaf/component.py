@@ -64,12 +64,13 @@ class Component(Processor):
     def publish(self, topic: str, audio: bytes | np.ndarray, start_ns: int, end_ns: int, *,
                 stream_id: str | None = None, segmentation_ended: bool = False,
                 segment: tuple[int, int] | None = None, ssl_directions: Iterable[pb.SslDirection] = (),
-                end_of_stream: bool = False, broken_off: bool = False) -> int:
+                end_of_stream: bool = False, broken_off: bool = False,
+                speech_until_ns: int = 0) -> int:
         """See :meth:`esiaf.node.Context.publish`."""
         return self.context.publish(topic, audio, start_ns, end_ns, stream_id=stream_id,
                                     segmentation_ended=segmentation_ended, segment=segment,
                                     ssl_directions=ssl_directions, end_of_stream=end_of_stream,
-                                    broken_off=broken_off)
+                                    broken_off=broken_off, speech_until_ns=speech_until_ns)
 
     def forward(self, topic: str, audio: Audio, **meta: Any) -> int:
         return self.context.forward(topic, audio, **meta)

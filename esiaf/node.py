@@ -122,14 +122,17 @@ class Context:
     def publish(self, topic: str, audio: bytes | np.ndarray, start_ns: int, end_ns: int, *,
                 stream_id: str | None = None, segmentation_ended: bool = False,
                 segment: tuple[int, int] | None = None, ssl_directions: Iterable[pb.SslDirection] = (),
-                end_of_stream: bool = False, broken_off: bool = False) -> int:
+                end_of_stream: bool = False, broken_off: bool = False,
+                speech_until_ns: int = 0) -> int:
         """Publishes a chunk on an output topic; returns its sequence number (0 if dropped).
 
         ``audio`` is in the format declared with ``add_output``; the SDK converts it to the
         topic's assigned format. A chunk marked ``segmentation_ended`` or ``end_of_stream`` also
         carries what the resampler held back, so consumers have all audio before the mark.
         ``broken_off``: the utterance this component was passing on broke off before this chunk
-        (``meta.broken_off``, on its first message; esiaf/receiving.py).
+        (``meta.broken_off``, on its first message; esiaf/receiving.py). ``speech_until_ns``: a VAD's
+        open utterance was last heard speaking at this capture time (``meta.speech_until_ns``, on every
+        message; 0: not known).
         """
         link = self.output_links[topic]
         payload = audio if isinstance(audio, (bytes, bytearray, memoryview)) else encode(audio, link.declared)
@@ -139,6 +142,7 @@ class Context:
             msg = pb.AugmentedAudio(stream_id=out.stream_id, topic=topic, format=out.format.to_proto(),
                                     start_ns=out.chunk.start_ns, end_ns=out.chunk.end_ns, payload=out.chunk.payload)
             msg.meta.broken_off, broken_off = broken_off, False  # the first message says it
+            msg.meta.speech_until_ns = speech_until_ns
             if out.main:
                 msg.meta.segmentation_ended = segmentation_ended
                 msg.meta.end_of_stream = end_of_stream

@@ -43,7 +43,8 @@ class ProcessorContext(Protocol):
     def publish(self, topic: str, audio: bytes | np.ndarray, start_ns: int, end_ns: int, *,
                 stream_id: str | None = None, segmentation_ended: bool = False,
                 segment: tuple[int, int] | None = None, ssl_directions: Iterable[pb.SslDirection] = (),
-                end_of_stream: bool = False, broken_off: bool = False) -> int: ...
+                end_of_stream: bool = False, broken_off: bool = False,
+                speech_until_ns: int = 0) -> int: ...
 
     def forward(self, topic: str, audio: Audio, **meta: Any) -> int: ...
 

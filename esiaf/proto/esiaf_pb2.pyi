@@ -120,20 +120,22 @@ class SslDirection(_message.Message):
     def __init__(self, source_id: _Optional[str] = ..., azimuth_deg: _Optional[float] = ..., elevation_deg: _Optional[float] = ..., probability: _Optional[float] = ..., elevation_known: _Optional[bool] = ..., track_azimuth_deg: _Optional[float] = ..., background: _Optional[bool] = ...) -> None: ...
 
 class AudioMeta(_message.Message):
-    __slots__ = ("segmentation_ended", "segment", "ssl_directions", "end_of_stream", "replay", "broken_off")
+    __slots__ = ("segmentation_ended", "segment", "ssl_directions", "end_of_stream", "replay", "broken_off", "speech_until_ns")
     SEGMENTATION_ENDED_FIELD_NUMBER: _ClassVar[int]
     SEGMENT_FIELD_NUMBER: _ClassVar[int]
     SSL_DIRECTIONS_FIELD_NUMBER: _ClassVar[int]
     END_OF_STREAM_FIELD_NUMBER: _ClassVar[int]
     REPLAY_FIELD_NUMBER: _ClassVar[int]
     BROKEN_OFF_FIELD_NUMBER: _ClassVar[int]
+    SPEECH_UNTIL_NS_FIELD_NUMBER: _ClassVar[int]
     segmentation_ended: bool
     segment: Span
     ssl_directions: _containers.RepeatedCompositeFieldContainer[SslDirection]
     end_of_stream: bool
     replay: bool
     broken_off: bool
-    def __init__(self, segmentation_ended: _Optional[bool] = ..., segment: _Optional[_Union[Span, _Mapping]] = ..., ssl_directions: _Optional[_Iterable[_Union[SslDirection, _Mapping]]] = ..., end_of_stream: _Optional[bool] = ..., replay: _Optional[bool] = ..., broken_off: _Optional[bool] = ...) -> None: ...
+    speech_until_ns: int
+    def __init__(self, segmentation_ended: _Optional[bool] = ..., segment: _Optional[_Union[Span, _Mapping]] = ..., ssl_directions: _Optional[_Iterable[_Union[SslDirection, _Mapping]]] = ..., end_of_stream: _Optional[bool] = ..., replay: _Optional[bool] = ..., broken_off: _Optional[bool] = ..., speech_until_ns: _Optional[int] = ...) -> None: ...
 
 class AugmentedAudio(_message.Message):
     __slots__ = ("stream_id", "topic", "publisher", "sequence", "start_ns", "end_ns", "format", "payload", "meta")

@@ -1,6 +1,7 @@
 """ASR service: each VAD segment decoded by pocketsphinx as it streams in (the default), or by
-Whisper once it closes (``backend: whisper``); one decoder per stream, so several robots' audio
-never mixes; optionally matched to a closed set of allowed sentences (``matching.py``)."""
+Whisper during the vad's hang-over or once it closes (``backend: whisper``); one decoder per stream,
+so several robots' audio never mixes; optionally matched to a closed set of allowed sentences
+(``matching.py``)."""
 from __future__ import annotations
 
 import contextlib
@@ -37,7 +38,7 @@ from esiaf_services.asr.vocabulary import (
     prompt,
     read_vocabulary,
 )
-from esiaf_services.asr.whisper import WhisperRecognizer
+from esiaf_services.asr.whisper import WhisperRecognizer, WhisperResult
 
 log = logging.getLogger(__name__)
 JOINED_LATE_NS = 50_000_000  # the first audio of an utterance later than its speech start by this: joined late
@@ -47,6 +48,9 @@ N_BEST_DEFAULT = {"pocketsphinx": 5, "whisper": 10}  # hypotheses per segment, u
 # how much audio between two partial results, unless partial_interval_ms says: pocketsphinx reads its
 # running search (cheap); Whisper decodes the whole utterance so far again (beam 1), so less often
 PARTIAL_INTERVAL_MS = {"pocketsphinx": 300.0, "whisper": 1000.0}
+# Whisper: silence after the VAD's last speech that starts the utterance's decode before the VAD (whose
+# hang-over is 400 ms) closes it: long enough that most pauses within a sentence are over by then
+EARLY_DECODE_MS = 150.0
 
 
 class PocketsphinxSettings(StrictModel):
@@ -80,6 +84,12 @@ class WhisperSettings(StrictModel):
         "greedy, as accurate on bench/closed_set.py as beam 5's three for ~28 % less CPU; beam_size is the free "
         "transcript's without a closed set)"))
     min_logprob_per_token: float = MIN_PER_TOKEN  # acoustic scoring: a best sentence below this is out of set
+    early_decode_ms: float = Field(default=EARLY_DECODE_MS, ge=0, le=2000, description=(
+        "decode an utterance once its VAD has heard this much silence after its speech (meta.speech_until_ns), "
+        "while the VAD waits out its hang-over; if the utterance ends there, that decode is its result, published "
+        "as soon as the segment closes. Every utterance is decoded up to its speech end plus this much, so "
+        "the early decode and a decode at the close hear the same audio. 0: decode the whole segment once it "
+        "closes (bench/partials.py, docs/benchmarks.md)"))
 
 
 class AsrSettings(BackendSettings):
@@ -174,9 +184,24 @@ class StreamState:
     partial_at_ns: int = 0  # capture time the last partial was made at
     partial_text: str = ""  # the last partial sent
     decoded: list[str] = field(default_factory=list)  # the last partial decode's words (local agreement)
+    ends: list[int] = field(default_factory=list)  # whisper: each kept chunk's capture end
+    # whisper: a decode made before the segment closed, and the speech end it was made at
+    early: tuple[int, ClosedSetResult | WhisperResult | None] | None = None
 
     def open(self, start_ns: int) -> None:
         self.start_ns, self.partial_at_ns, self.partial_text, self.decoded = start_ns, start_ns, "", []
+        self.early = None
+
+    def audio_until(self, speech_end_ns: int, after_ns: int) -> bytes:
+        """The kept chunks' audio up to the first chunk ending ``after_ns`` past ``speech_end_ns``; all of it
+        when either is 0 (not known, or no early decode)."""
+        count = len(self.chunks)
+        if speech_end_ns and after_ns:
+            count = next((i + 1 for i, end in enumerate(self.ends) if end - speech_end_ns >= after_ns), count)
+        return b"".join(self.chunks[:count])
+
+    def forget_audio(self) -> None:
+        self.chunks, self.ends = [], []
 
     def broken_off(self, audio: Audio) -> str:
         """Why ``audio`` does not continue the open utterance ("" if it does, or none is open)."""
@@ -211,6 +236,9 @@ class Asr(Component):
         self.utterances = 0
         self.wants_partials = settings.wants_partials()
         self.vocabulary: Vocabulary | None = None  # pocketsphinx: the vocabulary's words and pronunciations
+        # whisper: silence after an utterance's speech that starts its decode (0: at the close), and counts
+        self._early_ns = round(settings.whisper.early_decode_ms * 1e6) if settings.backend == "whisper" else 0
+        self.early_decodes = self.early_used = 0
 
     def setup(self) -> None:
         s, w = self.settings, self.settings.whisper
@@ -343,8 +371,33 @@ class Asr(Component):
             state.recognizer.feed(audio.payload)
         if state.recognizer is None or self.second_opinion is not None:
             state.chunks.append(audio.payload)
+            state.ends.append(audio.end_ns)
         if self.wants_partials and audio.end_ns - state.partial_at_ns >= self.settings.partial_interval_ns():
             self._partial(state, audio)
+        if state.recognizer is None:
+            self._decode_early(state, audio)
+
+    def _decode_early(self, state: StreamState, audio: Audio) -> None:
+        """Whisper: once the VAD has heard ``early_decode_ms`` of silence after the utterance's speech, its
+        audio up to there is decoded while the VAD waits out its hang-over (the audio that comes meanwhile
+        waits in the socket); if the segment ends at that speech end, the decode is its result."""
+        until, early_ns = audio.meta.speech_until_ns, self._early_ns
+        if not early_ns or not until or until <= (state.start_ns or 0) or audio.end_ns - until < early_ns:
+            return
+        if state.early is not None and state.early[0] == until:
+            return  # decoded at this pause already
+        samples = _float32(state.audio_until(until, early_ns))
+        with self._quiet_for(1.0 + samples.size / self.settings.sample_rate_hz):
+            state.early = (until, self._whisper_decode(samples))
+        self.early_decodes += 1
+        self.info["early_decodes"] = self.early_decodes
+
+    def _whisper_decode(self, samples: np.ndarray) -> ClosedSetResult | WhisperResult | None:
+        """The closed set's result (acoustic scoring), or Whisper's transcript."""
+        if self.closed_set is not None:
+            return self.closed_set.decode(samples)
+        assert self.whisper is not None  # setup() loads it for the whisper backend
+        return self.whisper.recognise(samples, self.settings.sample_rate_hz, self.prompt)
 
     def _partial(self, state: StreamState, audio: Audio) -> None:
         """What has been heard of the open utterance so far, as a ``partial`` result when it changed:
@@ -374,7 +427,8 @@ class Asr(Component):
         decoding it with what comes next would put its words on the next utterance's span. Says
         ``nothing`` over what was heard of it, with the reason."""
         span = (state.start_ns or 0, max(state.end_ns, state.start_ns or 0))
-        state.start_ns, state.chunks = None, []
+        state.start_ns = None
+        state.forget_audio()
         if state.recognizer is not None:
             with self._quiet_for(1.0 + (span[1] - span[0]) / 1e9):
                 state.recognizer.finish()  # its words are dropped
@@ -394,7 +448,7 @@ class Asr(Component):
             # a wrong sentence, so say nothing about it
             if state.recognizer is not None:
                 state.recognizer.finish()
-            state.chunks = []
+            state.forget_audio()
             late_ms = (origin_ns - segment.start_ns) / 1e6
             self.emit("speech", span, stream_id=audio.stream_id,
                       nothing=f"joined the utterance {late_ms:.0f} ms after its start")
@@ -410,13 +464,18 @@ class Asr(Component):
                                                                          audio.stream_id):
                 return
         else:
-            pcm, state.chunks = b"".join(state.chunks), []
-            samples = _float32(pcm)
-            if self.closed_set is not None:
-                self._emit_closed_set(self.closed_set.decode(samples), span, origin_ns, audio.stream_id)
+            speech_end_ns = segment.end_ns if self._early_ns else 0  # 0: the whole segment
+            if state.early is not None and state.early[0] == speech_end_ns:
+                decoded = state.early[1]  # decoded during the hang-over, on this audio
+                self.early_used += 1
+                self.info["early_used"] = self.early_used
+            else:
+                decoded = self._whisper_decode(_float32(state.audio_until(speech_end_ns, self._early_ns)))
+            state.forget_audio()
+            state.early = None
+            if not isinstance(decoded, WhisperResult):  # the closed set's (None: too short to decode)
+                self._emit_closed_set(decoded, span, origin_ns, audio.stream_id)
                 return
-            assert self.whisper is not None  # setup() loads it for the whisper backend
-            decoded = self.whisper.recognise(samples, self.settings.sample_rate_hz, self.prompt)
             hypotheses, nothing = decoded.hypotheses, decoded.nothing or nothing
         self.utterances += 1
         self.info["utterances"] = self.utterances
@@ -446,7 +505,8 @@ class Asr(Component):
         grammar's sentences on the same audio (``second_opinion``, the stream's kept chunks): its answer is
         published if it takes a sentence (True); else pocketsphinx's answer or rejection stands (False)."""
         assert self.second_opinion is not None
-        pcm, state.chunks = b"".join(state.chunks), []
+        pcm = b"".join(state.chunks)
+        state.forget_audio()
         if hypotheses and not self._out_of_set(hypotheses[0]):
             return False
         samples = _float32(pcm)

@@ -128,7 +128,7 @@ class Denoiser(Component):
                          segmentation_ended=chunk.segmentation_ended,
                          segment=(segment.start_ns, segment.end_ns) if chunk.meta.HasField("segment") else None,
                          ssl_directions=chunk.ssl_directions, end_of_stream=chunk.end_of_stream,
-                         broken_off=state.broken)
+                         broken_off=state.broken, speech_until_ns=chunk.meta.speech_until_ns)
             state.broken = False
             if chunk.end_of_stream:
                 self._ended_on_chunk.add(chunk.stream_id)

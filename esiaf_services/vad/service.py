@@ -203,12 +203,14 @@ class Vad(Component):
             forwards += segmenter.process(piece, piece.start_ns, piece.end_ns, score, force_end=piece.end_of_stream)
             if self.settings.speech_start_events:
                 self._announce(stream, audio.stream_id, piece.start_ns, piece.end_ns, score)
+        heard = segmenter.speech_heard if segmenter.active else None
+        speech_until_ns = heard[0] + heard[1] if heard is not None else 0  # the open utterance's last speech
         for message in messages(forwards, audio.format.sample_rate_hz):
             piece, forward = message.piece, message.forward
             end_of_stream = forward.ended and piece.end_of_stream
             self.publish(self.settings.output_topic, piece.payload, piece.start_ns, piece.end_ns,
                          stream_id=audio.stream_id, segmentation_ended=forward.ended, segment=forward.segment,
-                         end_of_stream=end_of_stream)
+                         end_of_stream=end_of_stream, speech_until_ns=0 if forward.ended else speech_until_ns)
             if end_of_stream:
                 self._ended_on_chunk.add(audio.stream_id)
             if forward.segment is not None:  # the segment ended: its speech span

@@ -79,7 +79,8 @@ def test_quiet_speech_is_denoised_as_loud_speech_is(noisy, dbfs):
         assert np.corrcoef(y, speech)[0, 1] > 0.95
 
 
-def chunk(fmt, samples, start, stream="s", segment=None, ended=False, end=False, publisher="vad", sequence=1):
+def chunk(fmt, samples, start, stream="s", segment=None, ended=False, end=False, publisher="vad", sequence=1,
+          speech_until_ns=0):
     audio = Audio(topic="vad/speech", stream_id=stream, publisher=publisher, sequence=sequence,
                   start_ns=start * NS // RATE,
                   end_ns=(start + len(samples)) * NS // RATE, format=fmt, payload=encode(samples, fmt))
@@ -87,6 +88,7 @@ def chunk(fmt, samples, start, stream="s", segment=None, ended=False, end=False,
         audio.meta.segment.start_ns, audio.meta.segment.end_ns = segment
     audio.meta.segmentation_ended = ended
     audio.meta.end_of_stream = end
+    audio.meta.speech_until_ns = speech_until_ns
     return audio
 
 
@@ -101,7 +103,8 @@ def test_the_service_publishes_every_chunk_with_its_own_times_and_meta(channels)
         for stream in ("a", "b"):
             samples = (rng.standard_normal((320, channels)) * 3000).astype(np.int16)
             denoiser.on_audio(chunk(fmt, samples, 320 * i, stream, segment=(320 * (i // 10 * 10) * NS // RATE, 0),
-                                    ended=i in (9, 19), end=i == 19))
+                                    ended=i in (9, 19), end=i == 19, speech_until_ns=0 if i in (9, 19) else
+                                    320 * min(i, 6 + i // 10 * 10) * NS // RATE))  # the vad's last speech
         if i == 9:  # the utterance's end flushed what the look-ahead held: all of it is out at once
             assert len([s for s in sent if s[4]["stream_id"] == "a"]) == 10
     for stream in ("a", "b"):
@@ -111,6 +114,8 @@ def test_the_service_publishes_every_chunk_with_its_own_times_and_meta(channels)
         assert [s[4]["segmentation_ended"] for s in out] == [i in (9, 19) for i in range(20)]
         assert [s[4]["segment"][0] for s in out] == [320 * (i // 10 * 10) * NS // RATE for i in range(20)]
         assert [s[4]["end_of_stream"] for s in out] == [False] * 19 + [True]
+        assert [s[4]["speech_until_ns"] for s in out] == [
+            0 if i in (9, 19) else 320 * min(i, 6 + i // 10 * 10) * NS // RATE for i in range(20)]
         assert {s[0] for s in out} == {"denoiser/speech"}
     assert not denoiser.streams  # each stream's filters dropped at its end
 
