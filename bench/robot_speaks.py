@@ -22,16 +22,22 @@ microphones, babble 10 dB below the person):
 
     nice -n 10 python -m bench.robot_speaks [--array respeaker4] [--conditions 0:100,150:-100,300:100,300:-100]
         [--runs 2] [--talk-s 300] [--port 23200] [--workdir DIR] [--json out.json] [--skip aec,eval,talk]
-        [--slow-start]
+        [--slow-start] [--gate-before]
         [-- ESIAF RUN OPTIONS]
+
+``--gate-before`` runs the robot's half of the eval part and the talk part a second time with the delay
+tracker's gate as it was before 2026-11-28 (``ESIAF_AEC_DELAY_OUTLIER_MS=20``: an estimate up to 20 ms off
+the line taken into it), its figures beside the default's (names ending ``_gate_before``).
 
 Ends with a table of the targets and ``name=value`` lines.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
+import os
 import sys
 import tempfile
 import time
@@ -46,6 +52,22 @@ sys.path.insert(0, str(REPO))
 FS = 16000
 PERSON_BELOW_ECHO_DB = 10.0
 BABBLE_BELOW_PERSON_DB = 10.0
+GATE_BEFORE = {"ESIAF_AEC_DELAY_OUTLIER_MS": "20"}  # the delay tracker's gate before 2026-11-28
+
+
+@contextlib.contextmanager
+def environment(values: dict[str, str]):
+    """``values`` in the environment of the pipelines started meanwhile."""
+    before = {name: os.environ.get(name) for name in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for name, value in before.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
 
 
 def canceller_part(array: str, conditions: list[tuple[float, float]], seconds: float, seed: int,
@@ -100,21 +122,30 @@ def overlapped(run_dir: Path, start_s: float, end_s: float) -> bool:
     return bool(len(part)) and bool(np.mean(part > 0.02 * np.max(np.abs(reference))) > 0.1)
 
 
-def eval_part(array: str, runs: int, seed: int, work: Path, port: int, options: list[str]) -> dict:
+def eval_part(array: str, runs: int, seed: int, work: Path, port: int, options: list[str],
+              variants: dict[str, dict[str, str]]) -> dict[str, dict]:
+    """The harness's rooms without the robot once, and with it once per variant (its environment)."""
     from esiaf.tools import evaluation
-    from esiaf.tools.robocup_scoring import direction_right
     scored = {}
-    for robot in (False, True):
+    for name, env in {"silent": {}, **{f"robot{v}": e for v, e in variants.items()}}.items():
         argv = ["robocup", "--runs", str(runs), "--array", array, "--seed", str(seed), "--no-oracle",
-                "--port", str(port), "--workdir", str(work / ("robot" if robot else "silent"))]
-        args, _ = evaluation.parse_args([*argv, *(["--robot-speaks"] if robot else [])])
+                "--port", str(port), "--workdir", str(work / name.replace("_", "-"))]
+        args, _ = evaluation.parse_args([*argv, *(["--robot-speaks"] if name != "silent" else [])])
         evaluation.check(args)
-        scored[robot] = evaluation.evaluate(args, options)
+        with environment(env):
+            scored[name] = evaluation.evaluate(args, options)
+    return {variant: eval_figures(array, scored["silent"], scored[f"robot{variant}"],
+                                  work / f"robot{variant}".replace("_", "-"), variant) for variant in variants}
+
+
+def eval_figures(array: str, silent: list, robot: list, robot_dir: Path, variant: str) -> dict:
+    from esiaf.tools.robocup_scoring import direction_right
+    scored = {False: silent, True: robot}
     both, clean_right, robot_right, directions = 0, 0, 0, 0
     all_robot = [q for run in scored[True] for q in run.questions]
     for silent_run, robot_run in zip(scored[False], scored[True], strict=True):
         for silent_q, robot_q in zip(silent_run.questions, robot_run.questions, strict=True):
-            if not overlapped(work / "robot" / robot_run.name, robot_q.start_s, robot_q.end_s):
+            if not overlapped(robot_dir / robot_run.name, robot_q.start_s, robot_q.end_s):
                 continue
             both += 1
             clean_right += silent_q.recognised
@@ -134,7 +165,8 @@ def eval_part(array: str, runs: int, seed: int, work: Path, port: int, options: 
         "spurious_silent": sum(run.spurious for run in scored[False]),
         "spurious_robot": sum(run.spurious for run in scored[True]),
     }
-    print(f"eval {array}, {runs} room(s): questions the robot's voice overlaps {both}/{len(all_robot)}: "
+    name = f"{array} {variant.strip('_')}" if variant else array
+    print(f"eval {name}, {len(robot)} room(s): questions the robot's voice overlaps {both}/{len(all_robot)}: "
           f"recognised {robot_right} with the robot speaking, {clean_right} without "
           f"({100 * figures['double_talk_ratio']:.0f} %), directions within 15° {directions}/{both}; all questions: "
           f"recognised {figures['recognised_robot']} (silent robot {figures['recognised_silent']}), directions "
@@ -143,8 +175,10 @@ def eval_part(array: str, runs: int, seed: int, work: Path, port: int, options: 
     return figures
 
 
-def talk_part(array: str, seconds: float, seed: int, work: Path, port: int, options: list[str]) -> dict:
-    """The robot talking alone for ``seconds``: fused results through the pipeline, robot-tagged or not."""
+def talk_part(array: str, seconds: float, seed: int, work: Path, port: int, options: list[str],
+              variants: dict[str, dict[str, str]]) -> dict[str, dict]:
+    """The robot talking alone for ``seconds``: fused results through the pipeline, robot-tagged or not, once
+    per variant (its environment added to the pipeline's)."""
     import soundfile
 
     from bench.aec import flite, questions_and_answers
@@ -181,16 +215,27 @@ def talk_part(array: str, seconds: float, seed: int, work: Path, port: int, opti
     signals, _ = render(scene)
     audio = work / "scene.flac"
     soundfile.write(str(audio), np.round(signals * 32767).astype(np.int16), FS)
+    robot_speech_s = float(np.sum(np.abs(track) > 0) / FS)
+    return {variant: talk_run(array, seconds, audio, reference, robot_speech_s,
+                              work / (variant.strip("_").replace("_", "-") or "default"), port, options, env, variant)
+            for variant, env in variants.items()}
+
+
+def talk_run(array: str, seconds: float, audio: Path, reference: Path, robot_speech_s: float, run_dir: Path,
+             port: int, options: list[str], env: dict[str, str], variant: str) -> dict:
+    from esiaf.tools import evaluation
+    run_dir.mkdir(parents=True, exist_ok=True)
     fused, wall_s = evaluation.run_pipeline(audio, array, [*options, "--playback", str(reference), "--include-robot"],
-                                            work, port, "talk")
+                                            run_dir, port, "talk", env=env)
     robot = [f for f in fused if f.get("source") == "robot"]
     user = [f for f in fused if f.get("source") != "robot"]
-    (work / "fused.json").write_text(json.dumps(fused, indent=1) + "\n")
-    figures = {"talk_s": seconds, "robot_speech_s": float(np.sum(np.abs(track) > 0) / FS),
+    (run_dir / "fused.json").write_text(json.dumps(fused, indent=1) + "\n")
+    figures = {"talk_s": seconds, "robot_speech_s": robot_speech_s,
                "user_utterances": len(user), "robot_utterances": len(robot), "wall_s": wall_s,
                "user_texts": [((f["anchor"].get("speech") or {}).get("hypotheses") or [{}])[0].get("text", "")
                               for f in user]}
-    print(f"talk {array}: {seconds:.0f} s of robot talk: {len(user)} fused user utterance(s) "
+    name = f"{array} {variant.strip('_')}" if variant else array
+    print(f"talk {name}: {seconds:.0f} s of robot talk: {len(user)} fused user utterance(s) "
           f"{figures['user_texts']}, {len(robot)} tagged robot; {wall_s:.0f} s", flush=True)
     return figures
 
@@ -214,7 +259,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--slow-start", "--fast-start", action="store_true", dest="slow_start",
                         help="also run the canceller as it started before the fast start became its default "
                              "(bench/aec.py's SLOW_START), side by side")
+    parser.add_argument("--gate-before", action="store_true",
+                        help="also run the eval's robot half and the talk with the delay tracker's gate before "
+                             "2026-11-28 (aec delay_outlier_ms 20), side by side")
     args = parser.parse_args(argv)
+    variants = {"": {}, **({"_gate_before": GATE_BEFORE} if args.gate_before else {})}
     from esiaf.tools.evaluation import DEFAULT_PIPELINE
     pipeline = options if "--without" in options else DEFAULT_PIPELINE + options
     skip = set(filter(None, args.skip.split(",")))
@@ -227,9 +276,10 @@ def main(argv: list[str] | None = None) -> int:
         report["aec"] = canceller_part(args.array, conditions, args.aec_seconds, args.seed, args.backend,
                                        args.slow_start)
     if "eval" not in skip:
-        report["eval"] = eval_part(args.array, args.runs, args.seed, work / "eval", args.port, pipeline)
+        report["eval"] = eval_part(args.array, args.runs, args.seed, work / "eval", args.port, pipeline, variants)
     if "talk" not in skip:
-        report["talk"] = talk_part(args.array, args.talk_s, args.seed, work / "talk", args.port + 1, pipeline)
+        report["talk"] = talk_part(args.array, args.talk_s, args.seed, work / "talk", args.port + 1, pipeline,
+                                   variants)
     print(f"\n{'target':<62} {'measured':<40} goal")
     lines: list[tuple[str, str, str]] = []
     values: dict[str, float] = {}
@@ -244,19 +294,19 @@ def main(argv: list[str] | None = None) -> int:
         for name in ("erle_db", "erle_median_db", "erle_converged_db", "erle_restart_db", "cpu_pct"):
             values[f"{key}_{name}"] = row[name]
         values[f"{key}_recognised"], values[f"{key}_recognised_clean"] = row["recognised"], row["recognised_clean"]
-    if "eval" in report:
-        e = report["eval"]
-        lines.append(("questions recognised while the robot speaks / without it",
+    for variant, e in report.get("eval", {}).items():
+        label = f" ({variant.strip('_').replace('_', ' ')})" if variant else ""
+        lines.append((f"questions recognised while the robot speaks / without it{label}",
                       f"{e['overlapped_recognised_robot']}/{e['overlapped_recognised_silent']} "
                       f"({100 * e['double_talk_ratio']:.0f} %) of {e['overlapped']}", ">= 80 %"))
-        lines.append(("person's direction within 15° while the robot speaks",
+        lines.append((f"person's direction within 15° while the robot speaks{label}",
                       f"{100 * e['overlapped_directions_within_15']:.0f} % of {e['overlapped']}", ">= 85 %"))
-        values.update({f"eval_{k}": v for k, v in e.items()})
-    if "talk" in report:
-        t = report["talk"]
-        lines.append((f"fused user utterances of the robot's own speech, {t['talk_s']:.0f} s of talk",
+        values.update({f"eval_{k}{variant}": v for k, v in e.items()})
+    for variant, t in report.get("talk", {}).items():
+        label = f" ({variant.strip('_').replace('_', ' ')})" if variant else ""
+        lines.append((f"fused user utterances of the robot's own speech, {t['talk_s']:.0f} s of talk{label}",
                       f"{t['user_utterances']} ({t['robot_utterances']} tagged robot)", "0"))
-        values.update({f"talk_{k}": v for k, v in t.items() if k != "user_texts"})
+        values.update({f"talk_{k}{variant}": v for k, v in t.items() if k != "user_texts"})
     for name, measured, goal in lines:
         print(f"{name:<62} {measured:<40} {goal}")
     print(f"elapsed_s={time.monotonic() - started:.0f}")

@@ -7,7 +7,8 @@ the signals themselves:
 - **the delay** between the stamps and the echo at the microphones (the sound card's output buffer,
   the converter, the air): 0 to ``max_delay_ms``. Each ``estimate_every_s`` (0.5 s) of microphone audio
   in which the reference is loud, GCC-PHAT between the reference and the first microphone finds the lag
-  of the direct path (sub-sample, by a parabola through the peak); a weak peak is not taken;
+  of the direct path (sub-sample, by a parabola through the peak); a weak peak is not taken, nor one more
+  than ``outlier_ms`` off the line alone (it waits for a second that agrees: the path changed);
 - **the drift** between the player's clock and the grabber's (two sound cards: up to a few hundred
   ppm): the delay estimates of the last ``fit_s`` seconds are fitted with a line (once 3 of them span
   ``fit_min_s``; before, their median), whose slope is the drift, so the delay used at each instant
@@ -20,18 +21,28 @@ the echo is constant and short, whatever the clocks did.
 """
 from __future__ import annotations
 
+import logging
 import math
 from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
+log = logging.getLogger(__name__)
 NS = 1_000_000_000
 SINC_HALF_TAPS = 8  # interpolation kernel: 16 taps, Blackman-windowed
 MIN_PEAK_RATIO = 4.0  # a GCC-PHAT peak this many times the median of the lags around it counts
 LOUD_RMS = 1e-3  # a tenth of the window in which the reference is louder than this counts as played
-JUMP_MS = 20.0  # an estimate this far off the fitted line waits for a second one that agrees with it...
-AGREE_MS = 2.0  # ... within this
+# an estimate this far off the fitted line is not taken into it alone: it waits for a second one that agrees with it
+# within AGREE_MS (the path changed), and is dropped while the correlation still peaks where the line says. The
+# estimates of one path scatter by less than 1 sample (0.06 ms), drift included; a peak on the robot's own pitch
+# period lands 5-15 ms off, and taken into the fit it moves the line by a few samples twice (when it comes in,
+# when it falls out of the fit a minute later), each time losing the echo for a second (OUTLIER_MS_BEFORE: the
+# gate before, a jump only)
+OUTLIER_MS = 0.5
+OUTLIER_MS_BEFORE = 20.0
+JUMP_MS = 20.0  # a second estimate this far off the first (taken alone) replaces it
+AGREE_MS = 2.0  # two estimates off the line that agree within this: the path changed
 EARLY_MS = 20.0  # the echo may come this much before the stamps say (a player's clock fast: drift)
 MAX_DRIFT = 500e-6  # a fitted slope beyond this is not a clock: the line falls back to the last delay
 FIT_MIN_S = 3.0  # a line (a drift) is fitted once 3 estimates span this long; before, their median delay
@@ -156,7 +167,7 @@ class DelayTracker:
 
     def __init__(self, sample_rate_hz: int, max_delay_ms: float = 400.0, window_s: float = 0.5,
                  estimate_every_s: float = 0.5, fit_s: float = 60.0, min_delay_ms: float = -EARLY_MS,
-                 fit_min_s: float = FIT_MIN_S):
+                 fit_min_s: float = FIT_MIN_S, outlier_ms: float = OUTLIER_MS):
         self.rate = sample_rate_hz
         self.max_lag = int(max_delay_ms * sample_rate_hz / 1000)
         self.min_lag = int(-min_delay_ms * sample_rate_hz / 1000)  # how early the echo may come (drift)
@@ -164,6 +175,7 @@ class DelayTracker:
         self.every = int(estimate_every_s * sample_rate_hz)
         self.fit_s = fit_s
         self.fit_min_s = fit_min_s
+        self.outlier = outlier_ms * sample_rate_hz / 1000  # samples
         self.estimates: deque[DelayEstimate] = deque()
         self.rejected = 0
         self._since = 0
@@ -203,11 +215,13 @@ class DelayTracker:
         if strength < MIN_PEAK_RATIO:
             self.rejected += 1
             return None
-        if expected is not None and abs(lag - expected) > JUMP_MS * self.rate / 1000 and still >= MIN_PEAK_RATIO:
-            # a stronger peak elsewhere (the robot's speech alike to itself a moment before), but the echo is
-            # still where the line says: the path has not changed
+        if expected is not None and abs(lag - expected) > self.outlier and still >= MIN_PEAK_RATIO:
+            # a stronger peak elsewhere (the robot's speech alike to itself a moment before, or its pitch
+            # period), but the echo is still where the line says: the path has not changed
             self.rejected += 1
             self._jump = None
+            log.debug("delay estimate at %.2f s: %.2f samples, %.2f off the line, the echo still on it: dropped",
+                      end_s, lag, lag - expected)
             return None
         estimate = DelayEstimate(end_s, lag, strength)
         self._add(estimate)
@@ -226,14 +240,18 @@ class DelayTracker:
             # echo, and its peak may be elsewhere: the second, far off it, replaces it
             self.estimates.clear()
         elif self.estimates and abs(estimate.delay_samples - float(self.delay_at(np.array(estimate.at_s)))) > \
-                JUMP_MS * self.rate / 1000:
+                self.outlier:
             # far off the line: an outlier, or the path changed; the second such estimate in a row that
             # agrees with the first starts the fit again
             candidate, self._jump = self._jump, estimate
             if candidate is None or abs(candidate.delay_samples - estimate.delay_samples) > \
                     AGREE_MS * self.rate / 1000:
                 self.rejected += 1
+                log.debug("delay estimate at %.2f s: %.2f samples, off the line: held", estimate.at_s,
+                          estimate.delay_samples)
                 return
+            log.debug("delay estimates at %.2f and %.2f s agree off the line (%.2f samples): the fit starts again",
+                      candidate.at_s, estimate.at_s, estimate.delay_samples)
             self.estimates.clear()
             self.estimates.append(candidate)
         self._jump = None

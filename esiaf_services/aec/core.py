@@ -12,7 +12,7 @@ from collections import deque
 
 import numpy as np
 
-from esiaf_services.aec.align import FIT_MIN_S, NS, DelayTracker, ReferenceTrack
+from esiaf_services.aec.align import FIT_MIN_S, NS, OUTLIER_MS, DelayTracker, ReferenceTrack
 from esiaf_services.aec.backends import Canceller
 
 FULL_SCALE = 32768.0
@@ -22,11 +22,13 @@ RETRAIN_MS = 1.0  # the line moved the delay this much between two chunks: the f
 class StreamCanceller:
     def __init__(self, canceller: Canceller, sample_rate_hz: int, *, max_delay_ms: float = 400.0,
                  lead_ms: float = 4.0, estimate_delay: bool = True, max_held_s: float = 600.0,
-                 retrain_s: float = 1.0, retrain_passes: int = 0, fit_min_s: float = FIT_MIN_S):
+                 retrain_s: float = 1.0, retrain_passes: int = 0, fit_min_s: float = FIT_MIN_S,
+                 outlier_ms: float = OUTLIER_MS):
         self.canceller = canceller
         self.rate = sample_rate_hz
         self.track = ReferenceTrack(sample_rate_hz, max_held_s=max_held_s)
-        self.tracker = DelayTracker(sample_rate_hz, max_delay_ms=max_delay_ms, fit_min_s=fit_min_s)
+        self.tracker = DelayTracker(sample_rate_hz, max_delay_ms=max_delay_ms, fit_min_s=fit_min_s,
+                                    outlier_ms=outlier_ms)
         self.estimate_delay = estimate_delay
         self.lead = lead_ms * sample_rate_hz / 1000  # the reference reaches the canceller this much before its echo
         self._mic_history = np.zeros(0)  # the first microphone's last window, for the delay tracker

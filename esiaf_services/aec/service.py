@@ -68,6 +68,9 @@ class AecSettings(ComponentSettings):
     drift_fit_min_s: float = Field(default=0.5, ge=0.0, le=60.0)
     # on a new alignment, adapt this often over the last second again (2: the fast start; 0: off, before it)
     retrain_passes: int = Field(default=2, ge=0, le=10)
+    # a delay estimate this far off the fitted line waits for a second that agrees before the line moves
+    # (0.5: README, "An estimate off the line"; 20: before, where one such estimate lost the echo twice)
+    delay_outlier_ms: float = Field(default=0.5, ge=0.05, le=20.0)
 
 
 @dataclass
@@ -137,7 +140,8 @@ class EchoCanceller(Component):
         except BackendError as exc:
             raise SetupError(str(exc)) from None
         return StreamCanceller(backend, self.settings.sample_rate_hz, max_delay_ms=self.settings.max_delay_ms,
-                               fit_min_s=self.settings.drift_fit_min_s, retrain_passes=self.settings.retrain_passes)
+                               fit_min_s=self.settings.drift_fit_min_s, retrain_passes=self.settings.retrain_passes,
+                               outlier_ms=self.settings.delay_outlier_ms)
 
     # -- the reference ------------------------------------------------------------------
     def on_audio(self, audio: Audio) -> None:

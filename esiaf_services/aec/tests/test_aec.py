@@ -128,6 +128,36 @@ def test_a_fast_start_cancels_more_of_the_first_seconds_at_300_ms_and_100_ppm():
 FOUR = AudioFormat(RATE, "int16", channels=4)
 MONO = AudioFormat(RATE, "int16")
 
+def test_a_delay_estimate_off_the_echo_path_does_not_move_the_line():
+    """For 0.6 s the microphones also hear the robot 12 ms later and louder than its echo (what made the
+    delay tracker's peak land 12.75 ms off in bench/robot_speaks.py's talk: the robot's speech alike to
+    itself), while its echo stays where it was. That estimate is not the echo path: the line keeps its
+    delay and the canceller its filter. Taken into the line (``outlier_ms`` 20, the gate before), it moved
+    the delay the canceller reads the reference at, and the echo was lost for seconds after."""
+    reference = speech(18.0)
+    echo = echo_path(reference, 2, delay_ms=100, ppm=0)
+    shift = 12 * RATE // 1000
+    alike = np.zeros_like(echo)
+    alike[10 * RATE + shift:int(10.6 * RATE)] = 1.5 * echo[10 * RATE:int(10.6 * RATE) - shift]
+    mics = to_pcm(echo + alike)
+    after = slice(12 * RATE, None)
+    figures = {}
+    for outlier_ms in (0.5, 20.0):
+        stream = StreamCanceller(BACKENDS["speex"](2, RATE), RATE, fit_min_s=0.5, retrain_passes=2,
+                                 outlier_ms=outlier_ms)
+        out = []
+        for first in range(0, len(mics), CHUNK):
+            stream.add_reference(first * NS // RATE, reference[first:first + CHUNK])
+            out.append(stream.process(first * NS // RATE, mics[first:first + CHUNK]))
+        out.append(stream.flush())
+        figures[outlier_ms] = erle_db(mics[after], np.concatenate(out)[after])
+        if outlier_ms == 0.5:
+            assert abs(stream.delay_ns(17 * NS) / 1e6 - 100) < 0.1, stream.delay_ns(17 * NS) / 1e6
+            assert stream.retrained == 1  # at the first estimate only
+    assert figures[0.5] >= 25, figures
+    assert figures[20.0] <= figures[0.5] - 10, figures  # the failure this guards against, reproduced
+
+
 
 class Robot(Component):
     """The grabber's 4-channel microphones and, optionally, the player's reference, in 50 ms chunks."""
