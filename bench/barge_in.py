@@ -21,7 +21,8 @@ of 0.5 s or more: no barge-in by design; neither found nor missed), ``robot_s`` 
 playing, ``spurious_per_robot_min`` the spurious events per minute of it. ``--no-person`` leaves the
 person out (no questions: every barge-in is a false one, the robot's residual and babble), ``--no-babble``
 the babble; ``--rise-to 0`` runs the vad with one ``speech_start`` per stretch of speech (as before
-``silero.rise_to``).
+``silero.rise_to``), ``--jump-to 0`` with a ``speech_start`` only after ``speech_start_ms`` of speech (as
+before ``silero.jump_to``).
 
 Per question: the onset is the first 10 ms frame of its clip whose level is within 30 dB of the clip's
 peak (on the stream's timeline); ``latency_ms`` is the event's arrival (this host's clock, the one the
@@ -32,7 +33,7 @@ before the question, is spurious, not the question's).
 
     nice -n 10 python -m bench.barge_in [--questions 8] [--spacing 4.0] [--speech-start-ms 150] [--json out.json]
     nice -n 10 python -m bench.barge_in --room respeaker4 [--seconds 60] [--delay 120] [--ppm 100] [--seed 1]
-        [--no-echo] [--no-person] [--no-babble] [--rise-to 0]
+        [--no-echo] [--no-person] [--no-babble] [--rise-to 0] [--jump-to 0]
 
 Ends with ``name=value`` lines: ``barge_in_p50_ms``, ``barge_in_p95_ms``, ``missed``, ``spurious``,
 ``detected_p50_ms``, ``detected_p95_ms`` (and with ``--room``: ``robot_s``, ``spurious_per_robot_min``).
@@ -113,7 +114,7 @@ def room_scene(folder: Path, array: str, seconds: float, delay_ms: float, ppm: f
 
 
 def run(questions: int, spacing_s: float, speech_start_ms: float, room: dict | None = None,
-        port: int = 0, rise_to: float | None = None) -> dict:
+        port: int = 0, rise_to: float | None = None, jump_to: float | None = None) -> dict:
     """One run: the idealised microphone file, or (``room``: room_scene's keyword arguments) the canceller's."""
     with tempfile.TemporaryDirectory(prefix="esiaf-barge-in-") as folder:
         work = Path(folder)
@@ -132,7 +133,8 @@ def run(questions: int, spacing_s: float, speech_start_ms: float, room: dict | N
             url = orchestrator.url
             player = Player(Player.Settings(name="player", orchestrator_url=url, output=str(work / "out.raw"),
                                             stream_id="bench", input=str(robot), follow_stream=True))
-            silero = {} if rise_to is None else {"rise_to": rise_to}
+            silero = {**({} if rise_to is None else {"rise_to": rise_to}),
+                      **({} if jump_to is None else {"jump_to": jump_to})}
             vad = Vad(VadSettings(name="vad", orchestrator_url=url, speech_start_ms=speech_start_ms, silero=silero))
             components += [player, vad]
             for component in components:
@@ -179,7 +181,7 @@ def run(questions: int, spacing_s: float, speech_start_ms: float, room: dict | N
     return {"mode": "idealised" if room is None else "room", "room": room, "questions": len(onsets),
             "onsets_s": onsets, "events": len(events), "quiet": quiet,
             "events_at_s": [(m["capture_ns"] - start_ns) / 1e9 for _, m in events], "missed": missed,
-            "spurious": len(spurious_s), "rise_to": rise_to,
+            "spurious": len(spurious_s), "rise_to": rise_to, "jump_to": jump_to,
             "spurious_at_s": spurious_s, "speech_start_ms": speech_start_ms, "latencies_ms": latencies,
             "detected_ms": detected, "per_question_ms": per_question,
             "barge_in_p50_ms": float(np.percentile(latencies, 50)) if latencies else None,
@@ -198,6 +200,8 @@ def main() -> None:
                         help="the vad's speech_start_ms (250: at the segment's opening, min_speech_ms)")
     parser.add_argument("--rise-to", type=float, help="the vad's silero.rise_to (0: one speech_start per "
                         "stretch of speech, as before it; default: the vad's)")
+    parser.add_argument("--jump-to", type=float, help="the vad's silero.jump_to (0: no speech_start before "
+                        "speech_start_ms of speech, as before it; default: the vad's)")
     parser.add_argument("--room", metavar="ARRAY", help="play what the speex canceller leaves of bench/aec.py's "
                         "scene on this array (respeaker4, pepper4) instead of the idealised file")
     parser.add_argument("--seconds", type=float, default=60.0, help="--room: the scene's length")
@@ -215,7 +219,8 @@ def main() -> None:
     room = None if args.room is None else {"array": args.room, "seconds": args.seconds, "delay_ms": args.delay,
                                            "ppm": args.ppm, "seed": args.seed, "echo": not args.no_echo,
                                            "person": not args.no_person, "babble": not args.no_babble}
-    figures = run(args.questions, args.spacing, args.speech_start_ms, room, args.port, args.rise_to)
+    figures = run(args.questions, args.spacing, args.speech_start_ms, room, args.port, args.rise_to,
+                  args.jump_to)
     if args.json:
         args.json.write_text(json.dumps(figures, indent=1))
     print("latencies_ms=" + ",".join(f"{v:.0f}" for v in figures["latencies_ms"]))

@@ -19,7 +19,9 @@ window above ``silero.threshold``; less than ``silero.min_speech_ms``, which ope
 from the speech's start to the capture time the vad decided), once per stretch of speech, and again within
 it where Silero's probability rises sharply from a plateau (``silero.rise_to``, esiaf/speech/rise.py: a
 person who starts over babble or residual echo that already opened the stretch; at most one per
-``silero.rise_every_ms``): the orchestrator's barge-in (a person speaking while the robot plays) waits
+``silero.rise_every_ms``); and at once, without waiting for ``speech_start_ms``, where it jumps from
+quiet (``silero.jump_to``: the same rule from a quieter plateau, a person's onset; the stretch it opens is not
+announced again): the orchestrator's barge-in (a person speaking while the robot plays) waits
 neither for the utterance's end nor for its segment to open. Speech shorter than
 ``silero.min_speech_ms`` is announced too and never segmented (a cough): a barge-in on it is the price
 of the shorter wait.
@@ -71,6 +73,11 @@ class SileroSettings(StrictModel):
     rise_by: float = Field(default=0.25, gt=0, le=1)  # ... and this much below the window
     rise_plateau_ms: float = Field(default=256.0, ge=32, le=5000)  # the plateau (before the rise's 64 ms)
     rise_every_ms: float = Field(default=1000.0, ge=0, le=60000)  # at most one per this after the last speech_start
+    # a speech_start at once, without waiting for speech_start_ms, on a jump from quiet (a person's onset; the
+    # same rule as the rise's, the same plateau and rate limit): a window this speech-like (0: no such start) ...
+    jump_to: float = Field(default=0.5, ge=0, le=1)
+    jump_from: float = Field(default=0.25, ge=0, le=1)  # ... after a plateau whose mean is at most this
+    jump_by: float = Field(default=0.25, gt=0, le=1)  # ... and this much below the window
 
 
 class EnergySettings(StrictModel):
@@ -97,7 +104,7 @@ class VadSettings(BackendSettings):
     pre_roll_ms: float = 250.0
     # the flat names of the backends' settings, before they were nested
     renamed: ClassVar[dict[str, str]] = {
-        **{name: f"silero.{name}" for name in SileroSettings.model_fields if not name.startswith("rise_")},
+        **{name: f"silero.{name}" for name in SileroSettings.model_fields if not name.startswith(("rise_", "jump_"))},
         **{name: f"energy.{name}" for name in EnergySettings.model_fields}}
 
 
@@ -112,6 +119,7 @@ class VadStream:
     silence_ns: int = 0  # ... while it waits: how long it has been silent
     announced: bool = False  # the speech going on was announced (speech_start)
     rise: Rise | None = None  # silero with rise_to: a new talker's sharp rise within an announced stretch
+    jump: Rise | None = None  # silero with jump_to: a jump from quiet, announced at once
     announced_ns: int = 0  # when the speech going on was last announced
 
 
@@ -128,6 +136,7 @@ class Vad(Component):
     def __init__(self, settings: VadSettings):
         super().__init__(settings)
         self.rise_params: RiseParams | None = None
+        self.jump_params: RiseParams | None = None
         if settings.backend == "silero" and settings.sample_rate_hz not in RATES_HZ:
             raise SetupError(f"the silero backend takes 8000 or 16000 Hz, not sample_rate_hz "
                              f"{settings.sample_rate_hz}")
@@ -143,6 +152,8 @@ class Vad(Component):
                                                 silero.cut_search_ms, silero.onset_pad_ms)
                 self.rise_params = RiseParams(silero.rise_to, silero.rise_from, silero.rise_by,
                                               silero.rise_plateau_ms) if silero.rise_to else None
+                self.jump_params = RiseParams(silero.jump_to, silero.jump_from, silero.jump_by,
+                                              silero.rise_plateau_ms) if silero.jump_to else None
         except ValueError as exc:
             raise SetupError(f"bad VAD settings: {exc}") from None
         self.add_input(settings.input_topic, fmt)
@@ -167,13 +178,14 @@ class Vad(Component):
         if self.model is None:
             return VadStream(Segmenter(self.params), ChunkCutter(), None)
         rise = Rise(self.rise_params) if self.rise_params is not None else None
+        jump = Rise(self.jump_params) if self.jump_params is not None else None
         if self.settings.silero.windows:  # cuts the payloads, which arrive in the declared input format
             frame_bytes = self.inputs[self.settings.input_topic].bytes_per_frame
             return VadStream(ProbabilitySegmenter(self.params),
                              WindowCutter(self.model.stream(self.settings.sample_rate_hz), frame_bytes), None,
-                             rise=rise)
+                             rise=rise, jump=jump)
         return VadStream(ProbabilitySegmenter(self.params), ChunkCutter(),
-                         self.model.stream(self.settings.sample_rate_hz), rise=rise)
+                         self.model.stream(self.settings.sample_rate_hz), rise=rise, jump=jump)
 
     def on_audio(self, audio: Audio) -> None:
         stream = self.segmenters.get(audio.stream_id)
@@ -221,18 +233,26 @@ class Vad(Component):
 
     def _announce(self, stream: VadStream, stream_id: str, start_ns: int, now_ns: int, score: float) -> None:
         """A speech_start result once speech has gone on for speech_start_ms (or opened a segment), once
-        per stretch of speech; and again within it on a sharp rise of the probability (a new talker), at
-        most once per rise_every_ms."""
+        per stretch of speech; at once on a jump of the probability from quiet (a person's onset); and again
+        within a stretch on a sharp rise of the probability (a new talker). A jump or rise comes at most once
+        per rise_every_ms after the last speech_start; a jump announces the stretch it starts (the segmenter
+        hears speech there: ``jump_to`` below ``threshold`` jumps only where a window reaches ``threshold``)."""
         rise_onset_ns = stream.rise.window(start_ns, now_ns, score) if stream.rise is not None else None
+        jump_onset_ns = stream.jump.window(start_ns, now_ns, score) if stream.jump is not None else None
         heard = stream.segmenter.speech_heard
-        if heard is None:
+        rested = now_ns - stream.announced_ns >= self.settings.silero.rise_every_ms * 1e6
+        if jump_onset_ns is not None and heard is not None and rested:  # a jump from quiet: at once
+            stream.announced = True
+            onset_ns = jump_onset_ns
+            log.info("stream_id=%s speech_start on a jump from quiet: onset_ns=%d probability=%.2f",
+                     stream_id, onset_ns, score)
+        elif heard is None:
             stream.announced = False
             return
-        onset_ns, length_ns = heard
-        if not stream.announced and (length_ns >= self.settings.speech_start_ms * 1e6 or stream.segmenter.active):
+        elif not stream.announced and (heard[1] >= self.settings.speech_start_ms * 1e6 or stream.segmenter.active):
             stream.announced = True
-        elif not (stream.announced and rise_onset_ns is not None
-                  and now_ns - stream.announced_ns >= self.settings.silero.rise_every_ms * 1e6):
+            onset_ns = heard[0]
+        elif not (stream.announced and rise_onset_ns is not None and rested):
             return
         else:  # a new talker within the stretch announced
             onset_ns = rise_onset_ns

@@ -7,6 +7,7 @@ from typing import Any
 import soundfile
 
 from esiaf import Audio, AudioFormat
+from esiaf.results import SPEECH_START
 from esiaf.tools.testing import REPO
 from esiaf_services.vad.service import Vad, VadSettings
 
@@ -17,11 +18,12 @@ CHUNK = 800  # 50 ms
 
 
 class Recording(Vad):
-    """The vad service with the spans of its VAD results noted instead of anything sent."""
+    """The vad service with the spans of its VAD results and speech starts noted instead of anything sent."""
 
     def __init__(self, settings: VadSettings):
         super().__init__(settings)
         self.found: list[tuple[int, int]] = []
+        self.starts: list[tuple[int, int]] = []
 
     def publish(self, *args: Any, **kwargs: Any) -> int:
         return 1
@@ -29,12 +31,19 @@ class Recording(Vad):
     def emit(self, kind: str, span: tuple[int, int], *, stream_id: str | None = None, **payload: Any) -> Any:
         if kind == "vad":
             self.found.append(span)
+        elif kind == SPEECH_START:
+            self.starts.append(span)
 
 
 def segments(first_s: float, last_s: float, first_sequence: int) -> list[tuple[int, int]]:
     """The speech spans a new vad finds from ``first_s`` of the example on, its first chunk numbered
     ``first_sequence`` by the grabber."""
-    vad = Recording(VadSettings())
+    return played(first_s, last_s, first_sequence).found
+
+
+def played(first_s: float, last_s: float, first_sequence: int, **settings: Any) -> Recording:
+    """A new vad (``settings``) that heard the example from ``first_s`` to ``last_s``."""
+    vad = Recording(VadSettings(**settings))
     vad.setup()
     samples, rate = soundfile.read(str(EXAMPLE), dtype="int16")
     assert rate == RATE
@@ -43,7 +52,7 @@ def segments(first_s: float, last_s: float, first_sequence: int) -> list[tuple[i
         chunk = samples[start:start + CHUNK]
         vad.on_audio(Audio("grabber/audio", "s", "grabber", first_sequence + n, start * NS // RATE,
                            (start + len(chunk)) * NS // RATE, fmt, chunk.tobytes()))
-    return vad.found
+    return vad
 
 
 def test_a_vad_joining_mid_utterance_waits_for_silence_and_one_there_from_the_start_does_not():

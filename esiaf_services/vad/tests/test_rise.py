@@ -33,7 +33,8 @@ def test_no_rise_on_a_slow_ramp_a_high_plateau_or_before_a_plateau_was_heard():
 
 
 @pytest.mark.parametrize("field, value", [("rise_to", 1.5), ("rise_from", -0.1), ("rise_by", 0),
-                                          ("rise_plateau_ms", 10), ("rise_every_ms", -1)])
+                                          ("rise_plateau_ms", 10), ("rise_every_ms", -1),
+                                          ("jump_to", 1.5), ("jump_from", 2), ("jump_by", 0)])
 def test_the_rise_settings_are_bounded(field, value):
     with pytest.raises(ValueError, match=field):
         VadSettings(silero={field: value})

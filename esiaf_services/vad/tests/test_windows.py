@@ -94,9 +94,13 @@ def test_what_is_forwarded_is_the_streams_audio_contiguous_with_one_end_per_segm
     assert ended == len(vad.spans)
     assert vad.sent[-1][3]["end_of_stream"]  # after the last segment: consumers hear that the stream ended
     # each segment was announced before any of its audio was forwarded, its start within the onset padding
-    # of the segment's: speech_start_ms (150 ms) of speech heard, before the segment opens at min_speech_ms
+    # of the segment's: on a jump from quiet or after speech_start_ms (150 ms) of speech, before the segment
+    # opens at min_speech_ms. A jump may announce a burst too short to become a segment too (here one, at
+    # 10.3 s: the price of not waiting for speech_start_ms), never a second start within a segment
     pad_ns = int(VadSettings().silero.onset_pad_ms * 1e6)
-    for (start, decided, sent), (segment_start, segment_end), first in zip(vad.starts, vad.spans, opening(vad),
+    starts = [s for s in vad.starts if any(a <= s[0] <= b for a, b in vad.spans)]
+    assert len(vad.starts) - len(starts) <= 1, (vad.starts, vad.spans)
+    for (start, decided, sent), (segment_start, segment_end), first in zip(starts, vad.spans, opening(vad),
                                                                           strict=True):
         assert segment_start <= start <= segment_start + pad_ns and start < decided <= segment_end
         assert sent <= vad.sent.index(first)
