@@ -165,6 +165,15 @@ def expand_jsgf(text: str) -> list[str]:
     """Every sentence of a finite JSGF grammar's public rules: alternatives ``|``, sequences,
     groups ``( )``, optionals ``[ ]`` and rule references ``<name>``. Weights, tags and
     repetition (``*``, ``+``, which make it infinite) are refused."""
+    rules, public = jsgf_rules(text)
+    sentences: list[str] = []
+    for name in public:
+        sentences.extend(" ".join(words) for words in _expand_rule(name, rules, ()))
+    return list(dict.fromkeys(sentences))
+
+
+def jsgf_rules(text: str) -> tuple[dict[str, str], list[str]]:
+    """A JSGF grammar's rules (name -> body, comments left out) and its public rules' names."""
     text = re.sub(r"/\*.*?\*/", " ", text, flags=re.S)
     text = re.sub(r"//[^\n]*", " ", text)
     rules: dict[str, str] = {}
@@ -175,10 +184,12 @@ def expand_jsgf(text: str) -> list[str]:
             public.append(match.group(2))
     if not public:
         raise GrammarError("the grammar has no public rule")
-    sentences: list[str] = []
-    for name in public:
-        sentences.extend(" ".join(words) for words in _expand_rule(name, rules, ()))
-    return list(dict.fromkeys(sentences))
+    return rules, public
+
+
+def jsgf_tokens(body: str) -> list[str]:
+    """A rule body's tokens: rule references, ``( ) [ ] | * +``, tags, weights and words."""
+    return re.findall(r"<[\w.$-]+>|[()\[\]|*+]|\{[^}]*\}|/[^/]*/|[^\s()\[\]|<>*+{}/]+", body)
 
 
 def _expand_rule(name: str, rules: dict[str, str], seen: tuple[str, ...]) -> list[list[str]]:
@@ -186,7 +197,7 @@ def _expand_rule(name: str, rules: dict[str, str], seen: tuple[str, ...]) -> lis
         raise GrammarError(f"rule <{name}> refers to itself: its sentences are not finite")
     if name not in rules:
         raise GrammarError(f"rule <{name}> is not defined")
-    tokens = re.findall(r"<[\w.$-]+>|[()\[\]|*+]|\{[^}]*\}|/[^/]*/|[^\s()\[\]|<>*+{}/]+", rules[name])
+    tokens = jsgf_tokens(rules[name])
     expanded, end = _alternatives(tokens, 0, rules, (*seen, name))
     if end != len(tokens):
         raise GrammarError(f"rule <{name}>: unexpected {tokens[end]!r}")

@@ -19,14 +19,16 @@ from esiaf.receiving import broken_off
 from esiaf.settings import StrictModel
 from esiaf_services.asr.closed_set import MIN_PER_TOKEN, ClosedSetDecoder, ClosedSetResult
 from esiaf_services.asr.lexicon import DictionaryFormatError
-from esiaf_services.asr.matching import GrammarError, Match, SentenceMatcher, chosen_first
+from esiaf_services.asr.matching import GrammarError, Match, SentenceMatcher, chosen_first, expand_jsgf
 from esiaf_services.asr.recognizer import (
     DEFAULT_EXTRA_DICT,
     MIN_CONFIDENCE,
     UNRECOGNISED,
+    Hypothesis,
     PocketsphinxRecognizer,
     RecognizerError,
 )
+from esiaf_services.asr.snapping import MAX_DISTANCE, GrammarSnapper
 from esiaf_services.asr.vocabulary import (
     MAX_BYTES,
     MAX_ENTRIES,
@@ -90,6 +92,10 @@ class WhisperSettings(StrictModel):
         "as soon as the segment closes. Every utterance is decoded up to its speech end plus this much, so "
         "the early decode and a decode at the close hear the same audio. 0: decode the whole segment once it "
         "closes (bench/partials.py, docs/benchmarks.md)"))
+    max_snap_distance: float = Field(default=MAX_DISTANCE, ge=0.0, le=1.0, description=(
+        "a grammar too large for a closed set (more than 10,000 sentences): the free transcript is snapped to "
+        "the grammar's nearest sentence (asr/snapping.py), taken when its edit cost per word is at most this "
+        "(0: only the transcript itself; 1: any), else out of set"))
 
 
 class AsrSettings(BackendSettings):
@@ -128,8 +134,10 @@ class AsrSettings(BackendSettings):
     second_opinion: Literal["", "whisper"] = Field(default="", description=(
         "with pocketsphinx and a grammar: where pocketsphinx says out of set (or hears no sentence), Whisper "
         "scores the grammar's sentences on the same audio (whisper.* settings, acoustic scoring) and its answer "
-        "is taken; '': none. Costs Whisper's model (~150 MB) and its decode on each rejected utterance "
-        "(bench/cascade.py, docs/benchmarks.md)"))
+        "is taken; a grammar of more than 10,000 sentences: Whisper transcribes (prompted with the vocabulary) "
+        "and the transcript is snapped to the grammar's nearest sentence (whisper.max_snap_distance); '': none. "
+        "Costs Whisper's model (~150 MB) and its decode on each rejected utterance (bench/cascade.py, "
+        "docs/benchmarks.md)"))
     partial_interval_ms: float | None = Field(default=None, gt=0, description=(
         "audio between two partial results; unset: 300 ms with pocketsphinx (its running search), 1000 ms "
         "with whisper (the utterance so far decoded again, beam 1)"))
@@ -145,6 +153,12 @@ class AsrSettings(BackendSettings):
         if vocabulary:
             read_vocabulary(vocabulary)  # its VocabularyError (a ValueError) says what is wrong
         return vocabulary
+
+    def unused_backend_settings(self) -> list[str]:
+        """As every backend's, less the ``whisper.*`` settings when Whisper gives the second opinion
+        (``second_opinion: whisper`` decodes with them)."""
+        unused = super().unused_backend_settings()
+        return [key for key in unused if not (self.second_opinion == "whisper" and key.startswith("whisper."))]
 
     def hypotheses(self) -> int:
         """``n_best``, or the backend's default."""
@@ -233,6 +247,10 @@ class Asr(Component):
         self.closed_set: ClosedSetDecoder | None = None  # whisper with a closed set, scored by the model
         # pocketsphinx's second opinion (second_opinion: whisper): the grammar's sentences scored by Whisper
         self.second_opinion: ClosedSetDecoder | None = None
+        # a grammar too large for a closed set: its search for the sentence nearest a transcript (snapping.py),
+        # with the whisper backend, or for pocketsphinx's second opinion (by ``snap_whisper``, free transcription)
+        self.snapper: GrammarSnapper | None = None
+        self.snap_whisper: WhisperRecognizer | None = None
         self.utterances = 0
         self.wants_partials = settings.wants_partials()
         self.vocabulary: Vocabulary | None = None  # pocketsphinx: the vocabulary's words and pronunciations
@@ -261,23 +279,36 @@ class Asr(Component):
             closed_set = s.sentences or (str(resolve_grammar(s.grammar)) if s.grammar and s.backend == "whisper"
                                          else "")
             if closed_set:
-                self.matcher = SentenceMatcher.from_file(Path(closed_set), s.match_threshold, s.char_threshold)
-                if self.whisper is not None and w.scoring == "acoustic":
-                    self.closed_set = self._acoustic_scoring(self.whisper.model, self.matcher)
-                elif self.whisper is not None and w.prompt_vocabulary:
-                    self.prompt = ", ".join(self.matcher.vocabulary()) + "."
+                self._closed_set(Path(closed_set))
             if self.whisper is not None and entries:
                 self._prompt_with(entries)
             if s.second_opinion:
-                self.second_opinion = self._second_opinion()
+                self._second_opinion(entries)
         except RecognizerError as exc:
             raise SetupError(str(exc)) from None
         except (OSError, GrammarError) as exc:
             raise SetupError(f"cannot read the allowed sentences {closed_set}: {exc}") from None
         self.info.update(backend=s.backend, second_opinion=s.second_opinion, grammar=s.grammar or "language model",
-                         scoring=w.scoring if self.closed_set is not None else "text",
+                         scoring="snap" if self.snapper is not None and self.whisper is not None else
+                         w.scoring if self.closed_set is not None else "text",
                          sentences=len(self.matcher.sentences) if self.matcher else 0,
                          vocabulary=len(entries))
+
+    def _closed_set(self, path: Path) -> None:
+        """The allowed sentences of ``path`` (``sentences``, or the whisper backend's ``grammar``): a
+        matcher and, with ``scoring: acoustic``, Whisper's scoring of them; a grammar too large to list:
+        Whisper's transcripts snapped to it (``snapper``)."""
+        s, w = self.settings, self.settings.whisper
+        if s.backend == "whisper" and not s.sentences and self._too_large(path):
+            self.snapper = GrammarSnapper.from_file(path)
+            log.info("grammar %s: more than a closed set holds; Whisper's transcripts are snapped to it "
+                     "(%d word nodes)", path, self.snapper.nodes)
+            return
+        self.matcher = SentenceMatcher.from_file(path, s.match_threshold, s.char_threshold)
+        if self.whisper is not None and w.scoring == "acoustic":
+            self.closed_set = self._acoustic_scoring(self.whisper.model, self.matcher)
+        elif self.whisper is not None and w.prompt_vocabulary:
+            self.prompt = ", ".join(self.matcher.vocabulary()) + "."
 
     def _prompt_with(self, entries: list[str]) -> None:
         """Whisper's prompt: the closed set's rare words (if it has them), then the vocabulary's entries,
@@ -300,8 +331,10 @@ class Asr(Component):
             vocabulary=self.vocabulary, vocabulary_weight=s.pocketsphinx.vocabulary_weight,
             phone_loop=self._rejects())
 
-    def _second_opinion(self) -> ClosedSetDecoder:
-        """Whisper's acoustic scoring over the grammar's sentences, for what pocketsphinx rejects."""
+    def _second_opinion(self, entries: list[str]) -> None:
+        """Whisper for what pocketsphinx rejects: its acoustic scoring over the grammar's sentences
+        (``second_opinion``), or, for a grammar too large to list, its transcript (prompted with the
+        vocabulary's ``entries``) snapped to the grammar (``snapper``, ``snap_whisper``)."""
         s, w = self.settings, self.settings.whisper
         if not self._grammar_search():
             raise SetupError(f"second_opinion: {s.second_opinion} needs backend pocketsphinx and a grammar "
@@ -309,9 +342,29 @@ class Asr(Component):
         grammar = resolve_grammar(s.grammar)
         assert grammar is not None
         whisper = WhisperRecognizer(w.model_dir, w.beam_size, w.no_speech_threshold, n_best=1)
-        matcher = SentenceMatcher.from_file(grammar, s.match_threshold, s.char_threshold)
         self.info["second_opinion_model"] = str(whisper.path)
-        return self._acoustic_scoring(whisper.model, matcher)
+        if self._too_large(grammar):
+            self.snapper, self.snap_whisper = GrammarSnapper.from_file(grammar), whisper
+            self.prompt = prompt(entries, whisper.model.hf_tokenizer)[0] or None if entries else None
+            self.info["second_opinion_scoring"] = "snap"
+            log.info("second opinion: grammar %s is more than a closed set holds; Whisper's transcript%s is "
+                     "snapped to it (%d word nodes)", grammar, " (prompted with the vocabulary)" if self.prompt
+                     else "", self.snapper.nodes)
+            return
+        matcher = SentenceMatcher.from_file(grammar, s.match_threshold, s.char_threshold)
+        self.second_opinion = self._acoustic_scoring(whisper.model, matcher)
+        self.info["second_opinion_scoring"] = "acoustic"
+
+    @staticmethod
+    def _too_large(grammar: Path) -> bool:
+        """Whether ``grammar`` (a JSGF file) has more sentences than a closed set holds."""
+        if not (grammar.suffix == ".gram" or grammar.read_text(encoding="utf-8").lstrip().startswith("#JSGF")):
+            return False
+        try:
+            expand_jsgf(grammar.read_text(encoding="utf-8"))
+        except GrammarError as exc:
+            return "more than" in str(exc)
+        return False
 
     def _acoustic_scoring(self, model, matcher: SentenceMatcher) -> ClosedSetDecoder:
         """Whisper's ``model`` scoring ``matcher``'s sentences, as the ``whisper.*`` settings say."""
@@ -369,7 +422,7 @@ class Asr(Component):
                 state.recognizer.start()
         if state.recognizer is not None:
             state.recognizer.feed(audio.payload)
-        if state.recognizer is None or self.second_opinion is not None:
+        if state.recognizer is None or self.second_opinion is not None or self.snap_whisper is not None:
             state.chunks.append(audio.payload)
             state.ends.append(audio.end_ns)
         if self.wants_partials and audio.end_ns - state.partial_at_ns >= self.settings.partial_interval_ns():
@@ -460,8 +513,7 @@ class Asr(Component):
             # loaded machine), so the heartbeat says beforehand that it may be late
             with self._quiet_for(1.0 + (audio.end_ns - origin_ns) / 1e9):
                 hypotheses = state.recognizer.finish()
-            if self.second_opinion is not None and self._asked_whisper(hypotheses, state, span, origin_ns,
-                                                                         audio.stream_id):
+            if self._second_opinions(hypotheses, state, span, origin_ns, audio.stream_id):
                 return
         else:
             speech_end_ns = segment.end_ns if self._early_ns else 0  # 0: the whole segment
@@ -477,6 +529,9 @@ class Asr(Component):
                 self._emit_closed_set(decoded, span, origin_ns, audio.stream_id)
                 return
             hypotheses, nothing = decoded.hypotheses, decoded.nothing or nothing
+            if self.snapper is not None and hypotheses:
+                self._emit_snapped(hypotheses, span, origin_ns, audio.stream_id)
+                return
         self.utterances += 1
         self.info["utterances"] = self.utterances
         if not hypotheses and nothing == UNRECOGNISED and self.settings.unrecognised:
@@ -499,6 +554,19 @@ class Asr(Component):
         log.info("utterance stream_id=%s start_ns=%d text=%r p=%.2f", audio.stream_id, span[0],
                  hypotheses[order[0]].text, hypotheses[order[0]].probability)
 
+    def _second_opinions(self, hypotheses, state: StreamState, span: tuple[int, int], origin_ns: int,
+                         stream_id: str) -> bool:
+        """Whisper's answer where pocketsphinx rejected the utterance (``second_opinion``): its scoring of the
+        grammar's sentences, or its transcript snapped to a grammar too large to list. True: published."""
+        if self.second_opinion is not None:
+            return self._asked_whisper(hypotheses, state, span, origin_ns, stream_id)
+        if self.snap_whisper is None:
+            return False
+        pcm = b"".join(state.chunks)
+        state.forget_audio()
+        return (not hypotheses or self._out_of_set(hypotheses[0])) and \
+            self._snapped_opinion(_float32(pcm), span, origin_ns, stream_id)
+
     def _asked_whisper(self, hypotheses, state: StreamState, span: tuple[int, int], origin_ns: int,
                        stream_id: str) -> bool:
         """Where pocketsphinx rejected the utterance (no sentence, or out of set), Whisper's scoring of the
@@ -517,6 +585,50 @@ class Asr(Component):
             return False
         self._emit_closed_set(result, span, origin_ns, stream_id, self.second_opinion.matcher)
         return True
+
+    def _snapped_opinion(self, samples: np.ndarray, span: tuple[int, int], origin_ns: int, stream_id: str) -> bool:
+        """Where pocketsphinx rejected the utterance, Whisper's transcript of it snapped to the grammar
+        (a grammar too large for the acoustic scoring of ``_asked_whisper``): published if the nearest
+        sentence is near enough (True); else pocketsphinx's answer or rejection stands (False)."""
+        assert self.snap_whisper is not None and self.snapper is not None
+        with self._quiet_for(1.0 + samples.size / self.settings.sample_rate_hz):
+            decoded = self.snap_whisper.recognise(samples, self.settings.sample_rate_hz, self.prompt)
+        if not decoded.hypotheses:
+            log.info("utterance stream_id=%s start_ns=%d second opinion: %s", stream_id, span[0],
+                     decoded.nothing)
+            return False
+        snapped = self.snapper.nearest(decoded.hypotheses[0].text)
+        if snapped.distance > self.settings.whisper.max_snap_distance:
+            log.info("utterance stream_id=%s start_ns=%d second opinion: heard=%r nearest=%r distance=%.2f, "
+                     "out of set too", stream_id, span[0], decoded.hypotheses[0].text, snapped.sentence,
+                     snapped.distance)
+            return False
+        self._emit_snapped(decoded.hypotheses[:1], span, origin_ns, stream_id, [snapped])
+        return True
+
+    def _emit_snapped(self, hypotheses: list[Hypothesis], span: tuple[int, int], origin_ns: int, stream_id: str,
+                      snapped: list | None = None) -> None:
+        """Whisper's ``hypotheses`` snapped to the grammar (``snapper``): each one's text the nearest
+        sentence (empty and out of set past ``max_snap_distance``), the transcript as ``raw_text`` and
+        1 - the distance as ``match_score``; the best in-set first."""
+        assert self.snapper is not None
+        snapped = snapped or [self.snapper.nearest(h.text) for h in hypotheses]
+        limit = self.settings.whisper.max_snap_distance
+        order = sorted(range(len(hypotheses)), key=lambda i: (snapped[i].distance > limit, i))
+        out = []
+        for i in order:
+            h, near = hypotheses[i], snapped[i]
+            one = hypothesis(near.sentence, h.probability)
+            one.raw_text, one.match_score = h.text, max(0.0, 1.0 - near.distance)
+            one.out_of_set = near.distance > limit or not near.sentence
+            if one.out_of_set:
+                one.text = ""
+            out.append(one)
+        self.utterances += 1
+        self.info["utterances"] = self.utterances
+        self.emit("speech", span, stream_id=stream_id, speech={"hypotheses": out})
+        log.info("utterance stream_id=%s start_ns=%d heard=%r snapped=%r distance=%.2f", stream_id, span[0],
+                 hypotheses[order[0]].text, snapped[order[0]].sentence, snapped[order[0]].distance)
 
     def _out_of_set(self, best) -> bool:
         """pocketsphinx's best path is no whole sentence of its grammar (no path reached the grammar's end),

@@ -259,3 +259,51 @@ def test_a_second_opinion_without_a_grammar_search_is_one_clear_line(settings, c
 def test_an_unknown_second_opinion_is_refused_when_the_settings_are_read():
     with pytest.raises(ValueError, match="second_opinion"):
         AsrSettings(second_opinion="vosk")
+
+
+@pytest.fixture(scope="module")
+def gpsr(tmp_path_factory):
+    """The GPSR commands' grammar (~10^5 commands: more than a closed set holds) as the eval writes it
+    (JSGF and its dictionary), the world's vocabulary, and four commands said by flite."""
+    from esiaf.tools.evaluation import gpsr_language, gpsr_vocabulary
+    from esiaf.tools.gpsr import generate, load
+    from esiaf.tools.testing import shared_data
+    grammar = load(shared_data("robocup/Category1Grammar.txt").parent, 1)
+    work = tmp_path_factory.mktemp("gpsr")
+    gram, dictionary = gpsr_language(grammar, work)
+    synthesise = synthesiser().synthesise_sentence
+    commands = [(c.words, synthesise(c.text, voice)) for c, voice in
+                zip(generate(grammar, 4, seed=9), ("slt", "awb", "rms", "slt"), strict=True)]
+    return {"grammar": str(gram), "dictionary": str(dictionary),
+            "vocabulary": str(gpsr_vocabulary(grammar, work)), "commands": commands}
+
+
+@pytest.mark.skipif(shutil.which("flite") is None, reason="Debian's flite is not installed")
+@pytest.mark.parametrize("backend", ["pocketsphinx", "whisper"])
+def test_a_grammar_too_large_for_a_closed_set_gets_whisper_transcripts_snapped_to_it(gpsr, backend):
+    """GPSR's grammar: pocketsphinx's second opinion (here made to reject everything by a ``min_confidence``
+    no sentence reaches) is Whisper's transcript, prompted with the vocabulary, snapped to the nearest
+    command; the whisper backend with that grammar snaps its transcript the same way. Speech that is no
+    command stays out of set."""
+    pytest.importorskip("faster_whisper", reason="the asr-whisper extra is not installed (setup.sh installs it)")
+    settings = {"grammar": gpsr["grammar"], "vocabulary": gpsr["vocabulary"],
+                "pocketsphinx": {"extra_dictionary": gpsr["dictionary"], "min_confidence": 5.0}}
+    if backend == "pocketsphinx":
+        alone = Asr(AsrSettings(**settings))
+        alone.setup()
+        (lost,) = feed(alone, gpsr["commands"][0][1], "robot")
+        assert lost[2]["speech"]["hypotheses"][0].out_of_set  # no second opinion: rejected
+        settings["second_opinion"] = "whisper"
+    component = Asr(AsrSettings(**settings, backend=backend))
+    component.setup()
+    assert component.info["second_opinion_scoring" if backend == "pocketsphinx" else "scoring"] == "snap"
+    right = 0
+    for words, samples in gpsr["commands"]:
+        (answered,) = feed(component, samples, "robot")
+        best = answered[2]["speech"]["hypotheses"][0]
+        assert best.raw_text and not best.out_of_set and 0 < best.match_score <= 1
+        right += best.text == words
+    assert right >= 3, "clean flite speech of the grammar's own commands"
+    outside = synthesiser().synthesise_sentence("What is the capital of Australia?", "slt")
+    (rejected,) = feed(component, outside, "robot")
+    assert all(h.text == "" and h.out_of_set for h in rejected[2]["speech"]["hypotheses"])
