@@ -115,7 +115,8 @@ def settled(fused_now, count: int, timeout_s: float = 20.0) -> list[dict]:
 
 
 @pytest.mark.parametrize("recipe", [
-    dict(ESIAF_SPLITTER_REPLICAS="1", ESIAF_VAD_INPUT_TOPIC="splitter/ch0"),
+    # the grabber plays once ssl and the splitter listen to it (the beamformer listens to ssl)
+    dict(ESIAF_SPLITTER_REPLICAS="1", ESIAF_VAD_INPUT_TOPIC="splitter/ch0", ESIAF_GRABBER_WAIT_FOR_SUBSCRIBERS="2"),
     dict(ESIAF_BEAMFORMER_REPLICAS="1", ESIAF_VAD_INPUT_TOPIC="beamformer/audio"),
 ], ids=["splitter", "beamformer"])
 def test_compose_with_a_microphone_array_fuses_text_direction_emotion_and_gender(project, recipe):
