@@ -124,7 +124,7 @@ def _follow_a_played_file_that_never_ends(monkeypatch, serve):
     grabber = types.SimpleNamespace(process=types.SimpleNamespace(returncode=0, pid=1), reported=False)
     supervisor = types.SimpleNamespace(exited=lambda: [grabber], refusals=list, keep_spares=lambda: None)
     client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS, "source": "grabber-1"},
-                                   report_dead=lambda pid: None)
+                                   report_dead=lambda pid: None, components=list)
     args = argparse.Namespace(stream_id="s", json=False, input="a.wav", serve=serve, mic=None)
     try:
         return cli.follow(_Silent(polls=5), supervisor, client, [cli_follow.Stream("s", grabber, "a.wav")], args)
@@ -134,7 +134,7 @@ def _follow_a_played_file_that_never_ends(monkeypatch, serve):
 
 def test_without_serve_the_launcher_gives_up_when_no_end_of_stream_comes(monkeypatch, capsys):
     assert _follow_a_played_file_that_never_ends(monkeypatch, serve=False) == 1
-    assert "no end of stream s and no result" in capsys.readouterr().err
+    assert "no end of stream s: no result and no service at work" in capsys.readouterr().err
 
 
 def test_serve_never_stops_the_services_on_its_own(monkeypatch, capsys):
@@ -202,7 +202,7 @@ def _follow_two_streams_of_which_one_ends(monkeypatch, serve, b_returncode=0):
     supervisor = types.SimpleNamespace(exited=lambda: grabbers, refusals=list, keep_spares=lambda: None,
                                        failure=lambda child: "service grabber-2 failed")
     client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS, "source": "grabber-1"},
-                                   report_dead=lambda pid: None)
+                                   report_dead=lambda pid: None, components=list)
     args = argparse.Namespace(json=False, input=["a.wav", "b.wav"], serve=serve, mic=None)
     streams = [cli_follow.Stream("a", grabbers[0], "a.wav"), cli_follow.Stream("b", grabbers[1], "b.wav")]
     feed = _Feed([{**fused(), "stream_id": "a"}, {**fused(), "stream_id": "other"},
@@ -218,7 +218,8 @@ def test_several_streams_each_end_or_are_given_up_on_before_the_run_ends(monkeyp
     out, err = capsys.readouterr()
     assert out == "[a] [12.31–14.05 s] 'go forward ten meters' (p=0.93)\n"  # another source's stream is not shown
     assert "esiaf: stream a ended, 1 fused result(s)" in err
-    assert "no end of stream b and no result 0.3 s after b.wav was played; stopping it" in err
+    assert "no end of stream b: no result and no service at work for 0.3 s after b.wav was played; " \
+        "stopping it" in err
     assert "no end of stream a" not in err
 
 
@@ -248,3 +249,45 @@ def test_a_barge_in_is_printed_as_json_with_the_fused_results_and_said_on_stderr
             assert json.loads(out) == event and stream.printed == 0  # not counted as a fused result
         else:
             assert out == "" and "barge-in at 2.50 s (stop)" in err
+
+
+def test_the_launcher_waits_while_the_services_still_work_through_a_played_file(monkeypatch, capsys):
+    """A loaded machine drains a backlog for longer than DRAIN_TIMEOUT_S after the file has played: as
+    long as the services' heartbeats say they take in or send something, the launcher waits; once
+    they stop, it gives up after DRAIN_TIMEOUT_S as before (before: it gave up while the asr worked)."""
+    import argparse
+    import types
+
+    from esiaf.tools import cli_follow
+
+    monkeypatch.setattr(cli_follow, "DRAIN_TIMEOUT_S", 0.4)
+    monkeypatch.setattr(cli_follow, "WORK_CHECK_EVERY_S", 0.05)
+    monkeypatch.setattr(cli_follow, "PROGRESS_EVERY_S", 0.5)
+    started = time.monotonic()
+
+    def components():  # the asr takes in one chunk more at each heartbeat for 1.5 s, then nothing
+        received = int(min(time.monotonic() - started, 1.5) * 20)
+        asr = {"status": "alive", "stats": {"inputs": {"vad/audio": {"received": received}}, "results_sent": 3}}
+        gone = {"status": "dead", "stats": {"inputs": {"grabber/audio": {"received": int(time.monotonic() * 1e3)}}}}
+        return [asr, gone]  # a dead component's counts are not work
+
+    grabber = types.SimpleNamespace(process=types.SimpleNamespace(returncode=0, pid=1), reported=False)
+    supervisor = types.SimpleNamespace(exited=lambda: [grabber], refusals=list, keep_spares=lambda: None)
+    client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS, "source": "grabber-1"},
+                                   report_dead=lambda pid: None, components=components, health_problem=str)
+    args = argparse.Namespace(json=False, input="a.wav", serve=False, mic=None)
+    code = cli_follow.follow(_Feed([], polls=100), supervisor, client, [cli_follow.Stream("s", grabber, "a.wav")],
+                             args)
+    waited = time.monotonic() - started
+    err = capsys.readouterr().err
+    assert code == 1 and 1.5 + 0.4 <= waited < 4.0, (code, waited, err)
+    assert err.count("esiaf: the input has been played; the services are still working through it") == 1
+    assert "no end of stream s: no result and no service at work for 0.4 s after a.wav was played" in err
+
+
+def test_work_done_counts_what_live_services_took_in_and_sent():
+    from esiaf.tools.cli_follow import work_done
+    stats = {"inputs": {"a": {"received": 5, "lost": 2}, "b": {"received": 1}},
+             "outputs": {"x": {"published": 7, "dropped": 4}}, "results_sent": 2}
+    assert work_done([{"status": "alive", "stats": stats}, {"status": "dead", "stats": stats},
+                      {"status": "alive"}, {"status": "alive", "stats": {"inputs": {"c": None}}}]) == 15

@@ -19,7 +19,10 @@ from esiaf.tools.terminal import err, out, partial, terminal_shows_partials
 log = logging.getLogger(__name__)
 
 LABELS = ("emotion", "gender", "voice_id")  # label aggregates shown on a line, in this order
-DRAIN_TIMEOUT_S = 30.0  # after a grabber has finished: wait this long for the next result at most
+# after a grabber has finished: give up on its stream once, for this long, no result has come and no
+# service has taken in or sent anything (a loaded machine may drain a backlog for minutes: that is progress)
+DRAIN_TIMEOUT_S = 30.0
+WORK_CHECK_EVERY_S = 2.0  # while a stream drains: how often the services' counts are read
 PROGRESS_EVERY_S = 10.0  # how often to say how much of a long file has been played
 LONG_FILE_S = 60.0
 
@@ -101,6 +104,10 @@ class Following:
     next_progress: float  # monotonic time of the next progress and health report
     heard_at: float = 0.0  # when the last message of one of the streams arrived
     unhealthy: str = ""  # why the orchestrator said it is unhealthy, as last reported
+    worked_at: float = 0.0  # when the services' counts last moved (read while a stream drains)
+    work: int | None = None  # the services' counts as last read: what they took in and sent, summed
+    next_work_check: float = 0.0
+    said_draining: bool = False  # said once that the pipeline is still working after a file was played
 
 
 def follow(ws, supervisor: Supervisor, client: OrchestratorClient, streams: list[Stream],
@@ -122,6 +129,7 @@ def follow(ws, supervisor: Supervisor, client: OrchestratorClient, streams: list
         for child, line in supervisor.refusals():  # what a service refused: here within 0.2 s, not only in its log
             err(f"esiaf: {child.name} {line} (its log: {child.log_path})")
         watch_children(state, supervisor, client, args)
+        watch_work(state, client)
         if (code := check_drained(state, args)) is not None:
             return code
         try:
@@ -171,19 +179,58 @@ def watch_children(state: Following, supervisor: Supervisor, client: Orchestrato
                 f"still serving")
 
 
+def work_done(components: list[dict[str, Any]]) -> int:
+    """What the live services have done so far, as one number that grows while any of them works: the
+    messages each has taken in and sent and the results it has sent, as their heartbeats last said."""
+    total = 0
+    for component in components:
+        if component.get("status") != "alive":
+            continue
+        stats = component.get("stats") or {}
+        for side, count in (("inputs", "received"), ("outputs", "published")):
+            for counts in (stats.get(side) or {}).values():
+                total += int((counts or {}).get(count) or 0)
+        total += int(stats.get("results_sent") or 0)
+    return total
+
+
+def watch_work(state: Following, client: OrchestratorClient) -> None:
+    """While a played stream has not ended: every WORK_CHECK_EVERY_S, whether the services still work
+    (a backlog behind a slow analyser on a loaded machine), so that the drain waits for them; says so
+    once when it has waited PROGRESS_EVERY_S."""
+    now = time.monotonic()
+    draining = [s for s in state.streams.values() if s.done_at and not s.ended and not s.gave_up]
+    if not draining or now < state.next_work_check:
+        return
+    state.next_work_check = now + WORK_CHECK_EVERY_S
+    try:
+        work = work_done(client.components())
+    except httpx.HTTPError:
+        return  # restarting: the supervisor says so
+    if state.work is not None and work != state.work:
+        state.worked_at = now
+    state.work = work
+    if not state.said_draining and now - min(s.done_at or now for s in draining) > PROGRESS_EVERY_S \
+            and now - state.worked_at <= WORK_CHECK_EVERY_S * 2:
+        state.said_draining = True
+        err("esiaf: the input has been played; the services are still working through it")
+
+
 def check_drained(state: Following, args: argparse.Namespace) -> int | None:
-    """Gives up on each stream that has not ended when nothing has come for DRAIN_TIMEOUT_S after its file
-    was played; the exit code once every stream has ended or been given up on (None: go on). With
-    --serve it only says so: the services stay up until the launcher is stopped."""
+    """Gives up on each stream that has not ended when, for DRAIN_TIMEOUT_S after its file was played,
+    no result has come and no service has taken in or sent anything; the exit code once every stream
+    has ended or been given up on (None: go on). With --serve it only says so: the services stay up
+    until the launcher is stopped."""
     now = time.monotonic()
     for stream in state.streams.values():
         if not stream.done_at or stream.ended or stream.gave_up or \
-                now - max(stream.done_at, state.heard_at) <= DRAIN_TIMEOUT_S:
+                now - max(stream.done_at, state.heard_at, state.worked_at) <= DRAIN_TIMEOUT_S:
             continue
         if not args.serve:
             stream.gave_up = True
-            err(f"esiaf: no end of stream {stream.stream_id} and no result {DRAIN_TIMEOUT_S:g} s after "
-                f"{stream.source} was played; stopping{' it' if len(state.streams) > 1 else ''}")
+            err(f"esiaf: no end of stream {stream.stream_id}: no result and no service at work for "
+                f"{DRAIN_TIMEOUT_S:g} s after {stream.source} was played; stopping"
+                f"{' it' if len(state.streams) > 1 else ''}")
         elif not stream.warned:  # --serve never stops the services on its own
             stream.warned = True
             err(f"esiaf: no end of stream {stream.stream_id} {DRAIN_TIMEOUT_S:g} s after {stream.source} was "
