@@ -122,7 +122,7 @@ def _follow_a_played_file_that_never_ends(monkeypatch, serve):
 
     monkeypatch.setattr(cli_follow, "DRAIN_TIMEOUT_S", 0.0)  # where follow() reads it
     grabber = types.SimpleNamespace(process=types.SimpleNamespace(returncode=0, pid=1), reported=False)
-    supervisor = types.SimpleNamespace(exited=lambda: [grabber], refusals=list, keep_spares=lambda: None)
+    supervisor = types.SimpleNamespace(exited=lambda: [grabber], refusals=list, keep_spares=lambda: None, children=[])
     client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS, "source": "grabber-1"},
                                    report_dead=lambda pid: None, components=list)
     args = argparse.Namespace(stream_id="s", json=False, input="a.wav", serve=serve, mic=None)
@@ -199,7 +199,7 @@ def _follow_two_streams_of_which_one_ends(monkeypatch, serve, b_returncode=0):
     monkeypatch.setattr(cli_follow, "DRAIN_TIMEOUT_S", 0.3)
     grabbers = [types.SimpleNamespace(process=types.SimpleNamespace(returncode=code, pid=i), reported=False)
                 for i, code in enumerate((0, b_returncode))]
-    supervisor = types.SimpleNamespace(exited=lambda: grabbers, refusals=list, keep_spares=lambda: None,
+    supervisor = types.SimpleNamespace(exited=lambda: grabbers, refusals=list, keep_spares=lambda: None, children=[],
                                        failure=lambda child: "service grabber-2 failed")
     client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS, "source": "grabber-1"},
                                    report_dead=lambda pid: None, components=list)
@@ -255,14 +255,6 @@ def test_the_launcher_waits_while_the_services_still_work_through_a_played_file(
     """A loaded machine drains a backlog for longer than DRAIN_TIMEOUT_S after the file has played: as
     long as the services' heartbeats say they take in or send something, the launcher waits; once
     they stop, it gives up after DRAIN_TIMEOUT_S as before (before: it gave up while the asr worked)."""
-    import argparse
-    import types
-
-    from esiaf.tools import cli_follow
-
-    monkeypatch.setattr(cli_follow, "DRAIN_TIMEOUT_S", 0.4)
-    monkeypatch.setattr(cli_follow, "WORK_CHECK_EVERY_S", 0.05)
-    monkeypatch.setattr(cli_follow, "PROGRESS_EVERY_S", 0.5)
     started = time.monotonic()
 
     def components():  # the asr takes in one chunk more at each heartbeat for 1.5 s, then nothing
@@ -271,13 +263,7 @@ def test_the_launcher_waits_while_the_services_still_work_through_a_played_file(
         gone = {"status": "dead", "stats": {"inputs": {"grabber/audio": {"received": int(time.monotonic() * 1e3)}}}}
         return [asr, gone]  # a dead component's counts are not work
 
-    grabber = types.SimpleNamespace(process=types.SimpleNamespace(returncode=0, pid=1), reported=False)
-    supervisor = types.SimpleNamespace(exited=lambda: [grabber], refusals=list, keep_spares=lambda: None)
-    client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS, "source": "grabber-1"},
-                                   report_dead=lambda pid: None, components=components, health_problem=str)
-    args = argparse.Namespace(json=False, input="a.wav", serve=False, mic=None)
-    code = cli_follow.follow(_Feed([], polls=100), supervisor, client, [cli_follow.Stream("s", grabber, "a.wav")],
-                             args)
+    code = _follow_while(monkeypatch, components, [])
     waited = time.monotonic() - started
     err = capsys.readouterr().err
     assert code == 1 and 1.5 + 0.4 <= waited < 4.0, (code, waited, err)
@@ -291,3 +277,52 @@ def test_work_done_counts_what_live_services_took_in_and_sent():
              "outputs": {"x": {"published": 7, "dropped": 4}}, "results_sent": 2}
     assert work_done([{"status": "alive", "stats": stats}, {"status": "dead", "stats": stats},
                       {"status": "alive"}, {"status": "alive", "stats": {"inputs": {"c": None}}}]) == 15
+
+
+def _follow_while(monkeypatch, components, children):
+    """follow() on one played file that never ends, the services' counts and processes as given."""
+    import argparse
+    import types
+
+    from esiaf.tools import cli_follow
+
+    monkeypatch.setattr(cli_follow, "DRAIN_TIMEOUT_S", 0.4)
+    monkeypatch.setattr(cli_follow, "WORK_CHECK_EVERY_S", 0.05)
+    monkeypatch.setattr(cli_follow, "PROGRESS_EVERY_S", 0.5)
+    grabber = types.SimpleNamespace(process=types.SimpleNamespace(returncode=0, pid=1), reported=False)
+    supervisor = types.SimpleNamespace(exited=lambda: [grabber], refusals=list, keep_spares=lambda: None,
+                                       children=children)
+    client = types.SimpleNamespace(stream=lambda stream_id: {"start_ns": ORIGIN_NS, "source": "grabber-1"},
+                                   report_dead=lambda pid: None, components=components, health_problem=str)
+    args = argparse.Namespace(json=False, input="a.wav", serve=False, mic=None)
+    return cli_follow.follow(_Feed([], polls=100), supervisor, client, [cli_follow.Stream("s", grabber, "a.wav")],
+                             args)
+
+
+def test_the_launcher_waits_while_a_service_sits_in_one_long_decode(monkeypatch, capsys):
+    """A service busy on the CPU (one Whisper decode of tens of seconds under load) moves no count; the
+    launcher waits for it as long as it works, then gives up as before."""
+    import subprocess
+    import sys
+    import types
+
+    busy = "import time\nt = time.monotonic()\nwhile time.monotonic() - t < 1.5: pass\ntime.sleep(60)"
+    with subprocess.Popen([sys.executable, "-c", busy]) as decoding:
+        try:
+            started = time.monotonic()
+            code = _follow_while(monkeypatch, list, [types.SimpleNamespace(name="asr", process=decoding)])
+            waited = time.monotonic() - started
+        finally:
+            decoding.kill()
+    err = capsys.readouterr().err
+    assert code == 1 and 1.5 + 0.4 <= waited < 6.0, (code, waited, err)
+    assert "esiaf: the input has been played; the services are still working through it (asr)" in err
+
+
+def test_the_launcher_gives_up_at_the_drain_limit_even_while_services_work(monkeypatch, capsys):
+    from esiaf.tools import cli_follow
+    monkeypatch.setattr(cli_follow, "DRAIN_LIMIT_S", 1.0)
+    counts = iter(range(10**6))  # every heartbeat says more was taken in: never quiet
+    code = _follow_while(monkeypatch, lambda: [{"status": "alive", "stats": {"results_sent": next(counts)}}], [])
+    err = capsys.readouterr().err
+    assert code == 1 and "no end of stream s: still not done 1 s after a.wav was played; stopping" in err, err

@@ -7,10 +7,11 @@ import argparse
 import json
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import httpx
+import psutil
 from websockets.exceptions import ConnectionClosed
 
 from esiaf.tools.launcher import START_TIMEOUT_S, LaunchError, OrchestratorClient, Supervisor, wait_until
@@ -20,9 +21,12 @@ log = logging.getLogger(__name__)
 
 LABELS = ("emotion", "gender", "voice_id")  # label aggregates shown on a line, in this order
 # after a grabber has finished: give up on its stream once, for this long, no result has come and no
-# service has taken in or sent anything (a loaded machine may drain a backlog for minutes: that is progress)
+# service has worked (taken in or sent anything, or used the CPU: a loaded machine may drain a backlog,
+# or sit in one long decode, for minutes); and in any case DRAIN_LIMIT_S after the file was played
 DRAIN_TIMEOUT_S = 30.0
-WORK_CHECK_EVERY_S = 2.0  # while a stream drains: how often the services' counts are read
+DRAIN_LIMIT_S = 600.0
+WORK_CHECK_EVERY_S = 2.0  # while a stream drains: how often the services' counts and CPU are read
+BUSY_CPU_SHARE = 0.1  # a service that used this share of one core since the last check is working
 PROGRESS_EVERY_S = 10.0  # how often to say how much of a long file has been played
 LONG_FILE_S = 60.0
 
@@ -106,7 +110,9 @@ class Following:
     unhealthy: str = ""  # why the orchestrator said it is unhealthy, as last reported
     worked_at: float = 0.0  # when the services' counts last moved (read while a stream drains)
     work: int | None = None  # the services' counts as last read: what they took in and sent, summed
+    cpu_s: dict[int, float] = field(default_factory=dict)  # each service process's CPU time as last read
     next_work_check: float = 0.0
+    checked_at: float = 0.0  # when they were last read
     said_draining: bool = False  # said once that the pipeline is still working after a file was played
 
 
@@ -129,7 +135,7 @@ def follow(ws, supervisor: Supervisor, client: OrchestratorClient, streams: list
         for child, line in supervisor.refusals():  # what a service refused: here within 0.2 s, not only in its log
             err(f"esiaf: {child.name} {line} (its log: {child.log_path})")
         watch_children(state, supervisor, client, args)
-        watch_work(state, client)
+        watch_work(state, supervisor, client)
         if (code := check_drained(state, args)) is not None:
             return code
         try:
@@ -194,42 +200,67 @@ def work_done(components: list[dict[str, Any]]) -> int:
     return total
 
 
-def watch_work(state: Following, client: OrchestratorClient) -> None:
+def busy_services(supervisor: Supervisor, cpu_s: dict[int, float], interval_s: float) -> list[str]:
+    """The services whose processes used BUSY_CPU_SHARE of a core or more since the last call (``cpu_s``:
+    each process's CPU time then, updated here); a process first seen is not busy yet."""
+    busy, seen = [], {}
+    for child in supervisor.children:
+        pid = child.process.pid
+        try:
+            times = psutil.Process(pid).cpu_times()
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            continue
+        seen[pid] = times.user + times.system
+        if pid in cpu_s and seen[pid] - cpu_s[pid] >= BUSY_CPU_SHARE * interval_s:
+            busy.append(child.name)
+    cpu_s.clear()
+    cpu_s.update(seen)
+    return busy
+
+
+def watch_work(state: Following, supervisor: Supervisor, client: OrchestratorClient) -> None:
     """While a played stream has not ended: every WORK_CHECK_EVERY_S, whether the services still work
-    (a backlog behind a slow analyser on a loaded machine), so that the drain waits for them; says so
+    (their heartbeats' counts moved, or one of the launcher's services used the CPU: a backlog behind a
+    slow analyser, or one long decode, on a loaded machine), so that the drain waits for them; says so
     once when it has waited PROGRESS_EVERY_S."""
     now = time.monotonic()
     draining = [s for s in state.streams.values() if s.done_at and not s.ended and not s.gave_up]
     if not draining or now < state.next_work_check:
         return
+    interval_s, state.checked_at = now - state.checked_at, now
     state.next_work_check = now + WORK_CHECK_EVERY_S
+    busy = busy_services(supervisor, state.cpu_s, interval_s)
+    work: int | None
     try:
         work = work_done(client.components())
     except httpx.HTTPError:
-        return  # restarting: the supervisor says so
-    if state.work is not None and work != state.work:
+        work = state.work  # restarting: the supervisor says so
+    if busy or (state.work is not None and work != state.work):
         state.worked_at = now
     state.work = work
     if not state.said_draining and now - min(s.done_at or now for s in draining) > PROGRESS_EVERY_S \
-            and now - state.worked_at <= WORK_CHECK_EVERY_S * 2:
+            and state.worked_at == now:
         state.said_draining = True
-        err("esiaf: the input has been played; the services are still working through it")
+        err("esiaf: the input has been played; the services are still working through it"
+            + (f" ({', '.join(busy)})" if busy else ""))
 
 
 def check_drained(state: Following, args: argparse.Namespace) -> int | None:
     """Gives up on each stream that has not ended when, for DRAIN_TIMEOUT_S after its file was played,
-    no result has come and no service has taken in or sent anything; the exit code once every stream
-    has ended or been given up on (None: go on). With --serve it only says so: the services stay up
-    until the launcher is stopped."""
+    no result has come and no service has worked (:func:`watch_work`), or DRAIN_LIMIT_S after it was
+    played; the exit code once every stream has ended or been given up on (None: go on). With --serve
+    it only says so: the services stay up until the launcher is stopped."""
     now = time.monotonic()
     for stream in state.streams.values():
         if not stream.done_at or stream.ended or stream.gave_up or \
-                now - max(stream.done_at, state.heard_at, state.worked_at) <= DRAIN_TIMEOUT_S:
+                (now - max(stream.done_at, state.heard_at, state.worked_at) <= DRAIN_TIMEOUT_S
+                 and now - stream.done_at <= DRAIN_LIMIT_S):
             continue
         if not args.serve:
             stream.gave_up = True
-            err(f"esiaf: no end of stream {stream.stream_id}: no result and no service at work for "
-                f"{DRAIN_TIMEOUT_S:g} s after {stream.source} was played; stopping"
+            why = f"still not done {DRAIN_LIMIT_S:g} s" if now - stream.done_at > DRAIN_LIMIT_S else \
+                f"no result and no service at work for {DRAIN_TIMEOUT_S:g} s"
+            err(f"esiaf: no end of stream {stream.stream_id}: {why} after {stream.source} was played; stopping"
                 f"{' it' if len(state.streams) > 1 else ''}")
         elif not stream.warned:  # --serve never stops the services on its own
             stream.warned = True
