@@ -9,7 +9,12 @@ Two backends:
   babble and clatter 5-15 dB below the talker do not keep a segment open. It decides per window, not
   per transport chunk (:mod:`esiaf.speech.windows`): its segments are the same at any chunk
   size, and what it forwards is cut at window boundaries. With ``silero.windows: false`` it decides
-  per chunk (the mean of the windows the chunk completes).
+  per chunk (the mean of the windows the chunk completes). The network hears level too: a person at
+  -45 dBFS (10 dB below the robot's echo, on microphones set for that echo, once the echo canceller took
+  it off) loses most of its speech-like windows. ``silero.level_max_gain_db`` (off by default) raises its
+  input by a slow gain until a stream's loud windows reach ``silero.level_to_db`` (esiaf/speech/silero.py
+  ``Leveller``): the quiet person is then heard, and so is the robot's residual echo, which only its
+  quietness kept out (docs/benchmarks.md, "Double talk lost to the level").
 - ``energy``: ESIAF's original double-threshold segmenter on the chunks' peak level.
 
 The VAD result of a segment carries its mean speech probability (1 with ``energy``), and is emitted when
@@ -46,7 +51,7 @@ from esiaf.results import SPEECH_START, speech_start
 from esiaf.settings import StrictModel
 from esiaf.speech.rise import Rise, RiseParams
 from esiaf.speech.segmenter import ProbabilityParams, ProbabilitySegmenter, Segmenter, SegmenterParams, level_db
-from esiaf.speech.silero import RATES_HZ, SileroError, SileroModel, SileroStream
+from esiaf.speech.silero import RATES_HZ, Leveller, SileroError, SileroModel, SileroStream, window_frames
 from esiaf.speech.windows import ChunkCutter, WindowCutter, messages
 
 log = logging.getLogger(__name__)
@@ -78,6 +83,12 @@ class SileroSettings(StrictModel):
     jump_to: float = Field(default=0.5, ge=0, le=1)
     jump_from: float = Field(default=0.25, ge=0, le=1)  # ... after a plateau whose mean is at most this
     jump_by: float = Field(default=0.25, gt=0, le=1)  # ... and this much below the window
+    # Silero's input (only) raised so that a stream's loud windows reach level_to_db (dBFS, 32 ms RMS; the 95th
+    # percentile of the last 20 s), by at most level_max_gain_db (0: off, the default), the gain moving 2 dB/s at
+    # most (esiaf/speech/silero.py Leveller). Off by default: it hears a quiet person over the robot, but the
+    # robot's own residual echo too (docs/benchmarks.md, "Double talk lost to the level")
+    level_to_db: float = Field(default=-20.0, ge=-60, le=0)
+    level_max_gain_db: float = Field(default=0.0, ge=0, le=60)  # the most it raises (0: off, the default)
 
 
 class EnergySettings(StrictModel):
@@ -104,7 +115,8 @@ class VadSettings(BackendSettings):
     pre_roll_ms: float = 250.0
     # the flat names of the backends' settings, before they were nested
     renamed: ClassVar[dict[str, str]] = {
-        **{name: f"silero.{name}" for name in SileroSettings.model_fields if not name.startswith(("rise_", "jump_"))},
+        **{name: f"silero.{name}" for name in SileroSettings.model_fields
+           if not name.startswith(("rise_", "jump_", "level_"))},
         **{name: f"energy.{name}" for name in EnergySettings.model_fields}}
 
 
@@ -182,10 +194,15 @@ class Vad(Component):
         if self.settings.silero.windows:  # cuts the payloads, which arrive in the declared input format
             frame_bytes = self.inputs[self.settings.input_topic].bytes_per_frame
             return VadStream(ProbabilitySegmenter(self.params),
-                             WindowCutter(self.model.stream(self.settings.sample_rate_hz), frame_bytes), None,
-                             rise=rise, jump=jump)
-        return VadStream(ProbabilitySegmenter(self.params), ChunkCutter(),
-                         self.model.stream(self.settings.sample_rate_hz), rise=rise, jump=jump)
+                             WindowCutter(self._silero_stream(), frame_bytes), None, rise=rise, jump=jump)
+        return VadStream(ProbabilitySegmenter(self.params), ChunkCutter(), self._silero_stream(), rise=rise, jump=jump)
+
+    def _silero_stream(self) -> SileroStream:
+        assert self.model is not None
+        silero, rate = self.settings.silero, self.settings.sample_rate_hz
+        leveller = Leveller(window_frames(rate), rate, silero.level_to_db, silero.level_max_gain_db) \
+            if silero.level_max_gain_db > 0 else None
+        return self.model.stream(rate, leveller)
 
     def on_audio(self, audio: Audio) -> None:
         stream = self.segmenters.get(audio.stream_id)
