@@ -64,7 +64,11 @@ STALL_MS = 60_000
 FLUSH_LINGER_MS = 2_000  # data sockets get this long to deliver the last messages at shutdown
 REPLAY_LINGER_MS = 60_000  # ... a replay's producer that ended (not stopped): its slowest consumer's pace
 ANY_HOST = ("0.0.0.0", "*", "::")
-LEAVE_GRACE_S = 1.0  # a departed producer's messages still arriving are taken this long at least
+# a departed producer is dropped once it left this long ago and the input has been quiet this long: a
+# consumer behind it (a loaded machine, a replay) may find its queue empty for a moment while the rest
+# of the producer's audio is still in the kernel's buffers, and dropping it then loses that rest
+LEAVE_GRACE_S = 1.0
+LEAVE_LIMIT_S = STALL_MS / 1000  # ... and in any case this long after it left (other streams keep it busy)
 
 
 # The kernel's TCP keepalive on every TCP socket, not ZMTP heartbeats (those would wake each
@@ -142,6 +146,7 @@ class Transport:
         self._poller = zmq.Poller()
         self._connected: set[str] = set()
         self._leaving: dict[str, float] = {}  # producers gone, still to be drained: endpoint -> since (monotonic)
+        self._heard_at = 0.0  # monotonic time audio last came in
         self._results_endpoint = ""
         # called whenever audio or results move (the control client's busy(): it keeps the heartbeat fast)
         self.on_busy: Callable[[], None] = _nothing
@@ -253,6 +258,7 @@ class Transport:
             if self.sub is not None and self.sub in ready and take_audio and (
                     frames := _take(self.sub, recv_frames)) is not None:
                 self.on_busy()
+                self._heard_at = time.monotonic()
                 yield "audio", frames
             ready = dict(self._poller.poll(timeout=0))
             if not take_audio:
@@ -354,8 +360,9 @@ class Transport:
         with the producer's public key in ``peer_keys``, which must be an allowed client key).
 
         A producer that has gone is disconnected only once its queued messages have been taken
-        (no input pending, LEAVE_GRACE_S after it went): a slow consumer keeps the end of a stream,
-        and libzmq never tears down a pipe that still holds a message.
+        (no input pending, and none for LEAVE_GRACE_S, LEAVE_GRACE_S after it went; LEAVE_LIMIT_S after
+        it went in any case): a slow consumer keeps the end of a stream, and libzmq never tears down a
+        pipe that still holds a message.
         """
         if self.sub is None:
             return
@@ -394,7 +401,8 @@ class Transport:
             return
         now = time.monotonic()
         for endpoint, since in list(self._leaving.items()):
-            if now - since >= LEAVE_GRACE_S:
+            quiet = now - self._heard_at >= LEAVE_GRACE_S
+            if now - since >= LEAVE_LIMIT_S or (now - since >= LEAVE_GRACE_S and quiet):
                 del self._leaving[endpoint]
                 self._connected.discard(endpoint)
                 self.sub.disconnect(endpoint)

@@ -76,3 +76,31 @@ def test_a_producer_that_comes_back_within_the_grace_period_stays_connected():
     done = subprocess.run([sys.executable, "-c", BACK], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["1"]  # before the fix it was dropped at the end of the grace period: 0
+
+
+TRICKLE = textwrap.dedent(CONNECTED + """
+    # the orchestrator says the producer is gone while the rest of its audio still trickles in, as from the
+    # kernel's buffers to a consumer behind on a loaded machine: its queue is empty between two messages
+    transport.connect_peers(set())
+    got, sent, next_send, end = [], 0, time.monotonic(), time.monotonic() + 2.5 * LEAVE_GRACE_S
+    while time.monotonic() < end + LEAVE_GRACE_S:
+        if sent < 8 and time.monotonic() >= next_send:
+            pub.send_multipart([topic_frame("grabber/audio"), b"end" if sent == 7 else b"more"])
+            sent, next_send = sent + 1, next_send + 2.5 * LEAVE_GRACE_S / 8
+        got += [frames[-1] for kind, frames in transport.events(20) if kind == "audio"]
+    pub.send_multipart([topic_frame("grabber/audio"), b"after"])  # quiet since the end: disconnected now
+    time.sleep(0.3)
+    got += [frames[-1] for kind, frames in transport.events(300) if kind == "audio"]
+    print(" ".join(bytes(g).decode() for g in got))
+    transport.close(); pub.close(0); gate.close(); context.term()
+""")
+
+
+def test_a_producer_gone_is_kept_while_its_audio_still_trickles_in():
+    """A consumer behind a fast grabber found its queue empty for a moment 1 s after the grabber had left and
+    dropped it with the rest of the file (its end of stream) still in the kernel's buffers: the run never
+    ended (seen under load in the GPSR harness). A departed producer is now dropped only once the input has
+    been quiet for LEAVE_GRACE_S (before this, the messages after the first second were lost)."""
+    done = subprocess.run([sys.executable, "-c", TRICKLE], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["more"] * 7 + ["end"], done.stdout
