@@ -217,6 +217,12 @@ class StreamState:
     def forget_audio(self) -> None:
         self.chunks, self.ends = [], []
 
+    def take_audio(self) -> bytes:
+        """All the kept chunks' audio, forgotten here."""
+        pcm = b"".join(self.chunks)
+        self.forget_audio()
+        return pcm
+
     def broken_off(self, audio: Audio) -> str:
         """Why ``audio`` does not continue the open utterance ("" if it does, or none is open)."""
         return "" if self.start_ns is None else broken_off(self.publisher, self.sequence, audio)
@@ -562,8 +568,7 @@ class Asr(Component):
             return self._asked_whisper(hypotheses, state, span, origin_ns, stream_id)
         if self.snap_whisper is None:
             return False
-        pcm = b"".join(state.chunks)
-        state.forget_audio()
+        pcm = state.take_audio()
         return (not hypotheses or self._out_of_set(hypotheses[0])) and \
             self._snapped_opinion(_float32(pcm), span, origin_ns, stream_id)
 
@@ -573,8 +578,7 @@ class Asr(Component):
         grammar's sentences on the same audio (``second_opinion``, the stream's kept chunks): its answer is
         published if it takes a sentence (True); else pocketsphinx's answer or rejection stands (False)."""
         assert self.second_opinion is not None
-        pcm = b"".join(state.chunks)
-        state.forget_audio()
+        pcm = state.take_audio()
         if hypotheses and not self._out_of_set(hypotheses[0]):
             return False
         samples = _float32(pcm)
