@@ -61,7 +61,11 @@ FILLER_WORDS = frozenset({"<s>", "</s>", "<sil>"})
 # (log-likelihood per frame, nats) is out of set; chosen on rendered rooms of seeds 2 and 3
 # (bench/closed_set_pocketsphinx.py, asr/README.md)
 MIN_CONFIDENCE = -1.8
+# second opinion: Whisper's sentence is taken only if pocketsphinx's confidence of it (a grammar of that
+# one sentence against the phone loop) is at least this (bench/cascade_agreement.py, asr/README.md)
+SECOND_OPINION_MIN_CONFIDENCE = -2.0
 GRAMMAR_SEARCH = "grammar"
+SENTENCE_SEARCH = "sentence"  # one sentence, for sentence_confidence
 VOCABULARY_SEARCH = "vocabulary"  # the language model with the vocabulary's words (none added to the dictionary)
 
 
@@ -292,6 +296,29 @@ class PocketsphinxRecognizer:
             self._loop.seed_cmn()
         self._cmn_seeded = True
         return hypotheses
+
+    def sentence_confidence(self, pcm: bytes, sentence: str) -> float | None:
+        """How well ``sentence`` (words of the dictionary) explains one whole utterance: ``pcm`` decoded with a
+        grammar of that sentence alone, its ``confidence`` against the phone loop (as ``recognise``; a
+        recogniser made with ``phone_loop`` and a grammar; its cepstral mean seeds the running one, as
+        ``recognise``'s). None: no path through the sentence's words reaches the utterance's end."""
+        if self._loop is None or self._grammar is None:
+            raise RecognizerError("sentence_confidence needs a grammar and the phone loop")
+        words = " ".join(sentence.split())
+        mark = self._log.mark()
+        try:  # the search is made anew for each sentence (a few ms); never the active one while replaced
+            self._decoder.add_jsgf_string(SENTENCE_SEARCH, f"#JSGF V1.0;\ngrammar one;\npublic <s> = {words} ;\n")
+        except RuntimeError as error:
+            raise RecognizerError(f"cannot make a grammar of {sentence!r}: "
+                                  f"{one_line(self._log.since(mark)) or error}") from error
+        self._decoder.activate_search(SENTENCE_SEARCH)
+        try:
+            hypotheses = self.recognise(pcm)
+        finally:
+            self._decoder.activate_search(GRAMMAR_SEARCH)
+        if not hypotheses or hypotheses[0].text != words:
+            return None
+        return hypotheses[0].confidence
 
     def _process(self, pcm: bytes, whole_utterance: bool) -> None:
         if not self._in_utterance:

@@ -23,6 +23,7 @@ from esiaf_services.asr.matching import GrammarError, Match, SentenceMatcher, ch
 from esiaf_services.asr.recognizer import (
     DEFAULT_EXTRA_DICT,
     MIN_CONFIDENCE,
+    SECOND_OPINION_MIN_CONFIDENCE,
     UNRECOGNISED,
     Hypothesis,
     PocketsphinxRecognizer,
@@ -138,6 +139,12 @@ class AsrSettings(BackendSettings):
         "and the transcript is snapped to the grammar's nearest sentence (whisper.max_snap_distance); '': none. "
         "Costs Whisper's model (~150 MB) and its decode on each rejected utterance (bench/cascade.py, "
         "docs/benchmarks.md)"))
+    second_opinion_min_confidence: float | None = Field(default=SECOND_OPINION_MIN_CONFIDENCE, ge=-10.0, le=1.0,
+                                                        description=(
+        "second_opinion whisper, acoustic scoring: Whisper's sentence is taken only if pocketsphinx agrees, its "
+        "confidence of that sentence (the utterance decoded again with a grammar of that one sentence, against the "
+        "phone loop, as pocketsphinx.min_confidence; ~0.2 CPU-s, only where Whisper takes a sentence) at least "
+        "this; null: Whisper's sentence is taken as it is (asr/README.md, bench/cascade_agreement.py)"))
     partial_interval_ms: float | None = Field(default=None, gt=0, description=(
         "audio between two partial results; unset: 300 ms with pocketsphinx (its running search), 1000 ms "
         "with whisper (the utterance so far decoded again, beam 1)"))
@@ -216,6 +223,12 @@ class StreamState:
 
     def forget_audio(self) -> None:
         self.chunks, self.ends = [], []
+
+    def take_audio(self) -> bytes:
+        """All the kept chunks' audio, forgotten here."""
+        pcm = b"".join(self.chunks)
+        self.forget_audio()
+        return pcm
 
     def broken_off(self, audio: Audio) -> str:
         """Why ``audio`` does not continue the open utterance ("" if it does, or none is open)."""
@@ -329,7 +342,7 @@ class Asr(Component):
             extra_dictionary=s.pocketsphinx.extra_dictionary or None,
             language_weight=s.pocketsphinx.language_weight, nbest=s.hypotheses(),
             vocabulary=self.vocabulary, vocabulary_weight=s.pocketsphinx.vocabulary_weight,
-            phone_loop=self._rejects())
+            phone_loop=self._rejects() or self._checks_agreement())
 
     def _second_opinion(self, entries: list[str]) -> None:
         """Whisper for what pocketsphinx rejects: its acoustic scoring over the grammar's sentences
@@ -371,6 +384,12 @@ class Asr(Component):
         w = self.settings.whisper
         return ClosedSetDecoder(model, matcher, w.shortlist, w.scoring_beam_size, min(3, w.scoring_beam_size),
                                 min_per_token=w.min_logprob_per_token)
+
+    def _checks_agreement(self) -> bool:
+        """Whisper's second opinion is checked by pocketsphinx (``second_opinion_min_confidence``): the
+        phone loop runs beside the grammar's decoder, whatever ``pocketsphinx.min_confidence``."""
+        s = self.settings
+        return s.second_opinion == "whisper" and self._grammar_search() and s.second_opinion_min_confidence is not None
 
     def _grammar_search(self) -> bool:
         """pocketsphinx decodes with a grammar: a closed set of its own."""
@@ -562,8 +581,7 @@ class Asr(Component):
             return self._asked_whisper(hypotheses, state, span, origin_ns, stream_id)
         if self.snap_whisper is None:
             return False
-        pcm = b"".join(state.chunks)
-        state.forget_audio()
+        pcm = state.take_audio()
         return (not hypotheses or self._out_of_set(hypotheses[0])) and \
             self._snapped_opinion(_float32(pcm), span, origin_ns, stream_id)
 
@@ -573,8 +591,7 @@ class Asr(Component):
         grammar's sentences on the same audio (``second_opinion``, the stream's kept chunks): its answer is
         published if it takes a sentence (True); else pocketsphinx's answer or rejection stands (False)."""
         assert self.second_opinion is not None
-        pcm = b"".join(state.chunks)
-        state.forget_audio()
+        pcm = state.take_audio()
         if hypotheses and not self._out_of_set(hypotheses[0]):
             return False
         samples = _float32(pcm)
@@ -583,6 +600,15 @@ class Asr(Component):
         if result is None or not result.in_set:
             log.info("utterance stream_id=%s start_ns=%d second opinion: out of set too", stream_id, span[0])
             return False
+        floor = self.settings.second_opinion_min_confidence
+        if floor is not None and state.recognizer is not None:
+            with self._quiet_for(1.0 + samples.size / self.settings.sample_rate_hz):
+                agreed = state.recognizer.sentence_confidence(pcm, result.ranked[0].sentence)
+            if agreed is None or agreed < floor:
+                log.info("utterance stream_id=%s start_ns=%d second opinion %r: pocketsphinx disagrees (its "
+                         "confidence of it %s), out of set", stream_id, span[0], result.ranked[0].sentence,
+                         "none: no path" if agreed is None else f"{agreed:.2f}")
+                return False
         self._emit_closed_set(result, span, origin_ns, stream_id, self.second_opinion.matcher)
         return True
 

@@ -10,7 +10,7 @@ import soundfile
 
 from esiaf import Audio, AudioFormat
 from esiaf.tools.testing import REPO, normalise
-from esiaf_services.asr.recognizer import MIN_CONFIDENCE
+from esiaf_services.asr.recognizer import MIN_CONFIDENCE, SECOND_OPINION_MIN_CONFIDENCE
 from esiaf_services.asr.service import Asr, AsrSettings
 
 EXAMPLE = REPO / "examples" / "robocup_questions.wav"
@@ -244,6 +244,33 @@ def test_what_pocketsphinx_rejects_whisper_answers_as_second_opinion():
     assert best.raw_text and best.logprob < 0 and best.match_score > 0
     (rejected,) = feed(component, outside, "robot")
     assert all(h.text == "" and h.out_of_set for h in rejected[2]["speech"]["hypotheses"])
+
+
+@pytest.mark.skipif(shutil.which("flite") is None, reason="Debian's flite is not installed")
+def test_whispers_second_opinion_is_taken_only_where_pocketsphinx_agrees_with_it():
+    """An answer repeating its question's words is out of set for pocketsphinx, and Whisper's scoring takes
+    it for the question ("The longest street in the world is Yonge Street." as "what's the longest street
+    in the world"). Asked about that one sentence, pocketsphinx finds no path through its words to the
+    utterance's end: with ``second_opinion_min_confidence`` (the default) the answer stays out of set;
+    without (null) Whisper's question is published. A question pocketsphinx rejects (a ``min_confidence``
+    no sentence reaches) is still answered by Whisper: pocketsphinx agrees with that sentence."""
+    pytest.importorskip("faster_whisper", reason="the asr-whisper extra is not installed (setup.sh installs it)")
+    synthesise = synthesiser().synthesise_sentence
+    for voice in ("slt", "kal16"):
+        question = synthesise("What does CAPTCHA stands for?", voice)
+        answer = synthesise("The longest street in the world is Yonge Street.", voice)
+        said = {}
+        for check in (SECOND_OPINION_MIN_CONFIDENCE, None):
+            component = Asr(AsrSettings(grammar="robocup", pocketsphinx={"min_confidence": 5.0},
+                                        second_opinion="whisper", second_opinion_min_confidence=check))
+            component.setup()
+            said[check] = [feed(component, samples, "robot")[0][2]["speech"]["hypotheses"][0]
+                           for samples in (question, answer)]
+        assert [(h.text, h.out_of_set) for h in said[None]] == [
+            ("what does captcha stands for", False), ("what's the longest street in the world", False)], voice
+        checked_question, checked_answer = said[SECOND_OPINION_MIN_CONFIDENCE]
+        assert (checked_question.text, checked_question.out_of_set) == ("what does captcha stands for", False)
+        assert (checked_answer.text, checked_answer.out_of_set) == ("", True), voice
 
 
 @pytest.mark.parametrize(("settings", "complaint"), [

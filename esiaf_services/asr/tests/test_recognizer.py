@@ -167,6 +167,22 @@ def test_the_phone_loop_keeps_a_question_and_rejects_speech_out_of_the_grammar(v
     assert outside.confidence is not None and outside.confidence < MIN_CONFIDENCE
 
 
+@needs_flite
+def test_a_sentence_is_scored_alone_against_the_phone_loop(synthesiser: ModuleType) -> None:
+    """``sentence_confidence``: the utterance decoded with a grammar of one sentence. The question said
+    gets a confidence as high as the grammar search's; an answer repeating a question's words has no path
+    through that question's words to its end (None); the grammar search goes on as before afterwards."""
+    recogniser = PocketsphinxRecognizer(grammar=ROBOCUP_GRAMMAR, phone_loop=True)
+    question = synthesiser.synthesise_sentence("What does CAPTCHA stands for?", "slt").tobytes()
+    answer = synthesiser.synthesise_sentence("The longest street in the world is Yonge Street.", "slt").tobytes()
+    agreed = recogniser.sentence_confidence(question, "what does captcha stands for")
+    assert agreed is not None and agreed > MIN_CONFIDENCE + 1
+    assert recogniser.sentence_confidence(answer, "what's the longest street in the world") is None
+    assert recogniser.recognise(question)[0].text == "what does captcha stands for"
+    with pytest.raises(RecognizerError, match="needs a grammar and the phone loop"):
+        PocketsphinxRecognizer(grammar=ROBOCUP_GRAMMAR).sentence_confidence(question, "what does captcha stands for")
+
+
 def test_without_the_phone_loop_there_is_no_confidence(grammar_recogniser: PocketsphinxRecognizer) -> None:
     pcm = GOFORWARD_RAW.read_bytes() if GOFORWARD_RAW.is_file() else b"\0\0" * 16000
     assert all(h.confidence is None and h.word_confidence is None for h in grammar_recogniser.recognise(pcm))
