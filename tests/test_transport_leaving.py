@@ -89,8 +89,7 @@ TRICKLE = textwrap.dedent(CONNECTED + """
             sent, next_send = sent + 1, next_send + 2.5 * LEAVE_GRACE_S / 8
         got += [frames[-1] for kind, frames in transport.events(20) if kind == "audio"]
     pub.send_multipart([topic_frame("grabber/audio"), b"after"])  # quiet since the end: disconnected now
-    time.sleep(0.3)
-    got += [frames[-1] for kind, frames in transport.events(300) if kind == "audio"]
+    got += [frames[-1] for kind, frames in transport.events(300) if kind == "audio"]  # waits 300 ms for it
     print(" ".join(bytes(g).decode() for g in got))
     transport.close(); pub.close(0); gate.close(); context.term()
 """)
