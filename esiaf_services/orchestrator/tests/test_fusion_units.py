@@ -409,3 +409,20 @@ def test_a_replays_player_far_ahead_of_the_microphones_does_not_make_fusion_forg
     clock.now = 73 * S
     fused, = engine.on_result(result(1, "asr", "speech", 71 * S, 73 * S, speech={"hypotheses": []}), 73 * S)
     assert fused.result.playback_overlap == 1.0 and fused.result.source == "robot"
+
+
+def test_a_late_utterance_of_a_replay_still_finds_what_the_robot_played():
+    """In a replay (--fast) the localiser runs minutes ahead of the recogniser: the utterance the recogniser
+    answers 150 s behind the localiser still finds the robot's playback in its span (it found none, 2026-11-28:
+    the localiser's results had moved fusion's memory past it)."""
+    engine, clock = engine_with(("asr", "speech"), ("ssl", "ssl"))
+    for n in range(30):  # the robot plays 8 s of every 10, reported ahead
+        engine.on_result(result(1000 + n, "player", "playback", n * 10 * S, (n * 10 + 8) * S,
+                                playback={"text": "", "attributes": {"item": 1, "part": n}}), 0)
+    engine.on_result(result(1, "asr", "speech", 0, 1 * S, speech={"hypotheses": []}), S)
+    for n in range(300 * 4):  # the localiser 300 s on
+        engine.on_result(result(2000 + n, "ssl", "ssl", n * S // 4, (n + 1) * S // 4,
+                                ssl={"directions": [direction(20)]}), n * S // 4)
+    clock.now = 300 * S
+    fused, = engine.on_result(result(2, "asr", "speech", 151 * S, 153 * S, speech={"hypotheses": []}), 300 * S)
+    assert fused.result.playback_overlap == 1.0 and fused.result.source == "robot"
