@@ -22,8 +22,12 @@ microphones, babble 10 dB below the person):
 
     nice -n 10 python -m bench.robot_speaks [--array respeaker4] [--conditions 0:100,150:-100,300:100,300:-100]
         [--runs 2] [--talk-s 300] [--port 23200] [--workdir DIR] [--json out.json] [--skip aec,eval,talk]
-        [--slow-start] [--gate-before]
+        [--slow-start] [--gate-before] [--babble-alone]
         [-- ESIAF RUN OPTIONS]
+
+``--babble-alone`` runs the talk a second time on its microphones without the robot's echo (the scene less
+the echo rendered alone: its babble at the same scale), the player playing as before: the fused user
+utterances the babble alone makes (names ending ``_babble_alone``).
 
 ``--gate-before`` runs the robot's half of the eval part and the talk part a second time with the delay
 tracker's gate as it was before 2026-11-28 (``ESIAF_AEC_DELAY_OUTLIER_MS=20``: an estimate up to 20 ms off
@@ -53,6 +57,7 @@ FS = 16000
 PERSON_BELOW_ECHO_DB = 10.0
 BABBLE_BELOW_PERSON_DB = 10.0
 GATE_BEFORE = {"ESIAF_AEC_DELAY_OUTLIER_MS": "20"}  # the delay tracker's gate before 2026-11-28
+BABBLE_ALONE = "_babble_alone"  # the talk's control: its babble without the robot's echo
 
 
 @contextlib.contextmanager
@@ -176,9 +181,10 @@ def eval_figures(array: str, silent: list, robot: list, robot_dir: Path, variant
 
 
 def talk_part(array: str, seconds: float, seed: int, work: Path, port: int, options: list[str],
-              variants: dict[str, dict[str, str]]) -> dict[str, dict]:
+              variants: dict[str, dict[str, str]], babble_alone: bool = False) -> dict[str, dict]:
     """The robot talking alone for ``seconds``: fused results through the pipeline, robot-tagged or not, once
-    per variant (its environment added to the pipeline's)."""
+    per variant (its environment added to the pipeline's); with ``babble_alone`` once more on the same
+    microphones without the robot's echo (the player playing as before)."""
     import soundfile
 
     from bench.aec import flite, questions_and_answers
@@ -214,11 +220,20 @@ def talk_part(array: str, seconds: float, seed: int, work: Path, port: int, opti
                   tail_s=1.0, seed=seed)
     signals, _ = render(scene)
     audio = work / "scene.flac"
-    soundfile.write(str(audio), np.round(signals * 32767).astype(np.int16), FS)
+    pcm = np.round(signals * 32767).astype(np.int16)
+    soundfile.write(str(audio), pcm, FS)
     robot_speech_s = float(np.sum(np.abs(track) > 0) / FS)
-    return {variant: talk_run(array, seconds, audio, reference, robot_speech_s,
+    runs = {variant: (audio, env) for variant, env in variants.items()}
+    if babble_alone:  # the scene less its echo rendered alone (the babble 70 dB down): the echo sets the scale
+        scene.noise[0].snr_db = 70.0
+        echo_alone, _ = render(scene)
+        babble_audio = work / "babble-alone.flac"
+        soundfile.write(str(babble_audio), np.clip(pcm.astype(np.int32) - np.round(echo_alone * 32767).astype(np.int32),
+                                                   -32768, 32767).astype(np.int16), FS)
+        runs[BABBLE_ALONE] = (babble_audio, {})
+    return {variant: talk_run(array, seconds, path, reference, robot_speech_s,
                               work / (variant.strip("_").replace("_", "-") or "default"), port, options, env, variant)
-            for variant, env in variants.items()}
+            for variant, (path, env) in runs.items()}
 
 
 def talk_run(array: str, seconds: float, audio: Path, reference: Path, robot_speech_s: float, run_dir: Path,
@@ -262,6 +277,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--gate-before", action="store_true",
                         help="also run the eval's robot half and the talk with the delay tracker's gate before "
                              "2026-11-28 (aec delay_outlier_ms 20), side by side")
+    parser.add_argument("--babble-alone", action="store_true",
+                        help="also run the talk's microphones without the robot's echo (its babble alone, at the "
+                             "same scale; the player playing): what the babble makes of the figures")
     args = parser.parse_args(argv)
     variants = {"": {}, **({"_gate_before": GATE_BEFORE} if args.gate_before else {})}
     from esiaf.tools.evaluation import DEFAULT_PIPELINE
@@ -279,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
         report["eval"] = eval_part(args.array, args.runs, args.seed, work / "eval", args.port, pipeline, variants)
     if "talk" not in skip:
         report["talk"] = talk_part(args.array, args.talk_s, args.seed, work / "talk", args.port + 1, pipeline,
-                                   variants)
+                                   variants, args.babble_alone)
     print(f"\n{'target':<62} {'measured':<40} goal")
     lines: list[tuple[str, str, str]] = []
     values: dict[str, float] = {}
