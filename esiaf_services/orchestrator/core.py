@@ -144,7 +144,8 @@ class Orchestrator:
         settings = self.settings
         engine = FusionEngine(settings.fusions, allocate_id=lambda: self.store.allocate_fused_id(),
                               live_components=self.registry.live.values,
-                              timeouts=settings.timeouts, capture_offset_ns=self.clocks.capture_offset_ns)
+                              timeouts=settings.timeouts, capture_offset_ns=self.clocks.capture_offset_ns,
+                              out_of_set_is_nothing=settings.robot_out_of_set_is_nothing)
         try:
             curve = keys.load(orchestrator=True)
         except keys.KeyFileError as exc:

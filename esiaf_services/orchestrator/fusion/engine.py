@@ -148,8 +148,10 @@ class FusionEngine:
                  live_components: Callable[[], Iterable[LiveComponent]] = lambda: (),
                  timeouts: TimeoutSettings | None = None,
                  clock_ns: Callable[[], int] = time.time_ns,
-                 capture_offset_ns: Callable[[str], int] = lambda stream_id: 0) -> None:
+                 capture_offset_ns: Callable[[str], int] = lambda stream_id: 0,
+                 out_of_set_is_nothing: bool = False) -> None:
         self._allocate_id = allocate_id
+        self.out_of_set_is_nothing = out_of_set_is_nothing  # fusion/playback.py is_robot's
         # a stream's capture times are on its capturing host's clock: this much added puts them on ours
         self._capture_offset_ns = capture_offset_ns
         self._live = live_components
@@ -481,7 +483,8 @@ class FusionEngine:
         share = round(overlap_share(items, *window), 4)
         echoes = memory.index.get(ECHO)
         robot = is_robot(share, items, fusion.anchor.json, results, summary.get("ssl"),
-                         [r.json for r in echoes.overlapping(*window)] if echoes is not None and share else [])
+                         [r.json for r in echoes.overlapping(*window)] if echoes is not None and share else [],
+                         out_of_set_is_nothing=self.out_of_set_is_nothing)
         results, omitted = bounded_lists(results)
         # model_construct: every value is the engine's own (results as the codec checked them on arrival)
         result = FusedResult.model_construct(

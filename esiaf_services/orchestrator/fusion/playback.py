@@ -31,8 +31,12 @@ result of a stream whose robot played during its span (docs/protocol.md, "Fused 
   - words were recognised and the robot's are not known (a sound file played without a transcript):
     nothing tells them from the robot's, and the words are taken for a person's (a question is not
     lost; the robot's echo recognised as words is shown, so give the robot's words);
-  - nothing was recognised (no asr in the fusion, or an empty hypothesis: out of a closed set): the
-    overlap decides;
+  - nothing was recognised (no asr in the fusion, or an empty hypothesis; with the orchestrator's
+    ``robot_out_of_set_is_nothing``, off by default, also one out of a closed set: the words a grammar's
+    recogniser forces onto the sound, its ``raw_text``, are then not taken for words heard): the overlap
+    decides. With the vad's gain on (``vad.silero.level_max_gain_db``) the room's babble under the robot's
+    talk is decoded so ("what is a chatbot"), and its raw words, not the robot's, made a person of it
+    (docs/benchmarks.md, "Out-of-set words are no person");
   - and where the localiser marks the robot's loudspeaker (ssl's ``self_azimuth_deg``: directions with
     ``source_id`` ``self``) and places the talker on another track that is not background, that is a
     person too.
@@ -136,13 +140,17 @@ def text_similarity(heard: str, said: str) -> float:
     return row[-1] / len(heard_words)
 
 
-def _heard_text(results: dict[str, list[dict[str, Any]]], anchor: dict[str, Any]) -> str | None:
+def _heard_text(results: dict[str, list[dict[str, Any]]], anchor: dict[str, Any],
+                out_of_set_is_nothing: bool = False) -> str | None:
     """The best hypothesis's words of the utterance (the anchor's, or its speech results'), or None where
-    nothing was recognised (no hypothesis, or an empty one: out of a closed set)."""
+    nothing was recognised (no hypothesis, an empty one, or with ``out_of_set_is_nothing`` one out of a
+    closed set)."""
     for result in [anchor, *results.get("speech", [])]:
         hypotheses = (result.get("speech") or {}).get("hypotheses") or []
         if hypotheses:
             best = hypotheses[0]
+            if out_of_set_is_nothing and best.get("out_of_set"):  # what a closed set's recogniser forced onto
+                return None  # the sound (raw_text) is no words heard, from babble as from the robot's echo
             return str(best.get("raw_text") or best.get("text") or "") or None
     return None
 
@@ -176,13 +184,14 @@ def _decibels(value: Any) -> float:
 
 def is_robot(share: float, items: list[Played], anchor: dict[str, Any],
              results: dict[str, list[dict[str, Any]]], ssl: dict[str, Any] | None = None,
-             echoes: Iterable[dict[str, Any]] = ()) -> bool:
+             echoes: Iterable[dict[str, Any]] = (), out_of_set_is_nothing: bool = False) -> bool:
     """The module's rule: the utterance is the robot's own voice. ``ssl``: the fused result's ssl aggregate;
-    ``echoes``: the echo canceller's ``echo`` events (JSON) overlapping the utterance."""
+    ``echoes``: the echo canceller's ``echo`` events (JSON) overlapping the utterance; ``out_of_set_is_nothing``:
+    the orchestrator's ``robot_out_of_set_is_nothing``."""
     if share < ROBOT_OVERLAP or person_above_echo(echoes):
         return False
     said = " ".join(p.text for p in items if p.text)
-    heard = _heard_text(results, anchor)
+    heard = _heard_text(results, anchor, out_of_set_is_nothing)
     if heard is not None and (not said or text_similarity(heard, said) < ROBOT_TEXT_SIMILARITY):
         return False
     # the localiser marks the robot's loudspeaker (self) and placed the talker elsewhere: a person

@@ -169,6 +169,16 @@ def test_an_utterance_with_nothing_recognised_inside_the_robots_speech_is_the_ro
     out_of_set = {"speech": {"hypotheses": [{"text": "", "raw_text": "", "probability": 0.1, "words": []}]}}
     assert is_robot(0.9, said, out_of_set, {})
     assert not is_robot(0.4, said, out_of_set, {})
+    # a grammar's recogniser found none of its sentences and forced some onto the sound (the room's babble under
+    # the robot, 2026-11-28): with robot_out_of_set_is_nothing those raw words are not words heard
+    forced = {"speech": {"hypotheses": [{"text": "", "raw_text": "what is a chatbot", "out_of_set": True,
+                                         "probability": 0.9, "words": []}]}}
+    assert is_robot(0.9, said, forced, {}, out_of_set_is_nothing=True)
+    assert not is_robot(0.9, said, forced, {})  # the default: the forced words are other words than the robot's
+    in_set = {"speech": {"hypotheses": [{"text": "what is a chatbot", "raw_text": "what is a chatbot",
+                                         "out_of_set": False, "probability": 0.9, "words": []}]}}
+    # a sentence of the set, not the robot's words: a person's
+    assert not is_robot(0.9, said, in_set, {}, out_of_set_is_nothing=True)
 
 
 def test_fusion_takes_an_utterance_with_nothing_recognised_for_a_persons_where_the_canceller_says_so():
