@@ -32,7 +32,6 @@ from .playback import ECHO, PLAYBACK, SPEECH_START, Played, is_robot, overlap_sh
 __all__ = ["Fusion", "FusionEngine", "Publication", "StoredResult"]
 
 EVENTS = (PLAYBACK, SPEECH_START, ECHO)  # kinds that report no coverage of the audio (fusion/playback.py)
-LOOKED_UP_AT_PUBLISH = (PLAYBACK, ECHO)  # read from memory when a fusion is published, not when it opens
 PRUNE_EVERY = 64  # results per stream between two prunings of its memory
 MAX_REPLAYED_STREAMS = 10_000  # replayed streams remembered (whose latencies are not learnt)
 COMPLETE, TIMED_OUT, COMPONENTS_GONE = "complete", "timed_out", "components_gone"
@@ -392,17 +391,19 @@ class FusionEngine:
     def _prune(self, memory: StreamMemory) -> None:
         memory.since_prune = 0
         horizon = memory.newest_end_ns - self.memory_ns
-        # what a fusion looks up only when it is published (the robot's playback, the canceller's echo events)
-        # is kept until the slowest component still covering the stream has answered past it: in a replay
-        # (--fast) the localiser and the canceller run minutes ahead of the recogniser, whose late utterances
-        # found no playback in their span (playback_overlap 0); at most twice memory_s behind the newest
+        # what a late fusion looks up (the localiser's directions, the robot's playback, the canceller's echo
+        # events, the labellers' results and their coverage) is kept until the slowest component still covering
+        # the stream has answered past it: in a replay (--fast) the localiser and the canceller run minutes
+        # ahead of the recogniser, whose late utterances found neither their direction nor the robot's
+        # playback (playback_overlap 0) in their span; at most twice memory_s behind the newest. Live, the
+        # components answer in step and this is memory_s behind the newest
         answered = [end for name, end in memory.answered.items() if name not in memory.ended]
         late = max(memory.newest_end_ns - 2 * self.memory_ns,
                    min([memory.newest_end_ns, *answered]) - self.memory_ns)
-        for kind, index in memory.index.items():
-            index.forget_before(late if kind in LOOKED_UP_AT_PUBLISH else horizon)
+        for index in memory.index.values():
+            index.forget_before(late)
         for coverage in memory.coverage.values():
-            coverage.forget_before(horizon)
+            coverage.forget_before(late)
         memory.published.forget_before(horizon)
 
     @staticmethod

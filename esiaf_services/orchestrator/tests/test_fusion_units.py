@@ -426,3 +426,18 @@ def test_a_late_utterance_of_a_replay_still_finds_what_the_robot_played():
     clock.now = 300 * S
     fused, = engine.on_result(result(2, "asr", "speech", 151 * S, 153 * S, speech={"hypotheses": []}), 300 * S)
     assert fused.result.playback_overlap == 1.0 and fused.result.source == "robot"
+
+
+def test_a_late_utterance_of_a_replay_still_finds_its_direction():
+    """In a replay (--fast) the localiser runs minutes ahead of the recogniser: an utterance the recogniser
+    answers 150 s behind it is fused with the localiser's directions over its span, complete (the
+    localiser's results and coverage had been forgotten 120 s behind the newest, 2026-11-28: no direction)."""
+    engine, clock = engine_with(("asr", "speech"), ("ssl", "ssl"))
+    engine.on_result(result(1, "asr", "speech", 0, 1 * S, speech={"hypotheses": []}), S)
+    for n in range(300 * 4):  # the localiser 300 s on
+        engine.on_result(result(2000 + n, "ssl", "ssl", n * S // 4, (n + 1) * S // 4,
+                                ssl={"directions": [direction(40 if 150 <= n // 4 < 154 else 200)]}), n * S // 4)
+    clock.now = 300 * S
+    fused, = engine.on_result(result(2, "asr", "speech", 151 * S, 153 * S, speech={"hypotheses": []}), 300 * S)
+    assert fused.result.completion == "complete" and fused.result.missing == []
+    assert fused.result.aggregates["ssl"]["azimuth_deg"] == pytest.approx(40)
