@@ -84,6 +84,8 @@ class Pipeline:
     microphone_consumers: int = 1  # ... how many services subscribe to it
     # the topic each service on the vad's output hears: vad/speech, or denoiser/speech (vad -> denoiser -> them)
     inputs: dict[str, str] = field(default_factory=dict)
+    # the topic Whisper's second opinion in the asr hears besides the asr's input ("": none; asr/service.py)
+    second_opinion_topic: str = ""
 
 
 def run(args: argparse.Namespace) -> int:
@@ -302,6 +304,7 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
     ``replicas`` as that many instances: asr-1, asr-2, ...)."""
     # who hears the vad's utterances denoised; the vad hears the audio as it is (see the module)
     inputs = speech_inputs(args, without)
+    second_opinion_topic = second_opinion_input(inputs)
     services = start_replicas(supervisor, "asr", replicas.get("asr", 1),
                               (["--grammar", args.grammar] if args.grammar else [])
                               + (["--backend", args.asr] if args.asr else []),
@@ -345,7 +348,7 @@ def start_services(args: argparse.Namespace, supervisor: Supervisor, array: Arra
             services.update(start_replicas(supervisor, name, replicas.get(name, 1), env=topic))
     guests = {guest for names in hosts.values() for guest in names}
     return Pipeline(services, grabber_env, beamforming, labellers, replicas, guests, vad_in_grabber, microphones,
-                    consumers, inputs)
+                    consumers, inputs, second_opinion_topic)
 
 
 def speech_inputs(args: argparse.Namespace, without: set[str]) -> dict[str, str]:
@@ -362,6 +365,17 @@ def speech_inputs(args: argparse.Namespace, without: set[str]) -> dict[str, str]
     if any(denoised.values()):
         inputs["denoiser"] = "vad/speech"
     return inputs
+
+
+def second_opinion_input(inputs: dict[str, str]) -> str:
+    """The topic Whisper's second opinion in the asr hears besides the asr's input, if asked for
+    (``ESIAF_ASR_SECOND_OPINION=whisper`` and ``ESIAF_ASR_SECOND_OPINION_TOPIC=vad/speech``: pocketsphinx
+    hears the denoiser, Whisper the vad), so the launcher waits for that subscription too; "": none. Not the
+    default: on the GPSR harness it gained nothing (docs/benchmarks.md, "GPSR commands")."""
+    if os.environ.get("ESIAF_ASR_SECOND_OPINION") != "whisper":
+        return ""
+    topic = os.environ.get("ESIAF_ASR_SECOND_OPINION_TOPIC", "")
+    return "" if topic == inputs["asr"] else topic
 
 
 def start_front(args: argparse.Namespace, supervisor: Supervisor, services: dict[str, Child], channels: int,
@@ -494,8 +508,14 @@ def wait_for_subscriptions(client: OrchestratorClient, supervisor: Supervisor, p
 def subscribers_of(pipeline: Pipeline, topic: str) -> list[str]:
     """The services that subscribe to ``topic`` once each, as they start: neither replicas (they subscribe
     once they take a stream) nor guests (their host subscribes for them)."""
-    return [name for name, heard in pipeline.inputs.items() if heard == topic and name in pipeline.services
+    return [name for name, heard in heard_topics(pipeline) if heard == topic and name in pipeline.services
             and name not in pipeline.replicas and name not in pipeline.guests]
+
+
+def heard_topics(pipeline: Pipeline) -> list[tuple[str, str]]:
+    """Each service on the vad's output and a topic it hears: its input, and the asr's second opinion's."""
+    return [*pipeline.inputs.items(), *([("asr", pipeline.second_opinion_topic)] if pipeline.second_opinion_topic
+                                        else [])]
 
 
 def reserve_streams(client: OrchestratorClient, supervisor: Supervisor, pipeline: Pipeline, ids: list[str],
@@ -508,7 +528,7 @@ def reserve_streams(client: OrchestratorClient, supervisor: Supervisor, pipeline
     # a replicated service subscribes once per stream (each instance to its own streams); any other, once; a
     # guest not at all (its host subscribes for it)
     for topic, producer in (("vad/speech", "vad"), ("denoiser/speech", "denoiser")):
-        hearing = Counter([name for name, heard in pipeline.inputs.items() if heard == topic
+        hearing = Counter([name for name, heard in heard_topics(pipeline) if heard == topic
                            and (name in pipeline.services or name in pipeline.replicas)
                            and name not in pipeline.guests] + (list(on_speech) if topic == "vad/speech" else []))
         subscriptions = sum(len(ids) if name in pipeline.replicas else count for name, count in hearing.items())

@@ -45,6 +45,7 @@ from esiaf_services.asr.whisper import WhisperRecognizer, WhisperResult
 
 log = logging.getLogger(__name__)
 JOINED_LATE_NS = 50_000_000  # the first audio of an utterance later than its speech start by this: joined late
+MAX_HEARD_NS = 120 * 1_000_000_000  # second_opinion_topic's audio kept at most this long (capture time)
 
 GRAMMARS = Path(__file__).resolve().parent / "grammars"
 N_BEST_DEFAULT = {"pocketsphinx": 5, "whisper": 10}  # hypotheses per segment, unless n_best says
@@ -139,6 +140,11 @@ class AsrSettings(BackendSettings):
         "and the transcript is snapped to the grammar's nearest sentence (whisper.max_snap_distance); '': none. "
         "Costs Whisper's model (~150 MB) and its decode on each rejected utterance (bench/cascade.py, "
         "docs/benchmarks.md)"))
+    second_opinion_topic: str = Field(default="", description=(
+        "second_opinion whisper: the topic of the audio Whisper hears, the same utterances at the same capture "
+        "times as input_topic's (vad/speech where the asr hears denoiser/speech: Whisper transcribes the vad's "
+        "audio better than the denoised); where some of an utterance's audio is missing there, input_topic's. '': "
+        "input_topic's audio. On the GPSR harness it gained nothing, so not the default (docs/benchmarks.md)"))
     second_opinion_min_confidence: float | None = Field(default=SECOND_OPINION_MIN_CONFIDENCE, ge=-10.0, le=1.0,
                                                         description=(
         "second_opinion whisper, acoustic scoring: Whisper's sentence is taken only if pocketsphinx agrees, its "
@@ -208,6 +214,8 @@ class StreamState:
     ends: list[int] = field(default_factory=list)  # whisper: each kept chunk's capture end
     # whisper: a decode made before the segment closed, and the speech end it was made at
     early: tuple[int, ClosedSetResult | WhisperResult | None] | None = None
+    # second_opinion_topic's chunks (start_ns, end_ns, pcm): the audio Whisper's second opinion hears
+    heard: list[tuple[int, int, bytes]] = field(default_factory=list)
 
     def open(self, start_ns: int) -> None:
         self.start_ns, self.partial_at_ns, self.partial_text, self.decoded = start_ns, start_ns, "", []
@@ -229,6 +237,16 @@ class StreamState:
         pcm = b"".join(self.chunks)
         self.forget_audio()
         return pcm
+
+    def heard_between(self, start_ns: int, end_ns: int, size: int) -> bytes | None:
+        """The second opinion's audio (``heard``) from ``start_ns`` to ``end_ns``, if it is ``size`` bytes as
+        the utterance's own audio is (None: some of it is missing)."""
+        pcm = b"".join(chunk for start, end, chunk in self.heard if start >= start_ns and end <= end_ns)
+        return pcm if len(pcm) == size else None
+
+    def forget_heard(self, until_ns: int) -> None:
+        """The second opinion's audio up to ``until_ns`` forgotten (an utterance closed there)."""
+        self.heard = [kept for kept in self.heard if kept[1] > until_ns]
 
     def broken_off(self, audio: Audio) -> str:
         """Why ``audio`` does not continue the open utterance ("" if it does, or none is open)."""
@@ -253,6 +271,12 @@ class Asr(Component):
         if settings.whisper.shortlist < 1:
             raise SetupError(f"asr shortlist must be at least 1, not {settings.whisper.shortlist}")
         self.add_input(settings.input_topic, AudioFormat(settings.sample_rate_hz, "int16", channels=1))
+        # the second opinion's own audio (second_opinion_topic): the same utterances, another topic
+        self.heard_topic = settings.second_opinion_topic if settings.second_opinion and \
+            settings.second_opinion_topic not in ("", settings.input_topic) else ""
+        if self.heard_topic:
+            self.add_input(self.heard_topic, AudioFormat(settings.sample_rate_hz, "int16", channels=1))
+        self.unheard = 0  # second opinions given on input_topic's audio: the second topic's was incomplete
         self.streams: OrderedDict[str, StreamState] = OrderedDict()
         self.whisper: WhisperRecognizer | None = None
         self.matcher: SentenceMatcher | None = None
@@ -428,6 +452,13 @@ class Asr(Component):
         return None
 
     def on_audio(self, audio: Audio) -> None:
+        if self.heard_topic and audio.topic == self.heard_topic:
+            if audio.payload:  # kept until its utterance closes on input_topic (the same capture times)
+                heard = self._stream(audio.stream_id).heard
+                heard.append((audio.start_ns, audio.end_ns, audio.payload))
+                while heard and heard[0][1] < audio.end_ns - MAX_HEARD_NS:
+                    heard.pop(0)
+            return
         state = self.streams.get(audio.stream_id)
         if state is not None and (why := state.broken_off(audio)):
             self._abandon(state, audio.stream_id, why)
@@ -507,10 +538,31 @@ class Asr(Component):
         self.emit("speech", span, stream_id=stream_id, nothing=f"utterance broken off: {why}")
         log.warning("utterance stream_id=%s start_ns=%d broken off: %s", stream_id, span[0], why)
 
+    def stream_inputs(self) -> set[str]:
+        """The input's end ends a stream; the second opinion's topic's may be lost on a loaded machine (its
+        audio then comes from the input, ``_second_audio``)."""
+        return set(self.inputs) - {self.heard_topic}
+
     def on_segment_end(self, audio: Audio) -> None:
+        if self.heard_topic and audio.topic == self.heard_topic:
+            return  # the utterance closes on input_topic
+        self._close(audio)
+
+    def _close(self, audio: Audio) -> None:
+        """The open utterance of ``audio``'s stream decoded and published; the second opinion's audio up to
+        its end forgotten."""
         state = self.streams.get(audio.stream_id)
         if state is None or state.start_ns is None:
             return
+        try:
+            self._decode_closed(state, audio)
+        finally:
+            state.forget_heard(state.end_ns)
+
+    def _decode_closed(self, state: StreamState, audio: Audio) -> None:
+        """The closed utterance's result: pocketsphinx's (or, where it rejects, the second opinion's), or
+        Whisper's; nothing for an utterance joined late."""
+        assert state.start_ns is not None
         origin_ns, state.start_ns = state.start_ns, None
         segment = audio.meta.segment
         span = (segment.start_ns, segment.end_ns) if segment.end_ns else (origin_ns, audio.end_ns)
@@ -583,7 +635,7 @@ class Asr(Component):
             return False
         pcm = state.take_audio()
         return (not hypotheses or self._out_of_set(hypotheses[0])) and \
-            self._snapped_opinion(_float32(pcm), span, origin_ns, stream_id)
+            self._snapped_opinion(self._second_audio(state, origin_ns, pcm, stream_id), span, origin_ns, stream_id)
 
     def _asked_whisper(self, hypotheses, state: StreamState, span: tuple[int, int], origin_ns: int,
                        stream_id: str) -> bool:
@@ -594,7 +646,7 @@ class Asr(Component):
         pcm = state.take_audio()
         if hypotheses and not self._out_of_set(hypotheses[0]):
             return False
-        samples = _float32(pcm)
+        samples = self._second_audio(state, origin_ns, pcm, stream_id)
         with self._quiet_for(1.0 + samples.size / self.settings.sample_rate_hz):
             result = self.second_opinion.decode(samples)
         if result is None or not result.in_set:
@@ -611,6 +663,20 @@ class Asr(Component):
                 return False
         self._emit_closed_set(result, span, origin_ns, stream_id, self.second_opinion.matcher)
         return True
+
+    def _second_audio(self, state: StreamState, origin_ns: int, pcm: bytes, stream_id: str) -> np.ndarray:
+        """What Whisper's second opinion hears of the utterance whose audio (input_topic's) is ``pcm``: the same
+        span of ``second_opinion_topic``, if that topic is heard and all of the span came; else ``pcm``."""
+        if not self.heard_topic:
+            return _float32(pcm)
+        heard = state.heard_between(origin_ns, state.end_ns, len(pcm))
+        if heard is None:
+            self.unheard += 1
+            self.info["second_opinion_unheard"] = self.unheard
+            log.warning("utterance stream_id=%s start_ns=%d: not all of it came on %s; the second opinion hears "
+                        "%s", stream_id, origin_ns, self.heard_topic, self.settings.input_topic)
+            return _float32(pcm)
+        return _float32(heard)
 
     def _snapped_opinion(self, samples: np.ndarray, span: tuple[int, int], origin_ns: int, stream_id: str) -> bool:
         """Where pocketsphinx rejected the utterance, Whisper's transcript of it snapped to the grammar
@@ -739,7 +805,7 @@ class Asr(Component):
     def on_end_of_stream(self, stream_id: str, audio: Audio) -> None:
         state = self.streams.get(stream_id)
         if state is not None and state.start_ns is not None:
-            self.on_segment_end(audio)  # a segment the VAD never closed
+            self._close(audio)  # a segment the VAD never closed
         super().on_end_of_stream(stream_id, audio)
 
 
