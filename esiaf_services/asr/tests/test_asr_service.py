@@ -401,3 +401,18 @@ def test_esiaf_run_waits_for_the_second_opinions_own_subscription_where_one_is_a
         monkeypatch.setenv(name, value)
     args = argparse.Namespace(denoiser=denoiser, asr=None)
     assert second_opinion_input(speech_inputs(args, set())) == topic
+
+
+@pytest.mark.parametrize("interval", ["0", "-300"])
+def test_a_partial_interval_of_zero_or_less_is_refused_at_start_up(tmp_path, interval):
+    """The asr started with ``partial_interval_ms`` 0 or negative stops before it registers, with one line
+    that names the setting and where it came from (exit 2)."""
+    import os
+    import subprocess
+    env = {**os.environ, "PYTHONPATH": str(REPO), "ESIAF_ASR_PARTIAL_INTERVAL_MS": interval,
+           "ESIAF_ORCHESTRATOR_URL": "http://127.0.0.1:9", "ESIAF_REGISTER_TIMEOUT_S": "0.5"}
+    done = subprocess.run([sys.executable, "-m", "esiaf_services.asr"], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert "partial_interval_ms" in done.stderr and "environment" in done.stderr, done.stderr
+    assert "register" not in done.stderr.lower(), done.stderr  # refused before it tried to register
