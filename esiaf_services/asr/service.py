@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar, Literal
@@ -215,7 +215,7 @@ class StreamState:
     # whisper: a decode made before the segment closed, and the speech end it was made at
     early: tuple[int, ClosedSetResult | WhisperResult | None] | None = None
     # second_opinion_topic's chunks (start_ns, end_ns, pcm): the audio Whisper's second opinion hears
-    heard: list[tuple[int, int, bytes]] = field(default_factory=list)
+    heard: deque[tuple[int, int, bytes]] = field(default_factory=deque)  # in capture order
 
     def open(self, start_ns: int) -> None:
         self.start_ns, self.partial_at_ns, self.partial_text, self.decoded = start_ns, start_ns, "", []
@@ -246,7 +246,8 @@ class StreamState:
 
     def forget_heard(self, until_ns: int) -> None:
         """The second opinion's audio up to ``until_ns`` forgotten (an utterance closed there)."""
-        self.heard = [kept for kept in self.heard if kept[1] > until_ns]
+        while self.heard and self.heard[0][1] <= until_ns:
+            self.heard.popleft()
 
     def broken_off(self, audio: Audio) -> str:
         """Why ``audio`` does not continue the open utterance ("" if it does, or none is open)."""
@@ -457,7 +458,7 @@ class Asr(Component):
                 heard = self._stream(audio.stream_id).heard
                 heard.append((audio.start_ns, audio.end_ns, audio.payload))
                 while heard and heard[0][1] < audio.end_ns - MAX_HEARD_NS:
-                    heard.pop(0)
+                    heard.popleft()
             return
         state = self.streams.get(audio.stream_id)
         if state is not None and (why := state.broken_off(audio)):
