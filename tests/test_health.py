@@ -4,7 +4,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import time
 
 from esiaf.tools.health import main as health
 from esiaf.tools.testing import REPO, free_port, poll
@@ -24,8 +23,7 @@ def test_a_component_is_healthy_while_the_orchestrator_answers_it(orchestrator, 
         poll(lambda: health_file.stat().st_mtime > touched, timeout_s=3)  # heartbeats keep it fresh
         assert health(["--file", str(health_file), "--max-age", "2"]) == 0
         orchestrator.kill()  # nobody answers any more: unhealthy after max-age
-        time.sleep(1.2)
-        assert health(["--file", str(health_file), "--max-age", "1"]) == 1
+        poll(lambda: health(["--file", str(health_file), "--max-age", "1"]) == 1, timeout_s=5)
         assert "has not answered for" in capsys.readouterr().err
     finally:
         vad.terminate()

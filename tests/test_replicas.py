@@ -83,7 +83,9 @@ def test_replicas_share_the_streams_and_a_killed_ones_move_to_the_survivor(orche
         replicas["sink-b"].wait()
         poll(lambda: set(orchestrator.http.get("/components").json()["services"]["sink"]["serving"].values())
              == {"sink-a"}, timeout_s=10)
-        time.sleep(0.5)  # sink-a is told, and subscribes to every stream
+        # sink-a, alone now, is told: it subscribes to the whole topic and drops its two streams (sink-b's two
+        # went with its connection), one subscription at the source's XPUB
+        poll(lambda: source.output_stats["source/audio"].subscribers == 1, timeout_s=10)
         assert publish_round(source, 10).wait(10)
         poll(lambda: taken(files["sink-a"]).total() >= 80, timeout_s=10)
         time.sleep(0.3)
