@@ -46,6 +46,7 @@ from esiaf_services.asr.whisper import WhisperRecognizer, WhisperResult
 log = logging.getLogger(__name__)
 JOINED_LATE_NS = 50_000_000  # the first audio of an utterance later than its speech start by this: joined late
 MAX_HEARD_NS = 120 * 1_000_000_000  # second_opinion_topic's audio kept at most this long (capture time)
+MAX_HEARD_CHUNKS = 120_000  # ... and at most this many chunks (120 s of 1 ms ones), whatever their stamps say
 
 GRAMMARS = Path(__file__).resolve().parent / "grammars"
 N_BEST_DEFAULT = {"pocketsphinx": 5, "whisper": 10}  # hypotheses per segment, unless n_best says
@@ -214,8 +215,8 @@ class StreamState:
     ends: list[int] = field(default_factory=list)  # whisper: each kept chunk's capture end
     # whisper: a decode made before the segment closed, and the speech end it was made at
     early: tuple[int, ClosedSetResult | WhisperResult | None] | None = None
-    # second_opinion_topic's chunks (start_ns, end_ns, pcm): the audio Whisper's second opinion hears
-    heard: deque[tuple[int, int, bytes]] = field(default_factory=deque)  # in capture order
+    # second_opinion_topic's chunks (start_ns, end_ns, pcm), in capture order: the audio Whisper's second opinion hears
+    heard: deque[tuple[int, int, bytes]] = field(default_factory=lambda: deque(maxlen=MAX_HEARD_CHUNKS))
 
     def open(self, start_ns: int) -> None:
         self.start_ns, self.partial_at_ns, self.partial_text, self.decoded = start_ns, start_ns, "", []

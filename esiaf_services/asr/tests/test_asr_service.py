@@ -416,3 +416,19 @@ def test_a_partial_interval_of_zero_or_less_is_refused_at_start_up(tmp_path, int
     assert done.returncode == 2, done.stderr
     assert "partial_interval_ms" in done.stderr and "environment" in done.stderr, done.stderr
     assert "register" not in done.stderr.lower(), done.stderr  # refused before it tried to register
+
+
+def test_the_second_opinions_audio_is_bounded_whatever_its_stamps_say(monkeypatch):
+    """A producer on ``second_opinion_topic`` whose capture stamps run backwards (never older than 120 s than
+    the newest) cannot make the asr keep more than ``MAX_HEARD_CHUNKS`` chunks of a stream."""
+    from esiaf_services.asr import service
+    monkeypatch.setattr(service, "MAX_HEARD_CHUNKS", 500)
+    component = Asr(AsrSettings(grammar="robocup", second_opinion="whisper", input_topic="denoiser/speech",
+                                second_opinion_topic="vad/speech"))
+    fmt = AudioFormat(RATE, "int16", channels=1)
+    for n in range(2000):
+        start_ns = (10_000 - n) * 1_000_000  # each chunk 1 ms earlier than the one before
+        component.on_audio(Audio(topic="vad/speech", stream_id="robot", publisher="vad", sequence=n + 1,
+                                 start_ns=start_ns, end_ns=start_ns + 1_000_000, format=fmt, payload=b"\0\0" * 16))
+    heard = component.streams["robot"].heard
+    assert len(heard) == 500 and heard[-1][0] == (10_000 - 1999) * 1_000_000  # the newest kept
